@@ -1,0 +1,280 @@
+"""Network settings: parsed, checked, and checked across the classroom.
+
+Used twice, like the distro mapping: the roster validator runs
+`check_classroom_network` before any host is touched (address inside its subnet,
+gateway inside it, no address used twice, a WiFi password from the secrets
+file), and the network deploy parses each host's data again with
+`network_settings` so a host's data can never reach a template unchecked.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from ipaddress import IPv4Address, IPv4Interface, ip_address
+from typing import Any, Iterable, Mapping
+
+KINDS = ("ethernet", "wifi")
+METHODS = ("static", "dhcp")
+BACKENDS = ("auto", "netplan", "networkmanager")
+IPV6_MODES = ("auto", "disabled", "ignore")
+DEFAULT_INTERFACES = {"ethernet": "eth0", "wifi": "wlan0"}
+
+# Linux interface names: at most 15 characters, no slash or whitespace.
+INTERFACE_NAME = re.compile(r"^[A-Za-z0-9_.:-]{1,15}$")
+# WPA-PSK: a passphrase of 8 to 63 printable ASCII characters, or 64 hex digits.
+WPA_PASSPHRASE = re.compile(r"^[\x20-\x7e]{8,63}$")
+WPA_HEX_KEY = re.compile(r"^[0-9A-Fa-f]{64}$")
+CONTROL_CHARACTERS = re.compile(r"[\x00-\x1f\x7f]")
+
+
+class NetworkSettingError(ValueError):
+    """One bad network setting; `field` names the roster key."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(f"{field}: {message}")
+        self.field = field
+        self.message = message
+
+
+@dataclass(frozen=True)
+class NetworkSettings:
+    """One host's network configuration, checked."""
+
+    kind: str
+    method: str
+    interface: str
+    backend: str
+    ipv6: str
+    address: IPv4Interface | None = None
+    gateway: IPv4Address | None = None
+    nameservers: tuple[str, ...] = ()
+    wifi_ssid: str | None = None
+    # The secret itself (a HiddenValue-style object with .unmask()), never printed.
+    wifi_password: Any = field(default=None, repr=False)
+    confirm_timeout: int = 60
+    disable_cloud_init: bool = True
+
+    @property
+    def password(self) -> str | None:
+        """The WiFi password in clear, for the 0600 file only."""
+        if self.wifi_password is None:
+            return None
+        unmask = getattr(self.wifi_password, "unmask", None)
+        return unmask() if unmask else str(self.wifi_password)
+
+
+def _choice(data: Mapping, key: str, choices: tuple[str, ...]) -> str:
+    value = data.get(key)
+    if value not in choices:
+        raise NetworkSettingError(key, f"{value!r} is not one of {', '.join(choices)}")
+    return value
+
+
+def _address(data: Mapping) -> IPv4Interface:
+    raw = str(data.get("network_address")).strip()
+    prefix = data.get("network_prefix")
+    try:
+        if "/" in raw:
+            address = IPv4Interface(raw)
+            if prefix is not None and address.network.prefixlen != int(prefix):
+                raise NetworkSettingError(
+                    "network_address",
+                    f"{raw} has prefix /{address.network.prefixlen} "
+                    f"but network_prefix is {prefix}; give one of them",
+                )
+        else:
+            if prefix is None:
+                raise NetworkSettingError(
+                    "network_address",
+                    f"{raw} has no prefix length: write e.g. {raw}/24 or set network_prefix",
+                )
+            address = IPv4Interface(f"{raw}/{int(prefix)}")
+    except NetworkSettingError:
+        raise
+    except ValueError as exc:
+        field_name = "network_prefix" if "/" not in raw and prefix is not None else "network_address"
+        raise NetworkSettingError(field_name, f"{raw!r} is not an IPv4 address with prefix ({exc})")
+
+    network = address.network
+    if network.prefixlen < 8:
+        raise NetworkSettingError("network_address", f"prefix /{network.prefixlen} is too short")
+    if network.prefixlen <= 30 and address.ip in (network.network_address, network.broadcast_address):
+        which = "network" if address.ip == network.network_address else "broadcast"
+        raise NetworkSettingError(
+            "network_address", f"{address} is the {which} address of {network}, not a host address"
+        )
+    return address
+
+
+def _gateway(data: Mapping, address: IPv4Interface | None) -> IPv4Address | None:
+    raw = data.get("network_gateway")
+    if raw in (None, ""):
+        return None
+    try:
+        gateway = IPv4Address(str(raw).strip())
+    except ValueError:
+        raise NetworkSettingError("network_gateway", f"{raw!r} is not an IPv4 address") from None
+    if address is not None:
+        if gateway not in address.network:
+            raise NetworkSettingError(
+                "network_gateway", f"{gateway} is outside the subnet {address.network} of {address}"
+            )
+        if gateway == address.ip:
+            raise NetworkSettingError("network_gateway", f"{gateway} is the host's own address")
+    return gateway
+
+
+def _nameservers(data: Mapping) -> tuple[str, ...]:
+    raw = data.get("network_nameservers") or []
+    if isinstance(raw, str):
+        raw = [raw]
+    servers = []
+    for server in raw:
+        try:
+            servers.append(str(ip_address(str(server).strip())))
+        except ValueError:
+            raise NetworkSettingError(
+                "network_nameservers", f"{server!r} is not an IP address"
+            ) from None
+    return tuple(servers)
+
+
+def _wifi(data: Mapping) -> tuple[str, Any]:
+    ssid = data.get("wifi_ssid")
+    if not ssid:
+        raise NetworkSettingError("wifi_ssid", "a wifi host needs wifi_ssid")
+    ssid = str(ssid)
+    if len(ssid.encode()) > 32 or CONTROL_CHARACTERS.search(ssid):
+        raise NetworkSettingError(
+            "wifi_ssid", f"{ssid!r} is not a valid SSID (at most 32 bytes, no control characters)"
+        )
+    if not data.get("wifi_password_secret"):
+        raise NetworkSettingError(
+            "wifi_password_secret",
+            "a wifi host needs wifi_password_secret naming the WiFi password in the secrets file",
+        )
+    password = data.get("wifi_password")
+    if password is None:
+        raise NetworkSettingError(
+            "wifi_password_secret",
+            f"secret {data.get('wifi_password_secret')!r} was not found in the secrets file",
+        )
+    clear = password.unmask() if hasattr(password, "unmask") else str(password)
+    if not (WPA_PASSPHRASE.match(clear) or WPA_HEX_KEY.match(clear)):
+        # Never quote the password itself.
+        raise NetworkSettingError(
+            "wifi_password_secret",
+            f"secret {data.get('wifi_password_secret')!r} is not a WPA password "
+            f"(8 to 63 printable ASCII characters, or 64 hex digits; it has {len(clear)})",
+        )
+    return ssid, password
+
+
+def manages_network(data: Mapping) -> bool:
+    """Whether the network deploy touches this host at all."""
+    if not data.get("network_enabled", True):
+        return False
+    return bool(data.get("network_address")) or data.get("network_method") == "dhcp"
+
+
+def network_settings(data: Mapping) -> NetworkSettings | None:
+    """Parse and check one host's network settings; None if the host's network is left alone.
+
+    Raises NetworkSettingError naming the field for any bad value.
+    """
+    if not manages_network(data):
+        return None
+    kind = _choice(data, "network_kind", KINDS)
+    method = _choice(data, "network_method", METHODS)
+    backend = _choice(data, "network_backend", BACKENDS)
+    ipv6 = _choice(data, "network_ipv6", IPV6_MODES)
+
+    interface = data.get("network_interface") or DEFAULT_INTERFACES[kind]
+    if not INTERFACE_NAME.match(str(interface)):
+        raise NetworkSettingError("network_interface", f"{interface!r} is not an interface name")
+
+    address = _address(data) if method == "static" else None
+    if method == "static" and address is None:
+        raise NetworkSettingError("network_address", "a static address is required")
+    gateway = _gateway(data, address)
+    nameservers = _nameservers(data)
+
+    ssid, password = _wifi(data) if kind == "wifi" else (None, None)
+
+    timeout = data.get("network_confirm_timeout")
+    if isinstance(timeout, bool) or not isinstance(timeout, int) or not 10 <= timeout <= 3600:
+        raise NetworkSettingError(
+            "network_confirm_timeout", f"{timeout!r} is not a number of seconds from 10 to 3600"
+        )
+
+    return NetworkSettings(
+        kind=kind,
+        method=method,
+        interface=str(interface),
+        backend=backend,
+        ipv6=ipv6,
+        address=address,
+        gateway=gateway,
+        nameservers=nameservers,
+        wifi_ssid=ssid,
+        wifi_password=password,
+        confirm_timeout=timeout,
+        disable_cloud_init=bool(data.get("network_disable_cloud_init", True)),
+    )
+
+
+@dataclass(frozen=True)
+class NetworkProblem:
+    """A bad network setting of one host in the roster."""
+
+    team: str | None
+    host: str
+    field: str
+    message: str
+
+
+def check_classroom_network(hosts: Iterable[tuple[str | None, str, Mapping]]) -> list[NetworkProblem]:
+    """Check every host's network settings, and that no two hosts share an address.
+
+    `hosts` yields (team, host name, merged settings incl. `address`, the address SSH uses now).
+    """
+    problems: list[NetworkProblem] = []
+    owners: dict[IPv4Address, str] = {}
+    parsed: list[tuple[str | None, str, NetworkSettings]] = []
+    ssh_addresses: dict[str, str] = {}
+
+    for team, name, data in hosts:
+        if data.get("address"):
+            ssh_addresses[name] = str(data.get("address"))
+        try:
+            settings = network_settings(data)
+        except NetworkSettingError as exc:
+            problems.append(NetworkProblem(team, name, exc.field, exc.message))
+            continue
+        if settings is None or settings.address is None:
+            continue
+        parsed.append((team, name, settings))
+        ip = settings.address.ip
+        if ip in owners:
+            problems.append(
+                NetworkProblem(
+                    team, name, "network_address", f"{ip} is also the network_address of {owners[ip]}"
+                )
+            )
+        else:
+            owners[ip] = name
+
+    # Moving onto an address another host answers at now would collide mid-run.
+    for team, name, settings in parsed:
+        for other, other_address in ssh_addresses.items():
+            if other != name and other_address == str(settings.address.ip):
+                problems.append(
+                    NetworkProblem(
+                        team,
+                        name,
+                        "network_address",
+                        f"{settings.address.ip} is the address {other} is reached at now",
+                    )
+                )
+    return problems
