@@ -132,7 +132,10 @@ def test_default_wave_crosses_both_default_thresholds():
     monitor = {k: p.default for k, p in logic.PARAMETERS["temperature_monitor"].items()}
     readings = [
         logic.simulated_temperature(
-            second, publisher["baseline_celsius"], publisher["swing_celsius"], publisher["period_s"]
+            second,
+            publisher["baseline_celsius"],
+            publisher["swing_celsius"],
+            publisher["period_s"],
         )
         for second in range(int(publisher["period_s"]))
     ]

@@ -94,9 +94,8 @@ def launched_nodes(launch_file):
     for node in ast.walk(ast.parse(launch_file.read_text())):
         if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "Node":
             arguments = {kw.arg: kw.value for kw in node.keywords}
-            found.append(
-                tuple(ast.literal_eval(arguments[key]) for key in ("package", "executable", "name"))
-            )
+            fields = ("package", "executable", "name")
+            found.append(tuple(ast.literal_eval(arguments[key]) for key in fields))
     return found
 
 
@@ -217,9 +216,8 @@ def test_each_console_script_points_at_an_existing_function(monkeypatch):
     for executable, (module, function) in scripts.items():
         path = DEMO_DIR / (module.replace(".", "/") + ".py")
         assert path.is_file(), f"{executable}: no module {module}"
-        functions = {
-            node.name for node in ast.parse(path.read_text()).body if isinstance(node, ast.FunctionDef)
-        }
+        tree = ast.parse(path.read_text())
+        functions = {node.name for node in tree.body if isinstance(node, ast.FunctionDef)}
         assert function in functions, f"{executable}: {module} has no {function}()"
 
 
@@ -318,7 +316,7 @@ def test_launch_file_builds_a_launch_description(launch_file):
 
 
 def test_params_yaml_repeats_every_parameter_default_with_its_type():
-    # ROS parameters are typed: `publish_rate_hz: 1` (an int) would be refused by a float parameter.
+    # ROS parameters are typed: a float parameter refuses `publish_rate_hz: 1` (an int).
     params = yaml.safe_load((BRINGUP_DIR / "config" / "params.yaml").read_text())
     from_yaml = {
         node: {key: (type(value), value) for key, value in section["ros__parameters"].items()}
