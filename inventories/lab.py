@@ -1,0 +1,29 @@
+"""pyinfra inventory from the classroom roster.
+
+    pyinfra inventories/lab.py deploy.py [--limit team1 | --limit robot | --limit jazzy]
+
+Reads $ROSLAB_ROSTER, else inventories/classroom.yaml if present, else the example
+inventories/lab.yaml. An invalid roster stops here, before pyinfra connects to any host.
+Groups: `main`, `robot`, one per team (`-` in a team name becomes `_`), one per distro.
+"""
+
+import sys as _sys
+from pathlib import Path as _Path
+
+from roslab.roster import RosterError as _RosterError
+from roslab.roster import default_roster_path as _default_roster_path
+from roslab.roster import inventory_groups as _inventory_groups
+from roslab.roster import load_roster as _load_roster
+
+# Names without a leading underscore would become pyinfra groups.
+_roster_path = _default_roster_path(base=_Path(__file__).resolve().parent.parent)
+try:
+    _classroom = _load_roster(_roster_path)
+except _RosterError as _error:
+    print(f"roslab: the roster has errors, no host was touched:\n{_error}", file=_sys.stderr)
+    _sys.exit(2)
+
+for _warning in _classroom.warnings:
+    print(f"roslab: warning: {_warning}", file=_sys.stderr)
+
+globals().update(_inventory_groups(_classroom))

@@ -1,0 +1,102 @@
+"""The `roslab` command.
+
+    roslab check [ROSTER]     validate a roster and print the classroom as a table
+
+`roslab sandbox ...` comes from `roslab.sandbox.cli` when that module is present.
+Exit status: 0 when the roster is valid, 1 when it has errors, 2 on bad usage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from roslab import __version__
+from roslab.roster import (
+    Classroom,
+    RosterError,
+    default_roster_path,
+    display_path,
+    load_roster,
+)
+
+TABLE_COLUMNS = ("TEAM", "HOST", "ROLE", "ADDRESS", "UBUNTU", "DISTRO", "VARIANT", "DOMAIN")
+
+
+def classroom_table(classroom: Classroom) -> str:
+    """The classroom as aligned columns, one host per line."""
+    rows = [TABLE_COLUMNS]
+    for host in classroom.hosts:
+        rows.append((
+            host.team,
+            host.name,
+            host.role,
+            host.address,
+            host.ubuntu_release or "-",
+            host.distro or "-",
+            host.variant or "-",
+            "-" if host.ros_domain_id is None else str(host.ros_domain_id),
+        ))
+    widths = [max(len(row[column]) for row in rows) for column in range(len(TABLE_COLUMNS))]
+    return "\n".join(
+        "  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip() for row in rows
+    )
+
+
+def run_check(args: argparse.Namespace) -> int:
+    path = Path(args.roster) if args.roster else default_roster_path()
+    try:
+        classroom = load_roster(path)
+    except RosterError as error:
+        print(error, file=sys.stderr)
+        count = len(error.problems)
+        print(f"roslab: {count} error{'s' if count != 1 else ''} in the roster", file=sys.stderr)
+        return 1
+    for warning in classroom.warnings:
+        print(f"warning: {warning}", file=sys.stderr)
+    title = f"Classroom {classroom.name!r}" if classroom.name else "Classroom"
+    print(f"{title} ({display_path(path)}): {len(classroom.teams)} teams, {len(classroom.hosts)} hosts")
+    print(classroom_table(classroom))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="roslab", description="Provision ROS 2 onto a classroom of Raspberry Pis."
+    )
+    parser.add_argument("--version", action="version", version=f"roslab {__version__}")
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    check = commands.add_parser(
+        "check",
+        help="validate a roster without deploying and print the classroom",
+        description="Validate a roster without touching any host; print the classroom as a "
+        "table. Exits 1 if the roster has errors.",
+    )
+    check.add_argument(
+        "roster",
+        nargs="?",
+        metavar="ROSTER",
+        help="roster file (default: $ROSLAB_ROSTER, else inventories/classroom.yaml "
+        "if present, else inventories/lab.yaml)",
+    )
+    check.set_defaults(run=run_check)
+
+    try:
+        from roslab.sandbox.cli import register
+    except ModuleNotFoundError as exc:
+        if exc.name not in ("roslab.sandbox", "roslab.sandbox.cli"):
+            raise  # the sandbox exists but is broken: say so
+    else:
+        register(commands)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return args.run(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,74 @@
+"""Secrets a roster refers to by name, kept out of the roster and out of output.
+
+A roster never holds a password: a `*_secret` key names an entry in the
+classroom's secrets file (`secrets_file`, default `secrets.yaml` beside the
+roster, gitignored), a flat YAML mapping of name -> string. This module checks
+that file's permissions and wraps each value so that pyinfra prints it masked.
+"""
+
+from __future__ import annotations
+
+import stat
+from pathlib import Path
+
+from pyinfra.api import HiddenValue
+
+# Committed example files hold placeholders, and git does not keep a 0600 mode:
+# for them a loose mode is a warning, for any other secrets file an error.
+EXAMPLE_SUFFIX = ".example.yaml"
+
+SECRET_SUFFIX = "_secret"
+
+
+class Secret(HiddenValue):
+    """A secret value: printed masked by pyinfra (in commands and `debug-inventory`).
+
+    Deploys read the real value with `.unmask()`.
+    """
+
+    def to_json(self) -> str:
+        # pyinfra's JSON output (debug-inventory) uses `to_json` for unknown objects.
+        return self.masked_value
+
+
+def is_secret_reference(key: str) -> bool:
+    """Whether a roster key names a secret rather than holding a value."""
+    return key.endswith(SECRET_SUFFIX)
+
+
+def resolved_key(reference_key: str) -> str:
+    """The host data key a secret reference resolves into.
+
+    `wifi_password_secret` -> `wifi_password`; `sudo_password_secret` -> pyinfra's
+    own `_sudo_password`.
+    """
+    if reference_key == "sudo_password_secret":
+        return "_sudo_password"
+    return reference_key[: -len(SECRET_SUFFIX)]
+
+
+def wrap(reference_key: str, value: str):
+    """The host data value for a resolved secret.
+
+    pyinfra masks `_sudo_password` itself and needs the plain string (it wraps it
+    in its own HiddenValue); every other secret becomes a `Secret`.
+    """
+    if reference_key == "sudo_password_secret":
+        return value
+    return Secret(value)
+
+
+def permission_problem(path: Path, shown: str | None = None) -> str | None:
+    """Describe why `path` is too open for a secrets file, or None if it is private."""
+    mode = stat.S_IMODE(path.stat().st_mode)
+    shown = shown or str(path)
+    if mode & (stat.S_IRWXG | stat.S_IRWXO):
+        return (
+            f"secrets file {shown} is open to other users (mode {mode:04o}); "
+            f"run: chmod 600 {shown}"
+        )
+    return None
+
+
+def is_example(path: Path) -> bool:
+    return path.name.endswith(EXAMPLE_SUFFIX)
