@@ -63,12 +63,48 @@ def test_level_code_reads_rclpy_byte_fields_and_ints(raw):
     assert logic.level_code(raw) == WARN
 
 
+class CallSiteLogger:
+    """Records which severity each logger call site used, as rclpy's logger tracks it."""
+
+    def __init__(self):
+        self.lines = []
+        self.severity_by_call_site = {}
+
+    def _log(self, severity, line):
+        caller = sys._getframe(2)
+        call_site = (caller.f_code.co_filename, caller.f_lineno)
+        # rclpy raises "Logger severity cannot be changed between calls" here.
+        assert self.severity_by_call_site.setdefault(call_site, severity) == severity
+        self.lines.append((severity, line))
+
+    def info(self, line):
+        self._log("info", line)
+
+    def warning(self, line):
+        self._log("warning", line)
+
+    def error(self, line):
+        self._log("error", line)
+
+
 @pytest.mark.parametrize(
     "level, severity",
     [(OK, "info"), (WARN, "warning"), (STALE, "warning"), (ERROR, "error"), (9, "error")],
 )
 def test_each_level_is_logged_at_its_severity(level, severity):
-    assert logic.log_severity(level) == severity
+    logger = CallSiteLogger()
+    logic.log_at_level(logger, level, "text")
+    assert logger.lines == [(severity, "text")]
+
+
+def test_one_logger_can_log_every_level_in_turn():
+    # A monitor's logger sees OK, WARN, ERROR, then OK again as the robot's state cycles.
+    logger = CallSiteLogger()
+    for level in (OK, WARN, ERROR, STALE, OK, ERROR):
+        logic.log_at_level(logger, level, f"level {level}")
+    assert [severity for severity, _ in logger.lines] == [
+        "info", "warning", "error", "warning", "info", "error"
+    ]
 
 
 def test_status_line_shows_robot_level_state_and_message():

@@ -139,13 +139,20 @@ def level_code(raw_level):
     return int(raw_level)
 
 
-def log_severity(level):
-    """Return the logger method ('info', 'warning' or 'error') for a level."""
+def log_at_level(logger, level, line):
+    """
+    Log `line` as info, warning or error, as the level says.
+
+    Each severity has a logger call on a line of its own: rclpy remembers the
+    severity of every call site and raises ValueError ("Logger severity cannot
+    be changed between calls") when one site logs at a second severity.
+    """
     if level == OK:
-        return 'info'
-    if level in (WARN, STALE):
-        return 'warning'
-    return 'error'  # ERROR, and levels this code does not know
+        logger.info(line)
+    elif level in (WARN, STALE):
+        logger.warning(line)
+    else:  # ERROR, and levels this code does not know
+        logger.error(line)
 
 
 def status_line(hardware_id, level, state, message):

@@ -19,7 +19,7 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
-from roslab_demo.logic import level_code, log_severity, SilenceWatch, status_line
+from roslab_demo.logic import level_code, log_at_level, SilenceWatch, status_line
 from roslab_demo.parameters import declare_parameters
 
 
@@ -44,8 +44,7 @@ class StatusMonitor(Node):
         values = {pair.key: pair.value for pair in msg.values}
         level = level_code(msg.level)
         line = status_line(msg.hardware_id, level, values.get('state', '?'), msg.message)
-        log = getattr(self.get_logger(), log_severity(level))
-        log(line)
+        log_at_level(self.get_logger(), level, line)
 
     def check_silence(self):
         gone = self.silence.check(self.seconds_now())

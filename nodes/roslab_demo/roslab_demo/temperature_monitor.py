@@ -19,7 +19,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import Temperature
 
-from roslab_demo.logic import check_thresholds, log_severity, temperature_level, temperature_line
+from roslab_demo.logic import check_thresholds, log_at_level, temperature_level, temperature_line
 from roslab_demo.parameters import declare_parameters
 
 
@@ -38,8 +38,7 @@ class TemperatureMonitor(Node):
     def on_reading(self, msg):
         level = temperature_level(msg.temperature, self.warn_above, self.error_above)
         line = temperature_line(msg.temperature, level, self.warn_above, self.error_above)
-        log = getattr(self.get_logger(), log_severity(level))
-        log(line)
+        log_at_level(self.get_logger(), level, line)
 
 
 def main(args=None):
