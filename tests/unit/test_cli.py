@@ -1,0 +1,138 @@
+"""`roslab check`: what a teacher sees, and the exit status scripts rely on."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from roslab.cli import TABLE_COLUMNS, main
+
+REPO = Path(__file__).resolve().parents[2]
+FIXTURE = Path(__file__).parent / "rosters" / "two_teams.yaml"
+SECRET_VALUE = "correct-horse-battery"
+
+
+@pytest.fixture(autouse=True)
+def _clean_env(monkeypatch):
+    monkeypatch.delenv("ROSLAB_ROSTER", raising=False)
+
+
+def test_check_prints_the_classroom_as_aligned_columns(capsys):
+    assert main(["check", str(FIXTURE)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("Classroom 'fixture-lab'") and "2 teams, 3 hosts" in out[0]
+    header, *rows = out[1:]
+    assert header.split() == list(TABLE_COLUMNS)
+    assert [row.split() for row in rows] == [
+        ["team1", "team1-main", "main", "127.0.0.11", "24.04", "jazzy", "desktop", "11"],
+        ["team1", "team1-robot", "robot", "127.0.0.12", "24.04", "jazzy", "ros-base", "11"],
+        ["team-2", "team2-main", "main", "127.0.0.21", "22.04", "humble", "desktop", "12"],
+    ]
+    # Every column starts at the same offset on every line.
+    for column in TABLE_COLUMNS[1:]:
+        offset = header.index(column)
+        assert all(row[offset - 2:offset] == "  " and row[offset] != " " for row in rows)
+
+
+def test_check_with_errors_exits_1_and_lists_them_on_stderr(tmp_path, capsys):
+    roster = tmp_path / "bad.yaml"
+    roster.write_text(textwrap.dedent("""\
+        teams:
+          t:
+            hosts:
+              t-main: {role: main, ros_distr: jazzy}
+              t-robot: {role: robot, address: 10.0.0.300}
+    """))
+    assert main(["check", str(roster)]) == 1
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    errors = captured.err.splitlines()
+    assert "host 't-main', field 'ros_distr': unknown key" in errors[0]
+    assert "host 't-robot', field 'address':" in errors[1]
+    assert errors[-1] == "roslab: 2 errors in the roster"
+
+
+def test_check_never_prints_a_secret(tmp_path, capsys):
+    secrets_file = tmp_path / "secrets.yaml"
+    secrets_file.write_text(f"wifi: {SECRET_VALUE}\n")
+    secrets_file.chmod(0o600)
+    roster = tmp_path / "lab.yaml"
+    roster.write_text("classroom: {wifi_password_secret: wifi}\n"
+                      "teams: {t: {hosts: {t-main: {role: main}}}}\n")
+    assert main(["check", str(roster)]) == 0
+    secrets_file.chmod(0o644)
+    assert main(["check", str(roster)]) == 1
+    captured = capsys.readouterr()
+    assert "chmod 600" in captured.err
+    assert SECRET_VALUE not in captured.out + captured.err
+
+
+def test_check_uses_roslab_roster_from_the_environment(monkeypatch, capsys):
+    monkeypatch.setenv("ROSLAB_ROSTER", str(FIXTURE))
+    assert main(["check"]) == 0
+    assert "fixture-lab" in capsys.readouterr().out
+
+
+def test_usage_error_exits_2(capsys):
+    with pytest.raises(SystemExit) as raised:
+        main(["chekc"])
+    assert raised.value.code == 2
+    assert "invalid choice: 'chekc'" in capsys.readouterr().err
+
+
+def test_python_dash_m_roslab_checks_the_example_roster():
+    env = {key: value for key, value in os.environ.items() if key != "ROSLAB_ROSTER"}
+    result = subprocess.run([sys.executable, "-m", "roslab", "check"], cwd=REPO, env=env,
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert "Classroom 'robotics-lab' (inventories/" in result.stdout
+    assert "team2-robot2" in result.stdout
+
+
+def _pyinfra_debug_inventory(roster: Path, *extra: str) -> subprocess.CompletedProcess:
+    # debug-inventory prints the inventory and connects to nothing.
+    pyinfra = Path(sys.executable).with_name("pyinfra")
+    env = {**os.environ, "ROSLAB_ROSTER": str(roster)}
+    return subprocess.run([str(pyinfra), "inventories/lab.py", *extra, "debug-inventory"],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
+
+
+def test_pyinfra_inventory_has_the_roster_groups():
+    result = _pyinfra_debug_inventory(FIXTURE)
+    assert result.returncode == 0, result.stderr
+    assert "[team2-main]" in result.stderr
+    assert "--> Groups: main, team_2, humble" in result.stderr
+
+
+def test_pyinfra_stops_on_a_bad_roster_before_connecting(tmp_path):
+    roster = tmp_path / "bad.yaml"
+    roster.write_text("teams: {t: {hosts: {t-main: {role: main, ros_domain_id: 999}}}}\n")
+    result = _pyinfra_debug_inventory(roster)
+    assert result.returncode == 2
+    assert "the roster has errors, no host was touched" in result.stderr
+    assert "field 'ros_domain_id'" in result.stderr
+    assert "[t-main]" not in result.stderr
+
+
+def test_limit_groups_resolve_in_pyinfra(monkeypatch):
+    # What `--limit` selects from: pyinfra's own inventory built from inventories/lab.py.
+    from pyinfra_cli.inventory import make_inventory_from_files
+
+    monkeypatch.setenv("ROSLAB_ROSTER", str(FIXTURE))
+    inventory = make_inventory_from_files(str(REPO / "inventories" / "lab.py"))
+    members = {group: sorted(host.name for host in inventory.get_group(group))
+               for group in ("main", "robot", "team1", "team_2", "jazzy", "humble")}
+    assert members == {
+        "main": ["team1-main", "team2-main"],
+        "robot": ["team1-robot"],
+        "team1": ["team1-main", "team1-robot"],
+        "team_2": ["team2-main"],
+        "jazzy": ["team1-main", "team1-robot"],
+        "humble": ["team2-main"],
+    }
+    assert inventory.get_host("team1-robot").data.ssh_hostname == "127.0.0.12"
