@@ -482,3 +482,17 @@ def built(workspace_dir: str, distro: str, colcon_args: list[str], sources_hash:
         host.noop(f"{workspace_dir} is built from these sources already")
         return
     yield StringCommand("bash", "-c", shlex.quote(build_script(workspace_dir, distro, colcon_args, stamp)))
+
+
+@operation()
+def restarted(service: str):
+    """
+    Restart a systemd service, even one that gave up after hitting its start limit.
+
+    + service: the unit, e.g. ``roslab-nodes.service``
+
+    Always restarts: gate it with ``_if`` on what the service depends on.
+    """
+    unit = shlex.quote(service)
+    # reset-failed forgets earlier failures, or systemd refuses "start request repeated too quickly".
+    yield f"systemctl reset-failed {unit} 2>/dev/null; systemctl restart {unit}"
