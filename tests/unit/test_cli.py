@@ -121,10 +121,13 @@ def test_pyinfra_stops_on_a_bad_roster_before_connecting(tmp_path):
 
 def test_limit_groups_resolve_in_pyinfra(monkeypatch):
     # What `--limit` selects from: pyinfra's own inventory built from inventories/lab.py.
+    from pyinfra.api import State
+    from pyinfra.context import ctx_state
     from pyinfra_cli.inventory import make_inventory_from_files
 
     monkeypatch.setenv("ROSLAB_ROSTER", str(FIXTURE))
-    inventory = make_inventory_from_files(str(REPO / "inventories" / "lab.py"))
+    with ctx_state.use(State()):
+        inventory = make_inventory_from_files(str(REPO / "inventories" / "lab.py"))
     members = {group: sorted(host.name for host in inventory.get_group(group))
                for group in ("main", "robot", "team1", "team_2", "jazzy", "humble")}
     assert members == {
