@@ -343,14 +343,14 @@ def test_node_starts_with_the_default_parameters(path):
     rclpy = pytest.importorskip(
         "rclpy", reason="rclpy is not installed: no ROS 2 runtime on this machine"
     )
-    import importlib
+    from rclpy.node import Node
 
     module = importlib.import_module(f"roslab_demo.{path.stem}")
     (node_class,) = [
         value
         for value in vars(module).values()
         if isinstance(value, type)
-        and issubclass(value, rclpy.node.Node)
+        and issubclass(value, Node)
         and value.__module__ == module.__name__
     ]
     rclpy.init()
