@@ -10,6 +10,7 @@ import importlib
 
 # In the order deploy.py runs them.
 DEPLOY_MODULES = (
+    "common",  # shared settings (login_user) and the supported-host check
     "apt_ready",
     "locale",
     "ros_apt_source",

@@ -1,0 +1,26 @@
+"""Provision the classroom: `pyinfra inventories/lab.py deploy.py` (add --dry --diff to preview).
+
+Every host gets every step, in this order; a step is switched off with its
+`<concern>_enabled: false` in the roster. A host that cannot get the ROS 2 the roster asks
+for (not Ubuntu, wrong release, distro without packages) is stopped before anything changes.
+"""
+
+from deploy.apt_ready import apt_ready
+from deploy.common import supported_host
+from deploy.locale import system_locale
+from deploy.ros_apt_source import ros_apt_source
+from deploy.ros_install import ros_install
+from deploy.rosdep import rosdep
+from deploy.shell_env import shell_env
+from deploy.ssh_identity import ssh_identity
+
+if supported_host():
+    apt_ready()
+    system_locale()
+    ros_apt_source()
+    ros_install()
+    rosdep()
+    shell_env()
+    ssh_identity()
+    # deploy.network.network() goes here (after SSH and identity), then
+    # deploy.workspace.workspace() last: both belong to other modules (integrator adds them).
