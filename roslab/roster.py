@@ -67,6 +67,7 @@ PATH_KEYS = ("ssh_key", "ssh_known_hosts_file")
 CLASSROOM_KEYS = {"name": str, "secrets_file": str}
 TEAM_KEYS = {"hosts": dict}
 HOST_KEYS = {"role": str, "address": str}
+LEVEL_KEYS = {"classroom": CLASSROOM_KEYS, "team": TEAM_KEYS, "host": HOST_KEYS}
 TOP_LEVEL_KEYS = ("classroom", "teams")
 STRICT_HOST_KEY_CHECKING = ("yes", "no", "off", "ask", "accept-new")
 DOMAIN_ID_RANGE = range(0, 102)
@@ -448,7 +449,7 @@ class _RosterReader:
 
     # Keys allowed at each level, and the kind each must have.
     def allowed(self, level: str) -> dict:
-        own = {"classroom": CLASSROOM_KEYS, "team": TEAM_KEYS, "host": HOST_KEYS}[level]
+        own = LEVEL_KEYS[level]
         settings = {
             key: _NONE_DEFAULT_TYPES.get(key) if default is None else type(default)
             for key, default in self.defaults.items()
@@ -493,8 +494,7 @@ class _RosterReader:
         return valid
 
     def unknown_key_message(self, key: str, level: str, allowed: dict) -> str:
-        for other in ("classroom", "team", "host"):
-            own = {"classroom": CLASSROOM_KEYS, "team": TEAM_KEYS, "host": HOST_KEYS}[other]
+        for other, own in LEVEL_KEYS.items():
             if other != level and key in own:
                 return f"{key!r} can only be set on a {other}, not on a {level}"
         message = f"unknown key {key!r}"
@@ -703,6 +703,7 @@ class _RosterReader:
             "roslab_hostname": name,
             "roslab_ubuntu_release": release,
             "roslab_expected_distro": expected,
+            "roslab_roster_path": str(self.path.resolve()),
             "ssh_hostname": address,
         }
         for key, setting in resolved.items():
@@ -855,12 +856,21 @@ def load_roster(path: Path | str, validators: list[Validator] | None = None) -> 
 
 
 def inventory_groups(classroom: Classroom) -> dict[str, list[tuple[str, dict]]]:
-    """pyinfra inventory groups: `main`, `robot`, one per team, one per expected distro."""
+    """pyinfra inventory groups: `main`, `robot`, one per team, one per expected distro.
+
+    A host the network deploy has moved is reached at its last confirmed address
+    (recorded beside the roster), not at the roster's now stale `address`.
+    """
+    from roslab.netstate import last_known_address
+
     groups: dict[str, list[tuple[str, dict]]] = {role: [] for role in ROLES}
     for team in classroom.teams:
-        groups[team.group] = [(host.name, host.data) for host in team.hosts]
+        groups[team.group] = []
         for host in team.hosts:
-            groups[host.role].append((host.name, host.data))
+            moved_to = last_known_address(classroom.path, host.name)
+            entry = (host.name, {**host.data, "ssh_hostname": moved_to or host.address})
+            groups[team.group].append(entry)
+            groups[host.role].append(entry)
             if host.distro:
-                groups.setdefault(host.distro, []).append((host.name, host.data))
+                groups.setdefault(host.distro, []).append(entry)
     return groups
