@@ -147,6 +147,10 @@ class WorkspacePackages(FactBase):
     the manifest and those passed in ``packages``; an empty dict if `src/` is missing.
     """
 
+    @staticmethod
+    def default():
+        return {}
+
     def command(self, src_dir: str, packages: list[str], user: str) -> str:
         for name in packages:
             if not PACKAGE_NAME.match(name):
@@ -380,6 +384,10 @@ class WorkspaceStamps(FactBase):
     the stamps are hashes of the sources at the last successful `rosdep install` and
     `colcon build`; ``installed`` is whether ``install/setup.bash`` exists.
     """
+
+    @staticmethod
+    def default():
+        return {"rosdep": None, "build": None, "installed": False}
 
     def command(self, workspace_dir: str) -> str:
         ws = shlex.quote(workspace_dir)
