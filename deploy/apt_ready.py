@@ -10,7 +10,7 @@ from roslab.facts import AptProblem
 from roslab.operations import apt_lists_updated, ubuntu_apt_sources
 
 DEFAULTS = {
-    # Run this deploy.
+    # Prepare apt: wait for the dpkg lock, enable universe and the extra suites, refresh the lists.
     "apt_ready_enabled": True,
     # Seconds to wait for the dpkg lock (first-boot unattended-upgrades holds it for minutes).
     "apt_lock_timeout": 600,

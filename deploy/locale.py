@@ -15,7 +15,7 @@ from roslab.operations import locale_generated
 TEMPLATES = Path(__file__).resolve().parent.parent / "templates"
 
 DEFAULTS = {
-    # Run this deploy.
+    # Generate the locale and set it system-wide.
     "locale_enabled": True,
     # The system-wide locale (LANG); must be a UTF-8 locale.
     "locale": "en_US.UTF-8",

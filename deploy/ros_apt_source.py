@@ -36,7 +36,7 @@ from roslab.operations import (
 TEMPLATES = Path(__file__).resolve().parent.parent / "templates"
 
 DEFAULTS = {
-    # Run this deploy.
+    # Configure the ROS 2 apt source (and move the old method's files aside).
     "ros_apt_source_enabled": True,
     # "package": install ros2-apt-source (official); "mirror": a local mirror's key and URL.
     "ros_apt_source_mode": "package",

@@ -10,7 +10,7 @@ from deploy.common import host_distro, setting, should_run, where
 from roslab.distro import VARIANTS
 
 DEFAULTS = {
-    # Run this deploy.
+    # Install the ROS 2 packages.
     "ros_install_enabled": True,
     # The Ubuntu release the roster expects; a host running another release is stopped.
     "ubuntu_release": "24.04",

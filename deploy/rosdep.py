@@ -24,7 +24,7 @@ from roslab.operations import (
 )
 
 DEFAULTS = {
-    # Run this deploy.
+    # Initialise rosdep and keep the login user's rosdep cache fresh.
     "rosdep_enabled": True,
     # Package that provides rosdep when ros-dev-tools did not (ros_dev_tools: false).
     "rosdep_package": "python3-rosdep",

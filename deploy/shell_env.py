@@ -22,7 +22,7 @@ BLOCK_LABEL = "ROS 2 environment"
 WORKSPACE_DIR_FALLBACK = "~/ros2_ws"
 
 DEFAULTS = {
-    # Run this deploy.
+    # Write the ROS 2 environment block into the login user's ~/.bashrc.
     "shell_env_enabled": True,
     # ROS_DOMAIN_ID: give each team its own (0-101, or 215-232), so teams on one
     # network do not see each other's topics.

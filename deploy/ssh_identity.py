@@ -16,7 +16,7 @@ from deploy.common import login_user, setting, should_run, where
 from roslab.operations import managed_block
 
 DEFAULTS = {
-    # Run this deploy.
+    # Install and run sshd, authorise the teacher's keys, set hostname and /etc/hosts.
     "ssh_identity_enabled": True,
     # The teacher's public keys for the login user's authorized_keys: key lines
     # ("ssh-ed25519 AAAA... teacher") or paths to .pub files on the machine running pyinfra.

@@ -1,0 +1,65 @@
+"""deploy.py on fake Ubuntu hosts: a first run converges, a second run changes nothing."""
+
+from __future__ import annotations
+
+import pytest
+from fixtures.classroom import host_data, run_deploy_py, with_stand_in_deb
+from fixtures.fake_host import plan
+from fixtures.fake_ubuntu import FakeUbuntu
+
+
+@pytest.mark.parametrize(
+    ("codename", "role", "ros_packages"),
+    [
+        ("noble", "main", "ros-jazzy-desktop ros-dev-tools"),
+        ("jammy", "robot", "ros-humble-ros-base ros-dev-tools"),
+    ],
+)
+def test_first_run_converges_and_second_run_changes_nothing(tmp_path, codename, role, ros_packages):
+    host = with_stand_in_deb(FakeUbuntu(codename), codename)
+    data = host_data(tmp_path, codename, role)
+
+    first = plan(run_deploy_py, host.facts(), data)
+    assert not first.failed, first.errors
+    install = first.changing()[next(name for name in first.changing() if "Ensure ROS 2" in name)]
+    assert install[0].endswith(f"install -o DPkg::Lock::Timeout=600 {ros_packages}")
+    assert f"/opt/ros/{ros_packages.split('-')[1]}/setup.bash" in host_bashrc_after(host, first)
+
+    second = plan(run_deploy_py, host.facts(), data)
+    assert second.changing() == {}
+    assert "block (ROS 2 environment) in /home/student/.bashrc is already up to date" in second.noops
+    assert f"package ros-{ros_packages.split('-')[1]}-{'desktop' if role == 'main' else 'ros-base'} is installed (1.0)" in second.noops
+
+
+def host_bashrc_after(host, result):
+    host.apply(result)
+    return "\n".join(host.files["/home/student/.bashrc"])
+
+
+def test_a_new_domain_id_rewrites_only_the_block_and_shows_the_diff(tmp_path, caplog):
+    host = with_stand_in_deb(FakeUbuntu())
+    host.apply(plan(run_deploy_py, host.facts(), host_data(tmp_path)))
+    bashrc_before = list(host.files["/home/student/.bashrc"])
+
+    with caplog.at_level("INFO"):
+        result = plan(run_deploy_py, host.facts(), host_data(tmp_path, ros_domain_id=42), diff=True)
+
+    assert list(result.changing()) == [
+        "The login user's shell sources ROS 2 with the team's domain and discovery settings"
+        " | Ensure student's ~/.bashrc sets up the ROS 2 environment"
+    ]
+    printed = "\n".join(record.getMessage() for record in caplog.records)
+    assert "- export ROS_DOMAIN_ID=11" in printed and "+ export ROS_DOMAIN_ID=42" in printed
+    host.apply(result)
+    after = host.files["/home/student/.bashrc"]
+    assert after[:2] == bashrc_before[:2]  # the user's own lines
+    assert sum(line.startswith("# BEGIN roslab") for line in after) == 1
+    assert "export ROS_DOMAIN_ID=42" in after
+
+
+def test_each_step_can_be_switched_off(tmp_path):
+    host = with_stand_in_deb(FakeUbuntu())
+    switches = ["apt_ready", "locale", "ros_apt_source", "ros_install", "rosdep", "shell_env", "ssh_identity"]
+    data = host_data(tmp_path, **{f"{name}_enabled": False for name in switches})
+    result = plan(run_deploy_py, host.facts(), data)
+    assert result.operations == [] and not result.failed
