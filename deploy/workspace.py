@@ -212,6 +212,7 @@ def workspace():
         ws_ops.dependencies(
             name="Ensure the packages' system dependencies are installed (rosdep)",
             workspace_dir=workspace_dir,
+            packages=sorted(packages),
             distro=distro,
             packages_hash=ws_ops.tree_hash(packages, only="package.xml"),
             user=user,

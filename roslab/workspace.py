@@ -412,11 +412,16 @@ def _write_stamp(path: str, value: str) -> str:
 
 
 @operation()
-def dependencies(workspace_dir: str, distro: str, packages_hash: str, user: str, ros_home: str):
+def dependencies(
+    workspace_dir: str, packages: list[str], distro: str, packages_hash: str, user: str,
+    ros_home: str,
+):
     """
     Install the system dependencies of a workspace's packages with rosdep, when they changed.
 
-    + workspace_dir: the workspace on the host (absolute; its ``src`` is scanned)
+    + workspace_dir: the workspace on the host (absolute)
+    + packages: the packages in its ``src`` whose dependencies are installed (roslab's:
+      a student's package with an unknown key must not fail the classroom's deploy)
     + distro: ROS 2 distro the keys are resolved for
     + packages_hash: hash of the ``package.xml`` files roslab manages; rosdep runs when it
       differs from the one of the last successful run
@@ -435,7 +440,9 @@ def dependencies(workspace_dir: str, distro: str, packages_hash: str, user: str,
         f"mkdir -p {shlex.quote(state_dir)}",
         f"&& chown {shlex.quote(user)}: {shlex.quote(state_dir)}",
         f"&& cd {shlex.quote(workspace_dir)}",
-        f"&& ROS_HOME={shlex.quote(ros_home)} rosdep install --from-paths src --ignore-src -y",
+        f"&& ROS_HOME={shlex.quote(ros_home)} rosdep install --from-paths",
+        *(shlex.quote(f"src/{name}") for name in packages),
+        "--ignore-src -y",
         f"--rosdistro {shlex.quote(distro)}",
         f"&& {_write_stamp(posixpath.join(state_dir, 'rosdep.sha256'), stamp)}",
     )

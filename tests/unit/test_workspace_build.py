@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import configparser
+import os
+import shutil
 import subprocess
 from pathlib import Path
 from types import SimpleNamespace
@@ -14,7 +16,7 @@ from pyinfra.context import ctx_host
 
 from deploy import workspace as deploy_ws
 from roslab import workspace
-from test_workspace_sync import LocalDirHost, run_operation
+from test_workspace_sync import USER, LocalDirHost, run_operation
 
 WS = "/home/ubuntu/ros2_ws"
 ARGS = ["--executor", "sequential"]
@@ -112,11 +114,14 @@ def test_an_interrupted_build_leaves_no_stamp_so_the_next_run_retries(tmp_path):
 def test_rosdep_runs_as_root_with_the_users_cache_when_package_xml_changed():
     commands, _ = run_operation(
         workspace.dependencies, host=LocalDirHost(stamps(rosdep="old:jazzy")),
-        workspace_dir=WS, distro="jazzy", packages_hash="p1", user="ubuntu",
-        ros_home="/home/ubuntu/.ros",
+        workspace_dir=WS, packages=["roslab_bringup", "roslab_demo"], distro="jazzy",
+        packages_hash="p1", user="ubuntu", ros_home="/home/ubuntu/.ros",
     )
     (command,) = [c.get_raw_value() for c in commands]
-    assert "ROS_HOME=/home/ubuntu/.ros rosdep install --from-paths src --ignore-src -y" in command
+    assert (
+        "ROS_HOME=/home/ubuntu/.ros rosdep install --from-paths src/roslab_bringup src/roslab_demo"
+        " --ignore-src -y" in command
+    )
     assert "--rosdistro jazzy" in command
     assert command.endswith(f"printf '%s\\n' p1:jazzy > {WS}/.roslab/rosdep.sha256")
 
@@ -124,8 +129,8 @@ def test_rosdep_runs_as_root_with_the_users_cache_when_package_xml_changed():
 def test_rosdep_is_skipped_when_no_package_xml_changed():
     commands, host = run_operation(
         workspace.dependencies, host=LocalDirHost(stamps(rosdep="p1:jazzy")),
-        workspace_dir=WS, distro="jazzy", packages_hash="p1", user="ubuntu",
-        ros_home="/home/ubuntu/.ros",
+        workspace_dir=WS, packages=["roslab_demo"], distro="jazzy", packages_hash="p1",
+        user="ubuntu", ros_home="/home/ubuntu/.ros",
     )
     assert commands == [] and "already" in host.noops[0]
 
@@ -291,3 +296,61 @@ def test_service_environment_is_what_the_bashrc_block_exports(distro, settings):
 def test_default_nodes_dir_is_the_checkouts_nodes():
     with with_data(workspace_nodes_dir=None):
         assert Path(deploy_ws.nodes_dir()) == deploy_ws.REPO / "nodes"
+
+
+# The real colcon (where installed), on a workspace the sync operation filled
+# ----------------------------------------------------------------------------
+
+
+@pytest.mark.skipif(shutil.which("colcon") is None, reason="colcon is not installed")
+def test_synced_workspace_builds_with_real_colcon_and_rebuilds_only_on_change(tmp_path):
+    """nodes/ -> src/ with the sync operation, then the build script with this machine's colcon.
+
+    /opt/ros/<distro>/setup.bash is a stand-in here (no ROS runtime on this machine), so
+    the console scripts are built and installed but running one stops at `import rclpy`.
+    """
+    from test_workspace_sync import apply_locally
+
+    ws = tmp_path / "ros2_ws"
+    (ws / "src").mkdir(parents=True)
+    commands, _ = run_operation(
+        workspace.packages, nodes_dir=str(deploy_ws.REPO / "nodes"), src_dir=str(ws / "src"),
+        user=USER,
+    )
+    apply_locally(commands)
+    stand_in_setup = tmp_path / "setup.bash"
+    stand_in_setup.write_text("# stand-in for /opt/ros/jazzy/setup.bash: no ROS runtime here\n")
+
+    def build_commands():
+        packages = workspace.local_packages(ws / "src")
+        commands, _ = run_operation(
+            workspace.built, workspace_dir=str(ws), distro="jazzy",
+            colcon_args=[*ARGS, "--packages-up-to", *sorted(packages)],
+            sources_hash=workspace.tree_hash(packages),
+        )
+        return [c.get_raw_value().replace("/opt/ros/jazzy/setup.bash", str(stand_in_setup))
+                for c in commands]
+
+    (command,) = build_commands()
+    result = subprocess.run(["sh", "-c", command], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+
+    talker = ws / "install" / "roslab_demo" / "lib" / "roslab_demo" / "talker"
+    assert os.access(talker, os.X_OK)
+    assert "Summary: 2 packages finished" in (ws / "log" / "roslab-build.log").read_text()
+    assert build_commands() == []  # built from these sources already
+
+    # As `ros2 run roslab_demo talker` would: with the workspace's environment.
+    ran = subprocess.run(
+        ["bash", "-c", f"source {ws}/install/setup.bash && {talker}"],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert "ModuleNotFoundError: No module named 'rclpy'" in ran.stderr
+
+    # A broken setup.py: the build fails, its log's tail is the error, and it is retried.
+    (ws / "src" / "roslab_demo" / "setup.py").write_text("from setuptools import setup\nsetup(\n")
+    (command,) = build_commands()
+    result = subprocess.run(["sh", "-c", command], capture_output=True, text=True, timeout=300)
+    assert result.returncode != 0
+    assert "colcon build failed" in result.stderr and "roslab_demo" in result.stderr
+    assert len(build_commands()) == 1
