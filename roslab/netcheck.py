@@ -234,10 +234,13 @@ class NetworkProblem:
     message: str
 
 
-def check_classroom_network(hosts: Iterable[tuple[str | None, str, Mapping]]) -> list[NetworkProblem]:
+def check_classroom_network(
+    hosts: Iterable[tuple[str | None, str, Mapping]], check_duplicates: bool = True
+) -> list[NetworkProblem]:
     """Check every host's network settings, and that no two hosts share an address.
 
     `hosts` yields (team, host name, merged settings incl. `address`, the address SSH uses now).
+    `check_duplicates=False` leaves duplicate network_address values to the caller.
     """
     problems: list[NetworkProblem] = []
     owners: dict[IPv4Address, str] = {}
@@ -256,7 +259,7 @@ def check_classroom_network(hosts: Iterable[tuple[str | None, str, Mapping]]) ->
             continue
         parsed.append((team, name, settings))
         ip = settings.address.ip
-        if ip in owners:
+        if ip in owners and check_duplicates:
             problems.append(
                 NetworkProblem(
                     team, name, "network_address", f"{ip} is also the network_address of {owners[ip]}"
@@ -278,3 +281,25 @@ def check_classroom_network(hosts: Iterable[tuple[str | None, str, Mapping]]) ->
                     )
                 )
     return problems
+
+
+def validate_roster(classroom, report) -> None:
+    """Roster validator (run by roslab.roster.load_roster): every host's network settings.
+
+    The roster loader already reports two hosts with one network_address.
+    """
+    from deploy.network import DEFAULTS  # the deploy's defaults fill what the roster leaves out
+
+    hosts = [
+        (host.team, host.name, {**DEFAULTS, **host.data, "address": host.address})
+        for host in classroom.hosts
+    ]
+    lines = {host.name: host.lines for host in classroom.hosts}
+    for problem in check_classroom_network(hosts, check_duplicates=False):
+        report.error(
+            problem.message,
+            team=problem.team,
+            host=problem.host,
+            field=problem.field,
+            line=lines[problem.host].get(problem.field),
+        )

@@ -1,0 +1,90 @@
+"""Network: each host at its fixed address from the roster, never locked out on the way.
+
+The renderer in charge is read from the host (netplan with systemd-networkd on
+Ubuntu Server, NetworkManager on Ubuntu Desktop: keyfiles on 22.04, netplan
+files from 23.10 on) unless `network_backend` forces one. The change itself is
+the operation `roslab.network_ops.network_in_effect`: staged, validated on the
+host, applied detached from SSH, and rolled back by the host itself unless the
+controller confirms it at the new address; the rest of the deploy then runs there.
+"""
+
+from __future__ import annotations
+
+from pyinfra import host
+from pyinfra.api import deploy
+
+from deploy.common import should_run, stop_host
+from roslab.netcheck import NetworkSettingError, network_settings
+from roslab.network_ops import network_in_effect
+
+DEFAULTS = {
+    # Manage the network of hosts that have a network_address (or network_method: dhcp).
+    "network_enabled": True,
+    # Who applies the configuration: auto (whoever is in charge on the host), netplan
+    # (netplan with systemd-networkd) or networkmanager (NetworkManager).
+    "network_backend": "auto",
+    # Interface to configure; None: eth0 for ethernet, wlan0 for wifi.
+    "network_interface": None,
+    # ethernet or wifi.
+    "network_kind": "ethernet",
+    # static (network_address) or dhcp.
+    "network_method": "static",
+    # The host's fixed address, e.g. 192.168.50.11/24 (usually set per host); None: the
+    # network is left alone. The prefix may come from network_prefix instead.
+    "network_address": None,
+    # Prefix length for a network_address given without one, e.g. 24 (usually classroom-wide).
+    "network_prefix": None,
+    # Default gateway (the router), inside the address's subnet; None: no default route.
+    "network_gateway": None,
+    # DNS servers, e.g. [192.168.50.1].
+    "network_nameservers": [],
+    # IPv6: auto (router advertisements and DHCPv6), disabled, or ignore (not configured).
+    "network_ipv6": "auto",
+    # The WiFi network's name, for network_kind: wifi.
+    "wifi_ssid": None,
+    # Name of the WiFi password in the secrets file (never the password itself).
+    "wifi_password_secret": None,
+    # Seconds the host waits for the controller to reach it at its new address
+    # before it restores its previous configuration by itself.
+    "network_confirm_timeout": 60,
+    # Stop cloud-init from rewriting the network at boot (its 50-cloud-init.yaml is kept as a backup).
+    "network_disable_cloud_init": True,
+}
+
+
+def host_and_team() -> str:
+    team = host.data.get("roslab_team")
+    return f"host {host.name}" + (f" (team {team})" if team else "")
+
+
+def current_address() -> str:
+    """Where pyinfra reaches the host now."""
+    return str(host.data.get("ssh_hostname") or host.name)
+
+
+@deploy("Each host has its fixed address from the roster and is reached there", data_defaults=DEFAULTS)
+def network():
+    """Write the host's network configuration and move the connection to its new address.
+
+    Reads host.data: network_enabled, network_backend, network_interface, network_kind,
+    network_method, network_address, network_prefix, network_gateway, network_nameservers,
+    network_ipv6, wifi_ssid, wifi_password_secret, wifi_password (the resolved secret),
+    network_confirm_timeout, network_disable_cloud_init, ssh_hostname, roslab_roster_path.
+    """
+    if not should_run("network_enabled"):
+        return
+    try:
+        settings = network_settings(host.data)
+    except NetworkSettingError as error:
+        stop_host(f"{host_and_team()}: field {error.field!r}: {error.message}; the network was not changed")
+        return
+    if settings is None:
+        host.noop("network left alone: the roster gives this host no network_address")
+        return
+    target = str(settings.address.ip) if settings.address else "its DHCP address"
+    network_in_effect(
+        name=f"Ensure the host's {settings.kind} network is configured and it answers at {target}",
+        settings=settings,
+        current_address=current_address(),
+        roster_path=host.data.get("roslab_roster_path"),
+    )

@@ -1,0 +1,294 @@
+"""The network deploy and operation, facts in, commands out; and the controller's confirmation."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from types import SimpleNamespace
+
+import pytest
+import yaml
+from pyinfra.api import FunctionCommand, StringCommand
+from pyinfra.facts.files import File, Sha256File
+
+from deploy.network import network
+from roslab import netstate, network_ops
+from roslab.network_ops import MaskedFileContents, NetworkRenderer
+from roslab.network_render import RendererFacts
+from roslab.secrets import Secret
+from tests.unit.fixtures.fake_host import plan
+
+NETPLAN = "/etc/netplan/60-roslab.yaml"
+CLOUD_INIT = "/etc/netplan/50-cloud-init.yaml"
+DISABLE = "/etc/cloud/cloud.cfg.d/99-disable-network-config.cfg"
+KEYFILE = "/etc/NetworkManager/system-connections/roslab-eth0.nmconnection"
+STAGED = "/run/roslab/network/staging"
+PASSWORD = "wifi-pass-1234"
+
+SERVER_2404 = {"renderer": RendererFacts(networkd_active=True, ubuntu_version="24.04"), "cloud_init": True}
+DESKTOP_2204 = {
+    "renderer": RendererFacts(networkmanager_active=True, netplan_nm_renderer=True, ubuntu_version="22.04"),
+    "cloud_init": False,
+}
+
+HOST_DATA = {
+    "ssh_hostname": "10.0.0.200",
+    "network_address": "10.0.0.11/24",
+    "network_gateway": "10.0.0.1",
+    "roslab_team": "team1",
+}
+
+
+def facts(renderer=SERVER_2404, files=None, modes=None):
+    """Host facts: `files` maps path -> content present on the host."""
+    files = files or {}
+    modes = modes or {}
+
+    def sha(path):
+        return hashlib.sha256(files[path].encode()).hexdigest() if path in files else None
+
+    def stat(path):
+        if path not in files:
+            return None
+        return {"user": "root", "group": "root", "mode": modes.get(path, 600)}
+
+    return {
+        NetworkRenderer: renderer,
+        Sha256File: sha,
+        File: stat,
+        MaskedFileContents: lambda path: files.get(path),
+    }
+
+
+def run_network(data=None, **fact_args):
+    return plan(network, facts(**fact_args), data={**HOST_DATA, **(data or {})})
+
+
+def text(operation):
+    """The operation's commands as text; the controller-side callback by name."""
+    return [
+        command.function.__name__ if isinstance(command, FunctionCommand)
+        else f"upload {command.dest}" if not isinstance(command, StringCommand)
+        else command.get_raw_value()
+        for command in operation.commands
+    ]
+
+
+def the_operation(result):
+    [operation] = [op for op in result.operations if op.commands]
+    return operation
+
+
+def test_first_run_stages_validates_and_launches_detached_apply():
+    result = run_network(files={CLOUD_INIT: "network: {version: 2}\n"})
+    operation = the_operation(result)
+    assert operation.name.endswith("| Ensure the host's ethernet network is configured and it answers at 10.0.0.11")
+    commands = text(operation)
+    assert commands[0].startswith("rm -rf /run/roslab/network/staging && install -d -m 0700")
+    uploads = result.uploads()
+    assert set(uploads) == {
+        STAGED + NETPLAN, STAGED + DISABLE,
+        "/run/roslab/network/plan.json", "/run/roslab/network/network_apply.py",
+    }
+    assert yaml.safe_load(uploads[STAGED + NETPLAN])["network"]["ethernets"]["eth0"]["addresses"] == ["10.0.0.11/24"]
+    plan_file = json.loads(uploads["/run/roslab/network/plan.json"])
+    assert plan_file["files"] == [NETPLAN, DISABLE]
+    assert plan_file["superseded"] == [CLOUD_INIT]
+    assert plan_file["expect_address"] == "10.0.0.11/24" and plan_file["gateway"] == "10.0.0.1"
+    # Validation comes before the change, and the change runs outside the SSH session.
+    validate = commands.index("python3 /run/roslab/network/network_apply.py validate /run/roslab/network/plan.json")
+    launch = next(i for i, c in enumerate(commands) if "systemd-run --unit=roslab-network-apply" in c)
+    assert validate < launch
+    confirm = operation.commands[-1]
+    assert isinstance(confirm, FunctionCommand)
+    assert confirm.kwargs["new_address"] == "10.0.0.11"
+    assert confirm.kwargs["old_address"] == "10.0.0.200"
+    assert confirm.kwargs["token"] == plan_file["token"]
+
+
+def test_second_run_changes_nothing():
+    first = run_network(files={CLOUD_INIT: "x"}).uploads()
+    in_place = {NETPLAN: first[STAGED + NETPLAN], DISABLE: first[STAGED + DISABLE]}
+    result = run_network(files=in_place)
+    assert [op.name for op in result.operations if op.commands] == []
+    assert any("network configuration already in place" in noop for noop in result.noops)
+
+
+def test_leftover_cloud_init_file_alone_triggers_a_change():
+    first = run_network(files={CLOUD_INIT: "x"}).uploads()
+    files = {NETPLAN: first[STAGED + NETPLAN], DISABLE: first[STAGED + DISABLE], CLOUD_INIT: "x"}
+    assert json.loads(run_network(files=files).uploads()["/run/roslab/network/plan.json"])["superseded"] == [CLOUD_INIT]
+
+
+def test_same_content_wrong_mode_is_fixed_without_applying():
+    first = run_network(files={CLOUD_INIT: "x"}).uploads()
+    files = {NETPLAN: first[STAGED + NETPLAN], DISABLE: first[STAGED + DISABLE]}
+    result = run_network(files=files, modes={NETPLAN: 644})
+    assert text(the_operation(result)) == [f"chown root:root {NETPLAN} && chmod 0600 {NETPLAN}"]
+
+
+def test_desktop_2204_gets_a_networkmanager_keyfile():
+    result = run_network(renderer=DESKTOP_2204)
+    uploads = result.uploads()
+    assert STAGED + KEYFILE in uploads and STAGED + NETPLAN not in uploads
+    assert "address1=10.0.0.11/24,10.0.0.1" in uploads[STAGED + KEYFILE]
+    assert json.loads(uploads["/run/roslab/network/plan.json"])["layout"] == "networkmanager-keyfile"
+
+
+def test_host_without_network_address_is_left_alone():
+    result = run_network(data={"network_address": None})
+    assert result.operations == [] and not result.failed
+
+
+def test_network_disabled_does_nothing():
+    result = run_network(data={"network_enabled": False})
+    assert result.operations == [] and not result.failed
+
+
+def test_bad_setting_stops_only_this_host_naming_host_team_and_field(monkeypatch):
+    stopped = []
+    monkeypatch.setattr("deploy.network.stop_host", stopped.append)
+    result = run_network(data={"network_gateway": "10.9.9.1"})
+    assert result.operations == []
+    [error] = stopped
+    assert "host pi (team team1)" in error
+    assert "field 'network_gateway'" in error and "outside the subnet 10.0.0.0/24" in error
+
+
+WIFI = {
+    "network_kind": "wifi",
+    "wifi_ssid": "robolab",
+    "wifi_password_secret": "lab_wifi",
+    "wifi_password": Secret(PASSWORD),
+}
+
+
+def test_wifi_password_only_in_the_staged_file_never_in_commands_or_plan():
+    result = run_network(data=WIFI)
+    operation = the_operation(result)
+    uploads = result.uploads()
+    assert PASSWORD in uploads[STAGED + NETPLAN]
+    assert PASSWORD not in uploads["/run/roslab/network/plan.json"]
+    for command in operation.commands:
+        if isinstance(command, StringCommand):
+            assert PASSWORD not in command.get_raw_value()
+        if isinstance(command, FunctionCommand):
+            assert PASSWORD not in repr(command)
+
+
+def test_diff_shows_the_change_with_the_password_masked(caplog):
+    old = "network:\n  wifis:\n    wlan0:\n      access-points:\n        robolab:\n          password: ********\n"
+    with caplog.at_level(logging.INFO, logger="pyinfra"):
+        plan(network, facts(files={NETPLAN: old}), data={**HOST_DATA, **WIFI}, diff=True)
+    printed = caplog.text
+    assert "60-roslab.yaml" in printed
+    assert "+         - 10.0.0.11/24" in printed
+    assert "********" in printed
+    assert PASSWORD not in printed
+
+
+# The controller's side: confirm at the new address, or report the rollback.
+
+
+class FakeConnector:
+    """pyinfra's SSH connector for a host that answers at `reachable` addresses."""
+
+    def __init__(self, reachable, statuses):
+        self.data = {"ssh_hostname": "10.0.0.200"}
+        self.client = SimpleNamespace(close=lambda: None)
+        self.reachable = reachable
+        self.statuses = statuses
+        self.connected_at = []
+
+    def disconnect(self):
+        pass
+
+    def connect(self):
+        address = self.data["ssh_hostname"]
+        if not self.reachable(address):
+            raise network_ops.ConnectError(f"no route to {address}")
+        self.connected_at.append(address)
+        self.client = SimpleNamespace(close=lambda: None)
+
+
+class FakeHost:
+    name = "team1-main"
+
+    def __init__(self, connector):
+        self.connector = connector
+        self.commands = []
+        self.messages = []
+
+    def run_shell_command(self, command, **arguments):
+        text = command.get_raw_value()
+        self.commands.append((self.connector.data["ssh_hostname"], text))
+        if text.startswith("cat "):
+            status = self.connector.statuses(self.connector.data["ssh_hostname"], self.commands)
+            return status is not None, SimpleNamespace(stdout=json.dumps(status))
+        return True, SimpleNamespace(stdout="")
+
+    def log_styled(self, message, **kwargs):
+        self.messages.append(message)
+
+
+@pytest.fixture
+def quick(monkeypatch):
+    monkeypatch.setattr(network_ops, "ROLLBACK_GRACE", 2)
+    monkeypatch.setattr(network_ops, "OLD_ADDRESS_PROBE_INTERVAL", 0)
+    monkeypatch.setattr(network_ops.time, "sleep", lambda seconds: None)
+    monkeypatch.setattr(network_ops, "_connector_arguments", lambda state, host: {"_sudo": True})
+
+
+def confirm(host, tmp_path, timeout=1):
+    return network_ops.confirm_network_change(
+        None, host, token="t0k", new_address="10.0.0.11", old_address="10.0.0.200",
+        confirm_timeout=timeout, roster_path=str(tmp_path / "roster.yaml"),
+    )
+
+
+def test_confirmation_moves_the_connection_and_records_the_address(quick, tmp_path):
+    def statuses(address, commands):
+        confirmed = any(text.endswith("/run/roslab/network/confirmed") for _, text in commands)
+        state = "confirmed" if confirmed else "waiting-for-confirmation"
+        return {"token": "t0k", "state": state, "backup": "/var/backups/roslab/network/x"}
+
+    connector = FakeConnector(lambda address: address == "10.0.0.11", statuses)
+    host = FakeHost(connector)
+    assert confirm(host, tmp_path) is True
+    assert connector.data["ssh_hostname"] == "10.0.0.11"
+    assert ("10.0.0.11", "printf %s t0k > /run/roslab/network/confirmed") in host.commands
+    assert netstate.last_known_address(tmp_path / "roster.yaml", "team1-main") == "10.0.0.11"
+    assert "confirmed: reachable at 10.0.0.11" in host.messages[-1]
+
+
+def test_unreachable_new_address_reports_the_rollback_at_the_old_address(quick, tmp_path):
+    def statuses(address, commands):
+        return {"token": "t0k", "state": "rolled-back",
+                "message": "the controller did not confirm within 1 s"}
+
+    connector = FakeConnector(lambda address: address == "10.0.0.200", statuses)
+    host = FakeHost(connector)
+    assert confirm(host, tmp_path) is False
+    assert connector.data["ssh_hostname"] == "10.0.0.200"
+    assert not any(text.startswith("printf") for _, text in host.commands)
+    assert host.messages[-1].startswith("Network change rolled back: the controller did not confirm")
+    assert "reachable again at 10.0.0.200" in host.messages[-1]
+    assert netstate.last_known_address(tmp_path / "roster.yaml", "team1-main") is None
+
+
+def test_status_of_an_earlier_run_is_not_mistaken_for_this_one(quick, tmp_path):
+    connector = FakeConnector(
+        lambda address: address == "10.0.0.200",
+        lambda address, commands: {"token": "older", "state": "rolled-back", "message": "old news"},
+    )
+    host = FakeHost(connector)
+    assert confirm(host, tmp_path) is False
+    assert "old news" not in host.messages[-1]
+
+
+def test_host_gone_everywhere_says_where_to_look(quick, tmp_path):
+    host = FakeHost(FakeConnector(lambda address: False, lambda address, commands: None))
+    assert confirm(host, tmp_path) is False
+    assert "does not answer at 10.0.0.200 either" in host.messages[-1]
+    assert "journalctl -u roslab-network-apply" in host.messages[-1]
