@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from pyinfra import host, logger, state
 from pyinfra.api import DeployError, deploy
+from pyinfra.context import ctx_host
 from pyinfra.facts.server import Home, LinuxDistribution, User
 
 from roslab.distro import DistroError, UBUNTU_CODENAMES, check_distro, codename_for, default_distro
@@ -30,7 +31,7 @@ def setting(key: str):
 
 def where() -> str:
     """Names the host for error messages: roster host and team."""
-    if not host.isset():  # rendering outside a deploy (tests, `roslab check`)
+    if not ctx_host.isset():  # rendering outside a deploy (tests, `roslab check`)
         return "roster"
     team = host.data.get("roslab_team")
     return f"host {host.name}" + (f" (team {team})" if team else "")
