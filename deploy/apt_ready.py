@@ -24,7 +24,10 @@ DEFAULTS = {
 }
 
 
-@deploy("apt is ready: the dpkg lock is free, the sources complete and the lists fresh", data_defaults=DEFAULTS)
+@deploy(
+    "apt is ready: the dpkg lock is free, the sources complete and the lists fresh",
+    data_defaults=DEFAULTS,
+)
 def apt_ready():
     """Wait for apt, enable universe and the extra suites, refresh the lists when needed.
 

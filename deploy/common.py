@@ -4,6 +4,9 @@ and stopping one host (not the whole run) when it cannot be provisioned.
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 from pyinfra import host, logger, state
 from pyinfra.api import DeployError, deploy
 from pyinfra.context import ctx_host
@@ -45,6 +48,15 @@ def stop_host(message: str) -> None:
     """
     logger.error(f"{host.print_prefix}roslab stops this host: {message}")
     state.fail_hosts({host})
+
+
+def controller_path(value: str) -> Path:
+    """A path on the machine running pyinfra; relative paths are relative to the roster."""
+    path = Path(os.path.expanduser(str(value)))
+    roster = host.data.get("roslab_roster_path")
+    if not path.is_absolute():
+        path = (Path(roster).parent if roster else Path.cwd()) / path
+    return path
 
 
 def host_is_active() -> bool:
@@ -98,11 +110,16 @@ def host_problem() -> str | None:
     if codename not in UBUNTU_CODENAMES.values():
         return f"Ubuntu {codename} is not supported (supported: {', '.join(sorted(UBUNTU_CODENAMES))})"
     expected = setting("ubuntu_release")
-    if expected and codename_for(expected) != codename:
-        return (
-            f"ubuntu_release is {expected} ({codename_for(expected)}) in the roster "
-            f"but the host runs Ubuntu {codename}"
-        )
+    if expected:
+        try:
+            expected_codename = codename_for(expected)
+        except DistroError as error:
+            return f"ubuntu_release: {error}"
+        if expected_codename != codename:
+            return (
+                f"ubuntu_release is {expected} ({expected_codename}) in the roster "
+                f"but the host runs Ubuntu {codename}"
+            )
     try:
         check_distro(host_distro(), codename)
     except DistroError as error:
@@ -112,7 +129,10 @@ def host_problem() -> str | None:
     return None
 
 
-@deploy("The host runs an Ubuntu release that has packages for its ROS 2 distro", data_defaults=DEFAULTS)
+@deploy(
+    "The host runs an Ubuntu release that has packages for its ROS 2 distro",
+    data_defaults=DEFAULTS,
+)
 def supported_host() -> bool:
     """Stop this host (only) when it cannot get the ROS 2 the roster asks for.
 

@@ -25,7 +25,7 @@ from pyinfra.api import DeployError, deploy
 from pyinfra.operations import files
 from pyinfra.operations.util import any_changed
 
-from deploy.common import host_codename, setting, should_run, where
+from deploy.common import controller_path, host_codename, setting, should_run, where
 from roslab.operations import (
     apt_lists_updated,
     deb_file_installed,
@@ -162,7 +162,7 @@ def _mirror_mode(codename: str) -> list:
     for field, value in (("ros_apt_mirror_url", mirror_url), ("ros_apt_mirror_key_file", key_file)):
         if not value:
             raise DeployError(f"{where()}: ros_apt_source_mode is 'mirror' but {field} is not set")
-    key_path = Path(os.path.expanduser(key_file))
+    key_path = controller_path(key_file)
     try:
         key = dearmored(key_path.read_bytes())
     except (OSError, ValueError) as error:

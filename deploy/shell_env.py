@@ -87,7 +87,10 @@ def render_ros_environment(
     )
 
 
-@deploy("The login user's shell sources ROS 2 with the team's domain and discovery settings", data_defaults=DEFAULTS)
+@deploy(
+    "The login user's shell sources ROS 2 with the team's domain and discovery settings",
+    data_defaults=DEFAULTS,
+)
 def shell_env():
     """Write the ROS 2 environment block into the login user's ~/.bashrc.
 

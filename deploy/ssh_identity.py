@@ -3,16 +3,15 @@
 from __future__ import annotations
 
 import ipaddress
-import os
 import re
 from pathlib import Path
 
-from pyinfra import host, state
+from pyinfra import host
 from pyinfra.api import DeployError, deploy
 from pyinfra.facts.systemd import SystemdEnabled
 from pyinfra.operations import apt, server, systemd
 
-from deploy.common import login_user, setting, should_run, where
+from deploy.common import controller_path, login_user, setting, should_run, where
 from roslab.operations import managed_block
 
 DEFAULTS = {
@@ -31,8 +30,12 @@ PUBLIC_KEY = re.compile(r"^(ssh-[a-z0-9-]+|ecdsa-sha2-\S+|sk-\S+)\s+[A-Za-z0-9+/
 ETC_HOSTS_LABEL = "classroom hosts"
 
 
-def public_keys(entries, base_dir: str | None = None) -> list[str]:
-    """Key lines from `teacher_ssh_keys`: key text as is, .pub paths read on this machine."""
+def public_keys(entries, resolve_path=Path) -> list[str]:
+    """Key lines from `teacher_ssh_keys`: key text as is, .pub paths read on this machine.
+
+    `resolve_path` turns an entry into a local path (the deploy resolves relative paths
+    against the roster's directory).
+    """
     if isinstance(entries, str):
         entries = [entries]
     keys: list[str] = []
@@ -41,9 +44,7 @@ def public_keys(entries, base_dir: str | None = None) -> list[str]:
         if PUBLIC_KEY.match(entry):
             keys.append(entry)
             continue
-        path = Path(os.path.expanduser(entry))
-        if not path.is_absolute() and base_dir:
-            path = Path(base_dir) / path
+        path = resolve_path(entry)
         if not path.is_file():
             raise DeployError(
                 f"{where()}: teacher_ssh_keys entry {entry!r} is neither a public key line "
@@ -53,7 +54,9 @@ def public_keys(entries, base_dir: str | None = None) -> list[str]:
         for line in lines:
             if line and not line.startswith("#"):
                 if not PUBLIC_KEY.match(line):
-                    raise DeployError(f"{where()}: teacher_ssh_keys file {path} holds a line that is not a public key")
+                    raise DeployError(
+                        f"{where()}: teacher_ssh_keys file {path} holds a line that is not a public key"
+                    )
                 keys.append(line)
     return keys
 
@@ -70,7 +73,10 @@ def etc_hosts_lines(classroom_hosts) -> list[str]:
     return lines
 
 
-@deploy("SSH is on, the teacher's keys are authorised and the host knows its classroom's names", data_defaults=DEFAULTS)
+@deploy(
+    "SSH is on, the teacher's keys are authorised and the host knows its classroom's names",
+    data_defaults=DEFAULTS,
+)
 def ssh_identity():
     """Install and run sshd, authorise the teacher's keys, set hostname and /etc/hosts.
 
@@ -93,7 +99,7 @@ def ssh_identity():
         enabled=True,
     )
 
-    keys = public_keys(host.data.teacher_ssh_keys, base_dir=state.cwd)
+    keys = public_keys(host.data.teacher_ssh_keys, resolve_path=controller_path)
     if keys:
         user = login_user()
         server.user_authorized_keys(

@@ -31,6 +31,7 @@ def test_a_team_override_with_packages_for_the_release_is_used(tmp_path):
          "ros_distro: ROS 2 jazzy has no packages for Ubuntu jammy"),
         (FakeUbuntu("noble"), {"ubuntu_release": "22.04"},
          "ubuntu_release is 22.04 (jammy) in the roster but the host runs Ubuntu noble"),
+        (FakeUbuntu("noble"), {"ubuntu_release": "23.10"}, "ubuntu_release: Ubuntu 23.10 is not supported"),
         (FakeUbuntu("bookworm", os_id="debian"), {}, "it runs Debian GNU/Linux 12, not Ubuntu"),
         (FakeUbuntu("noble", user="root"), {"ssh_user": "root"}, "login_user is root"),
     ],

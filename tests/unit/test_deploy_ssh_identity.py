@@ -16,12 +16,13 @@ KEY = "ssh-ed25519 AAAAC3NzaC1lZDI1NTE5AAAAIG teacher@laptop"
 def test_keys_come_as_lines_or_from_pub_files_read_here(tmp_path):
     pub = tmp_path / "teacher.pub"
     pub.write_text("# the teacher's second laptop\nssh-rsa AAAAB3NzaC1yc2E teacher@old\n")
-    assert public_keys([KEY, "teacher.pub"], base_dir=str(tmp_path)) == [KEY, "ssh-rsa AAAAB3NzaC1yc2E teacher@old"]
+    keys = public_keys([KEY, "teacher.pub"], resolve_path=lambda entry: tmp_path / entry)
+    assert keys == [KEY, "ssh-rsa AAAAB3NzaC1yc2E teacher@old"]
 
 
 def test_an_entry_that_is_neither_key_nor_file_is_a_clear_error(tmp_path):
     with pytest.raises(DeployError, match="teacher_ssh_keys entry 'teacher.pbu'"):
-        public_keys(["teacher.pbu"], base_dir=str(tmp_path))
+        public_keys(["teacher.pbu"], resolve_path=lambda entry: tmp_path / entry)
 
 
 def test_etc_hosts_lists_hosts_with_ip_addresses():
@@ -31,7 +32,10 @@ def test_etc_hosts_lists_hosts_with_ip_addresses():
 
 def test_identity_converges_and_keeps_other_etc_hosts_lines(tmp_path):
     host = FakeUbuntu()
-    data = host_data(tmp_path, teacher_ssh_keys=[KEY])
+    (tmp_path / "teacher.pub").write_text(KEY + "\n")
+    # a .pub path relative to the roster, as a teacher would write it in the roster
+    data = host_data(tmp_path, teacher_ssh_keys=["teacher.pub"],
+                     roslab_roster_path=str(tmp_path / "classroom.yaml"))
     result = plan(ssh_identity, host.facts(), data)
     assert result.operation("hostname is team1-main").text() == ["hostnamectl set-hostname team1-main"]
     assert result.uploads()["/etc/hosts"].splitlines() == [
