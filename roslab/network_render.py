@@ -174,8 +174,15 @@ def render_netplan(settings: NetworkSettings, renderer: str) -> str:
 def render_keyfile(settings: NetworkSettings) -> str:
     # A fixed UUID per interface, so a re-render is byte-identical (idempotent).
     profile_uuid = uuid.uuid5(uuid.NAMESPACE_URL, f"roslab:network:{settings.interface}")
+    # NetworkManager keeps DNS servers per address family (it drops IPv6 ones from ipv4.dns).
+    ipv4_nameservers = [server for server in settings.nameservers if ":" not in server]
+    ipv6_nameservers = [server for server in settings.nameservers if ":" in server]
     return _environment.get_template("nm-connection.nmconnection.j2").render(
-        connection_id=connection_id(settings), uuid=profile_uuid, **_variables(settings)
+        connection_id=connection_id(settings),
+        uuid=profile_uuid,
+        ipv4_nameservers=ipv4_nameservers,
+        ipv6_nameservers=ipv6_nameservers,
+        **_variables(settings),
     )
 
 

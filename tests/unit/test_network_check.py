@@ -174,3 +174,66 @@ def test_classroom_reports_each_bad_host_and_passes_good_ones():
         ("t1", "b", "network_gateway"),
         ("t2", "c", "wifi_password_secret"),
     ]
+
+
+# Through the roster loader: problems name the file and line, team, host and field.
+
+
+def load_roster_text(tmp_path, hosts_yaml, secrets_yaml='lab_wifi: "correct horse"\n'):
+    import textwrap
+
+    from roslab.roster import load_roster
+
+    secrets = tmp_path / "secrets.yaml"
+    secrets.write_text(secrets_yaml)
+    secrets.chmod(0o600)
+    roster = tmp_path / "lab.yaml"
+    roster.write_text(textwrap.dedent(
+        """\
+        classroom:
+          ssh_user: ubuntu
+          network_gateway: 192.168.50.1
+        teams:
+          team1:
+            ros_domain_id: 11
+            hosts:
+        """) + textwrap.indent(textwrap.dedent(hosts_yaml), " " * 6))
+    return load_roster(roster)
+
+
+def test_roster_with_gateway_outside_the_subnet_is_stopped(tmp_path):
+    from roslab.roster import RosterError
+
+    with pytest.raises(RosterError) as caught:
+        load_roster_text(tmp_path, """\
+            team1-main: {role: main, address: 10.0.0.5, network_address: 10.1.0.11/24}
+            """)
+    message = str(caught.value)
+    assert "lab.yaml:3: team 'team1', host 'team1-main', field 'network_gateway'" in message
+    assert "192.168.50.1 is outside the subnet 10.1.0.0/24" in message
+
+
+def test_roster_wifi_host_without_password_secret_is_stopped(tmp_path):
+    from roslab.roster import RosterError
+
+    with pytest.raises(RosterError) as caught:
+        load_roster_text(tmp_path, """\
+            team1-main:
+              role: main
+              network_address: 192.168.50.11/24
+              network_kind: wifi
+              wifi_ssid: robolab
+            """)
+    assert "field 'wifi_password_secret': a wifi host needs wifi_password_secret" in str(caught.value)
+
+
+def test_roster_wifi_host_with_its_secret_loads(tmp_path):
+    classroom = load_roster_text(tmp_path, """\
+        team1-main:
+          role: main
+          network_address: 192.168.50.11/24
+          network_kind: wifi
+          wifi_ssid: robolab
+          wifi_password_secret: lab_wifi
+        """)
+    assert classroom.hosts[0].data["wifi_password"].unmask() == "correct horse"

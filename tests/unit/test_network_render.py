@@ -151,9 +151,9 @@ def test_keyfile_static_ethernet():
     assert dict(parsed["ipv4"]) == {
         "method": "manual",
         "address1": "192.168.50.11/24,192.168.50.1",
-        "dns": "192.168.50.1;fd00::53;",
+        "dns": "192.168.50.1;",
     }
-    assert parsed["ipv6"]["method"] == "auto"
+    assert dict(parsed["ipv6"]) == {"method": "auto", "dns": "fd00::53;"}
     assert "wifi" not in parsed
 
 
