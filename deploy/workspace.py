@@ -222,9 +222,10 @@ def workspace():
         name=f"Ensure {workspace_dir} is built from these sources (colcon)",
         workspace_dir=workspace_dir,
         distro=distro,
-        # Only roslab's packages (and what they depend on): a student's broken package
-        # in src/ must not fail the classroom's deploy.
-        colcon_args=[*colcon_args(), "--packages-up-to", *sorted(packages)],
+        # Only roslab's packages: a student's broken package in src/ must not fail the
+        # classroom's deploy. (`--paths` is colcon-core's; `--packages-up-to` needs an
+        # extension that not every colcon install has.)
+        colcon_args=[*colcon_args(), "--paths", *(f"src/{name}" for name in sorted(packages))],
         sources_hash=ws_ops.tree_hash(packages),
         **as_login_user(user),
     )

@@ -382,7 +382,7 @@ class WorkspaceStamps(FactBase):
 
     Returns ``{"rosdep": <hash or None>, "build": <hash or None>, "installed": bool}``:
     the stamps are hashes of the sources at the last successful `rosdep install` and
-    `colcon build`; ``installed`` is whether ``install/setup.bash`` exists.
+    `colcon build`; ``installed`` is whether ``install/setup.sh`` exists.
     """
 
     @staticmethod
@@ -395,7 +395,8 @@ class WorkspaceStamps(FactBase):
         return (
             f"echo rosdep $(cat {state}/rosdep.sha256 2>/dev/null); "
             f"echo build $(cat {state}/build.sha256 2>/dev/null); "
-            f"if [ -f {ws}/install/setup.bash ]; then echo installed yes; else echo installed no; fi"
+            # colcon-core always writes setup.sh; setup.bash needs the colcon-bash extension.
+            f"if [ -f {ws}/install/setup.sh ]; then echo installed yes; else echo installed no; fi"
         )
 
     def process(self, output):
@@ -487,7 +488,7 @@ def built(workspace_dir: str, distro: str, colcon_args: list[str], sources_hash:
     Run it as the workspace's owner (``_sudo_user``). The build's output goes to
     ``log/roslab-build.log`` in the workspace; when the build fails its tail is the
     operation's error output. A build is needed when the stamp of the last successful
-    build (sources, distro and arguments) differs or ``install/setup.bash`` is missing.
+    build (sources, distro and arguments) differs or ``install/setup.sh`` is missing.
     """
     stamp = hashlib.sha256(
         "\0".join([sources_hash, distro, *colcon_args]).encode()

@@ -144,7 +144,7 @@ def test_stamps_fact_reads_a_fresh_workspace_as_unbuilt(tmp_path):
     (tmp_path / ".roslab").mkdir()
     (tmp_path / ".roslab" / "build.sha256").write_text("abc\n")
     (tmp_path / "install").mkdir()
-    (tmp_path / "install" / "setup.bash").write_text("")
+    (tmp_path / "install" / "setup.sh").write_text("")
     assert host.get_fact(workspace.WorkspaceStamps, workspace_dir=str(tmp_path)) == {
         "rosdep": None, "build": "abc", "installed": True,
     }
@@ -325,7 +325,7 @@ def test_synced_workspace_builds_with_real_colcon_and_rebuilds_only_on_change(tm
         packages = workspace.local_packages(ws / "src")
         commands, _ = run_operation(
             workspace.built, workspace_dir=str(ws), distro="jazzy",
-            colcon_args=[*ARGS, "--packages-up-to", *sorted(packages)],
+            colcon_args=[*ARGS, "--paths", *(f"src/{name}" for name in sorted(packages))],
             sources_hash=workspace.tree_hash(packages),
         )
         return [c.get_raw_value().replace("/opt/ros/jazzy/setup.bash", str(stand_in_setup))
