@@ -19,6 +19,8 @@ from io import StringIO
 from pathlib import Path
 from uuid import uuid4
 
+import gevent
+from paramiko import SSHException
 from pyinfra import host, logger, state
 from pyinfra.api import FactBase, FunctionCommand, OperationError, StringCommand, operation
 from pyinfra.api.arguments import CONNECTOR_ARGUMENT_KEYS
@@ -46,6 +48,8 @@ APPLY_SCRIPT = Path(network_apply.__file__)
 ROLLBACK_GRACE = 45
 # How often the controller looks at the old address for an early rollback.
 OLD_ADDRESS_PROBE_INTERVAL = 5
+# Longest wait for one command in the confirmation (s).
+COMMAND_TIMEOUT = 10
 
 
 class NetworkRenderer(FactBase):
@@ -235,8 +239,9 @@ def _connect_at(host, address: str) -> bool:
     connector.data["ssh_hostname"] = address
     connector.disconnect()  # forget the file transfer channel of the old connection
     try:
-        connector.connect()
-    except ConnectError:
+        with gevent.Timeout(COMMAND_TIMEOUT * 2):
+            connector.connect()
+    except (ConnectError, gevent.Timeout):
         return False
     return True
 
@@ -251,28 +256,75 @@ def _connect_within(host, address: str, seconds: float) -> bool:
         time.sleep(2)
 
 
-def _read_status(host, arguments: dict, token: str) -> dict | None:
-    ok, output = host.run_shell_command(
-        StringCommand("cat", f"{RUN_DIR}/status.json"), **arguments
-    )
-    if not ok:
-        return None
+def _run(host, arguments: dict, *bits) -> str | None:
+    """Run a command on the current connection; its stdout, or None if it failed.
+
+    Bounded in time: when the host drops the address mid-command (a rollback), a
+    command on the dead connection would otherwise wait for TCP to give up.
+    """
     try:
-        status = json.loads(output.stdout)
+        with gevent.Timeout(COMMAND_TIMEOUT):
+            ok, output = host.run_shell_command(StringCommand(*bits), **arguments)
+    except (gevent.Timeout, OSError, SSHException, EOFError):
+        return None
+    return output.stdout if ok else None
+
+
+def _read_status(host, arguments: dict, token: str) -> dict | None:
+    """This run's status from the host (None: unreadable, or an earlier run's)."""
+    text = _run(host, arguments, "cat", f"{RUN_DIR}/status.json")
+    try:
+        status = json.loads(text) if text else None
     except ValueError:
         return None
-    return status if status.get("token") == token else None
+    return status if status and status.get("token") == token else None
+
+
+def _is_final(status: dict | None) -> bool:
+    return bool(status) and status["state"] not in (
+        network_apply.STATE_APPLYING, network_apply.STATE_WAITING
+    )
 
 
 def _wait_for_final_status(host, arguments: dict, token: str, wait: float) -> dict | None:
     deadline = time.monotonic() + wait
     status = None
     while time.monotonic() < deadline:
-        status = _read_status(host, arguments, token)
-        if status and status["state"] not in (network_apply.STATE_APPLYING, network_apply.STATE_WAITING):
+        status = _read_status(host, arguments, token) or status
+        if _is_final(status):
             return status
         time.sleep(0.5)
     return status
+
+
+def _confirm_at_new_address(host, arguments: dict, token: str, new_address: str,
+                            old_address: str, deadline: float) -> dict | None:
+    """Confirm once the host waits for it; the host's final status, or None at the deadline."""
+    connected = False
+    next_old_probe = time.monotonic() + OLD_ADDRESS_PROBE_INTERVAL
+    while time.monotonic() < deadline:
+        connected = connected or _connect_at(host, new_address)
+        if connected:
+            status = _read_status(host, arguments, token)
+            if status is None:
+                connected = False  # the connection died, or the file is not there yet
+            elif status["state"] == network_apply.STATE_WAITING:
+                # The confirmation proves the new address works both ways, over a new connection.
+                _run(host, arguments, "printf", "%s", token, ">", f"{RUN_DIR}/confirmed")
+                status = _wait_for_final_status(host, arguments, token, wait=10)
+                if _is_final(status):
+                    return status
+            elif _is_final(status):
+                return status  # the host gave up by itself, e.g. its gateway did not answer
+        elif new_address != old_address and time.monotonic() >= next_old_probe:
+            # Back at the old address already? Then the host rolled back early.
+            next_old_probe = time.monotonic() + OLD_ADDRESS_PROBE_INTERVAL
+            if _connect_at(host, old_address):
+                status = _read_status(host, arguments, token)
+                if _is_final(status):
+                    return status
+        time.sleep(1)
+    return None
 
 
 def confirm_network_change(
@@ -292,44 +344,23 @@ def confirm_network_change(
     arguments = _connector_arguments(state, host)
     old_client = host.connector.client
     deadline = time.monotonic() + confirm_timeout
-    next_old_probe = time.monotonic() + OLD_ADDRESS_PROBE_INTERVAL
-    early_status = None
+    status = _confirm_at_new_address(host, arguments, token, new_address, old_address, deadline)
 
-    while time.monotonic() < deadline:
-        if _connect_at(host, new_address):
-            ok, output = host.run_shell_command(
-                StringCommand("printf", "%s", token, ">", f"{RUN_DIR}/confirmed"), **arguments
-            )
-            status = _wait_for_final_status(host, arguments, token, wait=10) if ok else None
-            if status and status["state"] == network_apply.STATE_CONFIRMED:
-                if old_client is not None and old_client is not host.connector.client:
-                    old_client.close()
-                if roster_path:
-                    netstate.record_address(roster_path, host.name, new_address)
-                host.log_styled(
-                    f"Network change confirmed: reachable at {new_address}; "
-                    f"the previous files are kept in {status.get('backup')}",
-                    fg="green",
-                    log_func=logger.info,
-                )
-                return True
-            if status:  # the host gave up (for instance its gateway did not answer)
-                early_status = status
-                break
-        elif new_address != old_address and time.monotonic() >= next_old_probe:
-            # Back at the old address already? Then the host rolled back early.
-            next_old_probe = time.monotonic() + OLD_ADDRESS_PROBE_INTERVAL
-            if _connect_at(host, old_address):
-                status = _read_status(host, arguments, token)
-                if status and status["state"] not in (
-                    network_apply.STATE_APPLYING, network_apply.STATE_WAITING
-                ):
-                    early_status = status
-                    break
-        time.sleep(1)
+    if status and status["state"] == network_apply.STATE_CONFIRMED:
+        if old_client is not None and old_client is not host.connector.client:
+            old_client.close()
+        if roster_path:
+            netstate.record_address(roster_path, host.name, new_address)
+        host.log_styled(
+            f"Network change confirmed: reachable at {new_address}; "
+            f"the previous files are kept in {status.get('backup')}",
+            fg="green",
+            log_func=logger.info,
+        )
+        return True
 
     # No confirmation: the host restores its previous configuration by itself.
-    if early_status is None:
+    if status is None:
         wait = max(0.0, deadline - time.monotonic()) + ROLLBACK_GRACE
     else:
         wait = ROLLBACK_GRACE  # the host is re-applying its old files right now

@@ -292,3 +292,16 @@ def test_host_gone_everywhere_says_where_to_look(quick, tmp_path):
     assert confirm(host, tmp_path) is False
     assert "does not answer at 10.0.0.200 either" in host.messages[-1]
     assert "journalctl -u roslab-network-apply" in host.messages[-1]
+
+
+def test_host_that_gives_up_by_itself_is_reported_without_a_confirmation(quick, tmp_path):
+    def statuses(address, commands):
+        return {"token": "t0k", "state": "rolled-back",
+                "message": "gateway 10.0.0.254 does not answer on eth0"}
+
+    connector = FakeConnector(lambda address: True, statuses)
+    host = FakeHost(connector)
+    assert confirm(host, tmp_path, timeout=30) is False
+    assert not any(text.startswith("printf") for _, text in host.commands)
+    assert connector.data["ssh_hostname"] == "10.0.0.200"
+    assert "rolled back: gateway 10.0.0.254 does not answer on eth0" in host.messages[-1]
