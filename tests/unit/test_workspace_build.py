@@ -237,7 +237,6 @@ def test_unit_is_valid_for_systemd(tmp_path):
 
 def with_data(**data):
     fake = LocalDirHost()
-    fake.isset = lambda: True  # deploy.common.where() asks the host context whether it is set
     fake.name = "team1-robot"
     fake.data = SimpleNamespace(**data, get=lambda key, default=None: data.get(key, default))
     return ctx_host.use(fake)
