@@ -8,11 +8,13 @@ for (not Ubuntu, wrong release, distro without packages) is stopped before anyth
 from deploy.apt_ready import apt_ready
 from deploy.common import supported_host
 from deploy.locale import system_locale
+from deploy.network import network
 from deploy.ros_apt_source import ros_apt_source
 from deploy.ros_install import ros_install
 from deploy.rosdep import rosdep
 from deploy.shell_env import shell_env
 from deploy.ssh_identity import ssh_identity
+from deploy.workspace import workspace
 
 if supported_host():
     apt_ready()
@@ -22,5 +24,7 @@ if supported_host():
     rosdep()
     shell_env()
     ssh_identity()
-    # deploy.network.network() goes here (after SSH and identity), then
-    # deploy.workspace.workspace() last: both belong to other modules (integrator adds them).
+    # The address change takes effect here, after SSH is known good; the steps
+    # after it run at the host's new address.
+    network()
+    workspace()

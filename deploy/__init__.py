@@ -26,12 +26,7 @@ DEPLOY_MODULES = (
 def _collect_defaults() -> dict:
     merged: dict = {}
     for name in DEPLOY_MODULES:
-        try:
-            module = importlib.import_module(f"deploy.{name}")
-        except ModuleNotFoundError as exc:
-            if exc.name == f"deploy.{name}":  # not written yet
-                continue
-            raise
+        module = importlib.import_module(f"deploy.{name}")
         for key, value in module.DEFAULTS.items():
             if key in merged:
                 raise RuntimeError(f"setting {key!r} is defined by two deploys")
