@@ -61,6 +61,12 @@ def run_check(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_verify(args: argparse.Namespace) -> int:
+    from deploy.verify import main as verify_main  # connects to hosts: imported only when asked
+
+    return verify_main(args.verify_args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="roslab", description="Provision ROS 2 onto a classroom of Raspberry Pis."
@@ -82,6 +88,15 @@ def build_parser() -> argparse.ArgumentParser:
         "if present, else inventories/lab.yaml)",
     )
     check.set_defaults(run=run_check)
+
+    verify = commands.add_parser(
+        "verify",
+        help="check that each team's main host hears its robot",
+        description="Read-only: on each team's main host, listen for the robot's messages with "
+        "the team's domain ID and print a table per team. Exits 1 unless every team is heard.",
+    )
+    verify.add_argument("verify_args", nargs=argparse.REMAINDER, metavar="[INVENTORY] [--limit NAME]")
+    verify.set_defaults(run=run_verify)
 
     try:
         from roslab.sandbox.cli import register
