@@ -22,7 +22,7 @@ from uuid import uuid4
 import gevent
 from paramiko import SSHException
 from pyinfra import host, logger, state
-from pyinfra.api import FactBase, FunctionCommand, OperationError, StringCommand, operation
+from pyinfra.api import FactBase, FunctionCommand, OperationError, QuoteString, StringCommand, operation
 from pyinfra.api.arguments import CONNECTOR_ARGUMENT_KEYS
 from pyinfra.api.command import FileUploadCommand
 from pyinfra.api.exceptions import ConnectError
@@ -187,8 +187,9 @@ def network_in_effect(
     plan_path = f"{RUN_DIR}/plan.json"
     script_path = f"{RUN_DIR}/network_apply.py"
 
+    staged_dirs = sorted({str(network_apply.staged_path(plan, path).parent) for path in wanted.files})
     yield StringCommand("rm", "-rf", f"{RUN_DIR}/staging", "&&", "install", "-d", "-m", "0700",
-                        RUN_DIR, f"{RUN_DIR}/staging")
+                        RUN_DIR, f"{RUN_DIR}/staging", *staged_dirs)
     # With sudo, pyinfra uploads as the SSH user first and then copies into place:
     # give those temporary copies a directory only that user can read.
     upload_dir = f"/tmp/roslab-network-{token}"
@@ -207,7 +208,7 @@ def network_in_effect(
     yield StringCommand(
         "systemctl", "reset-failed", f"{APPLY_UNIT}.service", "2>/dev/null", ";",
         "systemd-run", f"--unit={APPLY_UNIT}", "--collect", "--quiet",
-        "--description=roslab: apply network change, roll back unless confirmed",
+        QuoteString("--description=roslab: apply the network change, roll back unless confirmed"),
         "python3", script_path, "apply", plan_path,
     )
     yield FunctionCommand(
