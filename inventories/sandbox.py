@@ -1,0 +1,31 @@
+"""pyinfra inventory for the running sandbox classroom (see docs/sandbox.md).
+
+    roslab sandbox up
+    pyinfra inventories/sandbox.py deploy.py
+
+Targets the instance named by $ROSLAB_SANDBOX (default: roslab), through the
+roster `roslab sandbox up` wrote, loaded exactly as inventories/lab.py loads a
+real classroom's roster.
+"""
+
+import os as _os
+import sys as _sys
+from pathlib import Path as _Path
+
+from roslab.roster import RosterError as _RosterError
+from roslab.roster import inventory_groups as _inventory_groups
+from roslab.roster import load_roster as _load_roster
+
+# Names without a leading underscore would become pyinfra groups.
+_name = _os.environ.get("ROSLAB_SANDBOX") or "roslab"
+_roster_path = _Path("/run/roslab/sandbox") / _name / "roster.yaml"
+if not _roster_path.exists():
+    print(f"roslab: no sandbox {_name!r} is running: run `roslab sandbox up`", file=_sys.stderr)
+    _sys.exit(2)
+try:
+    _classroom = _load_roster(_roster_path)
+except _RosterError as _error:
+    print(f"roslab: the sandbox roster {_roster_path} has errors:\n{_error}", file=_sys.stderr)
+    _sys.exit(2)
+
+globals().update(_inventory_groups(_classroom))

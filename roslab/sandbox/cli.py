@@ -1,0 +1,71 @@
+"""`roslab sandbox ...`: the sandbox classroom's command line."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from . import lifecycle
+from .system import SandboxError
+
+
+def register(subparsers) -> argparse.ArgumentParser:
+    """Add `sandbox` and its subcommands to the `roslab` command's subparsers."""
+    parser = subparsers.add_parser(
+        "sandbox", help="boot, list and stop test hosts on this machine",
+        description="Test hosts on this machine that look like a classroom of Pis. "
+                    "The instance is named by $ROSLAB_SANDBOX (default: roslab).",
+    )
+    commands = parser.add_subparsers(dest="sandbox_command", required=True, metavar="COMMAND")
+    up = commands.add_parser("up", help="boot the sandbox classroom (does nothing if it runs)")
+    up.add_argument("--hosts", type=int, default=None, metavar="N",
+                    help=f"number of hosts, in teams of two (default {lifecycle.DEFAULT_HOSTS})")
+    commands.add_parser("status", help="list the hosts and whether they answer")
+    commands.add_parser("down", help="stop the hosts and remove everything the sandbox made")
+    reset = commands.add_parser("reset", help="give a host a fresh image and boot it")
+    reset.add_argument("host")
+    reboot = commands.add_parser("reboot", help="reboot a host")
+    reboot.add_argument("host")
+    ssh = commands.add_parser("ssh", help="log in to a host as the login user (or run CMD there)")
+    ssh.add_argument("host")
+    ssh.add_argument("cmd", nargs=argparse.REMAINDER, metavar="CMD")
+    parser.set_defaults(run=run)  # the `roslab` command calls args.run(args)
+    return parser
+
+
+def print_status(report: dict) -> None:
+    print(f"sandbox {report['name']}: subnet {report['subnet']}, upstream {report['upstream']}")
+    print(f"roster: {report['roster']}")
+    for host in report["hosts"]:
+        state = "ssh ok" if host["ssh"] else ("booting" if host["running"] else "STOPPED")
+        print(f"  {host['name']:<16} {host['address']:<15} Ubuntu {host['release']} (emulated)  {state}")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        if args.sandbox_command == "up":
+            lifecycle.up(args.hosts)
+            print_status(lifecycle.status())
+        elif args.sandbox_command == "status":
+            print_status(lifecycle.status())
+        elif args.sandbox_command == "down":
+            lifecycle.down()
+        elif args.sandbox_command == "reset":
+            print(f"{args.host}: fresh image, ssh ready after {lifecycle.reset(args.host):.1f} s")
+        elif args.sandbox_command == "reboot":
+            print(f"{args.host}: rebooted, ssh ready after {lifecycle.reboot(args.host):.1f} s")
+        elif args.sandbox_command == "ssh":
+            lifecycle.ssh(args.host, args.cmd)
+    except SandboxError as exc:
+        print(f"roslab sandbox: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="roslab")
+    register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    return args.run(args)

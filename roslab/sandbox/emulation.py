@@ -1,0 +1,119 @@
+"""Emulated Ubuntu: the files that make a Debian sandbox host look like an Ubuntu Pi.
+
+The sandbox's hosts run Debian userlands (Ubuntu's archive is out of reach).
+What the deploys read to tell an Ubuntu release and its apt layout is written
+here per host, each file saying it is an emulation: `/etc/os-release`,
+`/etc/lsb-release`, Ubuntu's apt sources (pointing at the sandbox upstream),
+and the netplan file cloud-init would have written from the boot partition.
+cloud-init itself is not installed; only its configuration directory exists.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+# Ubuntu release -> what its os-release says.
+RELEASES = {
+    "24.04": {"codename": "noble", "pretty": "Ubuntu 24.04.2 LTS", "version": "24.04.2 LTS (Noble Numbat)"},
+    "22.04": {"codename": "jammy", "pretty": "Ubuntu 22.04.5 LTS", "version": "22.04.5 LTS (Jammy Jellyfish)"},
+}
+
+HEADER = "# roslab sandbox emulation of Ubuntu {release}: this host runs a Debian userland.\n"
+
+UBUNTU_KEYRING = "/usr/share/keyrings/ubuntu-archive-keyring.gpg"
+
+
+@dataclass(frozen=True)
+class HostIdentity:
+    """What one emulated host is: its name, release and address on the sandbox network."""
+
+    hostname: str
+    release: str  # "24.04" or "22.04"
+    address: str  # "10.213.0.11"
+    prefixlen: int  # 24
+
+    @property
+    def codename(self) -> str:
+        return RELEASES[self.release]["codename"]
+
+
+def os_release(host: HostIdentity) -> str:
+    info = RELEASES[host.release]
+    return HEADER.format(release=host.release) + (
+        f'PRETTY_NAME="{info["pretty"]}"\n'
+        'NAME="Ubuntu"\n'
+        f'VERSION_ID="{host.release}"\n'
+        f'VERSION="{info["version"]}"\n'
+        f"VERSION_CODENAME={info['codename']}\n"
+        "ID=ubuntu\n"
+        "ID_LIKE=debian\n"
+        'HOME_URL="https://www.ubuntu.com/"\n'
+        f"UBUNTU_CODENAME={info['codename']}\n"
+    )
+
+
+def lsb_release(host: HostIdentity) -> str:
+    info = RELEASES[host.release]
+    return HEADER.format(release=host.release) + (
+        "DISTRIB_ID=Ubuntu\n"
+        f"DISTRIB_RELEASE={host.release}\n"
+        f"DISTRIB_CODENAME={info['codename']}\n"
+        f'DISTRIB_DESCRIPTION="{info["pretty"]}"\n'
+    )
+
+
+def apt_sources(host: HostIdentity, archive_url: str) -> tuple[str, str]:
+    """Ubuntu's apt layout as the Pi server image ships it: (path, content).
+
+    Deliberately main and restricted only, without -updates and -backports:
+    that is the gap on real Pi images which the apt_ready deploy must close.
+    """
+    header = HEADER.format(release=host.release) + f"# {archive_url} is the sandbox's stand-in for Ubuntu's archive.\n"
+    codename = host.codename
+    if host.release == "22.04":
+        return "/etc/apt/sources.list", header + (
+            f"deb {archive_url} {codename} main restricted\n"
+            f"deb {archive_url} {codename}-security main restricted\n"
+        )
+    return "/etc/apt/sources.list.d/ubuntu.sources", header + (
+        "Types: deb\n"
+        f"URIs: {archive_url}\n"
+        f"Suites: {codename} {codename}-security\n"
+        "Components: main restricted\n"
+        f"Signed-By: {UBUNTU_KEYRING}\n"
+    )
+
+
+def netplan_cloud_init(host: HostIdentity) -> str:
+    """The netplan file cloud-init writes on Ubuntu Server from the boot partition's network-config."""
+    return (
+        "# roslab sandbox emulation of the file cloud-init writes on Ubuntu Server\n"
+        "# from the boot partition's network-config (cloud-init is not installed here).\n"
+        "# No default route: sandbox hosts reach only the sandbox network.\n"
+        "network:\n"
+        "  version: 2\n"
+        "  renderer: networkd\n"
+        "  ethernets:\n"
+        "    eth0:\n"
+        "      dhcp4: false\n"
+        f"      addresses: [{host.address}/{host.prefixlen}]\n"
+    )
+
+
+CLOUD_CFG_README = (
+    "roslab sandbox: cloud-init is NOT installed on sandbox hosts. This directory exists\n"
+    "because Ubuntu Server images have it, and deploys may drop configuration here\n"
+    "(e.g. 99-disable-network-config.cfg).\n"
+)
+
+
+def host_files(host: HostIdentity, archive_url: str) -> dict[str, tuple[str, int]]:
+    """Every emulation file of one host: path -> (content, mode)."""
+    sources_path, sources = apt_sources(host, archive_url)
+    return {
+        "/usr/lib/os-release": (os_release(host), 0o644),
+        "/etc/lsb-release": (lsb_release(host), 0o644),
+        sources_path: (sources, 0o644),
+        "/etc/netplan/50-cloud-init.yaml": (netplan_cloud_init(host), 0o600),
+        "/etc/cloud/cloud.cfg.d/README.roslab-sandbox": (CLOUD_CFG_README, 0o644),
+    }

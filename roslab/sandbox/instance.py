@@ -1,0 +1,140 @@
+"""A sandbox instance: its name, subnet, state directory and the classroom it holds.
+
+Several instances coexist on one machine (each engineer's tests run their own);
+everything an instance creates carries a short id derived from its name, so
+`down` finds its leftovers even when the state directory is gone.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import ipaddress
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from .emulation import HostIdentity
+from .system import SandboxError
+
+DEFAULT_NAME = "roslab"
+DEFAULT_SUBNET = "10.213.0.0/24"
+STATE_ROOT = Path("/run/roslab/sandbox")
+UPSTREAM_PORT = 8080
+FIRST_HOST_OCTET = 11  # hosts are .11, .12, ...; .1 is the bridge (the "upstream")
+MAX_HOSTS = 200
+
+# Team n's release: odd teams on 24.04, even teams on 22.04.
+RELEASES_BY_TEAM = ("24.04", "22.04")
+
+_NAME_RE = re.compile(r"^[a-z][a-z0-9-]{0,30}$")
+
+
+@dataclass(frozen=True)
+class SandboxHost:
+    """One host of the sandbox classroom."""
+
+    name: str  # "team1-main"
+    team: str  # "team1"
+    role: str  # "main" or "robot"
+    release: str  # "24.04"
+    index: int  # 0-based position in the classroom
+    address: str
+
+    def identity(self, prefixlen: int) -> HostIdentity:
+        return HostIdentity(hostname=self.name, release=self.release, address=self.address, prefixlen=prefixlen)
+
+
+@dataclass(frozen=True)
+class Instance:
+    name: str
+    subnet: ipaddress.IPv4Network
+
+    @classmethod
+    def from_env(cls, name: str | None = None) -> "Instance":
+        """The instance named by `name`, else $ROSLAB_SANDBOX, else "roslab"."""
+        name = name or os.environ.get("ROSLAB_SANDBOX") or DEFAULT_NAME
+        if not _NAME_RE.match(name):
+            raise SandboxError(
+                f"sandbox name {name!r} is invalid: use 1-31 lowercase letters, digits and '-', starting with a letter"
+            )
+        subnet_text = os.environ.get("ROSLAB_SANDBOX_SUBNET") or default_subnet(name)
+        try:
+            subnet = ipaddress.IPv4Network(subnet_text)
+        except ValueError as exc:
+            raise SandboxError(f"ROSLAB_SANDBOX_SUBNET={subnet_text!r} is not an IPv4 network: {exc}") from None
+        if subnet.prefixlen > 24 or not subnet.is_private:
+            raise SandboxError(f"sandbox subnet {subnet} must be a private network of /24 or larger")
+        return cls(name, subnet)
+
+    # -- names of what the instance creates ---------------------------------------
+    @property
+    def short_id(self) -> str:
+        """6 hex digits naming this instance's interfaces, netns and cgroups (names <= 15 chars)."""
+        return hashlib.sha1(self.name.encode()).hexdigest()[:6]
+
+    @property
+    def bridge(self) -> str:
+        return f"rlbr{self.short_id}"
+
+    def veth(self, host: SandboxHost) -> str:
+        return f"rlv{self.short_id}{host.index}"
+
+    def netns(self, host: SandboxHost) -> str:
+        return f"rl{self.short_id}-{host.name}"
+
+    @property
+    def netns_prefix(self) -> str:
+        return f"rl{self.short_id}-"
+
+    def machine_name(self, host: SandboxHost) -> str:
+        return f"{self.name}-{host.name}"
+
+    @property
+    def bridge_address(self) -> str:
+        return str(self.subnet.network_address + 1)
+
+    @property
+    def upstream_url(self) -> str:
+        return f"http://{self.bridge_address}:{UPSTREAM_PORT}"
+
+    # -- files ---------------------------------------------------------------------
+    @property
+    def state_dir(self) -> Path:
+        return STATE_ROOT / self.name
+
+    @property
+    def roster_path(self) -> Path:
+        return self.state_dir / "roster.yaml"
+
+    @property
+    def key_path(self) -> Path:
+        return self.state_dir / "id_ed25519"
+
+    def host_dir(self, host: SandboxHost) -> Path:
+        return self.state_dir / "hosts" / host.name
+
+    # -- the classroom ---------------------------------------------------------------
+    def plan_hosts(self, count: int) -> list[SandboxHost]:
+        """`count` hosts in teams of two (main, robot), teams alternating 24.04 and 22.04."""
+        if not 1 <= count <= min(MAX_HOSTS, self.subnet.num_addresses - FIRST_HOST_OCTET - 1):
+            raise SandboxError(f"--hosts {count}: a sandbox holds 1 to {MAX_HOSTS} hosts")
+        hosts = []
+        for index in range(count):
+            team_number, member = divmod(index, 2)
+            team = f"team{team_number + 1}"
+            role = ("main", "robot")[member]
+            hosts.append(SandboxHost(
+                name=f"{team}-{role}", team=team, role=role,
+                release=RELEASES_BY_TEAM[team_number % 2], index=index,
+                address=str(self.subnet.network_address + FIRST_HOST_OCTET + index),
+            ))
+        return hosts
+
+
+def default_subnet(name: str) -> str:
+    """10.213.0.0/24 for the default instance; a distinct 10.213.x.0/24 derived from any other name."""
+    if name == DEFAULT_NAME:
+        return DEFAULT_SUBNET
+    third_octet = 1 + int(hashlib.sha1(name.encode()).hexdigest(), 16) % 254
+    return f"10.213.{third_octet}.0/24"

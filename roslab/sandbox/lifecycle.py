@@ -1,0 +1,288 @@
+"""Bring a sandbox classroom up, report on it, reset or reboot its hosts, and take it down.
+
+`up` is idempotent and first clears leftovers of the same instance; `down`
+removes everything the instance made (processes, mounts, cgroups, netns,
+interfaces, state) and works on a half-broken instance. The machine-wide
+pieces (a raised inotify limit, lxcfs) are restored when the last instance goes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, replace
+from ipaddress import IPv4Network
+from pathlib import Path
+
+import yaml
+
+from . import hosts, image, upstream
+from .instance import STATE_ROOT, UPSTREAM_PORT, Instance, SandboxHost
+from .system import SandboxError, file_lock, log, run, write_file
+
+DEFAULT_HOSTS = 4
+INOTIFY_INSTANCES = Path("/proc/sys/fs/inotify/max_user_instances")
+INOTIFY_WANTED = 8192  # the default 128 lets only about 14 hosts boot
+MACHINE_DIR = STATE_ROOT / ".machine"  # shared by all instances: lock, saved limits, lxcfs pid
+
+
+@dataclass(frozen=True)
+class Classroom:
+    """A running (or half-running) instance and its hosts, as `up` recorded them."""
+
+    instance: Instance
+    hosts: list[SandboxHost]
+
+    def host(self, name: str) -> SandboxHost:
+        for host in self.hosts:
+            if host.name == name:
+                return host
+        known = ", ".join(host.name for host in self.hosts)
+        raise SandboxError(f"sandbox {self.instance.name!r} has no host {name!r} (hosts: {known})")
+
+
+def _state_file(instance: Instance) -> Path:
+    return instance.state_dir / "sandbox.json"
+
+
+def _instance_lock(instance: Instance) -> Path:
+    return STATE_ROOT / ".locks" / f"{instance.name}.lock"
+
+
+def load(instance: Instance | None = None) -> Classroom:
+    """The classroom of a running instance; SandboxError if none is running."""
+    instance = instance or Instance.from_env()
+    try:
+        state = json.loads(_state_file(instance).read_text())
+    except FileNotFoundError:
+        raise SandboxError(f"no sandbox {instance.name!r} is running: run `roslab sandbox up`") from None
+    instance = replace(instance, subnet=IPv4Network(state["subnet"]))
+    return Classroom(instance, instance.plan_hosts(state["hosts"]))
+
+
+def ssh_argv(instance: Instance, address: str, *command: str) -> list[str]:
+    """An ssh command line reaching a host as the login user with the instance key."""
+    return [
+        "ssh", "-i", str(instance.key_path), "-o", "IdentitiesOnly=yes", "-o", "BatchMode=yes",
+        "-o", "UserKnownHostsFile=/dev/null", "-o", "StrictHostKeyChecking=no", "-o", "LogLevel=ERROR",
+        "-o", "ConnectTimeout=5", f"{image.LOGIN_USER}@{address}", *command,
+    ]
+
+
+# -- up -------------------------------------------------------------------------------------
+
+def up(count: int | None = None, instance: Instance | None = None) -> Classroom:
+    """Boot the instance's classroom (default 4 hosts); a running one is left as it is."""
+    instance = instance or Instance.from_env()
+    with file_lock(_instance_lock(instance)):
+        try:
+            running = load(instance)
+        except SandboxError:
+            running = None
+        if running and (count is None or count == len(running.hosts)) and _healthy(running):
+            return running
+        if running and count is not None and count != len(running.hosts):
+            raise SandboxError(
+                f"sandbox {instance.name!r} is running with {len(running.hosts)} hosts: "
+                "run `roslab sandbox down` first to change that"
+            )
+        _down_locked(instance)  # leftovers of a crashed or half-started run
+        try:
+            return _up_locked(instance, count or DEFAULT_HOSTS)
+        except BaseException:
+            _down_locked(instance)
+            raise
+
+
+def _healthy(classroom: Classroom) -> bool:
+    return all(hosts.is_running(classroom.instance, host.name) for host in classroom.hosts)
+
+
+def _up_locked(instance: Instance, count: int) -> Classroom:
+    started = time.monotonic()
+    classroom = Classroom(instance, instance.plan_hosts(count))
+    rootfs = image.base_image()
+    instance.state_dir.mkdir(parents=True, mode=0o700)
+    write_file(_state_file(instance), json.dumps({"hosts": count, "subnet": str(instance.subnet)}) + "\n")
+    _claim_machine(instance)
+    run("ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-C", f"roslab-sandbox-{instance.name}",
+        "-f", instance.key_path)
+    hosts.ensure_bridge(instance)
+    published = upstream.build(instance.state_dir / "upstream", instance.upstream_url, rootfs)
+    upstream.start_server(instance.state_dir / "upstream", instance.bridge_address, UPSTREAM_PORT,
+                          instance.state_dir / "upstream.pid", instance.state_dir / "upstream.log")
+    keyring = upstream.ubuntu_key().keyring.read_bytes()
+
+    def boot(host: SandboxHost) -> None:
+        hosts.ensure_host_key(instance, host)
+        hosts.wire_host(instance, host)
+        merged = hosts.mount_fresh(instance, host, rootfs)
+        hosts.write_host_files(instance, host, merged, keyring)
+        hosts.start(instance, host, merged)
+        hosts.wait_for_ssh(host.address)
+
+    _on_all(classroom.hosts, boot)
+    write_roster(classroom, published)
+    log.info("sandbox %r up: %d hosts in %.1f s", instance.name, count, time.monotonic() - started)
+    return classroom
+
+
+def _on_all(targets: list[SandboxHost], action) -> None:
+    with ThreadPoolExecutor(max_workers=min(16, len(targets))) as pool:
+        for future in [pool.submit(action, host) for host in targets]:
+            future.result()
+
+
+def roster(classroom: Classroom, published: upstream.Upstream) -> dict:
+    """The roster `up` writes: a real roster whose settings point at the sandbox upstream."""
+    instance = classroom.instance
+    teams: dict[str, dict] = {}
+    for host in classroom.hosts:
+        team = teams.setdefault(host.team, {
+            "ubuntu_release": host.release,
+            "ros_domain_id": 10 + int(host.team.removeprefix("team")),
+            "hosts": {},
+        })
+        team["hosts"][host.name] = {"role": host.role, "address": host.address}
+    return {
+        "classroom": {
+            "name": f"sandbox-{instance.name}",
+            "ssh_user": image.LOGIN_USER,
+            "ssh_key": str(instance.key_path),
+            "ssh_known_hosts_file": "/dev/null",
+            "ssh_strict_host_key_checking": "off",
+            **published.roster_settings(),
+        },
+        "teams": teams,
+    }
+
+
+def write_roster(classroom: Classroom, published: upstream.Upstream) -> None:
+    instance = classroom.instance
+    header = (f"# Roster of the roslab sandbox {instance.name!r}, written by `roslab sandbox up`\n"
+              "# and removed by `roslab sandbox down`. Its settings point at the sandbox's local\n"
+              "# upstream exactly as a real classroom's would point at a mirror.\n")
+    write_file(instance.roster_path, header + yaml.safe_dump(roster(classroom, published), sort_keys=False))
+    key_file = instance.state_dir / "ros-archive-key.asc"
+    write_file(key_file, upstream.ros_key().armored.read_bytes())
+    write_file(instance.state_dir / "upstream.yaml",
+               "# Settings for the ROS apt source's mirror mode (ros_apt_source_mode: mirror).\n"
+               + yaml.safe_dump(published.mirror_settings(key_file), sort_keys=False))
+
+
+# -- machine-wide resources ----------------------------------------------------------------
+
+def _claim_machine(instance: Instance) -> None:
+    with file_lock(MACHINE_DIR / "lock"):
+        saved = MACHINE_DIR / "inotify-max-user-instances"
+        current = int(INOTIFY_INSTANCES.read_text())
+        if current < INOTIFY_WANTED:
+            if not saved.exists():
+                write_file(saved, f"{current}\n")
+            INOTIFY_INSTANCES.write_text(f"{INOTIFY_WANTED}\n")
+        if hosts.start_lxcfs(MACHINE_DIR / "lxcfs.pid", MACHINE_DIR / "lxcfs.log"):
+            write_file(MACHINE_DIR / "lxcfs.ours", "")
+
+
+def _release_machine() -> None:
+    with file_lock(MACHINE_DIR / "lock"):
+        others = [path for path in STATE_ROOT.iterdir() if not path.name.startswith(".")]
+        if others:
+            return
+        saved = MACHINE_DIR / "inotify-max-user-instances"
+        if saved.exists():
+            INOTIFY_INSTANCES.write_text(saved.read_text())
+            saved.unlink()
+        if (MACHINE_DIR / "lxcfs.ours").exists():
+            hosts.stop_lxcfs(MACHINE_DIR / "lxcfs.pid")
+            (MACHINE_DIR / "lxcfs.ours").unlink()
+
+
+# -- down -------------------------------------------------------------------------------------
+
+def down(instance: Instance | None = None) -> None:
+    """Stop and remove everything the instance made; safe to run on anything left over."""
+    instance = instance or Instance.from_env()
+    with file_lock(_instance_lock(instance)):
+        _down_locked(instance)
+    _release_machine()
+    _instance_lock(instance).unlink(missing_ok=True)
+
+
+def _down_locked(instance: Instance) -> None:
+    for cgroup in hosts.instance_cgroups(instance):
+        hosts.kill_cgroup_trees([cgroup])
+        try:
+            cgroup.parent.rmdir()  # .../roslab, when no other instance uses it
+        except OSError:
+            pass
+    upstream.stop_server(instance.state_dir / "upstream.pid")
+    if instance.state_dir.exists():
+        hosts.unmount_all(instance.state_dir)
+    hosts.remove_network(instance)
+    if instance.state_dir.exists():
+        shutil.rmtree(instance.state_dir)
+
+
+# -- status, reset, reboot -------------------------------------------------------------------
+
+def status(instance: Instance | None = None) -> dict:
+    """What is running: per host its address, release and whether it runs and offers SSH."""
+    classroom = load(instance)
+    report = {"name": classroom.instance.name, "subnet": str(classroom.instance.subnet),
+              "upstream": classroom.instance.upstream_url, "roster": str(classroom.instance.roster_path),
+              "hosts": []}
+    for host in classroom.hosts:
+        running = hosts.is_running(classroom.instance, host.name)
+        try:
+            ssh = running and hosts.wait_for_ssh(host.address, timeout=0.5) is not None
+        except SandboxError:
+            ssh = False
+        report["hosts"].append({"name": host.name, "address": host.address, "release": host.release,
+                                "team": host.team, "role": host.role, "running": running, "ssh": ssh})
+    return report
+
+
+def reset(host_name: str, instance: Instance | None = None) -> float:
+    """Give a host a fresh image (its changes are lost) and boot it; return the seconds taken."""
+    started = time.monotonic()
+    classroom = load(instance)
+    host = classroom.host(host_name)
+    instance = classroom.instance
+    with file_lock(_instance_lock(instance)):
+        hosts.stop(instance, host.name)
+        rootfs = image.base_image()
+        merged = hosts.mount_fresh(instance, host, rootfs)
+        hosts.write_host_files(instance, host, merged, upstream.ubuntu_key().keyring.read_bytes())
+        hosts.start(instance, host, merged)
+        hosts.wait_for_ssh(host.address)
+    return time.monotonic() - started
+
+
+def reboot(host_name: str, instance: Instance | None = None, timeout: float = 60.0) -> float:
+    """Reboot a host the way `reboot` inside does; return the seconds until SSH is back."""
+    started = time.monotonic()
+    classroom = load(instance)
+    host = classroom.host(host_name)
+    old_init = hosts.container_init_pid(classroom.instance, host.name)
+    hosts.request_reboot(classroom.instance, host.name)
+    deadline = started + timeout
+    while time.monotonic() < deadline:  # a new PID 1 means the reboot happened
+        pid = hosts.container_init_pid(classroom.instance, host.name)
+        if pid is not None and pid != old_init:
+            break
+        time.sleep(0.05)
+    else:
+        raise SandboxError(f"host {host_name!r} did not reboot within {timeout:.0f} s")
+    hosts.wait_for_ssh(host.address, timeout=max(1.0, deadline - time.monotonic()))
+    return time.monotonic() - started
+
+
+def ssh(host_name: str, command: list[str], instance: Instance | None = None) -> None:
+    """Replace this process with ssh to the host (interactive when no command)."""
+    classroom = load(instance)
+    argv = ssh_argv(classroom.instance, classroom.host(host_name).address, *command)
+    os.execvp(argv[0], argv)

@@ -1,0 +1,63 @@
+"""Small helpers for driving the machine: commands, locks, files."""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import logging
+import os
+import subprocess
+from pathlib import Path
+
+log = logging.getLogger("roslab.sandbox")
+
+
+class SandboxError(RuntimeError):
+    """Something the sandbox needs is missing or broken; the message says what."""
+
+
+def run(*argv: str | os.PathLike, check: bool = True, capture: bool = True, **kwargs) -> subprocess.CompletedProcess:
+    """Run a command; on failure raise SandboxError carrying its stderr."""
+    argv = [os.fspath(arg) for arg in argv]
+    log.debug("$ %s", " ".join(argv))
+    result = subprocess.run(argv, text=True, capture_output=capture, **kwargs)
+    if check and result.returncode != 0:
+        detail = (result.stderr or result.stdout or "").strip()
+        raise SandboxError(f"`{' '.join(argv)}` failed (exit {result.returncode}): {detail}")
+    return result
+
+
+@contextlib.contextmanager
+def file_lock(path: Path):
+    """Hold an exclusive lock on `path` (created if missing) for the block."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def write_file(path: Path, content: str | bytes, mode: int = 0o644, owner: tuple[int, int] | None = None) -> None:
+    """Write a whole file with a given mode (and owner), creating parent directories."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.is_symlink():
+        path.unlink()
+    data = content.encode() if isinstance(content, str) else content
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
+    with os.fdopen(fd, "wb") as handle:
+        handle.write(data)
+    os.chmod(path, mode)
+    if owner:
+        os.chown(path, *owner)
+
+
+def pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True

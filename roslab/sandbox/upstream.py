@@ -1,0 +1,541 @@
+"""The sandbox's local "upstream": what stands in for the internet.
+
+Served over HTTP on the instance's bridge address (hosts reach nothing else):
+
+  /ubuntu/          an apt archive in Ubuntu's layout, signed with a sandbox key
+                    standing in for Ubuntu's. Its `universe` component holds the
+                    REAL Debian packages the deploys install (rosdep, colcon, ...)
+                    and what they need beyond the base image.
+  /ros2/ubuntu/     an apt archive in packages.ros.org's layout, signed with a
+                    sandbox "ROS" key, holding STAND-IN ROS packages: they install
+                    /opt/ros/<distro>/setup.bash and depend on the real rosdep and
+                    colcon, but carry no ROS code (`import rclpy` fails honestly).
+  /ros-apt-source/  stand-ins for ros2-apt-source's .deb (key + deb822 source).
+  /rosdep/          rosdep's sources list and rules for the keys the demo nodes use.
+  /rosdistro/       a rosdistro index listing the stand-in ROS packages.
+  /keys/            the public keys, for the mirror mode (key file + mirror URL).
+
+The two archives do not depend on the instance and are cached under the cache
+directory; everything that embeds the instance's URL is rebuilt per instance.
+"""
+
+from __future__ import annotations
+
+import gzip
+import hashlib
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import xml.etree.ElementTree as ElementTree
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+from . import image
+from .system import SandboxError, file_lock, log, pid_alive, run, write_file
+
+# Bump when the archives' layout or the stand-ins change: part of the cache keys.
+ARCHIVE_VERSION = 2
+
+ROS_APT_SOURCE_VERSION = "1.2.0"
+
+# Ubuntu codename -> the ROS distro whose stand-ins its ROS archive suite holds.
+ROS_DISTROS = {"noble": "jazzy", "jammy": "humble"}
+UBUNTU_SUITE_POCKETS = ("", "-updates", "-backports", "-security")
+UBUNTU_COMPONENTS = ("main", "restricted", "universe", "multiverse")
+UBUNTU_VERSIONS = {"noble": "24.04", "jammy": "22.04"}
+
+# The real Debian tools ros-dev-tools brings (Debian's names for them).
+ROS_DEV_TOOLS_DEPENDS = (
+    "python3-rosdep2", "colcon", "python3-colcon-ros", "python3-colcon-python-setup-py",
+    "python3-colcon-bash", "python3-colcon-package-selection", "python3-colcon-parallel-executor",
+    "python3-colcon-output", "python3-colcon-test-result", "python3-colcon-recursive-crawl",
+    "python3-colcon-library-path", "python3-colcon-metadata", "python3-colcon-defaults",
+    "python3-catkin-pkg", "python3-rosdistro", "python3-setuptools", "vcstool", "git",
+)
+
+# rosdep system keys the sandbox's rosdep data resolves, key -> Debian/Ubuntu package.
+# Keys named python3-* in a node's package.xml are added with the same package name.
+SYSTEM_ROSDEP_KEYS = {
+    "python3-pytest": "python3-pytest",
+    "python3-yaml": "python3-yaml",
+    "python3-setuptools": "python3-setuptools",
+    "python3-numpy": "python3-numpy",
+    "git": "git",
+}
+
+# Real Debian packages the universe component offers besides ros-dev-tools' and the
+# rosdep keys' packages (udev: the jammy install docs upgrade systemd and udev first).
+EXTRA_UNIVERSE_PACKAGES = ("udev",)
+
+# ROS packages every distro gets a stand-in for (rosdep keys, underscores);
+# those the demo nodes' package.xml files declare are added.
+STANDIN_ROS_KEYS = (
+    "rclpy", "std_msgs", "sensor_msgs", "geometry_msgs", "diagnostic_msgs", "launch",
+    "launch_ros", "ros2launch", "ros2cli", "ament_index_python", "ament_copyright",
+    "ament_flake8", "ament_pep257", "ament_xmllint", "ament_lint_auto", "ament_lint_common",
+)
+
+# The stand-ins carrying the setup scripts, and the variant metapackages.
+ROS_WORKSPACE_KEY = "ros_workspace"
+VARIANT_DEPENDS = {
+    "ros_core": ["ros_workspace", "rclpy", "std_msgs", "launch", "launch_ros", "ros2launch", "ros2cli",
+                 "ament_index_python"],
+    "ros_base": ["ros_core", "sensor_msgs", "geometry_msgs", "diagnostic_msgs"],
+    "desktop": ["ros_base"],
+}
+
+STANDIN_NOTE = "roslab sandbox stand-in"
+
+
+def debian_name(distro: str, key: str) -> str:
+    """The apt package name of ROS package `key` for `distro` (ros-jazzy-launch-ros)."""
+    return f"ros-{distro}-{key.replace('_', '-')}"
+
+
+# -- what the demo nodes need ---------------------------------------------------------
+
+def node_dependencies(nodes_dir: Path) -> tuple[set[str], dict[str, str]]:
+    """(ROS keys, system keys -> package) declared by every nodes/*/package.xml.
+
+    The workspace's own packages are built from source, so they get no stand-in.
+    """
+    manifests = [ElementTree.parse(path).getroot() for path in sorted(nodes_dir.glob("*/package.xml"))]
+    own_packages = {manifest.findtext("name") for manifest in manifests}
+    ros_keys: set[str] = set()
+    system: dict[str, str] = {}
+    for manifest in manifests:
+        for element in manifest:
+            if not element.tag.endswith("depend") or not element.text:
+                continue
+            key = element.text.strip()
+            if key in SYSTEM_ROSDEP_KEYS or key.startswith("python3-"):
+                system[key] = SYSTEM_ROSDEP_KEYS.get(key, key)
+            elif key not in own_packages:
+                ros_keys.add(key)
+    return ros_keys, system
+
+
+def default_nodes_dir() -> Path:
+    return Path(__file__).resolve().parents[2] / "nodes"
+
+
+# -- signing keys ---------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class SigningKey:
+    """A throwaway OpenPGP key standing in for an archive's signing key."""
+
+    home: Path  # gnupg home (root-only), holding the secret key
+
+    @property
+    def keyring(self) -> Path:
+        """Binary public keyring, for Signed-By."""
+        return self.home / "public.gpg"
+
+    @property
+    def armored(self) -> Path:
+        return self.home / "public.asc"
+
+    @property
+    def fingerprint(self) -> str:
+        return (self.home / "fingerprint").read_text().strip()
+
+    def gpg(self, *args: str | os.PathLike) -> None:
+        try:
+            run("gpg", "--homedir", self.home, "--batch", "--yes", "--quiet", *args)
+        finally:
+            # gpg starts an agent per home; it is ours to stop.
+            run("gpgconf", "--homedir", self.home, "--kill", "gpg-agent", check=False)
+
+    def sign_release(self, release: Path) -> None:
+        self.gpg("--clearsign", "--output", release.with_name("InRelease"), release)
+        self.gpg("--armor", "--detach-sign", "--output", release.with_name("Release.gpg"), release)
+
+
+def signing_key(role: str, description: str) -> SigningKey:
+    """The cached sandbox key for `role` ("ubuntu", "ros"), generated once."""
+    key = SigningKey(image.cache_dir() / "keys" / role)
+    if key.keyring.exists():
+        return key
+    with file_lock(image.cache_dir() / "lock.keys"):
+        if key.keyring.exists():
+            return key
+        shutil.rmtree(key.home, ignore_errors=True)
+        key.home.mkdir(parents=True, mode=0o700)
+        key.gpg("--passphrase", "", "--quick-generate-key",
+                f"roslab sandbox stand-in for the {description} <roslab-sandbox@invalid>", "ed25519", "sign", "never")
+        listing = subprocess.run(["gpg", "--homedir", str(key.home), "--with-colons", "--list-keys"],
+                                 capture_output=True, text=True, check=True).stdout
+        fingerprint = next(line.split(":")[9] for line in listing.splitlines() if line.startswith("fpr:"))
+        write_file(key.home / "fingerprint", fingerprint + "\n")
+        key.gpg("--export", "--armor", "--output", key.armored, fingerprint)
+        key.gpg("--export", "--output", key.home / "public.gpg.tmp", fingerprint)
+        os.chmod(key.home / "public.gpg.tmp", 0o644)
+        (key.home / "public.gpg.tmp").rename(key.keyring)
+    return key
+
+
+def ubuntu_key() -> SigningKey:
+    return signing_key("ubuntu", "Ubuntu archive signing key")
+
+
+def ros_key() -> SigningKey:
+    return signing_key("ros", "ROS 2 archive signing key")
+
+
+# -- apt archive plumbing -------------------------------------------------------------
+
+def _write_indexes(archive: Path, dist_dir: Path, component: str, pool: str | None) -> None:
+    """Write Packages(.gz) for one component from the debs under `pool` (None: empty)."""
+    binary = dist_dir / component / "binary-amd64"
+    binary.mkdir(parents=True, exist_ok=True)
+    packages = ""
+    if pool:
+        packages = run("apt-ftparchive", "packages", pool, cwd=archive).stdout
+    (binary / "Packages").write_text(packages)
+    with gzip.open(binary / "Packages.gz", "wt") as handle:
+        handle.write(packages)
+
+
+def _write_release(dist_dir: Path, key: SigningKey, **fields: str) -> None:
+    options = []
+    for name, value in fields.items():
+        options += ["-o", f"APT::FTPArchive::Release::{name}={value}"]
+    release = run("apt-ftparchive", *options, "release", ".", cwd=dist_dir).stdout
+    (dist_dir / "Release").write_text(release)
+    key.sign_release(dist_dir / "Release")
+
+
+def _build_deb(workdir: Path, package: str, version: str, description: str,
+               files: dict[str, str | bytes] | None = None, depends: list[str] | None = None,
+               links: dict[str, str] | None = None, out_dir: Path | None = None) -> Path:
+    """Build an Architecture: all .deb of plain files with dpkg-deb."""
+    root = workdir / package
+    shutil.rmtree(root, ignore_errors=True)
+    for path, content in (files or {}).items():
+        write_file(root / path.lstrip("/"), content)
+    for path, target in (links or {}).items():
+        link = root / path.lstrip("/")
+        link.parent.mkdir(parents=True, exist_ok=True)
+        link.symlink_to(target)
+    control = (
+        f"Package: {package}\nVersion: {version}\nArchitecture: all\n"
+        "Maintainer: roslab sandbox <roslab-sandbox@invalid>\n"
+        "Section: misc\nPriority: optional\n"
+    )
+    if depends:
+        control += f"Depends: {', '.join(depends)}\n"
+    control += f"Description: {description}\n"
+    write_file(root / "DEBIAN/control", control)
+    out = (out_dir or workdir) / f"{package}_{version}_all.deb"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    run("dpkg-deb", "--root-owner-group", "-Zgzip", "--build", root, out)
+    shutil.rmtree(root)
+    return out
+
+
+def _cache_key(*parts) -> str:
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _cached_build(kind: str, key: str, build) -> Path:
+    """Return cache_dir/kind/key, running build(tmp_dir) under the cache lock if missing."""
+    final = image.cache_dir() / kind / key
+    if final.is_dir():
+        return final
+    with file_lock(image.cache_dir() / "lock"):
+        if final.is_dir():
+            return final
+        building = final.with_name(final.name + ".building")
+        shutil.rmtree(building, ignore_errors=True)
+        building.mkdir(parents=True)
+        build(building)
+        building.rename(final)
+    return final
+
+
+# -- the Ubuntu-layout archive of real Debian packages -----------------------------------
+
+def universe_packages(system_keys: dict[str, str]) -> list[str]:
+    return sorted(set(ROS_DEV_TOOLS_DEPENDS) | set(system_keys.values()) | set(EXTRA_UNIVERSE_PACKAGES))
+
+
+def _download_closure(rootfs: Path, packages: list[str], workdir: Path, debs: Path) -> None:
+    """Download `packages` and every dependency the base image lacks, with this machine's apt.
+
+    apt resolves against the base image's dpkg status, so the result is exactly
+    what a fresh host needs from the archive (recommends included, as Ubuntu's
+    apt installs them by default).
+    """
+    apt = workdir / "apt"
+    for sub in ("sources.list.d", "preferences.d", "lists/partial", "cache", "archives/partial"):
+        (apt / sub).mkdir(parents=True, exist_ok=True)
+    write_file(apt / "sources.list.d/debian.sources", image.debian_sources())
+    write_file(apt / "empty", "")
+    options = [
+        f"Dir::Etc::SourceList={apt / 'empty'}", f"Dir::Etc::SourceParts={apt / 'sources.list.d'}",
+        f"Dir::Etc::Preferences={apt / 'empty'}", f"Dir::Etc::PreferencesParts={apt / 'preferences.d'}",
+        f"Dir::State::Lists={apt / 'lists'}", f"Dir::Cache={apt / 'cache'}",
+        f"Dir::Cache::Archives={apt / 'archives'}", f"Dir::State::status={image.dpkg_status(rootfs)}",
+        f"Dir::State::extended_states={apt / 'extended_states'}", "Debug::NoLocking=1",
+        "APT::Install-Recommends=true", "APT::Get::Download-Only=true",
+    ]
+    argv = ["apt-get", "-q", "-y"] + [arg for option in options for arg in ("-o", option)]
+    run(*argv, "update")
+    run(*argv, "install", *packages)
+    debs.mkdir(parents=True, exist_ok=True)
+    for deb in (apt / "archives").glob("*.deb"):
+        shutil.move(deb, debs / deb.name)
+    shutil.rmtree(apt)
+
+
+def ubuntu_archive(rootfs: Path, system_keys: dict[str, str]) -> Path:
+    """The cached Ubuntu-layout archive (real Debian packages in universe)."""
+    packages = universe_packages(system_keys)
+    key = ubuntu_key()
+
+    def build(out: Path) -> None:
+        log.warning("building the sandbox's Ubuntu-layout archive (once; downloads from Debian)...")
+        _download_closure(rootfs, packages, out / "work", out / "pool/universe")
+        shutil.rmtree(out / "work")
+        for codename, version in UBUNTU_VERSIONS.items():
+            for pocket in UBUNTU_SUITE_POCKETS:
+                suite = codename + pocket
+                dist_dir = out / "dists" / suite
+                for component in UBUNTU_COMPONENTS:
+                    has_debs = component == "universe" and pocket == ""
+                    _write_indexes(out, dist_dir, component, "pool/universe" if has_debs else None)
+                _write_release(dist_dir, key, Origin="Ubuntu", Label="Ubuntu (roslab sandbox stand-in)",
+                               Suite=suite, Codename=codename, Version=version, Architectures="amd64",
+                               Components=" ".join(UBUNTU_COMPONENTS),
+                               Description=f"{STANDIN_NOTE} for Ubuntu {version}: real Debian packages")
+
+    return _cached_build("ubuntu-archive", _cache_key(ARCHIVE_VERSION, rootfs.parent.name, packages,
+                                                      key.fingerprint), build)
+
+
+# -- the ROS archive of stand-ins ---------------------------------------------------------
+
+def setup_script(distro: str) -> str:
+    return (
+        f"# {STANDIN_NOTE} for ROS 2 {distro}'s setup script: it sets the variables a real\n"
+        "# install sets and nothing else (there is no ROS code behind it).\n"
+        f"export ROS_DISTRO={distro}\n"
+        "export ROS_VERSION=2\n"
+        "export ROS_PYTHON_VERSION=3\n"
+        'case ":${AMENT_PREFIX_PATH:-}:" in\n'
+        f'  *":/opt/ros/{distro}:"*) ;;\n'
+        f'  *) export AMENT_PREFIX_PATH="/opt/ros/{distro}${{AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}}" ;;\n'
+        "esac\n"
+    )
+
+
+def standin_marker(distro: str) -> str:
+    return (
+        f"This /opt/ros/{distro} comes from the roslab sandbox's STAND-IN ROS packages.\n"
+        "They install these setup scripts and depend on the real Debian rosdep and colcon,\n"
+        "but hold no ROS code: `import rclpy` fails, `ros2` does not exist.\n"
+        "A real classroom installs the real packages from packages.ros.org.\n"
+    )
+
+
+def ros_keys_for(extra_keys: set[str]) -> list[str]:
+    keys = set(STANDIN_ROS_KEYS) | set(extra_keys) | set(VARIANT_DEPENDS) | {ROS_WORKSPACE_KEY}
+    return sorted(keys)
+
+
+def ros_archive(extra_keys: set[str]) -> Path:
+    """The cached ROS archive (stand-ins for jazzy on noble, humble on jammy, ros-dev-tools on both)."""
+    keys = ros_keys_for(extra_keys)
+    signer = ros_key()
+
+    def build(out: Path) -> None:
+        work = out / "work"
+        common = out / "pool/main/common"
+        _build_deb(work, "ros-dev-tools", "1.0.1", f"{STANDIN_NOTE}: ROS development tools (real Debian "
+                   "rosdep, colcon and vcstool)", depends=list(ROS_DEV_TOOLS_DEPENDS), out_dir=common)
+        for codename, distro in ROS_DISTROS.items():
+            pool = out / "pool/main" / codename
+            for key in keys:
+                package = debian_name(distro, key)
+                files, depends = {}, [debian_name(distro, dep) for dep in VARIANT_DEPENDS.get(key, [])]
+                if key == ROS_WORKSPACE_KEY:
+                    prefix = f"/opt/ros/{distro}"
+                    files = {f"{prefix}/{name}": setup_script(distro)
+                             for name in ("setup.bash", "setup.sh", "local_setup.bash", "local_setup.sh")}
+                    files[f"{prefix}/STANDIN"] = standin_marker(distro)
+                elif key not in VARIANT_DEPENDS:
+                    depends = [debian_name(distro, ROS_WORKSPACE_KEY)]
+                _build_deb(work, package, f"0.0.0-1{codename}", f"{STANDIN_NOTE}: {key} for ROS 2 {distro} "
+                           "(no code)", files=files, depends=depends, out_dir=pool)
+            dist_dir = out / "dists" / codename
+            shutil.copytree(common, pool, dirs_exist_ok=True)
+            _write_indexes(out, dist_dir, "main", f"pool/main/{codename}")
+            _write_release(dist_dir, signer, Origin="ROS", Label="ROS 2 (roslab sandbox stand-in)",
+                           Suite=codename, Codename=codename, Architectures="amd64", Components="main",
+                           Description=f"{STANDIN_NOTE} for packages.ros.org/ros2: ROS 2 {distro}")
+        shutil.rmtree(work)
+        shutil.rmtree(common)
+
+    return _cached_build("ros-archive", _cache_key(ARCHIVE_VERSION, keys, ROS_DEV_TOOLS_DEPENDS,
+                                                   signer.fingerprint), build)
+
+
+# -- per-instance content ----------------------------------------------------------------
+
+def ros2_sources(url: str, codename: str) -> str:
+    return (
+        f"# {STANDIN_NOTE} for ros2-apt-source's ros2.sources\n"
+        "Types: deb\n"
+        f"URIs: {url}/ros2/ubuntu\n"
+        f"Suites: {codename}\n"
+        "Components: main\n"
+        "Signed-By: /usr/share/keyrings/ros2-archive-keyring.gpg\n"
+    )
+
+
+def build_ros_apt_source(out: Path, url: str) -> dict[str, str]:
+    """Build the stand-in ros2-apt-source debs, laid out like its GitHub releases; return codename -> sha256."""
+    sums = {}
+    keyring = ros_key().keyring.read_bytes()
+    version_dir = out / "ros-apt-source" / ROS_APT_SOURCE_VERSION
+    for codename in ROS_DISTROS:
+        deb = _build_deb(
+            out / "work", "ros2-apt-source", ROS_APT_SOURCE_VERSION,
+            f"{STANDIN_NOTE}: ROS 2 apt source and archive key (sandbox upstream)",
+            files={"/usr/share/ros-apt-source/ros2.sources": ros2_sources(url, codename),
+                   "/usr/share/keyrings/ros2-archive-keyring.gpg": keyring},
+            links={"/etc/apt/sources.list.d/ros2.sources": "/usr/share/ros-apt-source/ros2.sources"},
+            out_dir=version_dir,
+        )
+        target = deb.with_name(f"ros2-apt-source_{ROS_APT_SOURCE_VERSION}.{codename}_all.deb")
+        deb.rename(target)
+        sums[codename] = hashlib.sha256(target.read_bytes()).hexdigest()
+    shutil.rmtree(out / "work")
+    return sums
+
+
+def rosdep_files(url: str, system_keys: dict[str, str]) -> dict[str, str]:
+    header = f"# {STANDIN_NOTE} for rosdep's data (served by the sandbox upstream)\n"
+    rules = {key: {"debian": [package], "ubuntu": [package]} for key, package in sorted(system_keys.items())}
+    python_rules = {k: v for k, v in rules.items() if k.startswith("python3-")}
+    base_rules = {k: v for k, v in rules.items() if not k.startswith("python3-")}
+    return {
+        "rosdep/20-default.list": header + f"yaml {url}/rosdep/base.yaml\nyaml {url}/rosdep/python.yaml\n",
+        "rosdep/base.yaml": header + yaml.safe_dump(base_rules, sort_keys=True),
+        "rosdep/python.yaml": header + yaml.safe_dump(python_rules, sort_keys=True),
+    }
+
+
+def rosdistro_files(url: str, ros_keys: list[str]) -> dict[str, str]:
+    header = f"%YAML 1.1\n# {STANDIN_NOTE} for the rosdistro index\n---\n"
+    index = {"type": "index", "version": 4, "distributions": {}}
+    files = {}
+    for codename, distro in sorted(ROS_DISTROS.items()):
+        index["distributions"][distro] = {
+            "distribution": [f"{distro}/distribution.yaml"],
+            "distribution_status": "active",
+            "distribution_type": "ros2",
+            "python_version": 3,
+        }
+        repositories = {
+            key: {"release": {"packages": [key], "tags": {"release": f"release/{distro}/{{package}}/{{version}}"},
+                              "url": f"{url}/release/{key}.git", "version": "0.0.0-1"},
+                  "status": "maintained"}
+            for key in ros_keys
+        }
+        distribution = {"type": "distribution", "version": 2, "release_platforms": {"ubuntu": [codename]},
+                        "repositories": repositories}
+        files[f"rosdistro/{distro}/distribution.yaml"] = header + yaml.safe_dump(distribution, sort_keys=True)
+    files["rosdistro/index-v4.yaml"] = header + yaml.safe_dump(index, sort_keys=True)
+    return files
+
+
+@dataclass(frozen=True)
+class Upstream:
+    """What `up` publishes about the upstream: URLs and checksums for the roster."""
+
+    url: str
+    ros_apt_source_sha256: dict[str, str]
+
+    def roster_settings(self) -> dict:
+        return {
+            "ros_apt_source_url": (f"{self.url}/ros-apt-source/{{version}}/"
+                                   "ros2-apt-source_{version}.{codename}_all.deb"),
+            "ros_apt_source_version": ROS_APT_SOURCE_VERSION,
+            "ros_apt_source_sha256": dict(sorted(self.ros_apt_source_sha256.items())),
+            "rosdep_sources_list_url": f"{self.url}/rosdep/20-default.list",
+            "rosdistro_index_url": f"{self.url}/rosdistro/index-v4.yaml",
+        }
+
+    def mirror_settings(self, key_file: Path) -> dict:
+        return {"ros_apt_mirror_url": f"{self.url}/ros2/ubuntu", "ros_apt_mirror_key_file": str(key_file)}
+
+
+def build(serve_dir: Path, url: str, rootfs: Path, nodes_dir: Path | None = None) -> Upstream:
+    """Assemble the served tree for one instance (archives from the cache, the rest fresh)."""
+    ros_keys, system_keys = node_dependencies(nodes_dir or default_nodes_dir())
+    system_keys = {**SYSTEM_ROSDEP_KEYS, **system_keys}
+    ubuntu = ubuntu_archive(rootfs, system_keys)
+    ros = ros_archive(ros_keys)
+    shutil.rmtree(serve_dir, ignore_errors=True)
+    (serve_dir / "ros2").mkdir(parents=True)
+    (serve_dir / "ubuntu").symlink_to(ubuntu)
+    (serve_dir / "ros2/ubuntu").symlink_to(ros)
+    sums = build_ros_apt_source(serve_dir, url)
+    for path, content in {**rosdep_files(url, system_keys), **rosdistro_files(url, ros_keys_for(ros_keys))}.items():
+        write_file(serve_dir / path, content)
+    write_file(serve_dir / "keys/ros.asc", ros_key().armored.read_bytes())
+    write_file(serve_dir / "keys/ubuntu.asc", ubuntu_key().armored.read_bytes())
+    return Upstream(url=url, ros_apt_source_sha256=sums)
+
+
+# -- the HTTP server ------------------------------------------------------------------------
+
+def start_server(serve_dir: Path, address: str, port: int, pid_file: Path, log_file: Path) -> None:
+    """Serve `serve_dir` on address:port in a background process; wait until it answers."""
+    with open(log_file, "ab") as log_handle:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "http.server", "--bind", address, "--directory", str(serve_dir), str(port)],
+            stdin=subprocess.DEVNULL, stdout=log_handle, stderr=log_handle, start_new_session=True,
+        )
+    write_file(pid_file, f"{process.pid}\n")
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            raise SandboxError(f"the sandbox upstream server exited at once (see {log_file})")
+        try:
+            with socket.create_connection((address, port), timeout=0.2):
+                return
+        except OSError:
+            time.sleep(0.05)
+    raise SandboxError(f"the sandbox upstream server did not answer on {address}:{port} (see {log_file})")
+
+
+def stop_server(pid_file: Path) -> None:
+    """Stop the server named by `pid_file`, if it is still ours and running."""
+    try:
+        pid = int(pid_file.read_text())
+    except (OSError, ValueError):
+        return
+    try:
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    except OSError:
+        cmdline = []
+    if b"http.server" in cmdline and pid_alive(pid):
+        os.kill(pid, signal.SIGTERM)
+        for _ in range(50):
+            if not pid_alive(pid):
+                break
+            time.sleep(0.02)
+        else:
+            os.kill(pid, signal.SIGKILL)
+    pid_file.unlink(missing_ok=True)
