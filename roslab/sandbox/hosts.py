@@ -23,7 +23,7 @@ from pathlib import Path
 
 from . import emulation, image
 from .instance import Instance, SandboxHost
-from .system import SandboxError, log, run, write_file
+from .system import SandboxError, log, run, terminate, write_file
 
 LXCFS_DIR = Path("/var/lib/lxcfs")
 REBOOT_EXIT_CODE = 133  # what systemd-nspawn returns when the container asked to reboot
@@ -307,7 +307,7 @@ def start_lxcfs(pid_file: Path, log_file: Path) -> bool:
     return True
 
 
-def stop_lxcfs(pid_file: Path) -> None:
+def stop_lxcfs(pid_file: Path, log_file: Path) -> None:
     try:
         pid = int(pid_file.read_text())
     except (OSError, ValueError):
@@ -317,11 +317,8 @@ def stop_lxcfs(pid_file: Path) -> None:
     except OSError:
         comm = ""
     if comm == "lxcfs":
-        os.kill(pid, signal.SIGTERM)
-        for _ in range(100):
-            if not Path(f"/proc/{pid}").exists():
-                break
-            time.sleep(0.02)
+        terminate(pid)
     if LXCFS_DIR.is_mount():
         run("umount", "--lazy", LXCFS_DIR, check=False)
     pid_file.unlink(missing_ok=True)
+    log_file.unlink(missing_ok=True)

@@ -36,8 +36,8 @@ def cache_dir() -> Path:
     return Path(os.environ.get("ROSLAB_CACHE_DIR", "/var/cache/roslab"))
 
 
-def machine_codename() -> str:
-    for line in Path("/etc/os-release").read_text().splitlines():
+def machine_codename(os_release: Path = Path("/etc/os-release")) -> str:
+    for line in os_release.read_text().splitlines():
         if line.startswith("VERSION_CODENAME="):
             return line.split("=", 1)[1].strip('"')
     raise SandboxError("cannot tell this machine's Debian codename from /etc/os-release")
@@ -55,15 +55,14 @@ def _deb822_stanzas(text: str):
             stanza[key.strip().lower()] = value.strip()
 
 
-def debian_sources() -> str:
+def debian_sources(etc: Path = Path("/etc/apt"), codename: str | None = None) -> str:
     """The machine's configured Debian sources (its codename's suites only) as deb822 text.
 
     Third-party sources on the machine (other suites) are left out: the image is
     built only from Debian's archive.
     """
-    codename = machine_codename()
+    codename = codename or machine_codename()
     entries = []
-    etc = Path("/etc/apt")
     for path in sorted(etc.glob("sources.list.d/*.sources")):
         for stanza in _deb822_stanzas(path.read_text()):
             if "deb" not in stanza.get("types", "").split() or stanza.get("enabled", "yes") == "no":

@@ -197,7 +197,7 @@ def _release_machine() -> None:
             INOTIFY_INSTANCES.write_text(saved.read_text())
             saved.unlink()
         if (MACHINE_DIR / "lxcfs.ours").exists():
-            hosts.stop_lxcfs(MACHINE_DIR / "lxcfs.pid")
+            hosts.stop_lxcfs(MACHINE_DIR / "lxcfs.pid", MACHINE_DIR / "lxcfs.log")
             (MACHINE_DIR / "lxcfs.ours").unlink()
 
 

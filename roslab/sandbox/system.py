@@ -6,6 +6,8 @@ import contextlib
 import fcntl
 import logging
 import os
+import signal
+import time
 import subprocess
 from pathlib import Path
 
@@ -54,10 +56,23 @@ def write_file(path: Path, content: str | bytes, mode: int = 0o644, owner: tuple
 
 
 def pid_alive(pid: int) -> bool:
+    """True while the process runs (a zombie waiting for its parent counts as gone)."""
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
         return False
-    except PermissionError:
-        return True
-    return True
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def terminate(pid: int, timeout: float = 2.0) -> None:
+    """SIGTERM the process, SIGKILL it if it is still there after `timeout`."""
+    try:
+        os.kill(pid, signal.SIGTERM)
+    except ProcessLookupError:
+        return
+    deadline = time.monotonic() + timeout
+    while pid_alive(pid):
+        if time.monotonic() > deadline:
+            os.kill(pid, signal.SIGKILL)
+            break
+        time.sleep(0.01)

@@ -39,7 +39,7 @@ from pathlib import Path
 import yaml
 
 from . import image
-from .system import SandboxError, file_lock, log, pid_alive, run, write_file
+from .system import SandboxError, file_lock, log, pid_alive, run, terminate, write_file
 
 # Bump when the archives' layout or the stand-ins change: part of the cache keys.
 ARCHIVE_VERSION = 2
@@ -531,11 +531,5 @@ def stop_server(pid_file: Path) -> None:
     except OSError:
         cmdline = []
     if b"http.server" in cmdline and pid_alive(pid):
-        os.kill(pid, signal.SIGTERM)
-        for _ in range(50):
-            if not pid_alive(pid):
-                break
-            time.sleep(0.02)
-        else:
-            os.kill(pid, signal.SIGKILL)
+        terminate(pid)
     pid_file.unlink(missing_ok=True)

@@ -1,0 +1,289 @@
+"""The sandbox harness without hosts: names, the classroom plan, the roster it writes,
+the Ubuntu emulation files, and the upstream's rosdep/rosdistro data and stand-ins.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import subprocess
+import textwrap
+from pathlib import Path
+
+import pytest
+import rosdistro
+import yaml
+
+from roslab.roster import inventory_groups, load_roster
+from roslab.sandbox import emulation, image, lifecycle, upstream
+from roslab.sandbox.instance import Instance, default_subnet
+from roslab.sandbox.system import SandboxError
+
+URL = "http://10.213.0.1:8080"
+
+
+@pytest.fixture(autouse=True)
+def _no_sandbox_env(monkeypatch):
+    monkeypatch.delenv("ROSLAB_SANDBOX", raising=False)
+    monkeypatch.delenv("ROSLAB_SANDBOX_SUBNET", raising=False)
+
+
+# -- instances -----------------------------------------------------------------------------
+
+def test_default_instance_uses_the_documented_subnet():
+    instance = Instance.from_env()
+    assert (instance.name, str(instance.subnet)) == ("roslab", "10.213.0.0/24")
+    assert instance.bridge_address == "10.213.0.1"
+    assert instance.roster_path == Path("/run/roslab/sandbox/roslab/roster.yaml")
+
+
+def test_other_instances_get_their_own_subnet_and_interface_names(monkeypatch):
+    monkeypatch.setenv("ROSLAB_SANDBOX", "roslab-e2e")
+    e2e = Instance.from_env()
+    default = Instance.from_env("roslab")
+    assert not e2e.subnet.overlaps(default.subnet)
+    assert e2e.subnet.subnet_of(ipaddress.IPv4Network("10.213.0.0/16"))
+    assert e2e.bridge != default.bridge
+    host = e2e.plan_hosts(40)[-1]
+    for name in (e2e.bridge, e2e.veth(host)):
+        assert len(name) <= 15, name  # the kernel's limit for interface names
+
+
+def test_subnet_can_be_chosen(monkeypatch):
+    monkeypatch.setenv("ROSLAB_SANDBOX_SUBNET", "10.99.7.0/24")
+    assert Instance.from_env("mine").bridge_address == "10.99.7.1"
+
+
+@pytest.mark.parametrize("subnet, message", [
+    ("10.99.7.0/28", "/24 or larger"),
+    ("8.8.8.0/24", "private"),
+    ("10.99.7.300/24", "not an IPv4 network"),
+])
+def test_bad_subnet_is_refused(monkeypatch, subnet, message):
+    monkeypatch.setenv("ROSLAB_SANDBOX_SUBNET", subnet)
+    with pytest.raises(SandboxError, match=message):
+        Instance.from_env("mine")
+
+
+@pytest.mark.parametrize("name", ["Roslab", "a b", "-x", "x" * 40, "roslab/../etc"])
+def test_bad_instance_name_is_refused(name):
+    with pytest.raises(SandboxError, match="sandbox name"):
+        Instance.from_env(name)
+
+
+def test_derived_subnets_are_stable():
+    assert default_subnet("roslab-e2e") == default_subnet("roslab-e2e")
+    assert default_subnet("roslab-e2e") != default_subnet("roslab-net")
+
+
+# -- the classroom ---------------------------------------------------------------------------
+
+def test_default_classroom_is_two_teams_on_two_releases():
+    hosts = Instance.from_env().plan_hosts(lifecycle.DEFAULT_HOSTS)
+    assert [(h.name, h.role, h.release, h.address) for h in hosts] == [
+        ("team1-main", "main", "24.04", "10.213.0.11"),
+        ("team1-robot", "robot", "24.04", "10.213.0.12"),
+        ("team2-main", "main", "22.04", "10.213.0.13"),
+        ("team2-robot", "robot", "22.04", "10.213.0.14"),
+    ]
+
+
+def test_odd_host_count_leaves_the_last_team_with_a_main_only():
+    hosts = Instance.from_env().plan_hosts(5)
+    assert [h.name for h in hosts][-1] == "team3-main"
+    assert hosts[-1].release == "24.04"
+
+
+@pytest.mark.parametrize("count", [0, 201])
+def test_host_count_out_of_range_is_refused(count):
+    with pytest.raises(SandboxError, match="1 to 200 hosts"):
+        Instance.from_env().plan_hosts(count)
+
+
+def _published() -> upstream.Upstream:
+    return upstream.Upstream(url=URL, ros_apt_source_sha256={"noble": "a" * 64, "jammy": "b" * 64})
+
+
+def test_written_roster_is_a_valid_roster(tmp_path):
+    instance = Instance.from_env()
+    classroom = lifecycle.Classroom(instance, instance.plan_hosts(4))
+    path = tmp_path / "roster.yaml"
+    path.write_text(yaml.safe_dump(lifecycle.roster(classroom, _published())))
+
+    loaded = load_roster(path)
+
+    groups = inventory_groups(loaded)
+    assert sorted(name for name, _ in groups["main"]) == ["team1-main", "team2-main"]
+    data = yaml.safe_load(path.read_text())
+    assert data["classroom"]["ssh_strict_host_key_checking"] == "off"
+    assert data["classroom"]["ssh_key"] == "/run/roslab/sandbox/roslab/id_ed25519"
+    assert data["classroom"]["ros_apt_source_url"].format(version="1.2.0", codename="noble") == (
+        f"{URL}/ros-apt-source/1.2.0/ros2-apt-source_1.2.0.noble_all.deb")
+    assert data["teams"]["team2"]["ubuntu_release"] == "22.04"
+    assert data["teams"]["team2"]["ros_domain_id"] == 12
+
+
+# -- Ubuntu emulation --------------------------------------------------------------------------
+
+def _identity(release: str) -> emulation.HostIdentity:
+    return emulation.HostIdentity(hostname="team1-main", release=release, address="10.213.0.11", prefixlen=24)
+
+
+def _parse_os_release(text: str) -> dict:
+    pairs = (line.split("=", 1) for line in text.splitlines() if "=" in line and not line.startswith("#"))
+    return {key: value.strip('"') for key, value in pairs}
+
+
+@pytest.mark.parametrize("release, codename", [("24.04", "noble"), ("22.04", "jammy")])
+def test_os_release_reads_as_ubuntu_and_says_it_is_emulated(release, codename):
+    text = emulation.os_release(_identity(release))
+    fields = _parse_os_release(text)
+    assert (fields["ID"], fields["VERSION_ID"], fields["VERSION_CODENAME"], fields["UBUNTU_CODENAME"]) == (
+        "ubuntu", release, codename, codename)
+    assert text.startswith("# roslab sandbox emulation")
+
+
+def test_noble_sources_are_deb822_without_universe_or_updates():
+    path, text = emulation.apt_sources(_identity("24.04"), f"{URL}/ubuntu")
+    assert path == "/etc/apt/sources.list.d/ubuntu.sources"
+    assert "Suites: noble noble-security\n" in text
+    assert "Components: main restricted\n" in text
+    assert f"Signed-By: {emulation.UBUNTU_KEYRING}\n" in text
+
+
+def test_jammy_sources_are_one_line_without_universe():
+    path, text = emulation.apt_sources(_identity("22.04"), f"{URL}/ubuntu")
+    assert path == "/etc/apt/sources.list"
+    lines = [line for line in text.splitlines() if not line.startswith("#")]
+    assert lines == [f"deb {URL}/ubuntu jammy main restricted", f"deb {URL}/ubuntu jammy-security main restricted"]
+
+
+def test_netplan_file_is_a_valid_networkd_static_config():
+    files = emulation.host_files(_identity("24.04"), f"{URL}/ubuntu")
+    content, mode = files["/etc/netplan/50-cloud-init.yaml"]
+    assert mode == 0o600
+    assert "cloud-init" in content.splitlines()[0]
+    network = yaml.safe_load(content)["network"]
+    assert network["renderer"] == "networkd"
+    assert network["ethernets"]["eth0"]["addresses"] == ["10.213.0.11/24"]
+
+
+# -- the machine's Debian sources -----------------------------------------------------------------
+
+def test_image_is_built_from_the_machines_debian_sources_only(tmp_path):
+    (tmp_path / "sources.list.d").mkdir()
+    (tmp_path / "sources.list.d/debian.sources").write_text(textwrap.dedent("""\
+        Types: deb
+        URIs: http://mirror.example/debian
+        Suites: bookworm bookworm-updates
+        Components: main
+        Signed-By: /usr/share/keyrings/debian-archive-keyring.gpg
+
+        Types: deb
+        URIs: https://thirdparty.example/apt
+        Suites: nodistro
+        Components: main
+        """))
+    (tmp_path / "sources.list").write_text(
+        "deb [signed-by=/k.gpg] http://security.example/debian-security bookworm-security main\n"
+        "deb https://packages.cloud.example/apt cloud-sdk-bookworm main\n"
+    )
+    text = image.debian_sources(tmp_path, codename="bookworm")
+    assert "mirror.example/debian\nSuites: bookworm bookworm-updates\n" in text
+    assert "URIs: http://security.example/debian-security\nSuites: bookworm-security\n" in text
+    assert "Signed-By: /k.gpg" in text
+    assert "thirdparty" not in text and "cloud" not in text
+
+
+def test_no_debian_sources_is_a_clear_error(tmp_path):
+    with pytest.raises(SandboxError, match="no Debian bookworm sources"):
+        image.debian_sources(tmp_path, codename="bookworm")
+
+
+# -- upstream data ---------------------------------------------------------------------------------
+
+def test_node_dependencies_split_ros_and_system_keys_and_skip_own_packages(tmp_path):
+    for name, deps in {"demo": ["rclpy", "python3-pytest", "ament_flake8"], "bringup": ["demo", "launch_ros"]}.items():
+        (tmp_path / name).mkdir()
+        depends = "".join(f"<exec_depend>{dep}</exec_depend>" for dep in deps)
+        (tmp_path / name / "package.xml").write_text(
+            f'<?xml version="1.0"?><package format="3"><name>{name}</name>{depends}</package>')
+    ros_keys, system = upstream.node_dependencies(tmp_path)
+    assert ros_keys == {"rclpy", "ament_flake8", "launch_ros"}
+    assert system == {"python3-pytest": "python3-pytest"}
+
+
+def test_repository_nodes_need_only_stand_ins_the_archive_has():
+    ros_keys, system = upstream.node_dependencies(upstream.default_nodes_dir())
+    assert ros_keys <= set(upstream.ros_keys_for(ros_keys))
+    assert set(system.values()) <= set(upstream.universe_packages({**upstream.SYSTEM_ROSDEP_KEYS, **system}))
+
+
+def test_rosdistro_index_resolves_ros_keys_to_stand_in_packages(tmp_path):
+    files = upstream.rosdistro_files(URL, upstream.ros_keys_for(set()))
+    for path, content in files.items():
+        (tmp_path / path).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / path).write_text(content)
+    # rosdep reads the index with the rosdistro library, as done here.
+    index = rosdistro.get_index((tmp_path / "rosdistro/index-v4.yaml").as_uri())
+    assert sorted(index.distributions) == ["humble", "jazzy"]
+    jazzy = rosdistro.get_distribution_file(index, "jazzy")
+    assert jazzy.release_platforms == {"ubuntu": ["noble"]}
+    assert "rclpy" in jazzy.repositories
+    assert upstream.debian_name("jazzy", "launch_ros") == "ros-jazzy-launch-ros"
+
+
+def test_rosdep_sources_list_points_at_the_served_rules():
+    files = upstream.rosdep_files(URL, {"python3-pytest": "python3-pytest", "git": "git"})
+    lines = [line for line in files["rosdep/20-default.list"].splitlines() if not line.startswith("#")]
+    assert lines == [f"yaml {URL}/rosdep/base.yaml", f"yaml {URL}/rosdep/python.yaml"]
+    assert yaml.safe_load(files["rosdep/python.yaml"]) == {
+        "python3-pytest": {"debian": ["python3-pytest"], "ubuntu": ["python3-pytest"]}}
+    assert yaml.safe_load(files["rosdep/base.yaml"]) == {"git": {"debian": ["git"], "ubuntu": ["git"]}}
+
+
+def test_stand_in_setup_script_sets_the_ros_environment_once(tmp_path):
+    script = tmp_path / "setup.bash"
+    script.write_text(upstream.setup_script("jazzy"))
+    out = subprocess.run(
+        ["bash", "-c", f". {script}; . {script}; echo $ROS_DISTRO $ROS_VERSION $ROS_PYTHON_VERSION $AMENT_PREFIX_PATH"],
+        capture_output=True, text=True, check=True, env={"PATH": "/usr/bin:/bin"},
+    ).stdout.split()
+    assert out == ["jazzy", "2", "3", "/opt/ros/jazzy"]
+
+
+def test_ros2_sources_is_deb822_signed_by_the_ros_keyring():
+    text = upstream.ros2_sources(URL, "jammy")
+    assert f"URIs: {URL}/ros2/ubuntu\n" in text
+    assert "Suites: jammy\n" in text
+    assert "Signed-By: /usr/share/keyrings/ros2-archive-keyring.gpg\n" in text
+
+
+def test_mirror_settings_name_the_mirror_and_the_key_file(tmp_path):
+    settings = _published().mirror_settings(tmp_path / "ros.asc")
+    assert settings == {"ros_apt_mirror_url": f"{URL}/ros2/ubuntu", "ros_apt_mirror_key_file": str(tmp_path / "ros.asc")}
+
+
+def test_roster_settings_are_known_deploy_settings():
+    import deploy
+
+    assert set(_published().roster_settings()) <= set(deploy.ALL_DEFAULTS)
+    assert set(_published().mirror_settings(Path("/k"))) <= set(deploy.ALL_DEFAULTS)
+
+
+def test_ros_apt_source_stand_in_installs_key_and_linked_source(tmp_path, monkeypatch):
+    import hashlib
+
+    monkeypatch.setenv("ROSLAB_CACHE_DIR", str(tmp_path / "cache"))  # a throwaway signing key
+    sums = upstream.build_ros_apt_source(tmp_path / "serve", URL)
+
+    deb = tmp_path / "serve/ros-apt-source/1.2.0/ros2-apt-source_1.2.0.noble_all.deb"
+    assert sums["noble"] == hashlib.sha256(deb.read_bytes()).hexdigest()
+    listing = subprocess.run(["dpkg-deb", "--contents", deb], capture_output=True, text=True, check=True).stdout
+    assert "./usr/share/keyrings/ros2-archive-keyring.gpg" in listing
+    assert "./usr/share/ros-apt-source/ros2.sources" in listing
+    assert "./etc/apt/sources.list.d/ros2.sources -> /usr/share/ros-apt-source/ros2.sources" in listing
+    assert all(" root/root " in line for line in listing.splitlines())
+    fields = subprocess.run(["dpkg-deb", "--field", deb, "Package", "Version", "Description"],
+                            capture_output=True, text=True, check=True).stdout
+    assert "Package: ros2-apt-source\nVersion: 1.2.0\n" in fields
+    assert "roslab sandbox stand-in" in fields
