@@ -23,8 +23,8 @@ def register(subparsers) -> argparse.ArgumentParser:
                     help=f"number of hosts, in teams of two (default {lifecycle.DEFAULT_HOSTS})")
     commands.add_parser("status", help="list the hosts and whether they answer")
     commands.add_parser("down", help="stop the hosts and remove everything the sandbox made")
-    reset = commands.add_parser("reset", help="give a host a fresh image and boot it")
-    reset.add_argument("host")
+    reset = commands.add_parser("reset", help="give hosts a fresh image and boot them")
+    reset.add_argument("hosts", nargs="+", metavar="HOST")
     reboot = commands.add_parser("reboot", help="reboot a host")
     reboot.add_argument("host")
     ssh = commands.add_parser("ssh", help="log in to a host as the login user (or run CMD there)")
@@ -52,7 +52,8 @@ def run(args: argparse.Namespace) -> int:
         elif args.sandbox_command == "down":
             lifecycle.down()
         elif args.sandbox_command == "reset":
-            print(f"{args.host}: fresh image, ssh ready after {lifecycle.reset(args.host):.1f} s")
+            seconds = lifecycle.reset(args.hosts)
+            print(f"{', '.join(args.hosts)}: fresh image, ssh ready after {seconds:.1f} s")
         elif args.sandbox_command == "reboot":
             print(f"{args.host}: rebooted, ssh ready after {lifecycle.reboot(args.host):.1f} s")
         elif args.sandbox_command == "ssh":

@@ -246,19 +246,25 @@ def status(instance: Instance | None = None) -> dict:
     return report
 
 
-def reset(host_name: str, instance: Instance | None = None) -> float:
-    """Give a host a fresh image (its changes are lost) and boot it; return the seconds taken."""
+def reset(host_names: list[str] | str, instance: Instance | None = None) -> float:
+    """Give hosts a fresh image (their changes are lost) and boot them; return the seconds taken."""
     started = time.monotonic()
     classroom = load(instance)
-    host = classroom.host(host_name)
+    names = [host_names] if isinstance(host_names, str) else list(host_names)
+    targets = [classroom.host(name) for name in names]
     instance = classroom.instance
-    with file_lock(_instance_lock(instance)):
+    rootfs = image.base_image()
+    keyring = upstream.ubuntu_key().keyring.read_bytes()
+
+    def fresh(host: SandboxHost) -> None:
         hosts.stop(instance, host.name)
-        rootfs = image.base_image()
         merged = hosts.mount_fresh(instance, host, rootfs)
-        hosts.write_host_files(instance, host, merged, upstream.ubuntu_key().keyring.read_bytes())
+        hosts.write_host_files(instance, host, merged, keyring)
         hosts.start(instance, host, merged)
         hosts.wait_for_ssh(host.address)
+
+    with file_lock(_instance_lock(instance)):
+        _on_all(targets, fresh)
     return time.monotonic() - started
 
 

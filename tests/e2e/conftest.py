@@ -1,0 +1,187 @@
+"""End-to-end fixtures: a sandbox classroom for the session, reached over real SSH.
+
+`e2e_sandbox` boots the dedicated instance `roslab-e2e` once per session and
+always takes it down again: at the end of the session, when a test fails, on
+Ctrl-C, on SIGTERM, and (as a last resort) at interpreter exit.
+`fresh_hosts` gives a test freshly imaged hosts (about a second).
+"""
+
+from __future__ import annotations
+
+import atexit
+import ipaddress
+import json
+import os
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+from roslab.sandbox import lifecycle
+from roslab.sandbox.instance import Instance, SandboxHost
+
+REPO = Path(__file__).resolve().parents[2]
+
+E2E_INSTANCE = "roslab-e2e"
+E2E_SUBNET = "10.213.200.0/24"
+BIN = Path(sys.executable).parent
+
+
+def sandbox_unsupported_reason() -> str | None:
+    """Why sandbox hosts cannot boot here, or None."""
+    if os.geteuid() != 0:
+        return "the sandbox needs root (network namespaces, mounts, systemd-nspawn)"
+    for tool in ("systemd-nspawn", "mmdebstrap", "apt-ftparchive", "ip"):
+        if shutil.which(tool) is None:
+            return f"{tool} is missing (install systemd-container, mmdebstrap, apt-utils, iproute2)"
+    return None
+
+
+@dataclass
+class Result:
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+@dataclass
+class PyinfraRun:
+    """One `pyinfra --json` run: what changed on which host, and what failed."""
+
+    returncode: int
+    stdout: str
+    stderr: str
+    changed: dict[str, set[str]] = field(default_factory=dict)  # operation name -> hosts it changed
+    failed_hosts: list[str] = field(default_factory=list)
+
+    def changes_per_host(self) -> Counter:
+        return Counter(host for hosts in self.changed.values() for host in hosts)
+
+
+def parse_pyinfra_json(stdout: str) -> tuple[dict[str, set[str]], list[str]]:
+    """Changed operations (name -> hosts) and failed hosts from pyinfra 3.10's --json output.
+
+    A real run reports results (per operation: hosts with success+change in
+    `success`); a --dry run has results None and lists `hosts_with_change` in the plan.
+    """
+    document = json.loads(stdout)
+    changed: dict[str, set[str]] = {}
+    if document.get("results"):
+        for op in document["results"]["operations"]:
+            if op["success"]:
+                changed.setdefault(op["name"], set()).update(op["success"])
+        return changed, document["results"]["failed_hosts"]
+    for op in document.get("plan", []):
+        if op["hosts_with_change"]:
+            changed.setdefault(op["name"], set()).update(op["hosts_with_change"])
+    return changed, []
+
+
+@dataclass
+class SandboxClassroom:
+    """A running sandbox instance, as the tests use it."""
+
+    instance: Instance
+    hosts: list[SandboxHost]
+
+    @property
+    def env(self) -> dict[str, str]:
+        return {**os.environ, "ROSLAB_SANDBOX": self.instance.name,
+                "ROSLAB_SANDBOX_SUBNET": str(self.instance.subnet)}
+
+    @property
+    def roster_path(self) -> Path:
+        return self.instance.roster_path
+
+    def host(self, name: str) -> SandboxHost:
+        return next(host for host in self.hosts if host.name == name)
+
+    def ssh(self, host: str, command: str, check: bool = False, timeout: float = 300) -> Result:
+        """Run a shell command on a host as the login user over plain ssh."""
+        argv = lifecycle.ssh_argv(self.instance, self.host(host).address, command)
+        proc = subprocess.run(argv, capture_output=True, text=True, timeout=timeout)
+        if check and proc.returncode != 0:
+            raise AssertionError(f"on {host}: {command!r} exited {proc.returncode}:\n{proc.stdout}\n{proc.stderr}")
+        return Result(proc.returncode, proc.stdout, proc.stderr)
+
+    def sudo(self, host: str, command: str, check: bool = False, timeout: float = 300) -> Result:
+        return self.ssh(host, f"sudo -n sh -c {shlex.quote(command)}", check=check, timeout=timeout)
+
+    def pyinfra(self, *args: str, inventory: str = "inventories/sandbox.py", deploy: str = "deploy.py",
+                env: dict[str, str] | None = None, timeout: float = 1800) -> PyinfraRun:
+        """`pyinfra -y --json [args] INVENTORY DEPLOY` on this sandbox, with what changed per host."""
+        proc = subprocess.run(
+            [str(BIN / "pyinfra"), "-y", "--json", *args, inventory, deploy],
+            cwd=REPO, env={**self.env, **(env or {})}, capture_output=True, text=True, timeout=timeout,
+        )
+        run = PyinfraRun(proc.returncode, proc.stdout, proc.stderr)
+        try:
+            run.changed, run.failed_hosts = parse_pyinfra_json(proc.stdout)
+        except (json.JSONDecodeError, KeyError):
+            pass  # pyinfra stopped before it could report: returncode and stderr say why
+        return run
+
+    def reset(self, *hosts: str) -> float:
+        return lifecycle.reset(list(hosts) or [host.name for host in self.hosts], self.instance)
+
+    def reboot(self, host: str) -> float:
+        return lifecycle.reboot(host, self.instance)
+
+
+def bring_up(name: str, subnet: str, hosts: int | None = None) -> tuple[SandboxClassroom, callable]:
+    """Boot an instance and return it with its idempotent teardown (also run at exit and on SIGTERM)."""
+    instance = Instance(name, ipaddress.IPv4Network(subnet))
+    done = False
+
+    def teardown() -> None:
+        nonlocal done
+        if not done:
+            done = True
+            lifecycle.down(instance)
+
+    atexit.register(teardown)
+    try:
+        classroom = lifecycle.up(hosts, instance)
+    except BaseException:
+        teardown()
+        raise
+    return SandboxClassroom(classroom.instance, classroom.hosts), teardown
+
+
+def _interrupt(signum, frame):
+    # SIGTERM (a CI timeout, `kill`) would end pytest without running finalizers:
+    # turn it into the interrupt Ctrl-C gives, which pytest unwinds through them.
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+@pytest.fixture(scope="session")
+def sandbox_support():
+    """Skip the test, saying why, where sandbox hosts cannot boot."""
+    reason = sandbox_unsupported_reason()
+    if reason:
+        pytest.skip(reason)
+
+
+@pytest.fixture(scope="session")
+def e2e_sandbox(sandbox_support):
+    """The session's sandbox classroom (instance roslab-e2e: 2 teams, 24.04 and 22.04)."""
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    classroom, teardown = bring_up(E2E_INSTANCE, E2E_SUBNET)
+    try:
+        yield classroom
+    finally:
+        teardown()
+        signal.signal(signal.SIGTERM, previous)
+
+
+@pytest.fixture
+def fresh_hosts(e2e_sandbox):
+    """The session sandbox with every host freshly imaged for this test."""
+    e2e_sandbox.reset()
+    return e2e_sandbox
