@@ -156,9 +156,10 @@ def unit_variables(
             f"exec ros2 launch {package} {shlex.quote(launch_file)}",
         ]
     )
+    # Not "user": files.template takes that as the owner of the unit file itself.
     return {
         "role": role,
-        "user": user,
+        "service_user": user,
         "home": home,
         "workspace_dir": workspace_dir,
         "launch": f"{package} {launch_file}",
@@ -250,7 +251,12 @@ def workspace():
         ),
     )
     systemd.daemon_reload(name="Ensure systemd has read the changed unit", _if=unit.did_change)
-    systemd.service(name=f"Ensure {NODES_SERVICE} starts at boot", service=NODES_SERVICE, enabled=True)
+    # running=None: starting belongs to the restart below (only after a change), so a
+    # node that keeps failing does not make every re-run report a start.
+    systemd.service(
+        name=f"Ensure {NODES_SERVICE} starts at boot", service=NODES_SERVICE,
+        enabled=True, running=None,
+    )
     ws_ops.restarted(
         name=f"Ensure {NODES_SERVICE} runs the new build and unit",
         service=NODES_SERVICE,
