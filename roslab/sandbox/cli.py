@@ -21,6 +21,8 @@ def register(subparsers) -> argparse.ArgumentParser:
     up = commands.add_parser("up", help="boot the sandbox classroom (does nothing if it runs)")
     up.add_argument("--hosts", type=int, default=None, metavar="N",
                     help=f"number of hosts, in teams of two (default {lifecycle.DEFAULT_HOSTS})")
+    up.add_argument("--desktop", action="append", default=[], metavar="HOST",
+                    help="make HOST an Ubuntu Desktop-like host (NetworkManager instead of networkd); repeatable")
     commands.add_parser("status", help="list the hosts and whether they answer")
     commands.add_parser("down", help="stop the hosts and remove everything the sandbox made")
     reset = commands.add_parser("reset", help="give hosts a fresh image and boot them")
@@ -39,13 +41,14 @@ def print_status(report: dict) -> None:
     print(f"roster: {report['roster']}")
     for host in report["hosts"]:
         state = "ssh ok" if host["ssh"] else ("booting" if host["running"] else "STOPPED")
-        print(f"  {host['name']:<16} {host['address']:<15} Ubuntu {host['release']} (emulated)  {state}")
+        kind = "Desktop" if host["flavour"] == "desktop" else "Server"
+        print(f"  {host['name']:<16} {host['address']:<15} Ubuntu {host['release']} {kind} (emulated)  {state}")
 
 
 def run(args: argparse.Namespace) -> int:
     try:
         if args.sandbox_command == "up":
-            lifecycle.up(args.hosts)
+            lifecycle.up(args.hosts, desktop=args.desktop)
             print_status(lifecycle.status())
         elif args.sandbox_command == "status":
             print_status(lifecycle.status())

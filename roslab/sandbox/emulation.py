@@ -31,6 +31,7 @@ class HostIdentity:
     release: str  # "24.04" or "22.04"
     address: str  # "10.213.0.11"
     prefixlen: int  # 24
+    flavour: str = "server"  # "server" (networkd) or "desktop" (NetworkManager)
 
     @property
     def codename(self) -> str:
@@ -100,6 +101,21 @@ def netplan_cloud_init(host: HostIdentity) -> str:
     )
 
 
+def netplan_desktop(host: HostIdentity) -> str:
+    """Ubuntu Desktop's netplan file, handing eth0 (with its static address) to NetworkManager."""
+    return (
+        "# roslab sandbox emulation of Ubuntu Desktop's netplan file: NetworkManager\n"
+        "# manages the network (netplan's generator writes its profile for eth0).\n"
+        "network:\n"
+        "  version: 2\n"
+        "  renderer: NetworkManager\n"
+        "  ethernets:\n"
+        "    eth0:\n"
+        "      dhcp4: false\n"
+        f"      addresses: [{host.address}/{host.prefixlen}]\n"
+    )
+
+
 CLOUD_CFG_README = (
     "roslab sandbox: cloud-init is NOT installed on sandbox hosts. This directory exists\n"
     "because Ubuntu Server images have it, and deploys may drop configuration here\n"
@@ -110,10 +126,14 @@ CLOUD_CFG_README = (
 def host_files(host: HostIdentity, archive_url: str) -> dict[str, tuple[str, int]]:
     """Every emulation file of one host: path -> (content, mode)."""
     sources_path, sources = apt_sources(host, archive_url)
+    if host.flavour == "desktop":
+        netplan = {"/etc/netplan/01-network-manager-all.yaml": (netplan_desktop(host), 0o600)}
+    else:
+        netplan = {"/etc/netplan/50-cloud-init.yaml": (netplan_cloud_init(host), 0o600)}
     return {
         "/usr/lib/os-release": (os_release(host), 0o644),
         "/etc/lsb-release": (lsb_release(host), 0o644),
         sources_path: (sources, 0o644),
-        "/etc/netplan/50-cloud-init.yaml": (netplan_cloud_init(host), 0o600),
+        **netplan,
         "/etc/cloud/cloud.cfg.d/README.roslab-sandbox": (CLOUD_CFG_README, 0o644),
     }

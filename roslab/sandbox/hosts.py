@@ -173,6 +173,11 @@ def write_host_files(instance: Instance, host: SandboxHost, root: Path, ubuntu_k
     identity = host.identity(instance.subnet.prefixlen)
     for path, (content, mode) in emulation.host_files(identity, f"{instance.upstream_url}/ubuntu").items():
         write_file(root / path.lstrip("/"), content, mode=mode)
+    if host.flavour == "desktop":
+        # As on Ubuntu Desktop: NetworkManager runs the network, networkd is off.
+        run("systemctl", f"--root={root}", "disable", "--quiet", "systemd-networkd.service",
+            "systemd-networkd.socket", "systemd-networkd-wait-online.service")
+        run("systemctl", f"--root={root}", "enable", "--quiet", "NetworkManager.service")
     write_file(root / "etc/hostname", f"{host.name}\n")
     write_file(root / "etc/hosts", f"127.0.0.1 localhost\n127.0.1.1 {host.name}\n"
                "::1 localhost ip6-localhost ip6-loopback\n")

@@ -11,7 +11,8 @@ import hashlib
 import ipaddress
 import os
 import re
-from dataclasses import dataclass
+from collections.abc import Iterable
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from .emulation import HostIdentity
@@ -40,9 +41,11 @@ class SandboxHost:
     release: str  # "24.04"
     index: int  # 0-based position in the classroom
     address: str
+    flavour: str = "server"  # "desktop": NetworkManager runs the network instead of networkd
 
     def identity(self, prefixlen: int) -> HostIdentity:
-        return HostIdentity(hostname=self.name, release=self.release, address=self.address, prefixlen=prefixlen)
+        return HostIdentity(hostname=self.name, release=self.release, address=self.address,
+                            prefixlen=prefixlen, flavour=self.flavour)
 
 
 @dataclass(frozen=True)
@@ -115,8 +118,11 @@ class Instance:
         return self.state_dir / "hosts" / host.name
 
     # -- the classroom ---------------------------------------------------------------
-    def plan_hosts(self, count: int) -> list[SandboxHost]:
-        """`count` hosts in teams of two (main, robot), teams alternating 24.04 and 22.04."""
+    def plan_hosts(self, count: int, desktop: Iterable[str] = ()) -> list[SandboxHost]:
+        """`count` hosts in teams of two (main, robot), teams alternating 24.04 and 22.04.
+
+        Hosts named in `desktop` are Ubuntu Desktop-like (NetworkManager), the rest Server-like.
+        """
         if not 1 <= count <= min(MAX_HOSTS, self.subnet.num_addresses - FIRST_HOST_OCTET - 1):
             raise SandboxError(f"--hosts {count}: a sandbox holds 1 to {MAX_HOSTS} hosts")
         hosts = []
@@ -129,7 +135,12 @@ class Instance:
                 release=RELEASES_BY_TEAM[team_number % 2], index=index,
                 address=str(self.subnet.network_address + FIRST_HOST_OCTET + index),
             ))
-        return hosts
+        desktop = set(desktop)
+        unknown = desktop - {host.name for host in hosts}
+        if unknown:
+            raise SandboxError(f"--desktop {', '.join(sorted(unknown))}: no such host among {hosts[0].name} .. "
+                               f"{hosts[-1].name}")
+        return [replace(host, flavour="desktop") if host.name in desktop else host for host in hosts]
 
 
 def default_subnet(name: str) -> str:

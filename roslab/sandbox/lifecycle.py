@@ -60,7 +60,7 @@ def load(instance: Instance | None = None) -> Classroom:
     except FileNotFoundError:
         raise SandboxError(f"no sandbox {instance.name!r} is running: run `roslab sandbox up`") from None
     instance = replace(instance, subnet=IPv4Network(state["subnet"]))
-    return Classroom(instance, instance.plan_hosts(state["hosts"]))
+    return Classroom(instance, instance.plan_hosts(state["hosts"], state.get("desktop", ())))
 
 
 def ssh_argv(instance: Instance, address: str, *command: str) -> list[str]:
@@ -74,24 +74,27 @@ def ssh_argv(instance: Instance, address: str, *command: str) -> list[str]:
 
 # -- up -------------------------------------------------------------------------------------
 
-def up(count: int | None = None, instance: Instance | None = None) -> Classroom:
-    """Boot the instance's classroom (default 4 hosts); a running one is left as it is."""
+def up(count: int | None = None, instance: Instance | None = None, desktop: list[str] | None = None) -> Classroom:
+    """Boot the instance's classroom (default 4 hosts); a running one is left as it is.
+
+    Hosts named in `desktop` emulate Ubuntu Desktop (NetworkManager) instead of Server.
+    """
     instance = instance or Instance.from_env()
     with file_lock(_instance_lock(instance)):
         try:
             running = load(instance)
         except SandboxError:
             running = None
-        if running and (count is None or count == len(running.hosts)) and _healthy(running):
-            return running
-        if running and count is not None and count != len(running.hosts):
+        wanted = instance.plan_hosts(count or (len(running.hosts) if running else DEFAULT_HOSTS), desktop or ())
+        if running and running.hosts != wanted and (count is not None or desktop):
             raise SandboxError(
-                f"sandbox {instance.name!r} is running with {len(running.hosts)} hosts: "
-                "run `roslab sandbox down` first to change that"
+                f"sandbox {instance.name!r} is running with other hosts: run `roslab sandbox down` first"
             )
+        if running and _healthy(running):
+            return running
         _down_locked(instance)  # leftovers of a crashed or half-started run
         try:
-            return _up_locked(instance, count or DEFAULT_HOSTS)
+            return _up_locked(instance, wanted)
         except BaseException:
             _down_locked(instance)
             raise
@@ -101,12 +104,14 @@ def _healthy(classroom: Classroom) -> bool:
     return all(hosts.is_running(classroom.instance, host.name) for host in classroom.hosts)
 
 
-def _up_locked(instance: Instance, count: int) -> Classroom:
+def _up_locked(instance: Instance, planned: list[SandboxHost]) -> Classroom:
     started = time.monotonic()
-    classroom = Classroom(instance, instance.plan_hosts(count))
+    classroom = Classroom(instance, planned)
     rootfs = image.base_image()
     instance.state_dir.mkdir(parents=True, mode=0o700)
-    write_file(_state_file(instance), json.dumps({"hosts": count, "subnet": str(instance.subnet)}) + "\n")
+    desktop = [host.name for host in planned if host.flavour == "desktop"]
+    write_file(_state_file(instance), json.dumps(
+        {"hosts": len(planned), "subnet": str(instance.subnet), "desktop": desktop}) + "\n")
     _claim_machine(instance)
     run("ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-C", f"roslab-sandbox-{instance.name}",
         "-f", instance.key_path)
@@ -126,7 +131,7 @@ def _up_locked(instance: Instance, count: int) -> Classroom:
 
     _on_all(classroom.hosts, boot)
     write_roster(classroom, published)
-    log.info("sandbox %r up: %d hosts in %.1f s", instance.name, count, time.monotonic() - started)
+    log.info("sandbox %r up: %d hosts in %.1f s", instance.name, len(planned), time.monotonic() - started)
     return classroom
 
 
@@ -242,6 +247,7 @@ def status(instance: Instance | None = None) -> dict:
         except SandboxError:
             ssh = False
         report["hosts"].append({"name": host.name, "address": host.address, "release": host.release,
+                                "flavour": host.flavour,
                                 "team": host.team, "role": host.role, "running": running, "ssh": ssh})
     return report
 

@@ -182,6 +182,8 @@ def e2e_sandbox(sandbox_support):
 
 @pytest.fixture
 def fresh_hosts(e2e_sandbox):
-    """The session sandbox with every host freshly imaged for this test."""
+    """The session sandbox with every host freshly imaged for this test, and again after it
+    (whatever the test changed, e.g. an address, does not reach the next test)."""
     e2e_sandbox.reset()
-    return e2e_sandbox
+    yield e2e_sandbox
+    e2e_sandbox.reset()

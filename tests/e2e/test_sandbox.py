@@ -20,6 +20,7 @@ import pytest
 import yaml
 
 from roslab.sandbox import hosts as sandbox_hosts
+from roslab.sandbox import lifecycle
 from roslab.sandbox.instance import Instance
 
 pytestmark = pytest.mark.e2e
@@ -108,6 +109,25 @@ def test_published_ros_apt_source_and_rosdep_data_work_on_a_fresh_host(fresh_hos
                    "ros-jazzy-rclpy", "python3-pytest"]
 
 
+def test_a_host_moves_itself_to_a_new_address_with_netplan(fresh_hosts):
+    old_address = fresh_hosts.host("team1-robot").address
+    new_address = str(fresh_hosts.instance.subnet.network_address + 111)
+    fresh_hosts.sudo("team1-robot", f"""set -e
+        sed -i 's#{old_address}/24#{new_address}/24#' /etc/netplan/50-cloud-init.yaml
+        netplan generate
+        systemd-run --on-active=0.5 sh -c 'networkctl reload && networkctl reconfigure eth0'
+    """, check=True)
+    argv = lifecycle.ssh_argv(fresh_hosts.instance, new_address, "ip -4 -o addr show dev eth0")
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        moved = subprocess.run(argv, capture_output=True, text=True, timeout=30)
+        if moved.returncode == 0:
+            break
+        time.sleep(0.2)
+    assert f"inet {new_address}/24" in moved.stdout
+    assert old_address not in moved.stdout
+
+
 def test_reset_gives_a_fresh_image_in_about_a_second(e2e_sandbox):
     e2e_sandbox.sudo("team2-robot", "touch /etc/left-by-a-test", check=True)
     seconds = e2e_sandbox.reset("team2-robot")
@@ -166,16 +186,20 @@ def test_up_status_down_leave_nothing_behind(sandbox_support):
     instance = Instance(LIFECYCLE_INSTANCE, ipaddress.IPv4Network(LIFECYCLE_SUBNET))
     try:
         started = time.monotonic()
-        up = _roslab("up", "--hosts", "2", env=env)
+        up = _roslab("up", "--hosts", "2", "--desktop", "team1-main", env=env)
         assert up.returncode == 0, up.stderr
         assert time.monotonic() - started < 60
         assert "team1-main" in up.stdout and "team1-robot" in up.stdout and "ssh ok" in up.stdout
 
-        again = _roslab("up", "--hosts", "2", env=env)  # already running: nothing to do
+        again = _roslab("up", env=env)  # already running: nothing to do
         assert again.returncode == 0 and again.stdout == up.stdout
 
-        status = _roslab("status", env=env)
-        assert "10.213.201.11" in status.stdout and "Ubuntu 24.04 (emulated)  ssh ok" in status.stdout
+        status = _roslab("status", env=env).stdout
+        assert "10.213.201.11   Ubuntu 24.04 Desktop (emulated)  ssh ok" in status
+        assert "10.213.201.12   Ubuntu 24.04 Server (emulated)  ssh ok" in status
+        network = _roslab("ssh", "team1-main", "systemctl is-active NetworkManager systemd-networkd; "
+                          "nmcli -t -f DEVICE,STATE device", env=env).stdout.split()
+        assert network[:2] == ["active", "inactive"] and "eth0:connected" in network
 
         inventory = subprocess.run(
             [str(Path(sys.executable).parent / "pyinfra"), "-y", "inventories/sandbox.py", "exec", "--",
@@ -185,6 +209,7 @@ def test_up_status_down_leave_nothing_behind(sandbox_support):
         # A crashed `up` leaves state without a record of the hosts; the next `up` clears it.
         (instance.state_dir / "sandbox.json").unlink()
         assert _roslab("up", "--hosts", "2", env=env).returncode == 0
+        assert _roslab("up", "--hosts", "3", env=env).returncode == 1  # running with other hosts
 
         assert _roslab("down", env=env).returncode == 0
         assert _leftovers(instance) == []

@@ -287,3 +287,18 @@ def test_ros_apt_source_stand_in_installs_key_and_linked_source(tmp_path, monkey
                             capture_output=True, text=True, check=True).stdout
     assert "Package: ros2-apt-source\nVersion: 1.2.0\n" in fields
     assert "roslab sandbox stand-in" in fields
+
+
+def test_desktop_hosts_get_networkmanager_netplan_instead_of_cloud_init():
+    hosts = Instance.from_env().plan_hosts(4, desktop=["team1-main"])
+    assert [h.flavour for h in hosts] == ["desktop", "server", "server", "server"]
+    files = emulation.host_files(hosts[0].identity(24), f"{URL}/ubuntu")
+    assert "/etc/netplan/50-cloud-init.yaml" not in files
+    network = yaml.safe_load(files["/etc/netplan/01-network-manager-all.yaml"][0])["network"]
+    assert network["renderer"] == "NetworkManager"
+    assert network["ethernets"]["eth0"]["addresses"] == ["10.213.0.11/24"]
+
+
+def test_unknown_desktop_host_is_refused():
+    with pytest.raises(SandboxError, match="--desktop team9-main: no such host"):
+        Instance.from_env().plan_hosts(4, desktop=["team9-main"])
