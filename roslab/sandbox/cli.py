@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import signal
 import sys
 
 from . import lifecycle
@@ -45,7 +47,18 @@ def print_status(report: dict) -> None:
         print(f"  {host['name']:<16} {host['address']:<15} Ubuntu {host['release']} {kind} (emulated)  {state}")
 
 
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
 def run(args: argparse.Namespace) -> int:
+    if os.geteuid() != 0 and args.sandbox_command != "status":
+        print("roslab sandbox: needs root (it makes network namespaces, mounts and containers)",
+              file=sys.stderr)
+        return 1
+    # A SIGTERM (a CI timeout, `kill`) unwinds like Ctrl-C, so a half-done `up`
+    # takes down what it started.
+    signal.signal(signal.SIGTERM, _interrupt)
     try:
         if args.sandbox_command == "up":
             lifecycle.up(args.hosts, desktop=args.desktop)
@@ -64,6 +77,9 @@ def run(args: argparse.Namespace) -> int:
     except SandboxError as exc:
         print(f"roslab sandbox: {exc}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:
+        print(f"roslab sandbox: {args.sandbox_command} interrupted", file=sys.stderr)
+        return 130
     return 0
 
 
