@@ -48,12 +48,14 @@ def host_cgroups(instance: Instance, host_name: str) -> list[Path]:
 
 
 def _pids_in(tree: Path) -> set[int]:
+    """Every pid in a cgroup tree (the host's systemd adds and removes cgroups meanwhile)."""
     pids = set()
-    for procs in tree.rglob("cgroup.procs"):
-        try:
-            pids.update(int(line) for line in procs.read_text().split())
-        except OSError:
-            pass
+    for directory, _, files in os.walk(tree):  # os.walk skips directories that vanish
+        if "cgroup.procs" in files:
+            try:
+                pids.update(int(line) for line in Path(directory, "cgroup.procs").read_text().split())
+            except OSError:
+                pass
     return pids
 
 
@@ -274,7 +276,7 @@ def request_reboot(instance: Instance, host_name: str) -> None:
     os.kill(pid, signal.SIGINT)
 
 
-def wait_for_ssh(address: str, timeout: float = 60.0, after: float | None = None) -> float:
+def wait_for_ssh(address: str, timeout: float = 60.0) -> float:
     """Wait until sshd on `address` sends its banner; return the seconds waited."""
     started = time.monotonic()
     deadline = started + timeout
