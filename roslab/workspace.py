@@ -437,6 +437,7 @@ def dependencies(
         host.noop("rosdep has installed the dependencies of these package.xml files already")
         return
     state_dir = posixpath.join(workspace_dir, STATE_DIR_NAME)
+    rosdep_stamp = posixpath.join(state_dir, "rosdep.sha256")
     yield StringCommand(
         f"mkdir -p {shlex.quote(state_dir)}",
         f"&& chown {shlex.quote(user)}: {shlex.quote(state_dir)}",
@@ -445,7 +446,9 @@ def dependencies(
         *(shlex.quote(f"src/{name}") for name in packages),
         "--ignore-src -y",
         f"--rosdistro {shlex.quote(distro)}",
-        f"&& {_write_stamp(posixpath.join(state_dir, 'rosdep.sha256'), stamp)}",
+        f"&& {_write_stamp(rosdep_stamp, stamp)}",
+        # rosdep runs as root; the stamp, like the rest of the workspace, is the user's.
+        f"&& chown {shlex.quote(user)}: {shlex.quote(rosdep_stamp)}",
     )
 
 

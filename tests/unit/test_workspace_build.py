@@ -123,7 +123,9 @@ def test_rosdep_runs_as_root_with_the_users_cache_when_package_xml_changed():
         " --ignore-src -y" in command
     )
     assert "--rosdistro jazzy" in command
-    assert command.endswith(f"printf '%s\\n' p1:jazzy > {WS}/.roslab/rosdep.sha256")
+    assert command.endswith(
+        f"printf '%s\\n' p1:jazzy > {WS}/.roslab/rosdep.sha256 && chown ubuntu: {WS}/.roslab/rosdep.sha256"
+    )
 
 
 def test_rosdep_is_skipped_when_no_package_xml_changed():
