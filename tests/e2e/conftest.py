@@ -115,9 +115,12 @@ class SandboxClassroom:
 
     def pyinfra(self, *args: str, inventory: str = "inventories/sandbox.py", deploy: str = "deploy.py",
                 env: dict[str, str] | None = None, timeout: float = 1800) -> PyinfraRun:
-        """`pyinfra -y --json [args] INVENTORY DEPLOY` on this sandbox, with what changed per host."""
+        """`pyinfra [-y] --json [args] INVENTORY DEPLOY` on this sandbox, with what changed per host."""
+        # -y applies without asking; with --dry it would also skip the change detection
+        # that a dry run is for, leaving the plan's hosts_with_change empty.
+        confirm = [] if "--dry" in args else ["-y"]
         proc = subprocess.run(
-            [str(BIN / "pyinfra"), "-y", "--json", *args, inventory, deploy],
+            [str(BIN / "pyinfra"), *confirm, "--json", *args, inventory, deploy],
             cwd=REPO, env={**self.env, **(env or {})}, capture_output=True, text=True, timeout=timeout,
         )
         run = PyinfraRun(proc.returncode, proc.stdout, proc.stderr)

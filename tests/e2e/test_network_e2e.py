@@ -161,7 +161,8 @@ def test_host_moves_and_the_deploy_continues_at_its_new_address(classroom):
 def assert_rolled_back(host, proc, results, words: str) -> None:
     output = proc.stdout + proc.stderr
     assert proc.returncode != 0
-    assert host.name in network_op(results)["error"]
+    if results is not None:  # pyinfra reports no results when its only host failed
+        assert host.name in network_op(results)["error"]
     assert "Network change rolled back" in output and words in output, output[-4000:]
     assert f"reachable again at {host.address}" in output
     # Back at its old address with its old files.
