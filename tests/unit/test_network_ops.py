@@ -17,7 +17,7 @@ from roslab import netstate, network_ops
 from roslab.network_ops import MaskedFileContents, NetworkRenderer
 from roslab.network_render import RendererFacts
 from roslab.secrets import Secret
-from tests.unit.fixtures.fake_host import plan
+from fixtures.fake_host import plan
 
 NETPLAN = "/etc/netplan/60-roslab.yaml"
 CLOUD_INIT = "/etc/netplan/50-cloud-init.yaml"
