@@ -32,10 +32,11 @@ EXPECTED = {
 
 @pytest.fixture(scope="module")
 def sandbox(e2e_sandbox):
-    """The session's classroom, every host freshly imaged for this module."""
+    """The session's classroom, freshly imaged for this module and again after it."""
     assert sorted(host.name for host in e2e_sandbox.hosts) == sorted(EXPECTED)
     e2e_sandbox.reset()
-    return e2e_sandbox
+    yield e2e_sandbox
+    e2e_sandbox.reset()  # the next module gets the hosts as it expects them: fresh
 
 
 @pytest.fixture(scope="module")
