@@ -66,7 +66,8 @@ RESTART_SEC = 5
 
 
 def workspace_path(home: str) -> str:
-    value = host.data.workspace_dir
+    # setting(): the verify step reads this outside the workspace deploy (no data_defaults there).
+    value = setting("workspace_dir")
     if not isinstance(value, str) or not value.strip():
         raise DeployError(f"{where()}: workspace_dir must be a path, got {value!r}")
     if value == "~" or value.startswith("~/"):

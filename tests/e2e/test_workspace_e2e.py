@@ -229,3 +229,16 @@ def test_editing_one_node_rebuilds_and_restarts_once(classroom, first_run, nodes
 
     fourth = deploy(nodes_copy)
     assert {name: hosts for name, hosts in fourth.items() if hosts} == {}
+
+
+def test_verify_says_the_sandbox_has_no_ros_runtime_instead_of_passing(classroom, first_run):
+    """`roslab verify` on stand-in ROS: every team fails with the honest reason, none passes."""
+    proc = subprocess.run(
+        [str(BIN / "roslab"), "verify", "inventories/sandbox.py"],
+        cwd=REPO, env=ENV, capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    for team in classroom.teams:
+        main = next(host.name for host in team.hosts if host.role == "main")
+        assert f"no ROS runtime on {main}: not verified" in proc.stdout, proc.stdout
+    assert "not verified: team1, team2" in proc.stderr
