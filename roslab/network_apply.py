@@ -204,15 +204,22 @@ def apply_commands(plan: dict) -> list[list[list[str]]]:
     """
     interface = plan["interface"]
     layout = plan["layout"]
+    # `netplan apply` stops NetworkManager before its udev trigger; when the trigger fails
+    # NetworkManager stays stopped, so the fallbacks (re)start it rather than only asking
+    # a daemon that may be gone to reload. The rollback takes the same path back.
+    restart_networkmanager = [
+        ["systemctl", "restart", "NetworkManager"],
+        ["nmcli", "--wait", "20", "device", "connect", interface],
+    ]
     if layout == "networkmanager-keyfile":
         return [
             [["nmcli", "connection", "reload"], ["nmcli", "device", "connect", interface]],
+            restart_networkmanager,
         ]
     if layout == "netplan-networkmanager":
         return [
             [["netplan", "apply"]],
-            [["netplan", "generate"], ["nmcli", "connection", "reload"],
-             ["nmcli", "device", "connect", interface]],
+            [["netplan", "generate"], *restart_networkmanager],
         ]
     return [
         [["netplan", "apply"]],

@@ -83,6 +83,34 @@ class NetworkRenderer(FactBase):
         return {"renderer": renderer, "cloud_init": values.get("cloud_init") == "yes"}
 
 
+class NetplanFilesConfiguring(FactBase):
+    """The netplan files in /etc/netplan that configure this interface, as paths.
+
+    netplan merges every file, so another file that sets addresses for the same
+    interface (a Desktop's NetworkManager profile, an old hand-written file) would keep
+    its address beside ours. Parsed on the host: the files may hold WiFi passwords,
+    and only their names leave it.
+    """
+
+    default = list
+
+    def command(self, interface: str) -> str:
+        script = (
+            "import glob, sys, yaml\n"
+            "for path in sorted(glob.glob('/etc/netplan/*.yaml')):\n"
+            "    try:\n"
+            "        network = (yaml.safe_load(open(path)) or {}).get('network') or {}\n"
+            "    except Exception:\n"
+            "        continue\n"
+            "    if any(sys.argv[1] in (network.get(kind) or {}) for kind in ('ethernets', 'wifis')):\n"
+            "        print(path)\n"
+        )
+        return f"python3 -c {shlex.quote(script)} {shlex.quote(interface)} 2>/dev/null || true"
+
+    def process(self, output):
+        return [line.strip() for line in output if line.strip()]
+
+
 class MaskedFileContents(FactBase):
     """A file's content with WiFi passwords masked on the host, for diffs; None if absent.
 
@@ -149,7 +177,8 @@ def network_in_effect(
         layout = choose_layout(settings.backend, found["renderer"])
     except ValueError as exc:
         raise OperationError(f"{host.name}: {exc}") from None
-    wanted = desired_files(settings, layout, found["cloud_init"])
+    configuring = host.get_fact(NetplanFilesConfiguring, interface=settings.interface) if layout.uses_netplan else []
+    wanted = desired_files(settings, layout, found["cloud_init"], tuple(configuring))
 
     changed = [path for path, content in wanted.files.items()
                if host.get_fact(Sha256File, path=path) != sha256(content)]

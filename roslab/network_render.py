@@ -199,11 +199,14 @@ class NetworkFiles:
 
 
 def desired_files(
-    settings: NetworkSettings, layout: Layout, cloud_init_present: bool
+    settings: NetworkSettings, layout: Layout, cloud_init_present: bool,
+    netplan_files_for_interface: tuple[str, ...] = (),
 ) -> NetworkFiles:
     """Every file the network deploy writes on a host, in the order they are installed.
 
     `cloud_init_present`: the host has cloud-init's network file or /etc/cloud.
+    `netplan_files_for_interface`: netplan files on the host that configure the same
+    interface; netplan would merge their addresses with ours, so they are superseded.
     """
     files: dict[str, str] = {}
     superseded: list[str] = []
@@ -215,4 +218,8 @@ def desired_files(
         files[CLOUD_INIT_DISABLE_FILE] = render_cloud_init_disable()
         # cloud-init's file would configure the same interface by DHCP beside ours.
         superseded.append(CLOUD_INIT_FILE)
+    if layout.uses_netplan:
+        superseded.extend(
+            path for path in netplan_files_for_interface if path not in files and path not in superseded
+        )
     return NetworkFiles(files, tuple(superseded))

@@ -48,13 +48,17 @@ BRIDGE = str(next(SUBNET.hosts()))  # the sandbox bridge: the hosts' gateway
 TEST_DEPLOY = "tests/e2e/network_then_marker.py"
 NETWORK_OP = "network is configured and it answers at"
 CONFIRM_TIMEOUT = 20
+DESKTOP_HOST = "team3-main"
 
 
 @pytest.fixture(scope="module")
 def classroom():
     if os.geteuid() != 0 or shutil.which("systemd-nspawn") is None:
         pytest.skip("the sandbox needs root and systemd-nspawn")
-    subprocess.run([str(BIN / "roslab"), "sandbox", "up"], env=ENV, check=True, cwd=REPO)
+    # Four Ubuntu Server-like hosts (networkd) and team3-main, an Ubuntu 24.04
+    # Desktop-like host where NetworkManager runs the network.
+    subprocess.run([str(BIN / "roslab"), "sandbox", "up", "--hosts", "5", "--desktop", DESKTOP_HOST],
+                   env=ENV, check=True, cwd=REPO)
     try:
         yield load_roster(STATE_DIR / "roster.yaml")
     finally:
@@ -194,3 +198,26 @@ def test_address_the_controller_cannot_reach_is_rolled_back_and_reported(classro
     finally:
         subprocess.run(["ip", "route", "del", "blackhole", f"{unreachable}/32"], check=True)
     assert_rolled_back(host, proc, results, f"did not confirm within {CONFIRM_TIMEOUT} s")
+
+
+def test_desktop_host_moves_by_networkmanager_without_keeping_its_old_address(classroom):
+    host = next(h for h in classroom.hosts if h.name == DESKTOP_HOST)
+    new = str(SUBNET.network_address + 80)
+    roster = write_roster({host.name: static(new)})
+
+    proc, results = run_deploy(roster, host.name)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    assert host.name in network_op(results)["success"]
+    assert on_host(host, new, "systemctl is-active NetworkManager").strip() == "active"
+    netplan = on_host(host, new, "cat /etc/netplan/60-roslab.yaml")
+    assert "renderer: NetworkManager" in netplan
+    # netplan merges files: the Desktop's own profile for eth0 is backed up, not merged,
+    # so the host answers at its new address only.
+    assert on_host(host, new, "ls /etc/netplan").split() == ["60-roslab.yaml"]
+    addresses = on_host(host, new, "ip -4 -o address show dev eth0").split()
+    assert f"{new}/{SUBNET.prefixlen}" in addresses and f"{host.address}/{SUBNET.prefixlen}" not in addresses
+    assert not answers_ssh(host.address)
+
+    proc, results = run_deploy(roster, host.name)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    assert network_op(results)["no_change"] == [host.name]

@@ -206,9 +206,23 @@ def test_apply_error_names_each_failing_command(monkeypatch):
     )
 
 
-def test_keyfile_layout_reloads_networkmanager():
+def test_keyfile_layout_reloads_networkmanager_or_restarts_it():
     commands = network_apply.apply_commands({"layout": "networkmanager-keyfile", "interface": "wlan0"})
-    assert commands == [[["nmcli", "connection", "reload"], ["nmcli", "device", "connect", "wlan0"]]]
+    assert commands == [
+        [["nmcli", "connection", "reload"], ["nmcli", "device", "connect", "wlan0"]],
+        [["systemctl", "restart", "NetworkManager"], ["nmcli", "--wait", "20", "device", "connect", "wlan0"]],
+    ]
+
+
+def test_netplan_networkmanager_fallback_restarts_networkmanager_that_netplan_apply_stopped():
+    # Seen in the sandbox: `netplan apply` stops NetworkManager, its udev trigger fails, and
+    # a fallback that only ran `nmcli connection reload` left the host with no address.
+    commands = network_apply.apply_commands({"layout": "netplan-networkmanager", "interface": "eth0"})
+    assert commands == [
+        [["netplan", "apply"]],
+        [["netplan", "generate"], ["systemctl", "restart", "NetworkManager"],
+         ["nmcli", "--wait", "20", "device", "connect", "eth0"]],
+    ]
 
 
 def test_check_running_waits_for_the_address(monkeypatch):

@@ -14,7 +14,7 @@ from pyinfra.facts.files import File, Sha256File
 
 from deploy.network import network
 from roslab import netstate, network_ops
-from roslab.network_ops import MaskedFileContents, NetworkRenderer
+from roslab.network_ops import MaskedFileContents, NetplanFilesConfiguring, NetworkRenderer
 from roslab.network_render import RendererFacts
 from roslab.secrets import Secret
 from fixtures.fake_host import plan
@@ -58,6 +58,12 @@ def facts(renderer=SERVER_2404, files=None, modes=None):
         Sha256File: sha,
         File: stat,
         MaskedFileContents: lambda path: files.get(path),
+        # The host parses its netplan files; here a file "configures" the interface when
+        # it has it under ethernets/wifis (the tests' files are simple YAML).
+        NetplanFilesConfiguring: lambda interface: sorted(
+            path for path, content in files.items()
+            if path.startswith("/etc/netplan/") and f"\n    {interface}:" in content
+        ),
     }
 
 
@@ -119,6 +125,27 @@ def test_leftover_cloud_init_file_alone_triggers_a_change():
     first = run_network(files={CLOUD_INIT: "x"}).uploads()
     files = {NETPLAN: first[STAGED + NETPLAN], DISABLE: first[STAGED + DISABLE], CLOUD_INIT: "x"}
     assert json.loads(run_network(files=files).uploads()["/run/roslab/network/plan.json"])["superseded"] == [CLOUD_INIT]
+
+
+def test_other_netplan_files_for_the_interface_are_superseded_not_merged():
+    # netplan merges files: a Desktop profile that sets eth0's old address would keep
+    # that address beside the new one. A file that only names the renderer stays.
+    desktop_2404 = {
+        "renderer": RendererFacts(
+            networkmanager_active=True, netplan_installed=True, netplan_nm_renderer=True,
+            ubuntu_version="24.04",
+        ),
+        "cloud_init": False,
+    }
+    files = {
+        "/etc/netplan/01-network-manager-all.yaml": "network:\n  renderer: NetworkManager\n",
+        "/etc/netplan/90-NM-1234.yaml": "network:\n  ethernets:\n    eth0:\n      addresses: [10.0.0.200/24]\n",
+    }
+    plan_file = json.loads(
+        run_network(renderer=desktop_2404, files=files).uploads()["/run/roslab/network/plan.json"]
+    )
+    assert plan_file["layout"] == "netplan-networkmanager"
+    assert plan_file["superseded"] == ["/etc/netplan/90-NM-1234.yaml"]
 
 
 def test_same_content_wrong_mode_is_fixed_without_applying():
