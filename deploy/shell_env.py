@@ -18,7 +18,8 @@ from roslab.operations import managed_block
 
 TEMPLATES = Path(__file__).resolve().parent.parent / "templates"
 BLOCK_LABEL = "ROS 2 environment"
-# deploy/workspace.py owns workspace_dir; this is its default for when it is not loaded.
+# deploy/workspace.py owns workspace_dir; the deploy passes its setting, this default
+# only serves callers outside a deploy (tests).
 WORKSPACE_DIR_FALLBACK = "~/ros2_ws"
 
 DEFAULTS = {
@@ -50,6 +51,24 @@ def _shell_path(path: str) -> str:
     return shlex.quote(path)
 
 
+def ros_variables(
+    distro: str, domain_id: int, discovery_range: str = "SUBNET", static_peers=(),
+) -> dict[str, str]:
+    """The ROS variables a shell or a service of this host needs, in export order.
+
+    The one source for both the ~/.bashrc block and the nodes' systemd unit.
+    """
+    variables = {"ROS_DOMAIN_ID": str(domain_id)}
+    if distro in DISCOVERY_RANGE_DISTROS:
+        variables["ROS_AUTOMATIC_DISCOVERY_RANGE"] = str(discovery_range)
+        if static_peers:
+            variables["ROS_STATIC_PEERS"] = ";".join(static_peers)
+    elif discovery_range == "LOCALHOST":
+        # Humble has no discovery range; LOCALHOST is its ROS_LOCALHOST_ONLY.
+        variables["ROS_LOCALHOST_ONLY"] = "1"
+    return variables
+
+
 def render_ros_environment(
     distro: str,
     domain_id: int,
@@ -78,11 +97,10 @@ def render_ros_environment(
     return environment.get_template("bashrc-ros-environment.sh.j2").render(
         distro=distro,
         workspace_setup=_shell_path(workspace_dir.rstrip("/") + "/install/setup.bash"),
-        domain_id=domain_id,
-        discovery_range_supported=distro in DISCOVERY_RANGE_DISTROS,
-        discovery_range=discovery_range,
-        static_peers=shlex.quote(";".join(static_peers)) if static_peers else None,
-        localhost_only=discovery_range == "LOCALHOST",
+        ros_variables={
+            name: shlex.quote(value)
+            for name, value in ros_variables(distro, domain_id, discovery_range, static_peers).items()
+        },
         rosdistro_index_url=shlex.quote(rosdistro_index_url) if rosdistro_index_url else None,
     )
 
@@ -99,10 +117,6 @@ def shell_env():
     """
     if not should_run("shell_env_enabled"):
         return
-    try:
-        workspace_dir = setting("workspace_dir")
-    except KeyError:
-        workspace_dir = WORKSPACE_DIR_FALLBACK
     user = login_user()
     managed_block(
         name=f"Ensure {user}'s ~/.bashrc sets up the ROS 2 environment",
@@ -112,7 +126,7 @@ def shell_env():
             domain_id=setting("ros_domain_id"),
             discovery_range=setting("ros_automatic_discovery_range"),
             static_peers=setting("ros_static_peers") or [],
-            workspace_dir=workspace_dir,
+            workspace_dir=setting("workspace_dir"),
             rosdistro_index_url=setting("rosdistro_index_url"),
         ),
         label=BLOCK_LABEL,

@@ -21,8 +21,8 @@ from pyinfra.operations import files, systemd
 from pyinfra.operations.util import any_changed
 
 from deploy.common import host_distro, login_home, login_user, setting, should_run, where
+from deploy.shell_env import ros_variables
 from roslab import workspace as ws_ops
-from roslab.distro import DISCOVERY_RANGE_DISTROS
 
 REPO = Path(__file__).resolve().parent.parent
 TEMPLATES = REPO / "templates"
@@ -119,20 +119,13 @@ def host_role() -> str:
 
 
 def ros_environment(distro: str) -> dict[str, str]:
-    """The ROS variables the nodes need, exactly as deploy/shell_env.py exports them in ~/.bashrc.
-
-    Mirrors templates/bashrc-ros-environment.sh.j2 (a unit test renders both and compares).
-    """
-    environment = {"ROS_DOMAIN_ID": str(setting("ros_domain_id"))}
-    discovery_range = setting("ros_automatic_discovery_range")
-    static_peers = setting("ros_static_peers") or []
-    if distro in DISCOVERY_RANGE_DISTROS:
-        environment["ROS_AUTOMATIC_DISCOVERY_RANGE"] = str(discovery_range)
-        if static_peers:
-            environment["ROS_STATIC_PEERS"] = ";".join(static_peers)
-    elif discovery_range == "LOCALHOST":
-        environment["ROS_LOCALHOST_ONLY"] = "1"
-    return environment
+    """The ROS variables the nodes need: the same ones the ~/.bashrc block exports."""
+    return ros_variables(
+        distro,
+        setting("ros_domain_id"),
+        setting("ros_automatic_discovery_range"),
+        setting("ros_static_peers") or [],
+    )
 
 
 def systemd_environment(environment: dict[str, str]) -> list[str]:
@@ -204,7 +197,7 @@ def workspace():
         files.directory(
             name=f"Ensure {path} exists, owned by {user}", path=path, user=user,
         )
-    synced = ws_ops.packages(
+    ws_ops.packages(
         name=f"Ensure {src_dir} holds the packages of {source_dir}",
         nodes_dir=source_dir,
         src_dir=src_dir,
