@@ -39,20 +39,6 @@ from roslab import secrets
 
 ROLES = ("main", "robot")
 
-# Settings this loader interprets itself, with the defaults docs/architecture.md
-# gives them. The deploy that owns a key is authoritative: deploy.ALL_DEFAULTS wins.
-ROSTER_READ_SETTINGS = {
-    "ubuntu_release": "24.04",
-    "ros_distro": None,
-    "ros_variant": None,
-    "ros_variant_main": "desktop",
-    "ros_variant_robot": "ros-base",
-    "ros_domain_id": None,
-    "network_address": None,
-    "network_gateway": None,
-    "wifi_password_secret": None,
-}
-
 # Where pyinfra reaches a host; allowed at every level. Name -> expected type.
 CONNECTION_KEYS = {
     "ssh_user": str,
@@ -84,7 +70,7 @@ _TEAM_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_-]*$")
 
 def setting_defaults() -> dict:
     """Every roster-settable setting and its default."""
-    return {**ROSTER_READ_SETTINGS, **deploy.ALL_DEFAULTS}
+    return dict(deploy.ALL_DEFAULTS)
 
 
 def default_roster_path(base: Path | None = None) -> Path:

@@ -7,6 +7,7 @@ from ipaddress import IPv4Address, IPv4Interface
 import pytest
 from pyinfra.api import HiddenValue
 
+from deploy.network import DEFAULTS as NETWORK_DEFAULTS
 from roslab.netcheck import (
     NetworkSettingError,
     check_classroom_network,
@@ -14,21 +15,12 @@ from roslab.netcheck import (
     network_settings,
 )
 
+# The network deploy's own defaults, with a host's static address.
 BASE = {
-    "network_enabled": True,
-    "network_backend": "auto",
-    "network_interface": None,
-    "network_kind": "ethernet",
-    "network_method": "static",
+    **NETWORK_DEFAULTS,
     "network_address": "192.168.50.11/24",
-    "network_prefix": None,
     "network_gateway": "192.168.50.1",
     "network_nameservers": ["192.168.50.1", "9.9.9.9"],
-    "network_ipv6": "auto",
-    "wifi_ssid": None,
-    "wifi_password_secret": None,
-    "network_confirm_timeout": 60,
-    "network_disable_cloud_init": True,
 }
 
 

@@ -8,6 +8,7 @@ import pytest
 import yaml
 from pyinfra.api import HiddenValue
 
+from deploy.network import DEFAULTS as NETWORK_DEFAULTS
 from roslab.netcheck import network_settings
 from roslab.network_render import (
     CLOUD_INIT_DISABLE_FILE,
@@ -26,21 +27,12 @@ from roslab.network_render import (
 
 PASSWORD = 'se"cret: #1;x'
 
+# The network deploy's own defaults, with a host's static address.
 BASE = {
-    "network_enabled": True,
-    "network_backend": "auto",
-    "network_interface": None,
-    "network_kind": "ethernet",
-    "network_method": "static",
+    **NETWORK_DEFAULTS,
     "network_address": "192.168.50.11/24",
-    "network_prefix": None,
     "network_gateway": "192.168.50.1",
     "network_nameservers": ["192.168.50.1", "fd00::53"],
-    "network_ipv6": "auto",
-    "wifi_ssid": None,
-    "wifi_password_secret": None,
-    "network_confirm_timeout": 60,
-    "network_disable_cloud_init": True,
 }
 
 
