@@ -17,9 +17,8 @@
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from std_msgs.msg import String
-
 from roslab_demo.parameters import declare_parameters
+from std_msgs.msg import String
 
 
 class Listener(Node):

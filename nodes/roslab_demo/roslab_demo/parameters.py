@@ -15,7 +15,6 @@
 """Declare a node's ROS parameters from the table in roslab_demo.logic."""
 
 from rcl_interfaces.msg import ParameterDescriptor
-
 from roslab_demo.logic import PARAMETERS
 
 

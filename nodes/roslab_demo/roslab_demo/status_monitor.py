@@ -18,7 +18,6 @@ from diagnostic_msgs.msg import DiagnosticStatus
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-
 from roslab_demo.logic import level_code, log_at_level, SilenceWatch, status_line
 from roslab_demo.parameters import declare_parameters
 

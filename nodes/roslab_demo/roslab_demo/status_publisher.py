@@ -20,7 +20,6 @@ from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-
 from roslab_demo.logic import (
     require_positive, robot_name_or_host, robot_state_at, timer_period)
 from roslab_demo.parameters import declare_parameters

@@ -19,10 +19,9 @@ import socket
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from std_msgs.msg import String
-
 from roslab_demo.logic import chatter_text, robot_name_or_host, timer_period
 from roslab_demo.parameters import declare_parameters
+from std_msgs.msg import String
 
 
 class Talker(Node):

@@ -17,10 +17,9 @@
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from sensor_msgs.msg import Temperature
-
 from roslab_demo.logic import check_thresholds, log_at_level, temperature_level, temperature_line
 from roslab_demo.parameters import declare_parameters
+from sensor_msgs.msg import Temperature
 
 
 class TemperatureMonitor(Node):
