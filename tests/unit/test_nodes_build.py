@@ -1,10 +1,14 @@
 """Build nodes/ with the real colcon, where it is installed, and look where ROS tools look.
 
-Needs colcon with its ROS extension (Debian: colcon, python3-colcon-ros); it builds
-ament_python packages with setuptools alone, so no ROS installation is needed.
+Needs colcon with its ROS and bash extensions (Debian: colcon, python3-colcon-ros,
+python3-colcon-bash; scripts/install-host-tools installs them); it builds ament_python
+packages with setuptools alone, so no ROS installation is needed. Without them these
+tests skip on a developer's machine, and fail in CI (CI set), where a skip would hide
+that the build was never tested.
 """
 
 import os
+import shlex
 import shutil
 import subprocess
 from pathlib import Path
@@ -13,14 +17,55 @@ import pytest
 
 NODES_DIR = Path(__file__).resolve().parents[2] / "nodes"
 
-pytestmark = pytest.mark.skipif(
-    shutil.which("colcon") is None,
-    reason="colcon is not installed (Debian: colcon python3-colcon-ros)",
-)
+# The colcon extensions a build of nodes/ relies on: import name -> Debian package.
+COLCON_EXTENSIONS = {
+    "colcon_ros": "python3-colcon-ros",  # builds ament_python packages
+    "colcon_bash": "python3-colcon-bash",  # writes install/setup.bash
+    "colcon_output": "python3-colcon-output",  # prints "Summary: N packages finished"
+}
+
+
+def in_ci():
+    return os.environ.get("CI", "").strip().lower() not in ("", "0", "false", "no")
+
+
+def missing_colcon_parts():
+    """Return the Debian packages this machine lacks for a colcon build of nodes/."""
+    colcon = shutil.which("colcon")
+    if colcon is None:
+        return ["colcon", *COLCON_EXTENSIONS.values()]
+    # The extensions live with the interpreter colcon runs on (its shebang), which is
+    # not this test's: /usr/bin/colcon runs on the system python3.
+    with open(colcon, "rb") as script:
+        first_line = script.readline().decode(errors="replace")
+    if not first_line.startswith("#!"):
+        return []  # not a Python script: cannot look inside, let the build tell
+    interpreter = shlex.split(first_line[2:])
+    return [
+        package
+        for module, package in COLCON_EXTENSIONS.items()
+        if subprocess.run(
+            [*interpreter, "-c", f"import {module}"], capture_output=True, timeout=60
+        ).returncode
+    ]
+
+
+def require_colcon():
+    """Skip when colcon or an extension is missing; in CI (CI set), fail instead."""
+    missing = missing_colcon_parts()
+    if missing:
+        message = (
+            f"colcon cannot build nodes/ here: missing {' '.join(missing)}; "
+            "run scripts/install-host-tools (as root)"
+        )
+        if in_ci():
+            pytest.fail(f"{message}. In CI a build test must not skip.", pytrace=False)
+        pytest.skip(message)
 
 
 @pytest.fixture(scope="module")
 def install_dir(tmp_path_factory):
+    require_colcon()
     base = tmp_path_factory.mktemp("colcon")
     result = subprocess.run(
         [
@@ -66,6 +111,8 @@ def test_launch_files_and_parameters_are_installed(install_dir):
 
 
 def run_in_workspace(install_dir, command):
+    # Without it every command would fail on `source`, and look like a missing rclpy.
+    assert (install_dir / "setup.bash").is_file(), "no install/setup.bash: python3-colcon-bash?"
     return subprocess.run(
         ["bash", "-c", f'source "{install_dir}/setup.bash" && {command}'],
         capture_output=True,
