@@ -34,6 +34,42 @@ def test_chatter_text_names_the_robot_and_counts():
     assert logic.chatter_text("team1-robot", 3) == "Hello from team1-robot #3"
 
 
+@pytest.mark.parametrize(
+    "robot_name",
+    ["team1-robot", "r", "my robot", "rover #2", "Hello from x #1", "robôt-ü", "two\nlines"],
+)
+@pytest.mark.parametrize("count", [1, 7, 10**9])
+def test_robot_name_reads_back_from_every_greeting(robot_name, count):
+    text = logic.chatter_text(robot_name, count)
+    assert logic.robot_name_from_chatter(text) == robot_name
+
+
+def test_robot_name_from_the_greeting_documented_in_the_readme():
+    # nodes/README.md shows this message; `roslab verify` relies on reading it so.
+    assert logic.robot_name_from_chatter("Hello from team1-robot #7") == "team1-robot"
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "",
+        "hello world",
+        "Hello from team1-robot",  # no count
+        "Hello from  #7",  # no name
+        "Hello from team1-robot #",
+        "Hello from team1-robot #7a",
+        "Hello from team1-robot #-1",
+        "Hello from team1-robot #7 ",
+        " Hello from team1-robot #7",
+        "hello from team1-robot #7",
+        "Hello World: 7",  # the stock ROS 2 demo talker's message
+        'I heard: "Hello from team1-robot #7"',  # the listener's log line, not the message
+    ],
+)
+def test_robot_name_is_none_for_anything_but_a_greeting(text):
+    assert logic.robot_name_from_chatter(text) is None
+
+
 # --- robot status ----------------------------------------------------------------
 
 

@@ -21,6 +21,7 @@ the node modules only wire these functions to topics and timers.
 
 import math
 import random
+import re
 from typing import NamedTuple, Optional
 
 
@@ -90,9 +91,28 @@ def robot_name_or_host(configured, hostname):
 
 # --- talker / listener -------------------------------------------------------
 
+# The talker's message, in full: "Hello from team1-robot #7". `roslab verify` reads
+# the robot's name back out of it, so nodes/README.md documents this format: change
+# both together, and keep robot_name_from_chatter the inverse of chatter_text.
+CHATTER_FORMAT = 'Hello from {robot_name} #{count}'
+# Greedy: a name that itself holds ' #<digits>' still reads back whole.
+CHATTER_PATTERN = re.compile(r'Hello from (?P<robot_name>.+) #(?P<count>[0-9]+)', re.DOTALL)
+
+
 def chatter_text(robot_name, count):
     """Return the greeting number `count` of a robot."""
-    return f'Hello from {robot_name} #{count}'
+    return CHATTER_FORMAT.format(robot_name=robot_name, count=count)
+
+
+def robot_name_from_chatter(text) -> Optional[str]:
+    """
+    Return the robot name in a chatter message, or None if it is not a greeting.
+
+    `text` is the whole message (std_msgs/String data), as chatter_text made it:
+    a log line that quotes a greeting is not one.
+    """
+    match = CHATTER_PATTERN.fullmatch(text)
+    return match['robot_name'] if match else None
 
 
 # --- robot status --------------------------------------------------------------
