@@ -1,35 +1,21 @@
-"""What every host deploy shares: settings lookup, the login user, the host's distro,
-and stopping one host (not the whole run) when it cannot be provisioned.
+"""What every host deploy shares: the login user, the host's distro, running as the login
+user, and stopping one host (not the whole run) when it cannot be provisioned.
+
+Settings are plain `host.data`: the roster loader checked every value against
+`roslab.settings` and merged in every default before pyinfra connected.
 """
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 from pyinfra import host, logger, state
-from pyinfra.api import DeployError, deploy
+from pyinfra.api import deploy
 from pyinfra.context import ctx_host
 from pyinfra.facts.server import Home, LinuxDistribution, User
 
+from roslab import settings
 from roslab.distro import DistroError, UBUNTU_CODENAMES, check_distro, codename_for, default_distro
 
-DEFAULTS = {
-    # The user who owns the ROS environment (~/.bashrc, ~/ros2_ws, the rosdep cache);
-    # None: the SSH user.
-    "login_user": None,
-}
-
-
-def setting(key: str):
-    """A setting from host data, else its default from the deploy module that owns it.
-
-    A deploy's data_defaults only apply inside that deploy; this lets one deploy read
-    another's setting (shell_env reads ros_distro) and still get the documented default.
-    """
-    from deploy import ALL_DEFAULTS  # late: deploy/__init__ imports this module
-
-    return host.data.get(key, ALL_DEFAULTS[key])
+DEFAULTS = settings.defaults("common")
 
 
 def where() -> str:
@@ -50,34 +36,34 @@ def stop_host(message: str) -> None:
     state.fail_hosts({host})
 
 
-def controller_path(value: str) -> Path:
-    """A path on the machine running pyinfra; relative paths are relative to the roster."""
-    path = Path(os.path.expanduser(str(value)))
-    roster = host.data.get("roslab_roster_path")
-    if not path.is_absolute():
-        path = (Path(roster).parent if roster else Path.cwd()) / path
-    return path
-
-
 def host_is_active() -> bool:
     return host in state.active_hosts
 
 
 def should_run(enabled_key: str) -> bool:
     """True when the host is still active and the deploy's `<concern>_enabled` is on."""
-    return host_is_active() and bool(setting(enabled_key))
+    return host_is_active() and bool(host.data.get(enabled_key))
 
 
 def login_user() -> str:
-    return setting("login_user") or host.data.get("ssh_user") or host.get_fact(User)
+    return host.data.get("login_user") or host.data.get("ssh_user") or host.get_fact(User)
 
 
-def login_home() -> str:
-    """The login user's home directory as the host resolves it (not assumed /home/<user>)."""
+def as_login_user(user: str) -> dict:
+    """pyinfra arguments that run an operation as the login user (rosdep and colcon refuse root)."""
+    return {"_sudo": True, "_sudo_user": user}
+
+
+def login_home() -> str | None:
+    """The login user's home directory as the host resolves it (not assumed /home/<user>).
+
+    None, with this host stopped, when the user does not exist there.
+    """
     user = login_user()
     home = host.get_fact(Home, user=user)
     if not home or home.startswith("~"):
-        raise DeployError(f"{where()}: login_user {user!r} does not exist on the host")
+        stop_host(f"{where()}: login_user {user!r} does not exist on the host; nothing was changed by this step")
+        return None
     return home
 
 
@@ -96,7 +82,7 @@ def host_codename() -> str | None:
 def host_distro() -> str:
     """The ROS 2 distro for this host: `ros_distro` if set, else its Ubuntu release's default."""
     codename = host_codename()
-    return setting("ros_distro") or default_distro(codename)
+    return host.data.get("ros_distro") or default_distro(codename)
 
 
 def host_problem() -> str | None:
@@ -109,7 +95,7 @@ def host_problem() -> str | None:
         )
     if codename not in UBUNTU_CODENAMES.values():
         return f"Ubuntu {codename} is not supported (supported: {', '.join(sorted(UBUNTU_CODENAMES))})"
-    expected = setting("ubuntu_release")
+    expected = host.data.get("ubuntu_release")
     if expected:
         try:
             expected_codename = codename_for(expected)

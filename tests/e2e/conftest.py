@@ -28,8 +28,9 @@ from roslab.sandbox.instance import Instance, SandboxHost
 
 REPO = Path(__file__).resolve().parents[2]
 
-E2E_INSTANCE = "roslab-e2e"
-E2E_SUBNET = "10.213.200.0/24"
+# Overridable so that two checkouts (or two developers) can run the suite side by side.
+E2E_INSTANCE = os.environ.get("ROSLAB_E2E_INSTANCE", "roslab-e2e")
+E2E_SUBNET = os.environ.get("ROSLAB_E2E_SUBNET", "10.213.200.0/24")
 BIN = Path(sys.executable).parent
 
 

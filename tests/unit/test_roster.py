@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-import deploy
 from roslab import roster
-from roslab.roster import RosterError, inventory_groups, load_roster, setting_defaults
+from roslab import settings as schema
+from roslab.roster import RosterError, inventory_groups, load_roster
 
 REPO = Path(__file__).resolve().parents[2]
 FIXTURES = Path(__file__).parent / "rosters"
@@ -105,10 +105,13 @@ def test_groups_for_limit_main_robot_team_and_distro():
     }
 
 
-def test_host_data_holds_identity_connection_and_only_what_the_roster_set():
+def test_host_data_holds_identity_connection_and_every_setting_with_its_default():
     classroom = load_roster(FIXTURES / "two_teams.yaml")
     data = dict(inventory_groups(classroom)["team_2"])["team2-main"]
+    defaults = schema.defaults()
+    defaults["ros_apt_source_cache_dir"] = str(Path(defaults["ros_apt_source_cache_dir"]).expanduser())
     assert data == {
+        **defaults,
         "roslab_team": "team-2",
         "roslab_role": "main",
         "roslab_hostname": "team2-main",
@@ -152,18 +155,18 @@ def test_table_fields_resolve_distro_variant_and_domain_by_level(tmp_path):
     assert (main.address, main.distro, main.variant) == ("solo-main", "kilted", "desktop")
     assert (robot.distro, robot.variant) == ("jazzy", "ros-core")
     # One team alone may leave it to the deploy's default.
-    assert main.ros_domain_id == setting_defaults()["ros_domain_id"]
+    assert main.ros_domain_id == schema.SETTINGS["ros_domain_id"].default
 
 
 def test_every_deploy_setting_is_accepted_with_its_default(tmp_path):
-    settings = {key: value for key, value in setting_defaults().items()
+    settings = {key: value for key, value in schema.defaults().items()
                 if not key.endswith("_secret")}  # a secret reference needs a secrets file
-    assert {key for key in deploy.ALL_DEFAULTS if not key.endswith("_secret")} <= set(settings)
     path = write(tmp_path, yaml.safe_dump({
         "classroom": settings,
         "teams": {"t": {"hosts": {"t-main": {"role": "main"}}}},
     }))
     data = load_roster(path).hosts[0].data
+    settings["ros_apt_source_cache_dir"] = str(Path(settings["ros_apt_source_cache_dir"]).expanduser())
     assert {key: data[key] for key in settings} == settings
 
 
@@ -199,6 +202,8 @@ def test_host_overrides_team_overrides_classroom(tmp_path):
 
 
 def test_connection_paths_are_resolved_beside_the_roster(tmp_path):
+    (tmp_path / "keys").mkdir()
+    (tmp_path / "keys/id_ed25519").write_text("a private key\n")
     path = one_team(tmp_path, "ssh_key: keys/id_ed25519\nssh_port: 2222\n")
     data = load_roster(path).hosts[0].data
     assert data["ssh_key"] == str(tmp_path / "keys/id_ed25519")
@@ -206,8 +211,14 @@ def test_connection_paths_are_resolved_beside_the_roster(tmp_path):
 
 
 def test_root_user_is_not_given_sudo(tmp_path):
-    path = one_team(tmp_path, "ssh_user: root\n")
+    path = one_team(tmp_path, "ssh_user: root\nlogin_user: student\n")
     assert "_sudo" not in load_roster(path).hosts[0].data
+
+
+def test_root_as_the_login_user_is_refused(tmp_path):
+    assert one_error(one_team(tmp_path, "ssh_user: root\n")) == (
+        "lab.yaml:10: team 'team1', host 'team1-main', field 'ssh_user': the ROS environment "
+        "belongs to a student account, not root: set login_user")
 
 
 def test_errors_are_all_reported_together_one_per_line(tmp_path):
@@ -392,7 +403,7 @@ def test_unquoted_ubuntu_release_says_to_quote_it(tmp_path):
 
 
 def test_unknown_variant(tmp_path):
-    assert "'ros-desktop' is not a ROS 2 install variant" in one_error(
+    assert "'ros-desktop' is not one of: desktop, ros-base, ros-core, desktop-full" in one_error(
         one_team(tmp_path, "ros_variant: ros-desktop\n"))
 
 
@@ -402,7 +413,7 @@ def test_ros_domain_id_outside_0_to_101(tmp_path, domain_id):
                                                              f"ros_domain_id: {domain_id}"))
     assert one_error(path) == (
         f"lab.yaml:5: team 'team1', field 'ros_domain_id': ROS_DOMAIN_ID {domain_id} "
-        "is outside 0 to 101")
+        "is outside 0 to 101 and 215 to 232")
 
 
 def test_two_teams_on_one_domain_id(tmp_path):
@@ -445,7 +456,7 @@ def test_several_teams_each_need_a_domain_id(tmp_path):
 
 
 def test_domain_id_on_a_single_host_is_refused(tmp_path):
-    assert "ros_domain_id is a team setting" in one_error(
+    assert "'ros_domain_id' can only be set on a classroom or a team, not on a host" in one_error(
         one_team(tmp_path, "ros_domain_id: 12\n"))
 
 
@@ -453,7 +464,7 @@ def test_role_must_be_main_or_robot(tmp_path):
     path = write(tmp_path, ONE_TEAM.format(extra="").replace("role: main", "role: pilot"))
     assert one_error(path) == (
         "lab.yaml:8: team 'team1', host 'team1-main', field 'role': "
-        "'pilot' is not a role (one of: main, robot)")
+        "'pilot' is not one of: main, robot")
 
 
 def test_host_without_role(tmp_path):
@@ -499,7 +510,7 @@ def test_teams_whose_groups_collide(tmp_path):
 
 def test_host_name_that_cannot_be_a_hostname(tmp_path):
     path = write(tmp_path, "teams:\n  t:\n    hosts:\n      t_main: {role: main}\n")
-    assert one_error(path).startswith("lab.yaml:4: team 't', host 't_main': a host name is a valid")
+    assert one_error(path).startswith("lab.yaml:4: team 't', host 't_main': 't_main' is not a valid hostname")
 
 
 def test_yaml_syntax_error_names_the_line(tmp_path):

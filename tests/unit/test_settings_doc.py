@@ -1,22 +1,31 @@
-"""Every setting is documented once, in its deploy's DEFAULTS, and the README repeats it."""
+"""Every setting is documented once, in the schema, and the README repeats it."""
 
-import deploy
-from roslab import settings_doc
-
-
-def test_every_setting_has_a_comment():
-    undocumented = [s.key for s in settings_doc.all_settings() if not s.doc]
-    assert undocumented == [], f"settings without a comment above them in DEFAULTS: {undocumented}"
+from roslab import settings, settings_doc
 
 
-def test_table_covers_every_setting_a_roster_may_use():
-    documented = {s.key for s in settings_doc.all_settings()}
-    assert documented == set(deploy.ALL_DEFAULTS)
+def test_every_setting_has_a_doc_line_and_its_allowed_values():
+    undocumented = [s.key for s in settings.SCHEMA if not s.doc]
+    assert undocumented == [], f"settings without a doc line: {undocumented}"
+    unchecked = [s.key for s in settings.SCHEMA if s.kind is not bool and not s.allowed_text()]
+    assert unchecked == [], f"settings without a format check or allowed values: {unchecked}"
+
+
+def test_every_default_passes_its_own_check():
+    bad = {s.key: settings.check_value(s, s.default) for s in settings.SCHEMA
+           if not s.required and s.key not in ("ssh_key", "ros_apt_mirror_key_file")}
+    assert {key: problem for key, problem in bad.items() if problem} == {}
 
 
 def test_readme_table_is_up_to_date():
-    expected = settings_doc.markdown_table(settings_doc.all_settings())
+    expected = settings_doc.markdown_table()
     readme = settings_doc.README.read_text()
     assert settings_doc.readme_with_table(readme, expected) == readme, (
         "README's settings table is stale: run `python -m roslab.settings_doc --write`"
     )
+
+
+def test_readme_table_lists_every_setting_with_type_and_allowed_values():
+    table = settings_doc.markdown_table()
+    for s in settings.SCHEMA:
+        row = next(line for line in table.splitlines() if line.startswith(f"| `{s.key}` |"))
+        assert s.type_text() in row

@@ -1,0 +1,46 @@
+"""The classroom roster: loaded, checked in full before any host is touched, turned into an inventory.
+
+    problems.py   Problem, Report, RosterError: every problem names file:line, team, host, field
+    loading.py    strict, bounded YAML reading (duplicate keys, lines, alias bombs, encodings)
+    reader.py     the roster's structure: levels, teams, hosts; values checked where they are set
+    checks.py     value checks from roslab.settings, and checks across hosts and settings
+    model.py      Classroom, Team, Host
+    inventory.py  pyinfra groups and host data; which roster file to use
+
+`load_roster(path)` collects every problem and raises one RosterError listing them all.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from roslab.network.settings import validate_roster as _validate_network
+from roslab.roster.checks import Validator, check_classroom
+from roslab.roster.inventory import add_host_lists, default_roster_path, inventory_groups
+from roslab.roster.model import ROLES, Classroom, Host, Team
+from roslab.roster.problems import Problem, Report, RosterError, display_path
+from roslab.roster.reader import RosterReader
+
+# Checks across the classroom that live with their concern, each `(classroom, report)`.
+VALIDATORS: list[Validator] = [_validate_network]
+
+
+def load_roster(path: Path | str, validators: list[Validator] | None = None) -> Classroom:
+    """Load and check a roster; raise RosterError listing every problem."""
+    reader = RosterReader(Path(path))
+    classroom = reader.read()
+    if classroom is not None:
+        check_classroom(classroom, reader.report)
+        add_host_lists(classroom)
+        for validator in VALIDATORS if validators is None else validators:
+            validator(classroom, reader.report)
+    if reader.report.errors:
+        raise RosterError(reader.report.errors)
+    classroom.warnings = reader.report.warnings
+    return classroom
+
+
+__all__ = [
+    "ROLES", "Classroom", "Host", "Problem", "Report", "RosterError", "Team", "Validator",
+    "default_roster_path", "display_path", "inventory_groups", "load_roster",
+]

@@ -1,0 +1,172 @@
+"""Checks of a roster: each value against its setting's schema, then the classroom as a whole.
+
+Value checks run where a key is set (classroom, team or host) and come from
+`roslab.settings`; the classroom checks below need several hosts or several settings
+at once (duplicate addresses, one domain per team, a distro with packages for the
+release, mirror mode's URL and key). Every check reports through `report.error` and
+never raises: one bad value must not hide the others, nor stop the whole classroom.
+"""
+
+from __future__ import annotations
+
+import difflib
+import ipaddress
+from collections.abc import Callable
+
+from roslab import distro as distros
+from roslab import formats, settings
+from roslab.roster.loading import line_of
+from roslab.roster.model import ROLES, Classroom, Host
+from roslab.roster.problems import Report
+
+# Group names pyinfra or roslab already use; a team may not take them.
+RESERVED_GROUPS = {"all", *ROLES, *distros.DISTRO_RELEASES}
+
+# Checks that run on a loaded classroom, each `(classroom, report)`.
+Validator = Callable[[Classroom, Report], None]
+
+
+def unknown_key_message(key: str, level: str) -> str:
+    known = settings.SETTINGS.get(key)
+    if known is not None:
+        where = " or ".join(f"a {other}" for other in known.levels)
+        return f"{key!r} can only be set on {where}, not on a {level}"
+    message = f"unknown key {key!r}"
+    close = difflib.get_close_matches(key, list(settings.keys_at(level)), n=1)
+    if close:
+        message += f" (did you mean {close[0]!r}?)"
+    return message
+
+
+def value_problem(setting: settings.Setting, value, context: formats.Context) -> str | None:
+    if setting.key == "ssh_strict_host_key_checking" and isinstance(value, bool):
+        value = "yes" if value else "no"  # YAML 1.1 reads yes/no/off as booleans
+    return settings.check_value(setting, value, context)
+
+
+# --- the classroom as a whole ---------------------------------------------------------
+
+
+def check_classroom(classroom: Classroom, report: Report) -> None:
+    check_groups(classroom, report)
+    check_domain_ids(classroom, report)
+    check_unique(classroom, report, None, lambda host: host.name.lower())
+    check_unique(classroom, report, "address", _address_key)
+    check_unique(classroom, report, "network_address", _network_ip_key)
+    for host in classroom.hosts:
+        check_host(host, report)
+
+
+def check_host(host: Host, report: Report) -> None:
+    """Settings of one host that only make sense together."""
+    where = {"team": host.team, "host": host.name}
+    data = host.data
+    codename = distros.UBUNTU_CODENAMES.get(str(host.ubuntu_release))
+    override = data.get("ros_distro")
+    if codename and override in distros.DISTRO_RELEASES:
+        try:
+            distros.check_distro(override, codename)
+        except distros.DistroError as exc:
+            report.error(str(exc), field="ros_distro", line=host.lines.get("ros_distro"), **where)
+    if data.get("ros_apt_source_enabled") and data.get("ros_apt_source_mode") == "mirror":
+        for key in ("ros_apt_mirror_url", "ros_apt_mirror_key_file"):
+            if not data.get(key):
+                report.error(f"ros_apt_source_mode is 'mirror', so {key} must be set",
+                             field=key, line=host.lines.get("ros_apt_source_mode"), **where)
+    elif data.get("ros_apt_source_enabled") and codename:
+        if codename not in (data.get("ros_apt_source_sha256") or {}):
+            report.error(f"has no sha256 for Ubuntu {codename}, which this host runs",
+                         field="ros_apt_source_sha256", line=host.lines.get("ros_apt_source_sha256"),
+                         **where)
+    if data.get("login_user") == "root" or (not data.get("login_user") and data.get("ssh_user") == "root"):
+        field = "login_user" if data.get("login_user") else "ssh_user"
+        report.error("the ROS environment belongs to a student account, not root: set login_user",
+                     field=field, line=host.lines.get(field), **where)
+
+
+def check_groups(classroom: Classroom, report: Report) -> None:
+    groups: dict[str, str] = {}
+    for team in classroom.teams:
+        if team.group in RESERVED_GROUPS:
+            report.error(
+                f"the team's group {team.group!r} is already a pyinfra group "
+                f"(reserved: {', '.join(sorted(RESERVED_GROUPS))}); rename the team",
+                team=team.name, line=team.line)
+        elif team.group in groups:
+            report.error(
+                f"the team's group {team.group!r} is also team {groups[team.group]!r}'s "
+                "('-' becomes '_'); rename one of them", team=team.name, line=team.line)
+        groups[team.group] = team.name
+    group_names = set(groups) | RESERVED_GROUPS
+    for host in classroom.hosts:
+        if host.name in group_names:
+            report.error(
+                f"{host.name!r} is also a group name, so --limit {host.name} would be "
+                "ambiguous; rename the host", team=host.team, host=host.name, line=host.line)
+
+
+def check_domain_ids(classroom: Classroom, report: Report) -> None:
+    owners: dict[int, str] = {}
+    for team in classroom.teams:
+        line = team.domain_line or team.line
+        if not team.domain_set and len(classroom.teams) > 1:
+            report.error(
+                "set a ros_domain_id (0 to 101) for each team: teams on one "
+                "domain see and disturb each other's topics",
+                team=team.name, field="ros_domain_id", line=line)
+            continue
+        if team.ros_domain_id is None:
+            continue
+        if team.ros_domain_id in owners:
+            report.error(
+                f"ROS_DOMAIN_ID {team.ros_domain_id} is already team "
+                f"{owners[team.ros_domain_id]!r}'s; teams on one domain see and disturb "
+                "each other's topics", team=team.name, field="ros_domain_id", line=line)
+        else:
+            owners[team.ros_domain_id] = team.name
+
+
+def check_unique(classroom: Classroom, report: Report, field_name: str | None, key_of) -> None:
+    """Report hosts sharing a name (field_name None) or a field's value: one pass, a dict."""
+    seen: dict = {}
+    for host in classroom.hosts:
+        key = key_of(host)
+        if key is None:
+            continue
+        other = seen.setdefault(key, host)
+        if other is host:
+            continue
+        what = "the host name" if field_name is None else str(key)
+        report.error(
+            f"{what} is already used by host {other.name!r} of team {other.team!r}",
+            team=host.team, host=host.name, field=field_name,
+            line=host.lines.get(field_name) if field_name else host.line)
+
+
+def _address_key(host: Host):
+    try:
+        return ipaddress.ip_address(host.address)
+    except ValueError:
+        return host.address.lower().rstrip(".")
+
+
+def _network_ip_key(host: Host):
+    value = host.data.get("network_address")
+    try:
+        return ipaddress.ip_interface(value).ip if value else None
+    except ValueError:
+        return None
+
+
+def host_ip(host: Host) -> str | None:
+    """The address other hosts reach this host at, for /etc/hosts: an IP or None."""
+    ip = _network_ip_key(host)
+    if ip is not None:
+        return str(ip)
+    try:
+        return str(ipaddress.ip_address(host.address))
+    except ValueError:
+        return None
+
+
+__all__ = ["Validator", "check_classroom", "host_ip", "line_of", "unknown_key_message", "value_problem"]

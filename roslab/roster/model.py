@@ -1,0 +1,53 @@
+"""The classroom a valid roster describes: teams, their hosts, and each host's data."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from roslab.roster.problems import Problem
+
+ROLES = ("main", "robot")
+
+
+@dataclass
+class Host:
+    name: str
+    team: str
+    role: str
+    address: str
+    ubuntu_release: str | None
+    distro: str | None
+    variant: str | None
+    ros_domain_id: int | None
+    # What pyinfra gets as host data: every deploy setting (defaults merged), the
+    # connection keys the roster set, and the roslab_* identity keys.
+    data: dict = field(repr=False)
+    # Roster line of the host's entry.
+    line: int | None = None
+    # Roster line where each resolved field was set, for checks' messages.
+    lines: dict = field(default_factory=dict, repr=False)
+
+
+@dataclass
+class Team:
+    name: str
+    group: str
+    ros_domain_id: int | None
+    hosts: list[Host]
+    # Whether the roster chose the domain (team or classroom), not the default.
+    domain_set: bool = True
+    line: int | None = None
+    domain_line: int | None = None
+
+
+@dataclass
+class Classroom:
+    name: str | None
+    path: Path
+    teams: list[Team]
+    warnings: list[Problem] = field(default_factory=list)
+
+    @property
+    def hosts(self) -> list[Host]:
+        return [host for team in self.teams for host in team.hosts]

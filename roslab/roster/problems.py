@@ -1,0 +1,76 @@
+"""Problems found in a roster, each located by file:line, team, host and field."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+
+def display_path(path: Path | str) -> str:
+    """A path as the user would type it: relative to the working directory if inside it."""
+    path = Path(path)
+    try:
+        return str(path.resolve().relative_to(Path.cwd().resolve()))
+    except (ValueError, OSError):
+        return str(path)
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One error or warning, located as precisely as the roster allows."""
+
+    path: str
+    message: str
+    line: int | None = None
+    team: str | None = None
+    host: str | None = None
+    field: str | None = None
+
+    def __str__(self) -> str:
+        where = f"{self.path}:{self.line}" if self.line else self.path
+        context = []
+        if self.team is not None:
+            context.append(f"team {self.team!r}")
+        if self.host is not None:
+            context.append(f"host {self.host!r}")
+        if self.field is not None:
+            context.append(f"field {self.field!r}")
+        if not context:
+            return f"{where}: {self.message}"
+        return f"{where}: {', '.join(context)}: {self.message}"
+
+
+class RosterError(Exception):
+    """A roster that must not be deployed; `problems` lists every error found."""
+
+    def __init__(self, problems: list[Problem]):
+        self.problems = problems
+        super().__init__("\n".join(str(problem) for problem in problems))
+
+
+class Report:
+    """Collects problems so that a roster's errors are all reported together, once each."""
+
+    def __init__(self, path: Path | str):
+        self.path = display_path(path)
+        self.errors: list[Problem] = []
+        self.warnings: list[Problem] = []
+        self._seen: set[Problem] = set()  # a set: a 5,000-host roster stays linear
+
+    def _add(self, problems: list[Problem], message: str, where: dict) -> None:
+        problem = Problem(self.path, message, **where)
+        if problem not in self._seen:
+            self._seen.add(problem)
+            problems.append(problem)
+
+    def error(self, message: str, **where) -> None:
+        self._add(self.errors, message, where)
+
+    def warning(self, message: str, **where) -> None:
+        self._add(self.warnings, message, where)
+
+    def extend(self, other: "Report") -> None:
+        for problem in other.errors:
+            if problem not in self._seen:
+                self._seen.add(problem)
+                self.errors.append(problem)

@@ -1,0 +1,310 @@
+"""Walk a loaded roster into a Classroom, checking every key and value where it is set.
+
+A roster: `classroom:` settings, then `teams:`, each with settings and `hosts:`
+(see docs/architecture.md, "Roster format"). A setting may be set at the levels its
+schema entry allows, later wins: classroom < team < host. Each host's data gets every
+deploy setting's default merged in once, here; controller-side paths become absolute
+and teacher key files are read, so no deploy needs the roster's location for them.
+"""
+
+from __future__ import annotations
+
+import difflib
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from roslab import distro as distros
+from roslab import formats, secrets, settings
+from roslab.roster.checks import unknown_key_message, value_problem
+from roslab.roster.loading import Mapping, line_of, load_yaml, nested_mappings, without
+from roslab.roster.model import Classroom, Host, Team
+from roslab.roster.problems import Report, display_path
+
+TOP_LEVEL_KEYS = ("classroom", "teams")
+DEFAULT_SECRETS_FILE = "secrets.yaml"
+_TEAM_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,62}")
+# Connection keys pyinfra reads from host data under the same name.
+CONNECTION_KEYS = tuple(s.key for s in settings.SCHEMA if s.concern == "connection")
+
+
+@dataclass
+class Value:
+    value: object
+    line: int | None
+
+
+def _is_controller_path(setting: settings.Setting) -> bool:
+    return getattr(setting.check, "controller_path", False)
+
+
+class RosterReader:
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        self.report = Report(path)
+        self.context = formats.Context(self.path.parent)
+        self.defaults = settings.defaults()
+        self.secrets_file: Path | None = None
+        self.secrets_line: int | None = None
+        self._secrets: dict | None = None
+        self._secrets_read = False
+
+    # --- one level ---
+
+    def read_level(self, mapping, level: str, team=None, host=None) -> dict[str, Value]:
+        """Check one level's keys and values; return the valid ones."""
+        where = {"team": team, "host": host}
+        self.report_duplicates(mapping, **where)
+        allowed = settings.keys_at(level)
+        valid = {}
+        for key, value in mapping.items():
+            line = line_of(mapping, key)
+            if not isinstance(key, str):
+                self.report.error(f"key {key!r} is not a name", line=line, **where)
+                continue
+            if key == "hosts" and level == "team":
+                continue
+            setting = allowed.get(key)
+            if setting is None:
+                self.report.error(unknown_key_message(key, level), line=line, field=key, **where)
+                continue
+            if key == "ssh_strict_host_key_checking" and isinstance(value, bool):
+                value = "yes" if value else "no"  # YAML 1.1 reads yes/no/off as booleans
+            problem = value_problem(setting, value, self.context)
+            if problem is None and secrets.is_secret_reference(key) and value is not None:
+                problem = self.secret_problem(value)
+            if problem:
+                self.report.error(problem, line=line, field=key, **where)
+                continue
+            valid[key] = Value(value, line)
+        return valid
+
+    def report_duplicates(self, mapping, **where) -> None:
+        """Report keys a level's mapping, or a mapping inside one of its values, repeats."""
+        for key, line, first in getattr(mapping, "duplicates", []):
+            self.report.error(
+                f"set twice (also at line {first}); YAML would silently keep the last",
+                line=line, field=str(key), **where)
+        for key, value in mapping.items():
+            if key == "hosts":
+                continue
+            for nested in nested_mappings(value):
+                for _, line, first in nested.duplicates:
+                    self.report.error(
+                        f"a key inside it is set twice (lines {first} and {line}); "
+                        "YAML would silently keep the last", line=line, field=str(key), **where)
+
+    # --- secrets ---
+
+    def secret_problem(self, name: str) -> str | None:
+        """Why the secret `name` cannot be resolved, or None. Never shows a value."""
+        if not self._secrets_read:
+            self._secrets = self.read_secrets()
+            self._secrets_read = True
+        if self._secrets is None:
+            return (f"names secret {name!r}, but the secrets file "
+                    f"{display_path(self.secrets_file)} is missing or unusable")
+        if name not in self._secrets:
+            return f"names secret {name!r}, which {display_path(self.secrets_file)} does not define"
+        return None
+
+    def read_secrets(self) -> dict | None:
+        """The secrets file's entries, or None (with the reasons reported)."""
+        path = self.secrets_file
+        shown = display_path(path)
+        where = {"field": "secrets_file", "line": self.secrets_line}
+        if not path.is_file():
+            example = display_path(
+                path.with_name(Path(DEFAULT_SECRETS_FILE).stem + secrets.EXAMPLE_SUFFIX))
+            self.report.error(f"secrets file {shown} does not exist (copy {example}, "
+                              "fill it in, and chmod 600 it)", **where)
+            return None
+        problem = secrets.permission_problem(path, shown)
+        if problem and secrets.is_example(path):
+            self.report.warning(f"{problem} (allowed for an example holding placeholders)", **where)
+        elif problem:
+            self.report.error(problem, **where)
+            return None
+        # The secrets file's own problems name that file and the entry, never a value.
+        own = Report(path)
+        content = load_yaml(path, own, secret=True)
+        if not isinstance(content, dict):
+            if not own.errors:
+                own.error("must be a mapping of secret name -> value")
+            content = {}
+        for key, line, first in getattr(content, "duplicates", []):
+            own.error(f"secret {key!r} is defined twice (also at line {first})", line=line)
+        for key, value in content.items():
+            if not isinstance(key, str) or formats.secret_name(key):
+                own.error("a secret's name must be letters, digits, _ . -", line=line_of(content, key))
+            elif not isinstance(value, str):
+                own.error(f"secret {key!r}: the value must be a string (quote it)",
+                          line=line_of(content, key))
+            elif formats.single_line(value):
+                own.error(f"secret {key!r}: the value must be one line of text", line=line_of(content, key))
+        self.report.extend(own)
+        return None if own.errors else dict(content)
+
+    # --- the whole roster ---
+
+    def read(self) -> Classroom | None:
+        roster = load_yaml(self.path, self.report)
+        if roster is None:
+            if not self.report.errors:
+                self.report.error("the roster is empty")
+            return None
+        if not isinstance(roster, dict):
+            self.report.error("a roster is a mapping with 'classroom' and 'teams'")
+            return None
+        for key, line, first in getattr(roster, "duplicates", []):
+            self.report.error(f"{key!r} appears twice (also at line {first})", line=line)
+        for key in roster:
+            if key not in TOP_LEVEL_KEYS:
+                close = difflib.get_close_matches(str(key), TOP_LEVEL_KEYS, n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                self.report.error(f"unknown top-level key {key!r}{hint}",
+                                  line=line_of(roster, key), field=str(key))
+
+        classroom_map = roster.get("classroom") or Mapping()
+        if not isinstance(classroom_map, dict):
+            self.report.error("'classroom' must be a mapping of settings",
+                              line=line_of(roster, "classroom"), field="classroom")
+            classroom_map = Mapping()
+        secrets_name = classroom_map.get("secrets_file", DEFAULT_SECRETS_FILE)
+        if not isinstance(secrets_name, str) or formats.single_line(secrets_name):
+            secrets_name = DEFAULT_SECRETS_FILE  # read_level reports it
+        self.secrets_file = self.context.controller_path(secrets_name)
+        self.secrets_line = getattr(classroom_map, "key_lines", {}).get("secrets_file")
+        classroom = self.read_level(classroom_map, "classroom")
+
+        teams_map = roster.get("teams")
+        if not isinstance(teams_map, dict) or not teams_map:
+            self.report.error("'teams' must be a mapping of team name -> team",
+                              line=line_of(roster, "teams"), field="teams")
+            teams_map = {}
+        for key, line, first in getattr(teams_map, "duplicates", []):
+            self.report.error(f"the team appears twice (also at line {first}); "
+                              "YAML would silently keep the last", line=line, team=str(key))
+
+        teams = [self.read_team(str(name), team_map, classroom, line_of(teams_map, name))
+                 for name, team_map in teams_map.items()]
+        name = classroom.get("name")
+        return Classroom(name.value if name else None, self.path, [t for t in teams if t])
+
+    def read_team(self, name: str, team_map, classroom: dict, line) -> Team | None:
+        if not _TEAM_NAME.fullmatch(name):
+            self.report.error(
+                "a team name starts with a letter and holds only letters, digits, '_' and '-', "
+                "at most 63 characters (it becomes a pyinfra group)", team=name, line=line)
+            return None
+        if not isinstance(team_map, dict):
+            self.report.error("a team must be a mapping with 'hosts'", team=name, line=line)
+            return None
+        hosts_map = team_map.get("hosts")
+        for key, dup_line, first in getattr(hosts_map, "duplicates", []):
+            self.report.error(f"host {key!r} appears twice in this team (also at line {first})",
+                              team=name, host=str(key), line=dup_line)
+        team_settings = self.read_level(without(team_map, "hosts"), "team", team=name)
+        if not isinstance(hosts_map, dict) or not hosts_map:
+            self.report.error("a team needs at least one host under 'hosts'", team=name,
+                              field="hosts", line=getattr(team_map, "key_lines", {}).get("hosts", line))
+            hosts_map = {}
+
+        domain = team_settings.get("ros_domain_id") or classroom.get("ros_domain_id")
+        team = Team(name, name.replace("-", "_"),
+                    domain.value if domain else self.defaults["ros_domain_id"], [],
+                    domain_set=domain is not None, line=line,
+                    domain_line=domain.line if domain else None)
+        mains = []
+        for host_name, host_map in hosts_map.items():
+            host = self.read_host(host_name, host_map, team, [classroom, team_settings],
+                                  line_of(hosts_map, host_name))
+            if host is None:
+                continue
+            if host.role == "main":
+                mains.append(host.name)
+                if len(mains) > 1:
+                    self.report.error(
+                        f"a team has at most one main host, and {mains[0]!r} already is",
+                        team=name, host=host.name, field="role", line=host.lines.get("role"))
+            team.hosts.append(host)
+        return team
+
+    def read_host(self, name, host_map, team: Team, outer: list[dict], line) -> Host | None:
+        where = {"team": team.name, "host": str(name)}
+        problem = formats.host_label(name)
+        if problem:
+            self.report.error(problem, line=line, **where)
+            return None
+        if host_map is None:
+            host_map = Mapping()
+        if not isinstance(host_map, dict):
+            self.report.error("a host must be a mapping with at least 'role'", line=line, **where)
+            return None
+        own = self.read_level(host_map, "host", **where)
+        if "role" not in own:
+            if "role" not in host_map:
+                self.report.error("every host needs a role (main or robot)", field="role",
+                                  line=line_of(host_map) or line, **where)
+            return None
+
+        resolved: dict[str, Value] = {}
+        for level in (*outer, own):
+            resolved.update(level)
+        role = own["role"].value
+        address = own["address"].value if own.get("address") and own["address"].value else name
+
+        data = dict(self.defaults)
+        for key, item in resolved.items():
+            if key in ("name", "secrets_file", "role", "address"):
+                continue
+            setting = settings.SETTINGS[key]
+            value = item.value
+            if isinstance(value, str) and _is_controller_path(setting):
+                value = str(self.context.controller_path(value))
+            if key == "ssh_strict_host_key_checking" and isinstance(value, bool):
+                value = "yes" if value else "no"
+            if value is None and key in CONNECTION_KEYS:
+                continue  # pyinfra's own default
+            data[key] = value
+            if secrets.is_secret_reference(key) and value in (self._secrets or {}):
+                data[secrets.resolved_key(key)] = secrets.wrap(key, self._secrets[value])
+        data["teacher_ssh_keys"] = self.teacher_keys(data["teacher_ssh_keys"])
+        if data["ros_apt_source_cache_dir"]:
+            data["ros_apt_source_cache_dir"] = os.path.expanduser(data["ros_apt_source_cache_dir"])
+
+        release = data["ubuntu_release"]
+        codename = distros.UBUNTU_CODENAMES.get(str(release))
+        expected = (data["ros_distro"] or distros.DEFAULT_DISTRO.get(codename)) if codename else None
+        variant = data["ros_variant"] or data[f"ros_variant_{role}"]
+        data.update({
+            "roslab_team": team.name,
+            "roslab_role": role,
+            "roslab_hostname": name,
+            "roslab_ubuntu_release": release,
+            "roslab_expected_distro": expected,
+            "roslab_roster_path": str(self.path.resolve()),
+            "ros_domain_id": team.ros_domain_id,
+            "ssh_hostname": address,
+        })
+        if data.get("ssh_user") not in (None, "root"):
+            data["_sudo"] = True  # a Pi's default user provisions through sudo
+        lines = {key: item.line for key, item in resolved.items()}
+        return Host(name, team.name, role, address, release, expected, variant,
+                    team.ros_domain_id, data, line, lines)
+
+    def teacher_keys(self, entries: list[str]) -> list[str]:
+        """Key lines of `teacher_ssh_keys`: lines as they are, .pub files read (checked already)."""
+        keys: list[str] = []
+        for entry in entries:
+            entry = entry.strip()
+            if formats.PUBLIC_KEY.fullmatch(entry):
+                keys.append(entry)
+                continue
+            try:
+                text = self.context.controller_path(entry).read_text(encoding="utf-8")
+            except (OSError, UnicodeDecodeError):
+                continue  # reported by the value check
+            keys.extend(formats.public_key_lines(text) or [])
+        return keys

@@ -1,0 +1,349 @@
+"""The settings schema: every roster setting declared once, grouped by concern.
+
+Each `Setting` has its default, its type (with the element type of a list), the
+format check its value must pass, and the doc line the README's table shows. The
+roster loader checks every value set at every level against it before any host is
+touched, and merges the defaults into each host's data once; a deploy reads plain
+`host.data` and its `data_defaults` are `defaults(concern)`.
+
+    python -m roslab.settings_doc --write   # regenerate the README's table from here
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from roslab import formats as f
+
+# Where a key may be set: everywhere, or only at one level.
+ANY = ("classroom", "team", "host")
+
+
+@dataclass(frozen=True)
+class Setting:
+    key: str
+    default: Any
+    kind: type  # str, int, bool, list, dict
+    doc: str
+    concern: str  # the deploy (or "roster"/"connection") it belongs to
+    check: f.Check | None = None  # format of the value (of each element, for a list)
+    item: type | None = None  # element type of a list
+    nullable: bool = False  # None is a legal value (the default says what None means)
+    levels: tuple[str, ...] = ANY
+    required: bool = False
+    allowed: str = ""  # the allowed values in words, for the README
+
+    def allowed_text(self) -> str:
+        if self.allowed:
+            return self.allowed
+        if self.kind is bool:
+            return "true, false"
+        choices = getattr(self.check, "choices", None)
+        if choices:
+            return ", ".join(str(choice) for choice in choices)
+        described = getattr(self.check, "allowed", None)
+        if described:
+            return described
+        doc = (self.check.__doc__ or "").strip().splitlines() if self.check else []
+        return doc[0] if doc else ""
+
+    def type_text(self) -> str:
+        name = {str: "string", int: "integer", bool: "boolean", list: "list", dict: "mapping"}[self.kind]
+        if self.item is not None:
+            name += f" of {({str: 'strings', int: 'integers'})[self.item]}"
+        return name + (" or null" if self.nullable else "")
+
+
+def _s(key, default, kind, doc, check=None, **more) -> Setting:
+    return Setting(key, default, kind, doc, more.pop("concern"), check, **more)
+
+
+def _concern(name: str, *settings: tuple) -> list[Setting]:
+    return [_s(*spec[:5], concern=name, **(spec[5] if len(spec) > 5 else {})) for spec in settings]
+
+
+def _enabled(concern: str, doc: str) -> tuple:
+    return (f"{concern}_enabled", True, bool, doc)
+
+
+SECONDS_PER_DAY = 24 * 3600
+SCHEMA: list[Setting] = [
+    # --- the roster's own keys (identity and connection) ---
+    *_concern(
+        "roster",
+        ("name", None, str, "The classroom's name (shown by roslab check).", f.single_line,
+         {"nullable": True, "levels": ("classroom",)}),
+        ("secrets_file", "secrets.yaml", str,
+         "Where secrets are read from, relative to the roster (mode 0600, never committed).",
+         f.controller_path(), {"levels": ("classroom",)}),
+        ("role", None, str, "main (runs the desktop variant and the main launch) or robot.",
+         f.choice("main", "robot"), {"levels": ("host",), "required": True}),
+        ("address", None, str, "Where SSH reaches the host now (IP or DNS name); default: the host name.",
+         f.address, {"levels": ("host",), "nullable": True}),
+    ),
+    *_concern(
+        "connection",
+        ("ssh_user", "ubuntu", str, "SSH login user, also the user who gets the ROS environment.",
+         f.linux_user),
+        ("ssh_port", 22, int, "SSH port.", f.int_range(1, 65535)),
+        ("ssh_key", None, str, "Private key file on this machine (relative to the roster).",
+         f.controller_path("file"), {"nullable": True}),
+        ("ssh_known_hosts_file", None, str, "known_hosts file pyinfra checks host keys against.",
+         f.controller_path(), {"nullable": True}),
+        ("ssh_strict_host_key_checking", None, str, "pyinfra's host key policy.",
+         f.choice("yes", "no", "off", "ask", "accept-new"), {"nullable": True}),
+        ("sudo_password_secret", None, str, "Name of a secret holding the sudo password.",
+         f.secret_name, {"nullable": True}),
+    ),
+    # --- deploy settings ---
+    *_concern(
+        "common",
+        ("login_user", None, str,
+         "The user who owns the ROS environment (~/.bashrc, ~/ros2_ws, the rosdep cache); "
+         "None: the SSH user.", f.linux_user, {"nullable": True}),
+    ),
+    *_concern(
+        "apt_ready",
+        _enabled("apt_ready", "Prepare apt: wait for the dpkg lock, enable universe and the "
+                              "extra suites, refresh the lists."),
+        ("apt_lock_timeout", 600, int,
+         "Seconds to wait for the dpkg lock (first-boot unattended-upgrades holds it for minutes).",
+         f.int_range(0, SECONDS_PER_DAY, " s")),
+        ("apt_enable_universe", True, bool, "Enable the universe component (ROS 2 depends on packages there)."),
+        ("apt_extra_suites", ["updates", "backports"], list,
+         "Suites enabled beside the release, as suffixes: noble-updates, noble-backports. Without "
+         "them ROS 2 on Pi server images fails with unmet dependencies.", f.apt_suite_suffix,
+         {"item": str}),
+        ("apt_cache_max_age", SECONDS_PER_DAY, int,
+         "Seconds before the apt lists count as stale and `apt-get update` runs again.",
+         f.int_range(0, 365 * SECONDS_PER_DAY, " s")),
+    ),
+    *_concern(
+        "locale",
+        _enabled("locale", "Generate the locale and set it system-wide."),
+        ("locale", "en_US.UTF-8", str, "The system-wide locale (LANG); must be a UTF-8 locale.",
+         f.utf8_locale),
+    ),
+    *_concern(
+        "ros_apt_source",
+        _enabled("ros_apt_source", "Configure the ROS 2 apt source (and move the old method's files aside)."),
+        ("ros_apt_source_mode", "package", str,
+         "package: install ros2-apt-source (official); mirror: a local mirror's key and URL.",
+         f.choice("package", "mirror")),
+        ("ros_apt_source_version", "1.2.0", str, "The pinned ros2-apt-source release (1.2.0, 2026-04).",
+         f.version),
+        ("ros_apt_source_sha256", {
+            "noble": "0804d9b13db770eb87019be414cd78378835228ad5fa801fc88758596dd8f7e5",
+            "jammy": "767884cf4ed03116b9d64438930a832ed854147ae435279a7924dfdf60f94433",
+        }, dict,
+         "Ubuntu codename -> sha256 of that release's .deb. Copied from public install scripts that "
+         "pin 1.2.0; not verified from here (GitHub is unreachable): check once online.",
+         f.sha256_pins, {"allowed": "codename: 64 hex digits"}),
+        ("ros_apt_source_url",
+         "https://github.com/ros-infrastructure/ros-apt-source/releases/download/"
+         "{version}/ros2-apt-source_{version}.{codename}_all.deb", str,
+         "Where the controller downloads the .deb; {version} and {codename} are filled in.",
+         f.url(("http", "https", "file"), ("version", "codename"))),
+        ("ros_apt_source_cache_dir", "~/.cache/roslab/ros-apt-source", str,
+         "Download cache on the machine running pyinfra (not on the hosts).", f.controller_path()),
+        ("ros_apt_mirror_url", None, str,
+         "Mirror mode: the mirror's URL (serving the ROS 2 archive's dists/ and pool/).", f.http_url,
+         {"nullable": True}),
+        ("ros_apt_mirror_key_file", None, str,
+         "Mirror mode: path, on the machine running pyinfra, to the mirror's signing key "
+         "(ASCII-armored or binary).", f.controller_path("file"), {"nullable": True}),
+    ),
+    *_concern(
+        "ros_install",
+        _enabled("ros_install", "Install the ROS 2 packages."),
+        ("ubuntu_release", "24.04", str,
+         "The Ubuntu release the roster expects; a host running another release is stopped.",
+         f.ubuntu_release, {"allowed": "22.04, 24.04, 26.04"}),
+        ("ros_distro", None, str, "ROS 2 distro; None: the release's default (noble: jazzy, jammy: humble).",
+         f.ros_distro, {"nullable": True, "allowed": "humble, jazzy, kilted, lyrical"}),
+        ("ros_variant", None, str, "Variant to install; None: by role, see the next two keys.",
+         f.ros_variant, {"nullable": True}),
+        ("ros_variant_main", "desktop", str, "Variant for main hosts (with GUI: RViz, rqt, demos).",
+         f.ros_variant),
+        ("ros_variant_robot", "ros-base", str, "Variant for robots (no GUI).", f.ros_variant),
+        ("ros_dev_tools", True, bool, "Install ros-dev-tools (colcon, rosdep, vcstool)."),
+        ("ros_extra_packages", [], list,
+         'Extra apt packages for every host; "{distro}" is replaced, e.g. "ros-{distro}-turtlesim".',
+         f.package_template, {"item": str, "allowed": "Debian package names"}),
+    ),
+    *_concern(
+        "rosdep",
+        _enabled("rosdep", "Initialise rosdep and keep the login user's rosdep cache fresh."),
+        ("rosdep_package", "python3-rosdep", str,
+         "Package that provides rosdep when ros-dev-tools did not (ros_dev_tools: false).", f.debian_package),
+        ("rosdep_sources_list_url", None, str,
+         "URL of rosdep's sources list (20-default.list), fetched by the controller; None: "
+         "`rosdep init` fetches the official one.", f.url(("http", "https", "file")), {"nullable": True}),
+        ("rosdistro_index_url", None, str,
+         "URL of the rosdistro index (ROSDISTRO_INDEX_URL); None: rosdep's built-in default.",
+         f.http_url, {"nullable": True}),
+        ("rosdep_update_max_age", 7 * SECONDS_PER_DAY, int,
+         "Seconds before the login user's rosdep cache counts as stale and is updated again.",
+         f.int_range(0, 365 * SECONDS_PER_DAY, " s")),
+    ),
+    *_concern(
+        "shell_env",
+        _enabled("shell_env", "Write the ROS 2 environment block into the login user's ~/.bashrc."),
+        ("ros_domain_id", 0, int,
+         "ROS_DOMAIN_ID, a team setting: give each team its own, so teams on one network do "
+         "not see each other's topics.", f.domain_id, {"levels": ("classroom", "team")}),
+        ("ros_automatic_discovery_range", "SUBNET", str,
+         "Jazzy and later: ROS_AUTOMATIC_DISCOVERY_RANGE. On Humble, LOCALHOST becomes "
+         "ROS_LOCALHOST_ONLY=1 and the others export nothing.",
+         f.choice("SUBNET", "LOCALHOST", "OFF", "SYSTEM_DEFAULT")),
+        ("ros_static_peers", [], list,
+         "Jazzy and later: ROS_STATIC_PEERS, hosts to discover without multicast (unreliable on WiFi).",
+         f.static_peer, {"item": str, "allowed": "host names or IP addresses"}),
+    ),
+    *_concern(
+        "ssh_identity",
+        _enabled("ssh_identity", "Install and run sshd, authorise the teacher's keys, set hostname and /etc/hosts."),
+        ("teacher_ssh_keys", [], list,
+         "The teacher's public keys for the login user's authorized_keys: key lines "
+         '("ssh-ed25519 AAAA... teacher") or paths to .pub files on the machine running pyinfra.',
+         f.teacher_key, {"item": str, "allowed": "key lines or .pub files"}),
+        ("manage_hostname", True, bool, "Set the hostname to the host's name in the roster."),
+        ("manage_etc_hosts", True, bool,
+         "List every classroom host in /etc/hosts (a marked block) so names resolve without DNS."),
+    ),
+    *_concern(
+        "network",
+        _enabled("network", "Manage the network of hosts that have a network_address (or network_method: dhcp)."),
+        ("network_backend", "auto", str,
+         "Who applies the configuration: auto (whoever is in charge on the host), netplan "
+         "(netplan with systemd-networkd) or networkmanager (NetworkManager).",
+         f.choice("auto", "netplan", "networkmanager")),
+        ("network_interface", None, str, "Interface to configure; None: eth0 for ethernet, wlan0 for wifi.",
+         f.interface_name, {"nullable": True}),
+        ("network_kind", "ethernet", str, "ethernet or wifi.", f.choice("ethernet", "wifi")),
+        ("network_method", "static", str, "static (network_address) or dhcp.", f.choice("static", "dhcp")),
+        ("network_address", None, str,
+         "The host's fixed address, e.g. 192.168.50.11/24 (usually set per host); None: the network "
+         "is left alone. The prefix may come from network_prefix instead.", f.ip_interface,
+         {"nullable": True, "allowed": "IPv4 address[/prefix]"}),
+        ("network_prefix", None, int,
+         "Prefix length for a network_address given without one, e.g. 24 (usually classroom-wide).",
+         f.int_range(8, 32), {"nullable": True}),
+        ("network_gateway", None, str,
+         "Default gateway (the router), inside the address's subnet; None: no default route.",
+         f.ip_address, {"nullable": True, "allowed": "IP address"}),
+        ("network_nameservers", [], list, "DNS servers, e.g. [192.168.50.1].", f.ip_address,
+         {"item": str, "allowed": "IP addresses"}),
+        ("network_ipv6", "auto", str,
+         "IPv6: auto (router advertisements and DHCPv6), disabled, or ignore (not configured).",
+         f.choice("auto", "disabled", "ignore")),
+        ("wifi_ssid", None, str, "The WiFi network's name, for network_kind: wifi.", f.wifi_ssid,
+         {"nullable": True, "allowed": "1 to 32 bytes, one line"}),
+        ("wifi_password_secret", None, str,
+         "Name of the WiFi password in the secrets file (never the password itself).", f.secret_name,
+         {"nullable": True}),
+        ("network_confirm_timeout", 60, int,
+         "Seconds the host waits for the controller to reach it at its new address before it "
+         "restores its previous configuration by itself.", f.int_range(10, 3600, " s")),
+        ("network_disable_cloud_init", True, bool,
+         "Stop cloud-init from rewriting the network at boot (its 50-cloud-init.yaml is kept as a backup)."),
+    ),
+    *_concern(
+        "workspace",
+        _enabled("workspace", "Copy nodes/ into the login user's workspace, build it and run the role's launch."),
+        ("workspace_dir", "~/ros2_ws", str, "The login user's colcon workspace, inside their home.",
+         f.home_path, {"allowed": "~/ and a path inside the home"}),
+        ("workspace_nodes_dir", None, str,
+         "Controller directory whose ROS packages are copied into the workspace's src/; None: "
+         "this checkout's nodes/.", f.controller_path("dir"), {"nullable": True}),
+        ("workspace_colcon_args", ["--executor", "sequential"], list,
+         "Arguments after `colcon build`; a sequential build is what colcon advises on a Pi.",
+         f.colcon_argument, {"item": str}),
+        ("workspace_rosdep_install", True, bool,
+         "Run `rosdep install --from-paths src --ignore-src -y` when a package.xml changed."),
+        ("nodes_service_enabled", True, bool,
+         "Run the role's launch as the systemd service roslab-nodes, restarted on failure."),
+        ("nodes_launch_main", "roslab_bringup main.launch.py", str,
+         "What the service runs on main hosts: `ros2 launch <package> <launch file>`.", f.launch,
+         {"allowed": "<package> <file>.launch.py"}),
+        ("nodes_launch_robot", "roslab_bringup robot.launch.py", str,
+         "What the service runs on robots: `ros2 launch <package> <launch file>`.", f.launch,
+         {"allowed": "<package> <file>.launch.py"}),
+        ("nodes_verify_topic", "/chatter", str,
+         "The topic `roslab verify` expects each team's main host to hear from its robot.", f.ros_topic),
+        ("nodes_verify_timeout", 20, int, "Seconds `roslab verify` waits for a message on that topic.",
+         f.int_range(1, 600, " s")),
+    ),
+]
+
+SETTINGS: dict[str, Setting] = {setting.key: setting for setting in SCHEMA}
+if len(SETTINGS) != len(SCHEMA):  # a key declared twice would silently shadow the first
+    raise RuntimeError("a setting is declared twice in roslab.settings.SCHEMA")
+
+# The concerns whose settings are deploy settings (not the roster's own keys).
+ROSTER_CONCERNS = ("roster", "connection")
+DEPLOY_CONCERNS = tuple(dict.fromkeys(s.concern for s in SCHEMA if s.concern not in ROSTER_CONCERNS))
+
+
+def defaults(concern: str | None = None) -> dict:
+    """Defaults of one concern's settings, or of every deploy setting (fresh copies)."""
+    import copy
+
+    return {
+        s.key: copy.deepcopy(s.default) for s in SCHEMA
+        if (s.concern == concern if concern else s.concern not in ROSTER_CONCERNS)
+    }
+
+
+def keys_at(level: str) -> dict[str, Setting]:
+    """The settings a roster may set at `level` (classroom, team or host)."""
+    return {s.key: s for s in SCHEMA if level in s.levels}
+
+
+_TYPE_NAMES = {str: "a string", int: "an integer", bool: "true or false", list: "a list",
+               dict: "a mapping"}
+
+
+def type_problem(value, kind) -> str | None:
+    """Why `value` is not of `kind`, or None. YAML's bools are not integers here."""
+    if kind is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    else:
+        ok = isinstance(value, kind)
+    if ok:
+        return None
+    shown = repr(value) if not isinstance(value, (dict, list)) else type(value).__name__
+    hint = ""
+    if kind is str and isinstance(value, bool):
+        hint = " (YAML reads yes/no/on/off/true/false as true or false: quote it)"
+    elif kind is str and isinstance(value, (int, float)):
+        hint = f' (YAML reads {value} as a number: quote it, "{value}")'
+    elif kind is int and isinstance(value, str) and value.strip().lstrip("-").isdigit():
+        hint = " (remove the quotes)"
+    return f"must be {_TYPE_NAMES[kind]}, not {shown}{hint}"
+
+
+def check_value(setting: Setting, value, context: f.Context | None = None) -> str | None:
+    """Why `value` is not a legal value of `setting`, or None. Never raises."""
+    context = context or f.Context()
+    if value is None:
+        return None if setting.nullable else f"must be {_TYPE_NAMES[setting.kind]}, not null"
+    problem = type_problem(value, setting.kind)
+    if problem:
+        return problem
+    try:
+        if setting.item is not None:
+            for index, element in enumerate(value):
+                problem = type_problem(element, setting.item)
+                if problem is None and setting.check:
+                    problem = setting.check(element, context)
+                if problem:
+                    return f"item {index + 1}: {problem}"
+            return None
+        if setting.kind is dict:
+            if not all(isinstance(key, str) for key in value):
+                return "keys must be strings"
+        return setting.check(value, context) if setting.check else None
+    except (RecursionError, ValueError, TypeError) as error:  # a check must not end the run
+        return f"cannot be checked: {type(error).__name__}"
