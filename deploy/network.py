@@ -3,7 +3,7 @@
 The renderer in charge is read from the host (netplan with systemd-networkd on
 Ubuntu Server, NetworkManager on Ubuntu Desktop: keyfiles on 22.04, netplan
 files from 23.10 on) unless `network_backend` forces one. The change itself is
-the operation `roslab.network_ops.network_in_effect`: staged, validated on the
+the operation `roslab.network.operation.network_in_effect`: staged, validated on the
 host, applied detached from SSH, and rolled back by the host itself unless the
 controller confirms it at the new address; the rest of the deploy then runs there.
 """
@@ -14,42 +14,11 @@ from pyinfra import host
 from pyinfra.api import deploy
 
 from deploy.common import should_run, stop_host
-from roslab.netcheck import NetworkSettingError, network_settings
-from roslab.network_ops import network_in_effect
+from roslab import settings as schema
+from roslab.network.operation import network_in_effect
+from roslab.network.settings import NetworkSettingError, network_settings
 
-DEFAULTS = {
-    # Manage the network of hosts that have a network_address (or network_method: dhcp).
-    "network_enabled": True,
-    # Who applies the configuration: auto (whoever is in charge on the host), netplan
-    # (netplan with systemd-networkd) or networkmanager (NetworkManager).
-    "network_backend": "auto",
-    # Interface to configure; None: eth0 for ethernet, wlan0 for wifi.
-    "network_interface": None,
-    # ethernet or wifi.
-    "network_kind": "ethernet",
-    # static (network_address) or dhcp.
-    "network_method": "static",
-    # The host's fixed address, e.g. 192.168.50.11/24 (usually set per host); None: the
-    # network is left alone. The prefix may come from network_prefix instead.
-    "network_address": None,
-    # Prefix length for a network_address given without one, e.g. 24 (usually classroom-wide).
-    "network_prefix": None,
-    # Default gateway (the router), inside the address's subnet; None: no default route.
-    "network_gateway": None,
-    # DNS servers, e.g. [192.168.50.1].
-    "network_nameservers": [],
-    # IPv6: auto (router advertisements and DHCPv6), disabled, or ignore (not configured).
-    "network_ipv6": "auto",
-    # The WiFi network's name, for network_kind: wifi.
-    "wifi_ssid": None,
-    # Name of the WiFi password in the secrets file (never the password itself).
-    "wifi_password_secret": None,
-    # Seconds the host waits for the controller to reach it at its new address
-    # before it restores its previous configuration by itself.
-    "network_confirm_timeout": 60,
-    # Stop cloud-init from rewriting the network at boot (its 50-cloud-init.yaml is kept as a backup).
-    "network_disable_cloud_init": True,
-}
+DEFAULTS = schema.defaults("network")
 
 
 def host_and_team() -> str:

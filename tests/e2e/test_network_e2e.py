@@ -13,6 +13,9 @@ then a last step that records which address its SSH connection reached:
   test's stand-in for a classroom switch that does not carry it) is rolled back
   when the confirmation does not come;
 and in both failure cases the run reports it and the host answers at its old address.
+Then, for the escaping of values: an awkward but legal SSID and password (quotes,
+unicode, `;`, shell syntax, spaces at the ends) reach netplan, wpa_supplicant's
+configuration and NetworkManager on the hosts exactly as written in the roster.
 
 Runs on its own sandbox instance (ROSLAB_SANDBOX=net, subnet 10.213.40.0/24).
 """
@@ -22,18 +25,26 @@ from __future__ import annotations
 import ipaddress
 import json
 import os
+import re
+import shlex
 import shutil
 import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
+from uuid import uuid4
 
 import paramiko
 import pytest
 import yaml
 
-from roslab import netstate
+from deploy.network import DEFAULTS as NETWORK_DEFAULTS
+from roslab.network import state as network_state
+from roslab.network.apply import NM_KEYFILE, Plan, staged_path
+from roslab.network.operation import APPLY_SCRIPT, NetworkRenderer
+from roslab.network.render import Layout, choose_layout, desired_files, keyfile_path, render_keyfile
+from roslab.network.settings import network_settings
 from roslab.roster import load_roster
 
 pytestmark = pytest.mark.e2e
@@ -62,13 +73,18 @@ def classroom():
     try:
         yield load_roster(STATE_DIR / "roster.yaml")
     finally:
-        shutil.rmtree(STATE_DIR / netstate.STATE_DIR, ignore_errors=True)
+        shutil.rmtree(STATE_DIR / network_state.STATE_DIR, ignore_errors=True)
         subprocess.run([str(BIN / "roslab"), "sandbox", "down"], env=ENV, cwd=REPO)
 
 
-def write_roster(host_settings: dict[str, dict]) -> Path:
+def write_roster(host_settings: dict[str, dict], secrets: dict[str, str] | None = None) -> Path:
     """The sandbox roster with network settings added to some hosts, beside the original."""
     original = yaml.safe_load((STATE_DIR / "roster.yaml").read_text())
+    if secrets:
+        secrets_path = STATE_DIR / "secrets-network-e2e.yaml"
+        secrets_path.write_text(yaml.safe_dump(secrets, allow_unicode=True))
+        secrets_path.chmod(0o600)
+        original["classroom"]["secrets_file"] = secrets_path.name
     for team in original["teams"].values():
         for name, host in team["hosts"].items():
             host.update(host_settings.get(name, {}))
@@ -103,8 +119,8 @@ def answers_ssh(address: str, seconds: float = 3) -> bool:
         return False
 
 
-def on_host(host, address: str, command: str) -> str:
-    """Run `command` as root on a sandbox host at `address`; its stdout."""
+def on_host(host, address: str, command: str, stdin: str | None = None) -> str:
+    """Run `command` as root on a sandbox host at `address` (with `stdin`, if given); its stdout."""
     client = paramiko.SSHClient()
     client.set_missing_host_key_policy(paramiko.AutoAddPolicy())
     client.connect(address, username=host.data.get("ssh_user"), key_filename=host.data.get("ssh_key"),
@@ -112,7 +128,10 @@ def on_host(host, address: str, command: str) -> str:
                    allow_agent=False, look_for_keys=False)
     try:
         sudo = "" if host.data.get("ssh_user") in (None, "root") else "sudo -n "
-        _, stdout, stderr = client.exec_command(f"{sudo}sh -c '{command}'", timeout=30)
+        channel_in, stdout, stderr = client.exec_command(f"{sudo}sh -c {shlex.quote(command)}", timeout=30)
+        if stdin is not None:
+            channel_in.write(stdin.encode())
+        channel_in.channel.shutdown_write()
         output = stdout.read().decode()
         assert stdout.channel.recv_exit_status() == 0, stderr.read().decode()
         return output
@@ -141,7 +160,7 @@ def test_host_moves_and_the_deploy_continues_at_its_new_address(classroom):
     # The step after the network deploy ran over a connection to the new address.
     assert on_host(host, new, "cat /tmp/roslab-e2e-reached-at").split()[2] == new
     assert not answers_ssh(host.address)
-    assert netstate.last_known_address(roster, host.name) == new
+    assert network_state.last_known_address(roster, host.name) == new
 
     stat = on_host(host, new, "stat -c \"%U %a %n\" /etc/netplan/60-roslab.yaml "
                               "/etc/cloud/cloud.cfg.d/99-disable-network-config.cfg")
@@ -184,7 +203,7 @@ def test_wrong_gateway_is_rolled_back_and_reported(classroom):
     proc, results = run_deploy(roster, host.name)
     assert_rolled_back(host, proc, results, f"gateway {nobody} does not answer on eth0")
     assert time.monotonic() - started < CONFIRM_TIMEOUT + 30  # reported early, not at the deadline
-    assert netstate.last_known_address(roster, host.name) is None
+    assert network_state.last_known_address(roster, host.name) is None
 
 
 def test_address_the_controller_cannot_reach_is_rolled_back_and_reported(classroom):
@@ -209,8 +228,8 @@ def test_desktop_host_moves_by_networkmanager_without_keeping_its_old_address(cl
     assert proc.returncode == 0, proc.stderr[-4000:]
     assert host.name in network_op(results)["success"]
     assert on_host(host, new, "systemctl is-active NetworkManager").strip() == "active"
-    netplan = on_host(host, new, "cat /etc/netplan/60-roslab.yaml")
-    assert "renderer: NetworkManager" in netplan
+    netplan = yaml.safe_load(on_host(host, new, "cat /etc/netplan/60-roslab.yaml"))
+    assert netplan["network"]["renderer"] == "NetworkManager"
     # netplan merges files: the Desktop's own profile for eth0 is backed up, not merged,
     # so the host answers at its new address only.
     assert on_host(host, new, "ls /etc/netplan").split() == ["60-roslab.yaml"]
@@ -221,3 +240,154 @@ def test_desktop_host_moves_by_networkmanager_without_keeping_its_old_address(cl
     proc, results = run_deploy(roster, host.name)
     assert proc.returncode == 0, proc.stderr[-4000:]
     assert network_op(results)["no_change"] == [host.name]
+
+
+# Escaping, end to end: an awkward but legal SSID and password reach the host's tools intact.
+
+# 26 bytes of UTF-8: quotes, an em dash, an accent, `#`, `;` and shell syntax.
+AWKWARD_SSID = 'Lab "A" — Café #2;\'$(id)'
+# Leading and trailing spaces (GKeyFile's \s), a literal backslash, quotes, `;#=`, shell syntax.
+AWKWARD_PASSWORD = " $(reboot) `id` \\x27 'q' \"x\";#= "
+CHECK_DIR = "/run/roslab/network-e2e-escaping"
+
+
+def awkward_wifi_host(classroom, index: int, ssid: str = AWKWARD_SSID):
+    """A host of a roster (written, then loaded by the real loader) that sets the awkward
+    SSID, and its password from a secrets file; with its checked settings and address now."""
+    host = pick(classroom, index)
+    new = str(SUBNET.network_address + 90 + index)
+    roster = write_roster(
+        {host.name: static(new, network_kind="wifi", wifi_ssid=ssid, wifi_password_secret="e2e_wifi")},
+        secrets={"e2e_wifi": AWKWARD_PASSWORD},
+    )
+    [loaded] = [h for h in load_roster(roster).hosts if h.name == host.name]
+    settings = network_settings({**NETWORK_DEFAULTS, **loaded.data})
+    assert (settings.wifi_ssid, settings.password) == (ssid, AWKWARD_PASSWORD)
+    return host, settings, network_state.last_known_address(roster, host.name) or host.address
+
+
+def stage_and_validate(host, address: str, plan: Plan, files: dict[str, str]) -> dict[str, str]:
+    """Stage `files` and the on-host script as the operation does (in a run directory of
+    their own), run the script's `validate` on them, and read the staged files back."""
+    on_host(host, address, f"rm -rf {CHECK_DIR} && install -d -m 0700 {CHECK_DIR}")
+    uploads = {**{str(staged_path(plan, path)): content for path, content in files.items()},
+               f"{CHECK_DIR}/plan.json": plan.to_json(),
+               f"{CHECK_DIR}/network_apply.py": APPLY_SCRIPT.read_text()}
+    for path, content in uploads.items():
+        on_host(host, address, f"mkdir -p {shlex.quote(str(Path(path).parent))} && cat > {shlex.quote(path)}",
+                stdin=content)
+    # Exit status 0 or on_host fails the test with the validator's message.
+    on_host(host, address, f"python3 {CHECK_DIR}/network_apply.py validate {CHECK_DIR}/plan.json")
+    return {path: on_host(host, address, f"cat {shlex.quote(str(staged_path(plan, path)))}") for path in files}
+
+
+def plan_for(settings, layout_name: str, files: dict[str, str], superseded=()) -> Plan:
+    return Plan(token=uuid4().hex, layout=layout_name, interface=settings.interface, files=tuple(files),
+                superseded=tuple(superseded), expect_address=str(settings.address), gateway=None,
+                confirm_timeout=settings.confirm_timeout, run_dir=CHECK_DIR)
+
+
+def wpa_supplicant_string(value: str) -> str:
+    """A wpa_supplicant.conf string as wpa_supplicant reads it (wpa_config_parse_string):
+    "..." is everything between the first and the last quote; otherwise hex bytes."""
+    if value.startswith('"'):
+        assert value.endswith('"') and len(value) >= 2, value
+        return value[1:-1]
+    return bytes.fromhex(value).decode()
+
+
+def keyfile_values(text: str) -> dict[str, str]:
+    """`group.key` -> value of a keyfile, with GKeyFile's escapes undone (\\s \\n \\t \\r \\\\)."""
+    values, group = {}, None
+    for line in text.splitlines():
+        if line.startswith("["):
+            group = line.strip("[]")
+        elif "=" in line and not line.startswith("#"):
+            key, _, raw = line.partition("=")
+            values[f"{group}.{key}"] = re.sub(
+                r"\\(.)", lambda m: {"s": " ", "n": "\n", "t": "\t", "r": "\r"}.get(m[1], m[1]), raw.lstrip())
+    return values
+
+
+def nm_ssid(value: str) -> str:
+    """An SSID as NetworkManager reads a keyfile's (unescaped) `ssid=`: a list of byte values
+    (how NM itself writes a non-ASCII SSID) or a string where `\\;` stands for `;`."""
+    if re.fullmatch(r"(\d{1,3};)+", value):
+        return bytes(int(number) for number in value.rstrip(";").split(";")).decode()
+    return value.replace("\\;", ";")
+
+
+def test_awkward_ssid_lands_in_netplan_exactly_as_written(classroom):
+    """What this proves, on a Server-like host (netplan with systemd-networkd), with the real
+    roster loader, settings check, renderer, layout choice (the host's own facts), upload
+    and the on-host script's validation (`netplan generate` on the future /etc/netplan):
+
+    - the staged netplan file reads back byte for byte as rendered, and parses (YAML) to
+      the SSID and password exactly as written in the roster and the secrets file;
+    - netplan's own parser reads the same values: `netplan get` on a root holding the file;
+    - the wpa_supplicant configuration `netplan generate` derives from it holds them too,
+      as wpa_supplicant reads its strings.
+
+    The sandbox hosts have no WiFi device, so the file is not applied (that would fail
+    for want of wlan0 and be rolled back): everything up to that point is real.
+    """
+    host, settings, address = awkward_wifi_host(classroom, 3)
+    fact = NetworkRenderer()
+    found = fact.process(on_host(host, address, fact.command()).splitlines())
+    layout = choose_layout(settings.backend, found["renderer"])
+    wanted = desired_files(settings, layout, found["cloud_init"])
+    [netplan_path] = [path for path in wanted.files if path.endswith(".yaml")]
+    plan = plan_for(settings, layout.name, wanted.files, wanted.superseded)
+    try:
+        staged = stage_and_validate(host, address, plan, wanted.files)
+        assert staged[netplan_path] == wanted.files[netplan_path]
+        access_points = yaml.safe_load(staged[netplan_path])["network"]["wifis"]["wlan0"]["access-points"]
+        assert access_points == {AWKWARD_SSID: {"password": AWKWARD_PASSWORD}}
+
+        root = f"{CHECK_DIR}/root"
+        on_host(host, address, f"mkdir -p {root}/etc/netplan && "
+                               f"cp {staged_path(plan, netplan_path)} {root}/etc/netplan/ && "
+                               f"netplan generate --root-dir {root}")
+        read_by_netplan = yaml.safe_load(
+            on_host(host, address, f"netplan get --root-dir {root} wifis.wlan0.access-points"))
+        assert list(read_by_netplan) == [AWKWARD_SSID]
+        assert read_by_netplan[AWKWARD_SSID]["auth"]["password"] == AWKWARD_PASSWORD
+
+        wpa = dict(line.strip().split("=", 1) for line in
+                   on_host(host, address, f"cat {root}/run/netplan/wpa-wlan0.conf").splitlines()
+                   if line.strip().startswith(("ssid=", "psk=")))
+        assert wpa_supplicant_string(wpa["ssid"]) == AWKWARD_SSID
+        assert wpa_supplicant_string(wpa["psk"]) == AWKWARD_PASSWORD
+    finally:
+        on_host(host, address, f"rm -rf {CHECK_DIR}")
+
+
+# NetworkManager reads an SSID of digits and `;` as byte values unless its `;` are escaped.
+@pytest.mark.parametrize("ssid", [AWKWARD_SSID, "12;34;"])
+def test_awkward_ssid_lands_in_a_networkmanager_keyfile_exactly_as_written(classroom, ssid):
+    """What this proves, on the Desktop-like host (NetworkManager 1.42): the keyfile an
+    Ubuntu 22.04 Desktop gets (the layout is forced: this host emulates 24.04, which gets
+    a netplan file) passes the on-host script's validation (NetworkManager's own keyfile
+    parser, `nmcli --offline`), and NetworkManager reads the SSID and password from it
+    exactly as written: its re-serialisation of the profile (it writes a non-ASCII SSID
+    as byte values) decodes to the same SSID and password. `12;34;` is the SSID NetworkManager
+    would read as the two bytes 12 and 34 if its `;` were not escaped.
+    """
+    index = next(i for i, h in enumerate(classroom.hosts) if h.name == DESKTOP_HOST)
+    host, settings, address = awkward_wifi_host(classroom, index, ssid)
+    layout = Layout(NM_KEYFILE, "a 22.04 Desktop's layout, forced for this test")
+    wanted = desired_files(settings, layout, cloud_init_present=False)
+    path = keyfile_path(settings)
+    assert list(wanted.files) == [path] and wanted.files[path] == render_keyfile(settings)
+    try:
+        staged = stage_and_validate(host, address, plan_for(settings, NM_KEYFILE, wanted.files), wanted.files)
+        assert staged[path] == wanted.files[path]
+        ours = keyfile_values(staged[path])
+        assert nm_ssid(ours["wifi.ssid"]) == ssid and ours["wifi-security.psk"] == AWKWARD_PASSWORD
+
+        read_by_nm = keyfile_values(on_host(
+            host, address, "nmcli --offline connection modify connection.autoconnect yes", stdin=staged[path]))
+        assert nm_ssid(read_by_nm["wifi.ssid"]) == ssid
+        assert read_by_nm["wifi-security.psk"] == AWKWARD_PASSWORD
+    finally:
+        on_host(host, address, f"rm -rf {CHECK_DIR}")

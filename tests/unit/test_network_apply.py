@@ -7,16 +7,20 @@ rollback runs for real.
 
 from __future__ import annotations
 
+import ast
+import dataclasses
 import json
 import stat
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
 
 import pytest
 
-from roslab import network_apply
+from roslab.network import apply as network_apply
+from roslab.network.apply import NETPLAN_NETWORKD, NETPLAN_NM, NM_KEYFILE, Plan, Status
 
 TOKEN = "0123456789abcdef"
 
@@ -31,19 +35,19 @@ def host(tmp_path):
     run_dir = tmp_path / "run/roslab/network"
     new_file = str(etc_netplan / "60-roslab.yaml")
     disable_file = str(tmp_path / "etc/cloud/cloud.cfg.d/99-disable-network-config.cfg")
-    plan = {
-        "token": TOKEN,
-        "layout": "netplan-networkd",
-        "interface": "eth0",
-        "netplan_dir": str(etc_netplan),
-        "files": [new_file, disable_file],
-        "superseded": [str(etc_netplan / "50-cloud-init.yaml")],
-        "expect_address": "10.0.0.5/24",
-        "gateway": "10.0.0.1",
-        "confirm_timeout": 1,
-        "backup_root": str(tmp_path / "var/backups/roslab/network"),
-        "run_dir": str(run_dir),
-    }
+    plan = Plan(
+        token=TOKEN,
+        layout=NETPLAN_NETWORKD,
+        interface="eth0",
+        netplan_dir=str(etc_netplan),
+        files=[new_file, disable_file],
+        superseded=[str(etc_netplan / "50-cloud-init.yaml")],
+        expect_address="10.0.0.5/24",
+        gateway="10.0.0.1",
+        confirm_timeout=1,
+        backup_root=str(tmp_path / "var/backups/roslab/network"),
+        run_dir=str(run_dir),
+    )
     for target, content in ((new_file, "new: static\n"), (disable_file, "network: {config: disabled}\n")):
         staged = network_apply.staged_path(plan, target)
         staged.parent.mkdir(parents=True, exist_ok=True)
@@ -69,14 +73,21 @@ def network(monkeypatch):
     return calls
 
 
-def status(plan):
-    return json.loads((Path(plan["run_dir"]) / "status.json").read_text())
+def status(plan) -> Status:
+    found = Status.from_json((Path(plan.run_dir) / "status.json").read_text(), plan.token)
+    assert found is not None
+    return found
+
+
+def small_plan(layout=NETPLAN_NETWORKD, interface="eth0", **changes) -> Plan:
+    fields = {"files": [], "superseded": [], "expect_address": None, "gateway": None, "confirm_timeout": 10}
+    return Plan(token=TOKEN, layout=layout, interface=interface, **{**fields, **changes})
 
 
 def confirm_soon(plan, token=TOKEN):
     def write():
         time.sleep(0.2)
-        Path(plan["run_dir"], "confirmed").write_text(token)
+        Path(plan.run_dir, "confirmed").write_text(token)
 
     thread = threading.Thread(target=write)
     thread.start()
@@ -87,17 +98,17 @@ def test_confirmed_change_keeps_new_files_and_backs_up_cloud_init(host, network)
     confirm_soon(host)
     assert network_apply.apply(host) == 0
 
-    new_file, disable_file = map(Path, host["files"])
+    new_file, disable_file = map(Path, host.files)
     assert new_file.read_text() == "new: static\n"
     assert stat.S_IMODE(new_file.stat().st_mode) == 0o600
     assert stat.S_IMODE(Path(disable_file).stat().st_mode) == 0o600
-    assert not Path(host["superseded"][0]).exists()
-    assert Path(host["netplan_dir"], "01-keep.yaml").exists()
+    assert not Path(host.superseded[0]).exists()
+    assert Path(host.netplan_dir, "01-keep.yaml").exists()
 
     result = status(host)
-    assert result["state"] == "confirmed"
-    backup = Path(result["backup"])
-    assert (backup / "files" / host["superseded"][0].lstrip("/")).read_text() == "old: dhcp\n"
+    assert result.state == "confirmed"
+    backup = Path(result.backup)
+    assert (backup / "files" / host.superseded[0].lstrip("/")).read_text() == "old: dhcp\n"
     assert stat.S_IMODE(backup.stat().st_mode) == 0o700
     assert network["apply"] == 1
 
@@ -105,36 +116,36 @@ def test_confirmed_change_keeps_new_files_and_backs_up_cloud_init(host, network)
 def test_no_confirmation_restores_every_file_and_reapplies(host, network):
     assert network_apply.apply(host) == 1
 
-    assert Path(host["superseded"][0]).read_text() == "old: dhcp\n"
-    for created in host["files"]:
+    assert Path(host.superseded[0]).read_text() == "old: dhcp\n"
+    for created in host.files:
         assert not Path(created).exists()
     result = status(host)
-    assert result["state"] == "rolled-back"
-    assert "did not confirm within 1 s" in result["message"]
+    assert result.state == "rolled-back"
+    assert "did not confirm within 1 s" in result.message
     assert network["apply"] == 2  # the new configuration, then the old one again
 
 
 def test_stale_or_foreign_confirmation_does_not_count(host, network):
-    Path(host["run_dir"]).mkdir(parents=True, exist_ok=True)
-    Path(host["run_dir"], "confirmed").write_text(TOKEN)  # left from an earlier run: removed first
+    Path(host.run_dir).mkdir(parents=True, exist_ok=True)
+    Path(host.run_dir, "confirmed").write_text(TOKEN)  # left from an earlier run: removed first
     confirm_soon(host, token="another-run")
     assert network_apply.apply(host) == 1
-    assert status(host)["state"] == "rolled-back"
+    assert status(host).state == "rolled-back"
 
 
 def test_gateway_failure_rolls_back_at_once(host, network):
     network["check_error"] = "gateway 10.0.0.254 does not answer on eth0"
-    host["confirm_timeout"] = 30
+    host = dataclasses.replace(host, confirm_timeout=30)
     started = time.monotonic()
     assert network_apply.apply(host) == 1
     assert time.monotonic() - started < 5
     result = status(host)
-    assert result == {**result, "state": "rolled-back", "message": network["check_error"]}
-    assert Path(host["superseded"][0]).read_text() == "old: dhcp\n"
+    assert (result.state, result.message) == ("rolled-back", network["check_error"])
+    assert Path(host.superseded[0]).read_text() == "old: dhcp\n"
 
 
 def test_existing_file_is_restored_with_its_content_and_mode(host, network):
-    replaced = Path(host["files"][0])
+    replaced = Path(host.files[0])
     replaced.write_text("previous roslab config\n")
     replaced.chmod(0o600)
     assert network_apply.apply(host) == 1
@@ -148,13 +159,13 @@ def test_failing_rollback_is_reported(host, network, monkeypatch):
 
     monkeypatch.setattr(network_apply, "restore", broken_restore)
     assert network_apply.apply(host) == 2
-    assert status(host)["state"] == "rollback-failed"
-    assert "disk full" in status(host)["message"]
+    assert status(host).state == "rollback-failed"
+    assert "disk full" in status(host).message
 
 
 def test_validation_root_has_the_future_netplan_directory(host):
     root = network_apply.validation_root(host)
-    staged = root / host["netplan_dir"].lstrip("/")
+    staged = root / host.netplan_dir.lstrip("/")
     assert sorted(p.name for p in staged.iterdir()) == ["01-keep.yaml", "60-roslab.yaml"]
 
 
@@ -181,7 +192,7 @@ def test_apply_falls_back_from_netplan_apply_to_generate_and_networkctl(monkeypa
         return subprocess.CompletedProcess(command, 1 if failed else 0, "", "udevadm trigger failed")
 
     monkeypatch.setattr(network_apply, "run", fake_run)
-    network_apply.apply_files({"layout": "netplan-networkd", "interface": "eth0"})
+    network_apply.apply_files(small_plan())
     assert ran == [
         ["netplan", "apply"],
         ["netplan", "generate"],
@@ -198,7 +209,7 @@ def test_apply_error_names_each_failing_command(monkeypatch):
 
     monkeypatch.setattr(network_apply, "run", fake_run)
     with pytest.raises(network_apply.ApplyError) as caught:
-        network_apply.apply_files({"layout": "netplan-networkd", "interface": "eth0"})
+        network_apply.apply_files(small_plan())
     assert str(caught.value) == (
         "could not apply the configuration: netplan apply: netplan failed; "
         "networkctl reload: networkctl failed; "
@@ -207,7 +218,7 @@ def test_apply_error_names_each_failing_command(monkeypatch):
 
 
 def test_keyfile_layout_reloads_networkmanager_or_restarts_it():
-    commands = network_apply.apply_commands({"layout": "networkmanager-keyfile", "interface": "wlan0"})
+    commands = network_apply.apply_commands(small_plan(NM_KEYFILE, "wlan0"))
     assert commands == [
         [["nmcli", "connection", "reload"], ["nmcli", "device", "connect", "wlan0"]],
         [["systemctl", "restart", "NetworkManager"], ["nmcli", "--wait", "20", "device", "connect", "wlan0"]],
@@ -217,7 +228,7 @@ def test_keyfile_layout_reloads_networkmanager_or_restarts_it():
 def test_netplan_networkmanager_fallback_restarts_networkmanager_that_netplan_apply_stopped():
     # Seen in the sandbox: `netplan apply` stops NetworkManager, its udev trigger fails, and
     # a fallback that only ran `nmcli connection reload` left the host with no address.
-    commands = network_apply.apply_commands({"layout": "netplan-networkmanager", "interface": "eth0"})
+    commands = network_apply.apply_commands(small_plan(NETPLAN_NM))
     assert commands == [
         [["netplan", "apply"]],
         [["netplan", "generate"], ["systemctl", "restart", "NetworkManager"],
@@ -227,10 +238,79 @@ def test_netplan_networkmanager_fallback_restarts_networkmanager_that_netplan_ap
 
 def test_check_running_waits_for_the_address(monkeypatch):
     monkeypatch.setattr(network_apply, "interface_addresses", lambda interface: ["10.0.0.9/24"])
-    plan = {"interface": "eth0", "expect_address": "10.0.0.5/24", "gateway": None}
+    plan = small_plan(expect_address="10.0.0.5/24")
     with pytest.raises(network_apply.ApplyError, match="eth0 did not get 10.0.0.5/24"):
         network_apply.check_running(plan, wait=0.2)
 
 
 def test_usage_error_for_unknown_command(capsys):
     assert network_apply.main(["network_apply.py", "launch", "plan.json"]) == 64
+
+
+# The plan and the status: defined once, here, and checked when read.
+
+
+@pytest.mark.parametrize(
+    "changes, words",
+    [
+        ({"layout": "netplan"}, "layout 'netplan' is not one of"),
+        ({"interface": "-eth0"}, "not an interface name"),
+        ({"interface": "eth0\nx"}, "not an interface name"),
+        ({"files": ["etc/netplan/x.yaml"]}, "not an absolute path"),
+        ({"superseded": ["/etc/netplan/../shadow"]}, "not an absolute path"),
+        ({"token": "$(reboot)"}, "not a token"),
+        ({"confirm_timeout": 0}, "not a number of seconds"),
+    ],
+)
+def test_plan_refuses_what_the_script_must_not_act_on(host, changes, words):
+    with pytest.raises(ValueError, match="bad plan") as caught:
+        dataclasses.replace(host, **changes)
+    assert words in str(caught.value)
+
+
+def test_plan_reads_back_and_refuses_unknown_or_missing_fields(host, tmp_path):
+    assert Plan.from_json(host.to_json()) == host
+    data = json.loads(host.to_json())
+    with pytest.raises(ValueError, match="unknown fields"):
+        Plan.from_json(json.dumps({**data, "layuot": NETPLAN_NM}))
+    del data["interface"]
+    with pytest.raises(ValueError, match="bad plan"):
+        Plan.from_json(json.dumps(data))
+    plan_path = tmp_path / "plan.json"
+    plan_path.write_text(json.dumps(data))
+    assert network_apply.main(["network_apply.py", "validate", str(plan_path)]) == 65
+
+
+def test_status_of_another_run_or_garbage_is_none():
+    text = Status("t0k", "confirmed", backup="/b").to_json()
+    assert Status.from_json(text, "t0k") == Status("t0k", "confirmed", "", "/b")
+    assert Status.from_json(text, "other") is None
+    for garbage in (None, "", "{", "[]", '{"token": "t0k"}', '{"token": "t0k", "state": "x", "extra": 1}'):
+        assert Status.from_json(garbage, "t0k") is None
+
+
+def test_script_is_standalone():
+    # Uploaded and run with the host's python3: standard library only, no roslab.
+    source = Path(network_apply.__file__)
+    imported = set()
+    for node in ast.walk(ast.parse(source.read_text())):
+        if isinstance(node, ast.Import):
+            imported.update(alias.name.split(".")[0] for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0:
+            imported.add(node.module.split(".")[0])
+    assert imported <= set(sys.stdlib_module_names) | {"__future__"}, imported
+    # Isolated mode, from another directory: no site-packages, no repository on sys.path.
+    result = subprocess.run([sys.executable, "-I", str(source)], capture_output=True, text=True, cwd="/")
+    assert result.returncode == 64 and "usage:" in result.stderr
+
+
+def test_layout_and_state_names_are_written_only_in_the_script():
+    # The controller's modules import them from roslab.network.apply instead.
+    names = [*network_apply.LAYOUTS, network_apply.STATE_APPLYING, network_apply.STATE_WAITING,
+             *network_apply.FINAL_STATES]
+    root = Path(network_apply.__file__).resolve().parents[2]
+    controller = [path for path in (root / "roslab/network").glob("*.py") if path.name != "apply.py"]
+    for path in [*controller, root / "deploy/network.py"]:
+        text = path.read_text()
+        for name in names:
+            assert f'"{name}"' not in text and f"'{name}'" not in text, (path.name, name)

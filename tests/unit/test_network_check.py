@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import re
 from ipaddress import IPv4Address, IPv4Interface
 
 import pytest
 from pyinfra.api import HiddenValue
 
 from deploy.network import DEFAULTS as NETWORK_DEFAULTS
-from roslab.netcheck import (
+from roslab.network.settings import (
     NetworkSettingError,
     check_classroom_network,
     manages_network,
@@ -229,3 +230,134 @@ def test_roster_wifi_host_with_its_secret_loads(tmp_path):
           wifi_password_secret: lab_wifi
         """)
     assert classroom.hosts[0].data["wifi_password"].unmask() == "correct horse"
+
+
+# Hostile values: what the network files cannot hold is refused, naming the field.
+
+
+@pytest.mark.parametrize(
+    "ssid",
+    ["lab\nnet", "lab\rnet", "lab\tnet", "lab\x00", "\x1b[31mred", "del\x7f", "nel\x85",
+     "line\u2028sep", "para\u2029sep", "surrogate\ud800", "x" * 33, "é" * 17],
+)
+def test_ssid_that_no_file_can_hold_is_refused(ssid):
+    with pytest.raises(NetworkSettingError) as caught:
+        network_settings(wifi(wifi_ssid=ssid))
+    assert caught.value.field == "wifi_ssid"
+    assert "not a valid SSID" in caught.value.message
+    assert "\n" not in caught.value.message and "\x1b" not in caught.value.message
+
+
+@pytest.mark.parametrize("ssid", [1234, True, ["robolab"], {"a": 1}, 1.5])
+def test_ssid_that_yaml_read_as_something_else_is_refused(ssid):
+    with pytest.raises(NetworkSettingError) as caught:
+        network_settings(wifi(wifi_ssid=ssid))
+    assert caught.value.field == "wifi_ssid" and "quote it" in caught.value.message
+
+
+@pytest.mark.parametrize(
+    "ssid",
+    ['Lab "A" — Café #2', "$(reboot)", "`id`", "it's", "a;b", "-dash", " spaced ", "x" * 32, "é" * 16],
+)
+def test_awkward_but_legal_ssid_is_kept_exactly(ssid):
+    assert network_settings(wifi(wifi_ssid=ssid)).wifi_ssid == ssid
+
+
+@pytest.mark.parametrize(
+    "interface",
+    ["eth0\n", "eth0\nrenderer: x", "-eth0", "--help", ".", "..", ".hidden", "eth0;reboot", "$(reboot)",
+     "`id`", "eth'0", "eth\x27", 'eth"0', "eth 0", "eth/0", "eth:0", "eth\\0", "x" * 16, "", "é", 5,
+     ["eth0"]],
+)
+def test_interface_that_is_not_a_plain_name_is_refused(interface):
+    with pytest.raises(NetworkSettingError) as caught:
+        network_settings(settings(network_interface=interface))
+    assert caught.value.field == "network_interface"
+    assert "not an interface name" in caught.value.message
+
+
+@pytest.mark.parametrize("interface", ["eth0", "wlan0", "enp0s31f6", "br-lab", "eth0.100", "_x", "x" * 15])
+def test_plain_interface_names_are_accepted(interface):
+    assert network_settings(settings(network_interface=interface)).interface == interface
+
+
+@pytest.mark.parametrize(
+    "password",
+    ["Zq9Kx7Wm\n", "Zq9K\nx7Wm", "Zq9K\tx7Wm", "Zq9Kx7Wmä", "Zq9K\x00x7Wm", "\x1b[2JZq9Kx7Wm",
+     "Zq9K", "Zq9K" * 16, "ab" * 31 + "zz", 12345678],
+)
+def test_password_that_is_not_a_wpa_password_is_refused_without_quoting_it(password):
+    with pytest.raises(NetworkSettingError) as caught:
+        network_settings(wifi(wifi_password=HiddenValue(password)))
+    assert caught.value.field == "wifi_password_secret"
+    message = str(caught.value)
+    assert "lab_wifi" in message
+    for part in re.split(r"[\x00-\x1f]", str(password)):
+        assert len(part) < 4 or part not in message
+
+
+@pytest.mark.parametrize("password", ["$(reboot) `id`", " spaces at both ends ", "it's \"q\";#=", "Ab" * 32])
+def test_awkward_but_legal_password_is_kept_exactly(password):
+    assert network_settings(wifi(wifi_password=HiddenValue(password))).password == password
+
+
+@pytest.mark.parametrize(
+    "nameservers",
+    [["fe80::1%eth0"], ["fe80::1%\n[connection]"], ["1.1.1.1\nx"], ["1.1.1.1;8.8.8.8"], [5], 5, {"a": 1}],
+)
+def test_nameserver_that_is_not_a_plain_address_is_refused(nameservers):
+    with pytest.raises(NetworkSettingError) as caught:
+        network_settings(settings(network_nameservers=nameservers))
+    assert caught.value.field == "network_nameservers"
+
+
+WEIRD_VALUES = [None, "", 0, 1, -1, True, False, 1.5, [], ["x"], [None], {}, {"a": 1}, "x\ny",
+                "\ud800", "$(reboot)", HiddenValue("x")]
+
+
+@pytest.mark.parametrize("key", sorted(set(NETWORK_DEFAULTS) | {"wifi_password", "wifi_ssid"}))
+def test_any_value_of_any_key_is_a_setting_error_or_accepted_never_a_crash(key):
+    for base in (settings(), wifi(), settings(network_method="dhcp", network_address=None)):
+        for value in WEIRD_VALUES:
+            try:
+                network_settings({**base, key: value})
+            except NetworkSettingError:
+                pass
+
+
+class Report:
+    def __init__(self):
+        self.errors = []
+
+    def error(self, message, **where):
+        self.errors.append((message, where))
+
+
+def test_validate_roster_reports_and_never_raises(monkeypatch):
+    from types import SimpleNamespace
+
+    from roslab.network import settings as network_settings_module
+
+    hosts = [
+        SimpleNamespace(team="t1", name="a", address="10.0.0.5", lines={"wifi_ssid": 7},
+                        data={**wifi(wifi_ssid="bad\nssid")}),
+        SimpleNamespace(team="t1", name="b", address="10.0.0.6", lines={},
+                        data={**settings(network_interface=["eth0"], network_address="192.168.50.12/24")}),
+    ]
+    report = Report()
+    network_settings_module.validate_roster(SimpleNamespace(hosts=hosts), report)
+    assert [(where["host"], where["field"], where["line"]) for _, where in report.errors] == [
+        ("a", "wifi_ssid", 7), ("b", "network_interface", None)]
+
+    def broken(data):
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(network_settings_module, "network_settings", broken)
+    report = Report()
+    network_settings_module.validate_roster(SimpleNamespace(hosts=hosts), report)
+    assert [where["host"] for _, where in report.errors] == ["a", "b"]
+    assert all("a bug" in message for message, _ in report.errors)
+
+    report = Report()
+    network_settings_module.validate_roster(SimpleNamespace(hosts=None), report)  # not even a classroom
+    assert len(report.errors) == 1 and "could not be checked" in report.errors[0][0]

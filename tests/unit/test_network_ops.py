@@ -13,9 +13,11 @@ from pyinfra.api import FunctionCommand, StringCommand
 from pyinfra.facts.files import File, Sha256File
 
 from deploy.network import network
-from roslab import netstate, network_ops
-from roslab.network_ops import MaskedFileContents, NetplanFilesConfiguring, NetworkRenderer
-from roslab.network_render import RendererFacts
+from roslab.network import confirm as network_confirm
+from roslab.network import state as network_state
+from roslab.network.apply import NETPLAN_NM, NM_KEYFILE, Plan
+from roslab.network.operation import MaskedFileContents, NetplanFilesConfiguring, NetworkRenderer
+from roslab.network.render import RendererFacts
 from roslab.secrets import Secret
 from fixtures.fake_host import plan
 
@@ -98,10 +100,11 @@ def test_first_run_stages_validates_and_launches_detached_apply():
         "/run/roslab/network/plan.json", "/run/roslab/network/network_apply.py",
     }
     assert yaml.safe_load(uploads[STAGED + NETPLAN])["network"]["ethernets"]["eth0"]["addresses"] == ["10.0.0.11/24"]
-    plan_file = json.loads(uploads["/run/roslab/network/plan.json"])
-    assert plan_file["files"] == [NETPLAN, DISABLE]
-    assert plan_file["superseded"] == [CLOUD_INIT]
-    assert plan_file["expect_address"] == "10.0.0.11/24" and plan_file["gateway"] == "10.0.0.1"
+    # The plan is one the on-host script accepts (Plan.from_json checks every field).
+    plan_file = Plan.from_json(uploads["/run/roslab/network/plan.json"])
+    assert plan_file.files == (NETPLAN, DISABLE)
+    assert plan_file.superseded == (CLOUD_INIT,)
+    assert plan_file.expect_address == "10.0.0.11/24" and plan_file.gateway == "10.0.0.1"
     # Validation comes before the change, and the change runs outside the SSH session.
     validate = commands.index("python3 /run/roslab/network/network_apply.py validate /run/roslab/network/plan.json")
     launch = next(i for i, c in enumerate(commands) if "systemd-run --unit=roslab-network-apply" in c)
@@ -110,7 +113,7 @@ def test_first_run_stages_validates_and_launches_detached_apply():
     assert isinstance(confirm, FunctionCommand)
     assert confirm.kwargs["new_address"] == "10.0.0.11"
     assert confirm.kwargs["old_address"] == "10.0.0.200"
-    assert confirm.kwargs["token"] == plan_file["token"]
+    assert confirm.kwargs["token"] == plan_file.token
 
 
 def test_second_run_changes_nothing():
@@ -124,7 +127,7 @@ def test_second_run_changes_nothing():
 def test_leftover_cloud_init_file_alone_triggers_a_change():
     first = run_network(files={CLOUD_INIT: "x"}).uploads()
     files = {NETPLAN: first[STAGED + NETPLAN], DISABLE: first[STAGED + DISABLE], CLOUD_INIT: "x"}
-    assert json.loads(run_network(files=files).uploads()["/run/roslab/network/plan.json"])["superseded"] == [CLOUD_INIT]
+    assert Plan.from_json(run_network(files=files).uploads()["/run/roslab/network/plan.json"]).superseded == (CLOUD_INIT,)
 
 
 def test_other_netplan_files_for_the_interface_are_superseded_not_merged():
@@ -141,11 +144,11 @@ def test_other_netplan_files_for_the_interface_are_superseded_not_merged():
         "/etc/netplan/01-network-manager-all.yaml": "network:\n  renderer: NetworkManager\n",
         "/etc/netplan/90-NM-1234.yaml": "network:\n  ethernets:\n    eth0:\n      addresses: [10.0.0.200/24]\n",
     }
-    plan_file = json.loads(
+    plan_file = Plan.from_json(
         run_network(renderer=desktop_2404, files=files).uploads()["/run/roslab/network/plan.json"]
     )
-    assert plan_file["layout"] == "netplan-networkmanager"
-    assert plan_file["superseded"] == ["/etc/netplan/90-NM-1234.yaml"]
+    assert plan_file.layout == NETPLAN_NM
+    assert plan_file.superseded == ("/etc/netplan/90-NM-1234.yaml",)
 
 
 def test_same_content_wrong_mode_is_fixed_without_applying():
@@ -160,7 +163,7 @@ def test_desktop_2204_gets_a_networkmanager_keyfile():
     uploads = result.uploads()
     assert STAGED + KEYFILE in uploads and STAGED + NETPLAN not in uploads
     assert "address1=10.0.0.11/24,10.0.0.1" in uploads[STAGED + KEYFILE]
-    assert json.loads(uploads["/run/roslab/network/plan.json"])["layout"] == "networkmanager-keyfile"
+    assert Plan.from_json(uploads["/run/roslab/network/plan.json"]).layout == NM_KEYFILE
 
 
 def test_host_without_network_address_is_left_alone():
@@ -210,7 +213,7 @@ def test_diff_shows_the_change_with_the_password_masked(caplog):
         plan(network, facts(files={NETPLAN: old}), data={**HOST_DATA, **WIFI}, diff=True)
     printed = caplog.text
     assert "60-roslab.yaml" in printed
-    assert "+         - 10.0.0.11/24" in printed
+    assert '+         - "10.0.0.11/24"' in printed
     assert "********" in printed
     assert PASSWORD not in printed
 
@@ -234,7 +237,7 @@ class FakeConnector:
     def connect(self):
         address = self.data["ssh_hostname"]
         if not self.reachable(address):
-            raise network_ops.ConnectError(f"no route to {address}")
+            raise network_confirm.ConnectError(f"no route to {address}")
         self.connected_at.append(address)
         self.client = SimpleNamespace(close=lambda: None)
 
@@ -261,14 +264,14 @@ class FakeHost:
 
 @pytest.fixture
 def quick(monkeypatch):
-    monkeypatch.setattr(network_ops, "ROLLBACK_GRACE", 2)
-    monkeypatch.setattr(network_ops, "OLD_ADDRESS_PROBE_INTERVAL", 0)
-    monkeypatch.setattr(network_ops.time, "sleep", lambda seconds: None)
-    monkeypatch.setattr(network_ops, "_connector_arguments", lambda state, host: {"_sudo": True})
+    monkeypatch.setattr(network_confirm, "ROLLBACK_GRACE", 2)
+    monkeypatch.setattr(network_confirm, "OLD_ADDRESS_PROBE_INTERVAL", 0)
+    monkeypatch.setattr(network_confirm.time, "sleep", lambda seconds: None)
+    monkeypatch.setattr(network_confirm, "_connector_arguments", lambda state, host: {"_sudo": True})
 
 
 def confirm(host, tmp_path, timeout=1):
-    return network_ops.confirm_network_change(
+    return network_confirm.confirm_network_change(
         None, host, token="t0k", new_address="10.0.0.11", old_address="10.0.0.200",
         confirm_timeout=timeout, roster_path=str(tmp_path / "roster.yaml"),
     )
@@ -285,7 +288,7 @@ def test_confirmation_moves_the_connection_and_records_the_address(quick, tmp_pa
     assert confirm(host, tmp_path) is True
     assert connector.data["ssh_hostname"] == "10.0.0.11"
     assert ("10.0.0.11", "printf %s t0k > /run/roslab/network/confirmed") in host.commands
-    assert netstate.last_known_address(tmp_path / "roster.yaml", "team1-main") == "10.0.0.11"
+    assert network_state.last_known_address(tmp_path / "roster.yaml", "team1-main") == "10.0.0.11"
     assert "confirmed: reachable at 10.0.0.11" in host.messages[-1]
 
 
@@ -301,7 +304,7 @@ def test_unreachable_new_address_reports_the_rollback_at_the_old_address(quick, 
     assert not any(text.startswith("printf") for _, text in host.commands)
     assert host.messages[-1].startswith("Network change rolled back: the controller did not confirm")
     assert "reachable again at 10.0.0.200" in host.messages[-1]
-    assert netstate.last_known_address(tmp_path / "roster.yaml", "team1-main") is None
+    assert network_state.last_known_address(tmp_path / "roster.yaml", "team1-main") is None
 
 
 def test_status_of_an_earlier_run_is_not_mistaken_for_this_one(quick, tmp_path):

@@ -1,9 +1,14 @@
 #!/usr/bin/env python3
 """On-host network change with automatic rollback (uploaded and run by roslab).
 
-Standard library only: this file is copied to the host and run with the host's
-python3. The controller (roslab.network_ops) stages the new files and a plan
-(JSON) under the run directory, then:
+Standard library only, and no roslab imports: this file is copied to the host and
+run with the host's python3. It is also where the controller and the host agree:
+the layout names, the plan's fields (`Plan`), the status file's fields and states
+(`Status`) and the host's paths are defined here, once, and the controller's
+modules (roslab.network.render, .operation, .confirm) import them from here.
+
+The controller (roslab.network.operation) stages the new files and a plan (JSON)
+under the run directory, then:
 
     python3 network_apply.py validate PLAN   # over SSH: check staged files, change nothing
     systemd-run --unit=roslab-network-apply python3 network_apply.py apply PLAN
@@ -21,43 +26,153 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import socket
 import subprocess
 import sys
 import tempfile
 import time
-from pathlib import Path
+from dataclasses import asdict, dataclass, fields as dataclass_fields
+from pathlib import Path, PurePosixPath
 
-# Neighbour states meaning the gateway answered ARP (ip-neighbour(8)).
-NEIGHBOUR_ANSWERED = {"REACHABLE", "STALE", "DELAY", "PROBE", "PERMANENT", "NOARP"}
+# Layouts: who renders the configuration, and in which file.
+NETPLAN_NETWORKD = "netplan-networkd"  # Ubuntu Server: netplan, rendered by systemd-networkd
+NETPLAN_NM = "netplan-networkmanager"  # Ubuntu Desktop >= 23.10: NM profiles are netplan files
+NM_KEYFILE = "networkmanager-keyfile"  # Ubuntu Desktop 22.04: NM keyfiles
+LAYOUTS = (NETPLAN_NETWORKD, NETPLAN_NM, NM_KEYFILE)
 
-STATE_VALIDATING = "validating"
+# Where things are on the host.
+RUN_DIR = "/run/roslab/network"
+BACKUP_ROOT = "/var/backups/roslab/network"
+NETPLAN_DIR = "/etc/netplan"
+# Inside the run directory: the new files (by their target path), the status, the confirmation.
+STAGING_DIR = "staging"
+STATUS_FILE = "status.json"
+CONFIRMATION_FILE = "confirmed"
+# The systemd unit `apply` runs in (journalctl -u roslab-network-apply).
+APPLY_UNIT = "roslab-network-apply"
+
+# Linux interface names (dev_valid_name): 1 to 15 characters, no "/", ":" or whitespace.
+# Stricter here: no leading "-" or "." (an interface name is an argument to ip, nmcli
+# and networkctl, and "." and ".." are refused by the kernel).
+INTERFACE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,14}")
+
+# Status states, in the order a run goes through them.
 STATE_APPLYING = "applying"
 STATE_WAITING = "waiting-for-confirmation"
 STATE_CONFIRMED = "confirmed"
 STATE_ROLLED_BACK = "rolled-back"
 STATE_ROLLBACK_FAILED = "rollback-failed"
+FINAL_STATES = (STATE_CONFIRMED, STATE_ROLLED_BACK, STATE_ROLLBACK_FAILED)
+
+# Neighbour states meaning the gateway answered ARP (ip-neighbour(8)).
+NEIGHBOUR_ANSWERED = {"REACHABLE", "STALE", "DELAY", "PROBE", "PERMANENT", "NOARP"}
 
 
 class ApplyError(Exception):
     """The new configuration did not come up as planned."""
 
 
-def load_plan(path: str | Path) -> dict:
-    return json.loads(Path(path).read_text())
+def _absolute_path(path: object) -> bool:
+    if not isinstance(path, str) or "\0" in path:
+        return False
+    pure = PurePosixPath(path)
+    return pure.is_absolute() and ".." not in pure.parts
 
 
-def staged_path(plan: dict, target: str) -> Path:
+@dataclass(frozen=True)
+class Plan:
+    """What the controller asks of the host, uploaded as JSON beside this script."""
+
+    token: str  # this run's id: in the status file, and what the controller confirms with
+    layout: str  # one of LAYOUTS
+    interface: str
+    files: tuple[str, ...]  # target paths, installed in this order from the staging directory
+    superseded: tuple[str, ...]  # files moved away (into the backup)
+    expect_address: str | None  # the address the interface must get, e.g. "10.0.0.11/24"; None: DHCP
+    gateway: str | None  # must answer ARP on the interface; None: not checked
+    confirm_timeout: int  # seconds to wait for the controller's confirmation
+    run_dir: str = RUN_DIR
+    backup_root: str = BACKUP_ROOT
+    netplan_dir: str = NETPLAN_DIR
+
+    def __post_init__(self):
+        object.__setattr__(self, "files", tuple(self.files))
+        object.__setattr__(self, "superseded", tuple(self.superseded))
+        problems = []
+        if not isinstance(self.token, str) or not re.fullmatch(r"[0-9A-Za-z_-]{1,64}", self.token):
+            problems.append(f"token {self.token!r} is not a token")
+        if self.layout not in LAYOUTS:
+            problems.append(f"layout {self.layout!r} is not one of {', '.join(LAYOUTS)}")
+        if not isinstance(self.interface, str) or not INTERFACE_NAME.fullmatch(self.interface):
+            problems.append(f"interface {self.interface!r} is not an interface name")
+        for path in (*self.files, *self.superseded, self.run_dir, self.backup_root, self.netplan_dir):
+            if not _absolute_path(path):
+                problems.append(f"{path!r} is not an absolute path")
+        if isinstance(self.confirm_timeout, bool) or not isinstance(self.confirm_timeout, (int, float)) \
+                or self.confirm_timeout <= 0:
+            problems.append(f"confirm_timeout {self.confirm_timeout!r} is not a number of seconds")
+        if problems:
+            raise ValueError("bad plan: " + "; ".join(problems))
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), indent=2)
+
+    @classmethod
+    def from_json(cls, text: str) -> "Plan":
+        data = json.loads(text)
+        if not isinstance(data, dict):
+            raise ValueError("bad plan: not a JSON object")
+        unknown = set(data) - {field.name for field in dataclass_fields(cls)}
+        if unknown:
+            raise ValueError(f"bad plan: unknown fields {sorted(unknown)}")
+        try:
+            return cls(**data)
+        except TypeError as exc:  # a field missing
+            raise ValueError(f"bad plan: {exc}") from None
+
+
+@dataclass(frozen=True)
+class Status:
+    """How far a run got, in the run directory's status file (read by the controller)."""
+
+    token: str
+    state: str  # one of the STATE_* values
+    message: str = ""
+    backup: str | None = None  # the backup directory, once there is one
+
+    @property
+    def final(self) -> bool:
+        return self.state in FINAL_STATES
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self))
+
+    @classmethod
+    def from_json(cls, text: str | None, token: str) -> "Status | None":
+        """The status in `text` if it is run `token`'s; None if unreadable or another run's."""
+        try:
+            data = json.loads(text) if text else None
+            status = cls(**data) if isinstance(data, dict) else None
+        except (ValueError, TypeError):
+            return None
+        return status if status is not None and status.token == token else None
+
+
+def load_plan(path: str | Path) -> Plan:
+    return Plan.from_json(Path(path).read_text())
+
+
+def staged_path(plan: Plan, target: str) -> Path:
     """Where the controller uploaded the new content of `target`."""
-    return Path(plan["run_dir"]) / "staging" / target.lstrip("/")
+    return Path(plan.run_dir) / STAGING_DIR / target.lstrip("/")
 
 
-def write_status(plan: dict, state: str, message: str = "", **extra) -> None:
-    status = {"token": plan["token"], "state": state, "message": message, **extra}
-    path = Path(plan["run_dir"]) / "status.json"
+def write_status(plan: Plan, state: str, message: str = "", backup: str | None = None) -> None:
+    path = Path(plan.run_dir) / STATUS_FILE
     temporary = path.with_suffix(".tmp")
-    temporary.write_text(json.dumps(status))
+    temporary.write_text(Status(plan.token, state, message, backup).to_json())
     os.replace(temporary, path)
 
 
@@ -82,34 +197,34 @@ def _copy_private(source: Path, destination: Path, mode: int = 0o600) -> None:
 # Validation
 
 
-def validation_root(plan: dict) -> Path:
+def validation_root(plan: Plan) -> Path:
     """A staging root holding the netplan directory as it will be after the change."""
-    root = Path(plan["run_dir"]) / "validate"
+    root = Path(plan.run_dir) / "validate"
     shutil.rmtree(root, ignore_errors=True)
-    netplan_dir = Path(plan["netplan_dir"])
+    netplan_dir = Path(plan.netplan_dir)
     staged_netplan = root / str(netplan_dir).lstrip("/")
     staged_netplan.mkdir(parents=True, mode=0o700)
-    replaced = set(plan["superseded"]) | set(plan["files"])
+    replaced = set(plan.superseded) | set(plan.files)
     for existing in sorted(netplan_dir.glob("*.yaml")) if netplan_dir.is_dir() else []:
         if str(existing) not in replaced:
             _copy_private(existing, staged_netplan / existing.name)
-    for target in plan["files"]:
+    for target in plan.files:
         if Path(target).parent == netplan_dir:
             _copy_private(staged_path(plan, target), staged_netplan / Path(target).name)
     return root
 
 
-def validate(plan: dict) -> list[str]:
+def validate(plan: Plan) -> list[str]:
     """Check the staged files with the tools that will read them; return the problems."""
     problems = []
-    if plan["layout"] != "networkmanager-keyfile":
+    if plan.layout != NM_KEYFILE:
         root = validation_root(plan)
         result = run(["netplan", "generate", "--root-dir", str(root)])
         shutil.rmtree(root, ignore_errors=True)
         if result.returncode != 0:
             message = (result.stderr or result.stdout).strip().replace(str(root), "")
             problems.append(f"netplan generate rejected the new configuration: {message}")
-    for target in plan["files"]:
+    for target in plan.files:
         if target.endswith(".nmconnection"):
             problems.extend(check_keyfile(staged_path(plan, target), target))
     return problems
@@ -134,14 +249,14 @@ def check_keyfile(path: Path, target: str) -> list[str]:
 # Backup, install, restore
 
 
-def backup(plan: dict) -> Path:
+def backup(plan: Plan) -> Path:
     """Copy every file the change replaces or creates into a new backup directory."""
     stamp = time.strftime("%Y%m%dT%H%M%S")
-    directory = Path(plan["backup_root"]) / f"{stamp}-{plan['token'][:8]}"
+    directory = Path(plan.backup_root) / f"{stamp}-{plan.token[:8]}"
     directory.mkdir(parents=True, mode=0o700)
-    os.chmod(plan["backup_root"], 0o700)
+    os.chmod(plan.backup_root, 0o700)
     manifest = {}
-    for target in list(plan["files"]) + list(plan["superseded"]):
+    for target in plan.files + plan.superseded:
         source = Path(target)
         manifest[target] = source.exists()
         if source.exists():
@@ -151,16 +266,16 @@ def backup(plan: dict) -> Path:
     return directory
 
 
-def install(plan: dict) -> None:
+def install(plan: Plan) -> None:
     """Put the staged files in place (root-owned, 0600) and move superseded files away."""
-    for target in plan["files"]:
+    for target in plan.files:
         _copy_private(staged_path(plan, target), Path(target))
-    for superseded in plan["superseded"]:
+    for superseded in plan.superseded:
         # Already copied into the backup directory by backup().
         Path(superseded).unlink(missing_ok=True)
 
 
-def restore(plan: dict, backup_dir: Path) -> None:
+def restore(plan: Plan, backup_dir: Path) -> None:
     """Put every file back as it was before install()."""
     manifest = json.loads((backup_dir / "manifest.json").read_text())
     for target, existed in manifest.items():
@@ -195,15 +310,14 @@ def _first_success(attempts: list[list[list[str]]]) -> str | None:
     return "; ".join(errors)
 
 
-def apply_commands(plan: dict) -> list[list[list[str]]]:
+def apply_commands(plan: Plan) -> list[list[list[str]]]:
     """Ways to make the installed files take effect, best first.
 
     On Ubuntu `netplan apply` is the right tool. Where it cannot run (containers:
     its `udevadm trigger` fails on a read-only /sys) the same result comes from
     `netplan generate` and asking the renderer to reload and reconfigure the link.
     """
-    interface = plan["interface"]
-    layout = plan["layout"]
+    interface = plan.interface
     # `netplan apply` stops NetworkManager before its udev trigger; when the trigger fails
     # NetworkManager stays stopped, so the fallbacks (re)start it rather than only asking
     # a daemon that may be gone to reload. The rollback takes the same path back.
@@ -211,12 +325,12 @@ def apply_commands(plan: dict) -> list[list[list[str]]]:
         ["systemctl", "restart", "NetworkManager"],
         ["nmcli", "--wait", "20", "device", "connect", interface],
     ]
-    if layout == "networkmanager-keyfile":
+    if plan.layout == NM_KEYFILE:
         return [
             [["nmcli", "connection", "reload"], ["nmcli", "device", "connect", interface]],
             restart_networkmanager,
         ]
-    if layout == "netplan-networkmanager":
+    if plan.layout == NETPLAN_NM:
         return [
             [["netplan", "apply"]],
             [["netplan", "generate"], *restart_networkmanager],
@@ -228,7 +342,7 @@ def apply_commands(plan: dict) -> list[list[list[str]]]:
     ]
 
 
-def apply_files(plan: dict) -> None:
+def apply_files(plan: Plan) -> None:
     error = _first_success(apply_commands(plan))
     if error:
         raise ApplyError(f"could not apply the configuration: {error}")
@@ -257,26 +371,23 @@ def gateway_answers(gateway: str, interface: str, wait: float = 6.0) -> bool:
     return False
 
 
-def check_running(plan: dict, wait: float) -> None:
+def check_running(plan: Plan, wait: float) -> None:
     """Raise ApplyError unless the interface has the planned address and the gateway answers."""
-    expected = plan.get("expect_address")
-    interface = plan["interface"]
-    if expected:
+    if plan.expect_address:
         deadline = time.monotonic() + wait
-        while expected not in interface_addresses(interface):
+        while plan.expect_address not in interface_addresses(plan.interface):
             if time.monotonic() > deadline:
-                raise ApplyError(f"{interface} did not get {expected} within {wait:.0f} s")
+                raise ApplyError(f"{plan.interface} did not get {plan.expect_address} within {wait:.0f} s")
             time.sleep(0.5)
-    gateway = plan.get("gateway")
-    if gateway and not gateway_answers(gateway, interface):
-        raise ApplyError(f"gateway {gateway} does not answer on {interface}")
+    if plan.gateway and not gateway_answers(plan.gateway, plan.interface):
+        raise ApplyError(f"gateway {plan.gateway} does not answer on {plan.interface}")
 
 
-def wait_for_confirmation(plan: dict, deadline: float) -> bool:
-    confirmation = Path(plan["run_dir"]) / "confirmed"
+def wait_for_confirmation(plan: Plan, deadline: float) -> bool:
+    confirmation = Path(plan.run_dir) / CONFIRMATION_FILE
     while time.monotonic() < deadline:
         try:
-            if confirmation.read_text().strip() == plan["token"]:
+            if confirmation.read_text().strip() == plan.token:
                 return True
         except FileNotFoundError:
             pass
@@ -284,10 +395,10 @@ def wait_for_confirmation(plan: dict, deadline: float) -> bool:
     return False
 
 
-def apply(plan: dict) -> int:
+def apply(plan: Plan) -> int:
     """Back up, install, apply, and keep the change only if the controller confirms it."""
-    deadline = time.monotonic() + plan["confirm_timeout"]
-    Path(plan["run_dir"], "confirmed").unlink(missing_ok=True)
+    deadline = time.monotonic() + plan.confirm_timeout
+    Path(plan.run_dir, CONFIRMATION_FILE).unlink(missing_ok=True)
     write_status(plan, STATE_APPLYING)
     try:
         backup_dir = backup(plan)
@@ -297,11 +408,11 @@ def apply(plan: dict) -> int:
     try:
         install(plan)
         apply_files(plan)
-        check_running(plan, wait=min(30.0, plan["confirm_timeout"] / 2))
+        check_running(plan, wait=min(30.0, plan.confirm_timeout / 2))
         write_status(plan, STATE_WAITING, backup=str(backup_dir))
         if not wait_for_confirmation(plan, deadline):
             raise ApplyError(
-                f"the controller did not confirm within {plan['confirm_timeout']} s "
+                f"the controller did not confirm within {plan.confirm_timeout} s "
                 "that it reaches the host at its new address"
             )
     except Exception as exc:  # any failure, even our own bug, must end in a rollback
@@ -318,7 +429,7 @@ def apply(plan: dict) -> int:
         write_status(plan, STATE_ROLLED_BACK, reason, backup=str(backup_dir))
         return 1
     write_status(plan, STATE_CONFIRMED, backup=str(backup_dir))
-    shutil.rmtree(Path(plan["run_dir"]) / "staging", ignore_errors=True)
+    shutil.rmtree(Path(plan.run_dir) / STAGING_DIR, ignore_errors=True)
     return 0
 
 
@@ -326,7 +437,11 @@ def main(argv: list[str]) -> int:
     if len(argv) != 3 or argv[1] not in ("validate", "apply"):
         print(f"usage: {argv[0]} validate|apply PLAN", file=sys.stderr)
         return 64
-    plan = load_plan(argv[2])
+    try:
+        plan = load_plan(argv[2])
+    except (OSError, ValueError) as exc:
+        print(f"{argv[2]}: {exc}", file=sys.stderr)
+        return 65
     if argv[1] == "validate":
         problems = validate(plan)
         for problem in problems:

@@ -1,18 +1,29 @@
 """Network settings: parsed, checked, and checked across the classroom.
 
-Used twice, like the distro mapping: the roster validator runs
-`check_classroom_network` before any host is touched (address inside its subnet,
-gateway inside it, no address used twice, a WiFi password from the secrets
-file), and the network deploy parses each host's data again with
-`network_settings` so a host's data can never reach a template unchecked.
+Used twice, like the distro mapping: the roster loader runs `validate_roster`
+before any host is touched (address inside its subnet, gateway inside it, no
+address used twice, a WiFi password from the secrets file), and the network
+deploy parses each host's data again with `network_settings` so a host's data can
+never reach a template unchecked.
+
+Every value is hostile until checked here. What the network files cannot hold is
+refused, naming the field: control characters and line breaks in the SSID, the
+password or the interface name, an interface name that could pass for an option,
+a nameserver with a scope suffix. What they can hold (an SSID with quotes, `#`,
+`;`, `$(...)` or unicode) is accepted here and escaped for each file format by
+roslab.network.render.
 """
 
 from __future__ import annotations
 
 import re
+import unicodedata
 from dataclasses import dataclass, field
 from ipaddress import IPv4Address, IPv4Interface, ip_address
 from typing import Any, Iterable, Mapping
+
+from roslab import settings as schema
+from roslab.network.apply import INTERFACE_NAME
 
 KINDS = ("ethernet", "wifi")
 METHODS = ("static", "dhcp")
@@ -20,12 +31,14 @@ BACKENDS = ("auto", "netplan", "networkmanager")
 IPV6_MODES = ("auto", "disabled", "ignore")
 DEFAULT_INTERFACES = {"ethernet": "eth0", "wifi": "wlan0"}
 
-# Linux interface names: at most 15 characters, no slash or whitespace.
-INTERFACE_NAME = re.compile(r"^[A-Za-z0-9_.:-]{1,15}$")
 # WPA-PSK: a passphrase of 8 to 63 printable ASCII characters, or 64 hex digits.
-WPA_PASSPHRASE = re.compile(r"^[\x20-\x7e]{8,63}$")
-WPA_HEX_KEY = re.compile(r"^[0-9A-Fa-f]{64}$")
-CONTROL_CHARACTERS = re.compile(r"[\x00-\x1f\x7f]")
+# (fullmatch: with `match`, `$` would also accept a trailing newline.)
+WPA_PASSPHRASE = re.compile(r"[\x20-\x7e]{8,63}")
+WPA_HEX_KEY = re.compile(r"[0-9A-Fa-f]{64}")
+SSID_MAX_BYTES = 32
+# Unicode categories an SSID may not contain: control characters (C0, DEL, C1),
+# surrogates (not UTF-8), and the line and paragraph separators (YAML line breaks).
+REFUSED_CATEGORIES = {"Cc", "Cs", "Zl", "Zp"}
 
 
 class NetworkSettingError(ValueError):
@@ -60,13 +73,17 @@ class NetworkSettings:
         """The WiFi password in clear, for the 0600 file only."""
         if self.wifi_password is None:
             return None
-        unmask = getattr(self.wifi_password, "unmask", None)
-        return unmask() if unmask else str(self.wifi_password)
+        return _unmask(self.wifi_password)
+
+
+def _unmask(secret: Any) -> Any:
+    unmask = getattr(secret, "unmask", None)
+    return unmask() if callable(unmask) else secret
 
 
 def _choice(data: Mapping, key: str, choices: tuple[str, ...]) -> str:
     value = data.get(key)
-    if value not in choices:
+    if not isinstance(value, str) or value not in choices:
         raise NetworkSettingError(key, f"{value!r} is not one of {', '.join(choices)}")
     return value
 
@@ -74,6 +91,8 @@ def _choice(data: Mapping, key: str, choices: tuple[str, ...]) -> str:
 def _address(data: Mapping) -> IPv4Interface:
     raw = str(data.get("network_address")).strip()
     prefix = data.get("network_prefix")
+    if isinstance(prefix, bool) or not isinstance(prefix, (int, str, type(None))):
+        raise NetworkSettingError("network_prefix", f"{prefix!r} is not a prefix length")
     try:
         if "/" in raw:
             address = IPv4Interface(raw)
@@ -87,14 +106,14 @@ def _address(data: Mapping) -> IPv4Interface:
             if prefix is None:
                 raise NetworkSettingError(
                     "network_address",
-                    f"{raw} has no prefix length: write e.g. {raw}/24 or set network_prefix",
+                    f"{raw!r} has no prefix length: write e.g. {raw}/24 or set network_prefix",
                 )
             address = IPv4Interface(f"{raw}/{int(prefix)}")
     except NetworkSettingError:
         raise
     except ValueError as exc:
         field_name = "network_prefix" if "/" not in raw and prefix is not None else "network_address"
-        raise NetworkSettingError(field_name, f"{raw!r} is not an IPv4 address with prefix ({exc})")
+        raise NetworkSettingError(field_name, f"{raw!r} is not an IPv4 address with prefix ({exc})") from None
 
     network = address.network
     if network.prefixlen < 8:
@@ -126,13 +145,21 @@ def _gateway(data: Mapping, address: IPv4Interface | None) -> IPv4Address | None
 
 
 def _nameservers(data: Mapping) -> tuple[str, ...]:
-    raw = data.get("network_nameservers") or []
-    if isinstance(raw, str):
+    raw = data.get("network_nameservers")
+    if raw is None:
+        raw = []
+    elif isinstance(raw, str):
         raw = [raw]
+    elif not isinstance(raw, (list, tuple)):
+        raise NetworkSettingError("network_nameservers", f"{raw!r} is not a list of IP addresses")
     servers = []
     for server in raw:
+        text = str(server).strip() if isinstance(server, str) else None
         try:
-            servers.append(str(ip_address(str(server).strip())))
+            # No scope suffix (fe80::1%eth0): it could hold anything, and no file here needs it.
+            if text is None or "%" in text:
+                raise ValueError(text)
+            servers.append(str(ip_address(text)))
         except ValueError:
             raise NetworkSettingError(
                 "network_nameservers", f"{server!r} is not an IP address"
@@ -140,16 +167,41 @@ def _nameservers(data: Mapping) -> tuple[str, ...]:
     return tuple(servers)
 
 
-def _wifi(data: Mapping) -> tuple[str, Any]:
-    ssid = data.get("wifi_ssid")
-    if not ssid:
-        raise NetworkSettingError("wifi_ssid", "a wifi host needs wifi_ssid")
-    ssid = str(ssid)
-    if len(ssid.encode()) > 32 or CONTROL_CHARACTERS.search(ssid):
+def _interface(data: Mapping, kind: str) -> str:
+    interface = data.get("network_interface")
+    if interface is None:
+        return DEFAULT_INTERFACES[kind]
+    if not isinstance(interface, str) or not INTERFACE_NAME.fullmatch(interface):
         raise NetworkSettingError(
-            "wifi_ssid", f"{ssid!r} is not a valid SSID (at most 32 bytes, no control characters)"
+            "network_interface",
+            f"{interface!r} is not an interface name (1 to 15 letters, digits, '_', '.' "
+            "or '-', not starting with '-' or '.')",
         )
-    if not data.get("wifi_password_secret"):
+    return interface
+
+
+def _ssid(data: Mapping) -> str:
+    ssid = data.get("wifi_ssid")
+    if ssid is None or ssid == "":
+        raise NetworkSettingError("wifi_ssid", "a wifi host needs wifi_ssid")
+    if not isinstance(ssid, str):
+        raise NetworkSettingError("wifi_ssid", f"{ssid!r} is not text: quote it in the roster")
+    refused = sorted({f"U+{ord(c):04X}" for c in ssid if unicodedata.category(c) in REFUSED_CATEGORIES})
+    if refused:
+        raise NetworkSettingError(
+            "wifi_ssid",
+            f"{ssid!r} is not a valid SSID: no control characters or line breaks ({', '.join(refused)})",
+        )
+    if len(ssid.encode()) > SSID_MAX_BYTES:
+        raise NetworkSettingError(
+            "wifi_ssid", f"{ssid!r} is not a valid SSID: at most {SSID_MAX_BYTES} bytes of UTF-8"
+        )
+    return ssid
+
+
+def _wifi_password(data: Mapping) -> Any:
+    name = data.get("wifi_password_secret")
+    if not name:
         raise NetworkSettingError(
             "wifi_password_secret",
             "a wifi host needs wifi_password_secret naming the WiFi password in the secrets file",
@@ -157,18 +209,21 @@ def _wifi(data: Mapping) -> tuple[str, Any]:
     password = data.get("wifi_password")
     if password is None:
         raise NetworkSettingError(
-            "wifi_password_secret",
-            f"secret {data.get('wifi_password_secret')!r} was not found in the secrets file",
+            "wifi_password_secret", f"secret {name!r} was not found in the secrets file"
         )
-    clear = password.unmask() if hasattr(password, "unmask") else str(password)
-    if not (WPA_PASSPHRASE.match(clear) or WPA_HEX_KEY.match(clear)):
-        # Never quote the password itself.
+    clear = _unmask(password)
+    # Never quote the password itself, not even a part of it.
+    if not isinstance(clear, str):
+        raise NetworkSettingError(
+            "wifi_password_secret", f"secret {name!r} is not text: quote it in the secrets file"
+        )
+    if not (WPA_PASSPHRASE.fullmatch(clear) or WPA_HEX_KEY.fullmatch(clear)):
         raise NetworkSettingError(
             "wifi_password_secret",
-            f"secret {data.get('wifi_password_secret')!r} is not a WPA password "
-            f"(8 to 63 printable ASCII characters, or 64 hex digits; it has {len(clear)})",
+            f"secret {name!r} is not a WPA password (8 to 63 printable ASCII characters, "
+            f"no line breaks or control characters, or 64 hex digits; it has {len(clear)} characters)",
         )
-    return ssid, password
+    return password
 
 
 def manages_network(data: Mapping) -> bool:
@@ -181,7 +236,8 @@ def manages_network(data: Mapping) -> bool:
 def network_settings(data: Mapping) -> NetworkSettings | None:
     """Parse and check one host's network settings; None if the host's network is left alone.
 
-    Raises NetworkSettingError naming the field for any bad value.
+    Raises NetworkSettingError naming the field for any bad value (and nothing else,
+    whatever the types in `data`).
     """
     if not manages_network(data):
         return None
@@ -189,29 +245,29 @@ def network_settings(data: Mapping) -> NetworkSettings | None:
     method = _choice(data, "network_method", METHODS)
     backend = _choice(data, "network_backend", BACKENDS)
     ipv6 = _choice(data, "network_ipv6", IPV6_MODES)
-
-    interface = data.get("network_interface") or DEFAULT_INTERFACES[kind]
-    if not INTERFACE_NAME.match(str(interface)):
-        raise NetworkSettingError("network_interface", f"{interface!r} is not an interface name")
+    interface = _interface(data, kind)
 
     address = _address(data) if method == "static" else None
-    if method == "static" and address is None:
-        raise NetworkSettingError("network_address", "a static address is required")
     gateway = _gateway(data, address)
     nameservers = _nameservers(data)
 
-    ssid, password = _wifi(data) if kind == "wifi" else (None, None)
+    ssid, password = (_ssid(data), _wifi_password(data)) if kind == "wifi" else (None, None)
 
     timeout = data.get("network_confirm_timeout")
     if isinstance(timeout, bool) or not isinstance(timeout, int) or not 10 <= timeout <= 3600:
         raise NetworkSettingError(
             "network_confirm_timeout", f"{timeout!r} is not a number of seconds from 10 to 3600"
         )
+    disable_cloud_init = data.get("network_disable_cloud_init", True)
+    if not isinstance(disable_cloud_init, bool):
+        raise NetworkSettingError(
+            "network_disable_cloud_init", f"{disable_cloud_init!r} is not true or false"
+        )
 
     return NetworkSettings(
         kind=kind,
         method=method,
-        interface=str(interface),
+        interface=interface,
         backend=backend,
         ipv6=ipv6,
         address=address,
@@ -220,7 +276,7 @@ def network_settings(data: Mapping) -> NetworkSettings | None:
         wifi_ssid=ssid,
         wifi_password=password,
         confirm_timeout=timeout,
-        disable_cloud_init=bool(data.get("network_disable_cloud_init", True)),
+        disable_cloud_init=disable_cloud_init,
     )
 
 
@@ -230,7 +286,7 @@ class NetworkProblem:
 
     team: str | None
     host: str
-    field: str
+    field: str | None
     message: str
 
 
@@ -254,6 +310,9 @@ def check_classroom_network(
             settings = network_settings(data)
         except NetworkSettingError as exc:
             problems.append(NetworkProblem(team, name, exc.field, exc.message))
+            continue
+        except Exception as exc:  # a bug here must not hide the host's problem, or stop the loader
+            problems.append(NetworkProblem(team, name, None, f"network settings not checked: {exc!r}"))
             continue
         if settings is None or settings.address is None:
             continue
@@ -286,20 +345,25 @@ def check_classroom_network(
 def validate_roster(classroom, report) -> None:
     """Roster validator (run by roslab.roster.load_roster): every host's network settings.
 
-    The roster loader already reports two hosts with one network_address.
+    Reports each problem with `report.error(...)` and never raises. The roster
+    loader already reports two hosts with one network_address.
     """
-    from deploy.network import DEFAULTS  # the deploy's defaults fill what the roster leaves out
-
-    hosts = [
-        (host.team, host.name, {**DEFAULTS, **host.data, "address": host.address})
-        for host in classroom.hosts
-    ]
-    lines = {host.name: host.lines for host in classroom.hosts}
-    for problem in check_classroom_network(hosts, check_duplicates=False):
+    try:
+        defaults = schema.defaults("network")  # what the roster leaves out (the loader merges them too)
+        hosts = [
+            (host.team, host.name, {**defaults, **host.data, "address": host.address})
+            for host in classroom.hosts
+        ]
+        lines = {host.name: host.lines for host in classroom.hosts}
+        problems = check_classroom_network(hosts, check_duplicates=False)
+    except Exception as exc:  # never raise: the loader reports every problem at once
+        report.error(f"the network settings could not be checked: {exc!r}")
+        return
+    for problem in problems:
         report.error(
             problem.message,
             team=problem.team,
             host=problem.host,
             field=problem.field,
-            line=lines[problem.host].get(problem.field),
+            line=(lines.get(problem.host) or {}).get(problem.field) if problem.field else None,
         )

@@ -34,9 +34,14 @@ def _load(path: Path) -> dict[str, str]:
     return {str(name): str(address) for name, address in data.items()}
 
 
+def last_known_addresses(roster_path: str | os.PathLike) -> dict[str, str]:
+    """Every recorded host's last confirmed address (one read for the whole classroom)."""
+    return _load(addresses_path(roster_path))
+
+
 def last_known_address(roster_path: str | os.PathLike, host: str) -> str | None:
     """The address `host` was last confirmed at by the network deploy, or None."""
-    return _load(addresses_path(roster_path)).get(host)
+    return last_known_addresses(roster_path).get(host)
 
 
 def record_address(roster_path: str | os.PathLike, host: str, address: str) -> None:

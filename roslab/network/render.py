@@ -1,37 +1,32 @@
 """What a host's network files should contain, and which files they are.
 
-Pure functions from checked settings (`roslab.netcheck.NetworkSettings`) and
-host facts to file contents, so every combination is unit-tested without a host:
+Pure functions from checked settings (`roslab.network.settings.NetworkSettings`)
+and host facts to file contents, so every combination is unit-tested without a host:
 
 - which renderer is in charge and which file format it reads (`choose_layout`);
 - the netplan file, the NetworkManager keyfile, cloud-init's disable file;
+- the escaping each format needs (`yaml_string`, `keyfile_string`, `keyfile_ssid`,
+  `keyfile_list`, from roslab.quoting): the templates do no quoting of their own, and
+  every value they print comes from `netplan_values` or `keyfile_values`, escaped;
 - `mask_secrets`, the one place that hides a WiFi password in anything printed.
 """
 
 from __future__ import annotations
 
-import json
 import re
 import uuid
 from dataclasses import dataclass
-from pathlib import Path
 
-import jinja2
-
-from roslab.netcheck import NetworkSettings
-
-TEMPLATES = Path(__file__).resolve().parent.parent / "templates"
+from roslab.network.apply import NETPLAN_DIR, NETPLAN_NETWORKD, NETPLAN_NM, NM_KEYFILE
+from roslab.network.settings import NetworkSettings
+from roslab.quoting import keyfile_list, keyfile_ssid, keyfile_string, yaml_string  # noqa: F401
+from roslab.templating import render
 
 # Sorts after 50-cloud-init.yaml and before NetworkManager's 90-NM-*.yaml profiles.
-NETPLAN_FILE = "/etc/netplan/60-roslab.yaml"
+NETPLAN_FILE = f"{NETPLAN_DIR}/60-roslab.yaml"
 KEYFILE_DIR = "/etc/NetworkManager/system-connections"
-CLOUD_INIT_FILE = "/etc/netplan/50-cloud-init.yaml"
+CLOUD_INIT_FILE = f"{NETPLAN_DIR}/50-cloud-init.yaml"
 CLOUD_INIT_DISABLE_FILE = "/etc/cloud/cloud.cfg.d/99-disable-network-config.cfg"
-
-# Layouts: who renders the configuration, and in which file.
-NETPLAN_NETWORKD = "netplan-networkd"  # Ubuntu Server: netplan, rendered by systemd-networkd
-NETPLAN_NM = "netplan-networkmanager"  # Ubuntu Desktop >= 23.10: NM profiles are netplan files
-NM_KEYFILE = "networkmanager-keyfile"  # Ubuntu Desktop 22.04: NM keyfiles
 
 MASK = "********"
 # `password: ...` (netplan) and `psk=...` (keyfile): the value is masked, the key kept.
@@ -45,34 +40,9 @@ def mask_secrets(text: str) -> str:
     return _SECRET_LINE.sub(lambda match: match.group(1) + MASK, text)
 
 
-def _yaml_string(value: str) -> str:
-    # A JSON string is a valid YAML double-quoted scalar.
-    return json.dumps(str(value), ensure_ascii=False)
-
-
-def _keyfile_string(value: str) -> str:
-    # GLib key file escapes (nm-settings-keyfile(5) reads values with g_key_file).
-    escaped = str(value).replace("\\", "\\\\").replace("\t", "\\t").replace("\n", "\\n")
-    if escaped.startswith(" "):
-        escaped = "\\s" + escaped[1:]
-    return escaped
-
-
-_environment = jinja2.Environment(
-    loader=jinja2.FileSystemLoader(str(TEMPLATES)),
-    undefined=jinja2.StrictUndefined,
-    trim_blocks=True,
-    lstrip_blocks=True,
-    keep_trailing_newline=True,
-    autoescape=False,
-)
-_environment.filters["yaml_string"] = _yaml_string
-_environment.filters["keyfile_string"] = _keyfile_string
-
-
 @dataclass(frozen=True)
 class RendererFacts:
-    """What a host shows about who manages its network (see network_ops.NetworkRenderer)."""
+    """What a host shows about who manages its network (see operation.NetworkRenderer)."""
 
     networkmanager_active: bool = False
     networkd_active: bool = False
@@ -153,41 +123,63 @@ def keyfile_path(settings: NetworkSettings) -> str:
     return f"{KEYFILE_DIR}/{connection_id(settings)}.nmconnection"
 
 
-def _variables(settings: NetworkSettings) -> dict:
+def netplan_values(settings: NetworkSettings, renderer: str) -> dict:
+    """The netplan template's variables: every value it prints is a YAML double-quoted
+    scalar; `kind`, `method` and `ipv6` (checked choices) are for its conditions only."""
+    password = settings.password
     return {
         "kind": settings.kind,
         "method": settings.method,
-        "interface": settings.interface,
-        "address": str(settings.address) if settings.address else None,
-        "gateway": str(settings.gateway) if settings.gateway else None,
-        "nameservers": list(settings.nameservers),
         "ipv6": settings.ipv6,
-        "ssid": settings.wifi_ssid,
-        "password": settings.password,
+        "renderer": yaml_string(renderer),
+        "interface": yaml_string(settings.interface),
+        "address": yaml_string(settings.address) if settings.address else None,
+        "gateway": yaml_string(settings.gateway) if settings.gateway else None,
+        "nameservers": [yaml_string(server) for server in settings.nameservers],
+        "ssid": yaml_string(settings.wifi_ssid) if settings.wifi_ssid is not None else None,
+        "password": yaml_string(password) if password is not None else None,
     }
 
 
-def render_netplan(settings: NetworkSettings, renderer: str) -> str:
-    return _environment.get_template("netplan.yaml.j2").render(renderer=renderer, **_variables(settings))
-
-
-def render_keyfile(settings: NetworkSettings) -> str:
+def keyfile_values(settings: NetworkSettings) -> dict:
+    """The keyfile template's variables: every value it prints is escaped as GKeyFile (and,
+    for the SSID, NetworkManager) reads it; `kind` and `method` are for its conditions only."""
     # A fixed UUID per interface, so a re-render is byte-identical (idempotent).
     profile_uuid = uuid.uuid5(uuid.NAMESPACE_URL, f"roslab:network:{settings.interface}")
     # NetworkManager keeps DNS servers per address family (it drops IPv6 ones from ipv4.dns).
     ipv4_nameservers = [server for server in settings.nameservers if ":" not in server]
     ipv6_nameservers = [server for server in settings.nameservers if ":" in server]
-    return _environment.get_template("nm-connection.nmconnection.j2").render(
-        connection_id=connection_id(settings),
-        uuid=profile_uuid,
-        ipv4_nameservers=ipv4_nameservers,
-        ipv6_nameservers=ipv6_nameservers,
-        **_variables(settings),
-    )
+    address = None
+    if settings.address is not None:
+        address = keyfile_string(settings.address)
+        if settings.gateway is not None:
+            address += "," + keyfile_string(settings.gateway)
+    password = settings.password
+    return {
+        "kind": settings.kind,
+        "method": settings.method,
+        "connection_id": keyfile_string(connection_id(settings)),
+        "uuid": keyfile_string(profile_uuid),
+        "interface": keyfile_string(settings.interface),
+        "address": address,
+        "ipv4_dns": keyfile_list(ipv4_nameservers) if ipv4_nameservers else None,
+        "ipv6_dns": keyfile_list(ipv6_nameservers) if ipv6_nameservers else None,
+        "ipv6_method": keyfile_string(settings.ipv6),
+        "ssid": keyfile_ssid(settings.wifi_ssid) if settings.wifi_ssid is not None else None,
+        "password": keyfile_string(password) if password is not None else None,
+    }
+
+
+def render_netplan(settings: NetworkSettings, renderer: str) -> str:
+    return render("netplan.yaml.j2", **netplan_values(settings, renderer))
+
+
+def render_keyfile(settings: NetworkSettings) -> str:
+    return render("nm-connection.nmconnection.j2", **keyfile_values(settings))
 
 
 def render_cloud_init_disable() -> str:
-    return _environment.get_template("cloud-init-disable-network.cfg.j2").render()
+    return render("cloud-init-disable-network.cfg.j2")
 
 
 @dataclass(frozen=True)

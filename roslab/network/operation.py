@@ -1,0 +1,236 @@
+"""The pyinfra operation that moves a host's network without locking anyone out, and its facts.
+
+`network_in_effect` compares the files a host should have with what it has. If
+they differ it stages the new files (0600, in a 0700 directory), validates them
+on the host, then starts `network_apply.py apply` (roslab.network.apply) with
+systemd-run, detached from the SSH session, and finally (on the controller, at
+execution time) `roslab.network.confirm.confirm_network_change` connects to the
+host's new address, confirms, and moves pyinfra's connection there so the rest
+of the deploy runs at the new address. Without a confirmation the host restores
+its old files itself; the controller reports that and fails the host.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import shlex
+from io import StringIO
+from pathlib import Path
+from uuid import uuid4
+
+from pyinfra import host, logger, state
+from pyinfra.api import FactBase, FunctionCommand, OperationError, QuoteString, StringCommand, operation
+from pyinfra.api.command import FileUploadCommand
+from pyinfra.facts.files import File, Sha256File
+from pyinfra.operations.util.files import generate_color_diff
+
+from roslab.network import apply
+from roslab.network.apply import APPLY_UNIT, BACKUP_ROOT, NETPLAN_DIR, RUN_DIR, STAGING_DIR, Plan
+from roslab.network.confirm import confirm_network_change
+from roslab.network.render import (
+    SED_MASK_SECRETS,
+    RendererFacts,
+    choose_layout,
+    desired_files,
+    mask_secrets,
+)
+from roslab.network.settings import NetworkSettings
+
+APPLY_SCRIPT = Path(apply.__file__)
+# Where the script and the plan go on the host.
+SCRIPT_PATH = f"{RUN_DIR}/network_apply.py"
+PLAN_PATH = f"{RUN_DIR}/plan.json"
+
+
+class NetworkRenderer(FactBase):
+    """Who manages the host's network, and whether cloud-init writes it.
+
+    Returns ``{"renderer": RendererFacts(...), "cloud_init": bool}``.
+    """
+
+    def command(self) -> str:
+        return (
+            "echo networkmanager=$(systemctl is-active NetworkManager 2>/dev/null); "
+            "echo networkd=$(systemctl is-active systemd-networkd 2>/dev/null); "
+            "if command -v netplan >/dev/null 2>&1; then echo netplan=yes; fi; "
+            f"if grep -qsiE '^[[:space:]]*renderer:[[:space:]]*\"?NetworkManager' {NETPLAN_DIR}/*.yaml; "
+            "then echo nm_renderer=yes; fi; "
+            f"if ls {NETPLAN_DIR}/90-NM-*.yaml >/dev/null 2>&1; then echo nm_profiles=yes; fi; "
+            f"if [ -d /etc/cloud ] || [ -e {NETPLAN_DIR}/50-cloud-init.yaml ]; then echo cloud_init=yes; fi; "
+            "(. /etc/os-release && echo version=$VERSION_ID)"
+        )
+
+    def process(self, output):
+        values = dict(line.split("=", 1) for line in output if "=" in line)
+        renderer = RendererFacts(
+            networkmanager_active=values.get("networkmanager") == "active",
+            networkd_active=values.get("networkd") == "active",
+            netplan_installed=values.get("netplan") == "yes",
+            netplan_nm_renderer=values.get("nm_renderer") == "yes",
+            netplan_nm_profiles=values.get("nm_profiles") == "yes",
+            ubuntu_version=values.get("version") or None,
+        )
+        return {"renderer": renderer, "cloud_init": values.get("cloud_init") == "yes"}
+
+
+class NetplanFilesConfiguring(FactBase):
+    """The netplan files in /etc/netplan that configure this interface, as paths.
+
+    netplan merges every file, so another file that sets addresses for the same
+    interface (a Desktop's NetworkManager profile, an old hand-written file) would keep
+    its address beside ours. Parsed on the host: the files may hold WiFi passwords,
+    and only their names leave it.
+    """
+
+    default = list
+
+    def command(self, interface: str) -> str:
+        script = (
+            "import glob, sys, yaml\n"
+            f"for path in sorted(glob.glob({NETPLAN_DIR + '/*.yaml'!r})):\n"
+            "    try:\n"
+            "        network = (yaml.safe_load(open(path)) or {}).get('network') or {}\n"
+            "    except Exception:\n"
+            "        continue\n"
+            "    if any(sys.argv[1] in (network.get(kind) or {}) for kind in ('ethernets', 'wifis')):\n"
+            "        print(path)\n"
+        )
+        return f"python3 -c {shlex.quote(script)} {shlex.quote(interface)} 2>/dev/null || true"
+
+    def process(self, output):
+        return [line.strip() for line in output if line.strip()]
+
+
+class MaskedFileContents(FactBase):
+    """A file's content with WiFi passwords masked on the host, for diffs; None if absent.
+
+    Masking happens before the content leaves the host, so not even pyinfra's
+    debug output can show the old password.
+    """
+
+    def command(self, path: str) -> str:
+        quoted = shlex.quote(path)
+        return f"if [ -f {quoted} ]; then sed -e {shlex.quote(SED_MASK_SECRETS)} {quoted}; fi"
+
+    def process(self, output):
+        return "".join(line + "\n" for line in output)
+
+
+def sha256(text: str) -> str:
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _is_private(file_fact) -> bool:
+    return bool(file_fact) and file_fact.get("user") == "root" and file_fact.get("mode") == 600
+
+
+def _print_masked_diff(path: str, new_content: str) -> None:
+    old = host.get_fact(MaskedFileContents, path=path)
+    new = mask_secrets(new_content)
+    host.log(f"Will {'modify' if old else 'create'} {path}", logger.info)
+    if old == new:
+        logger.info("  (only the WiFi password changes)")
+    for line in generate_color_diff((old or "").splitlines(keepends=True), new.splitlines(keepends=True)):
+        logger.info("  %s", line)
+    logger.info("")
+
+
+@operation()
+def network_in_effect(
+    settings: NetworkSettings,
+    current_address: str,
+    roster_path: str | None = None,
+):
+    """
+    Make the host's network configuration the one from the roster, safely.
+
+    + settings: the host's checked network settings (``roslab.network.settings.network_settings``)
+    + current_address: the address pyinfra reaches the host at now
+    + roster_path: the roster file; the confirmed address is recorded beside it
+
+    The host keeps the new configuration only if the controller reaches it at its
+    new address within ``settings.confirm_timeout`` seconds; otherwise it restores
+    the previous files by itself, and this operation fails the host saying so.
+
+    **Example:**
+
+    .. code:: python
+
+        network_in_effect(
+            name="Ensure the host has its static address from the roster",
+            settings=network_settings(host.data),
+            current_address="192.168.50.200",
+        )
+    """
+    found = host.get_fact(NetworkRenderer)
+    try:
+        layout = choose_layout(settings.backend, found["renderer"])
+    except ValueError as exc:
+        raise OperationError(f"{host.name}: {exc}") from None
+    configuring = host.get_fact(NetplanFilesConfiguring, interface=settings.interface) if layout.uses_netplan else []
+    wanted = desired_files(settings, layout, found["cloud_init"], tuple(configuring))
+
+    changed = [path for path, content in wanted.files.items()
+               if host.get_fact(Sha256File, path=path) != sha256(content)]
+    leftover = [path for path in wanted.superseded if host.get_fact(File, path=path)]
+    if not changed and not leftover:
+        loose = [path for path in wanted.files if not _is_private(host.get_fact(File, path=path))]
+        for path in loose:
+            # Same content, wrong owner or mode: fix in place, nothing to apply.
+            yield StringCommand("chown", "root:root", path, "&&", "chmod", "0600", path)
+        if not loose:
+            host.noop(f"network configuration already in place ({layout.reason})")
+        return
+
+    if state.config.DIFF:
+        for path in changed:
+            _print_masked_diff(path, wanted.files[path])
+        for path in leftover:
+            host.log(f"Will move {path} aside (kept under {BACKUP_ROOT})", logger.info)
+
+    reach_address = str(settings.address.ip) if settings.address else current_address
+    plan = Plan(
+        token=uuid4().hex,
+        layout=layout.name,
+        interface=settings.interface,
+        files=tuple(wanted.files),
+        superseded=wanted.superseded,
+        expect_address=str(settings.address) if settings.address else None,
+        gateway=str(settings.gateway) if settings.gateway else None,
+        confirm_timeout=settings.confirm_timeout,
+    )
+
+    staged_dirs = sorted({str(apply.staged_path(plan, path).parent) for path in wanted.files})
+    yield StringCommand("rm", "-rf", f"{RUN_DIR}/{STAGING_DIR}", "&&", "install", "-d", "-m", "0700",
+                        RUN_DIR, f"{RUN_DIR}/{STAGING_DIR}", *staged_dirs)
+    # With sudo, pyinfra uploads as the SSH user first and then copies into place:
+    # give those temporary copies a directory only that user can read.
+    upload_dir = f"/tmp/roslab-network-{plan.token}"
+    yield StringCommand("mkdir", "-m", "0700", upload_dir, _sudo=False)
+    uploads = [(StringIO(content), apply.staged_path(plan, path)) for path, content in wanted.files.items()]
+    uploads.append((StringIO(plan.to_json()), PLAN_PATH))
+    uploads.append((str(APPLY_SCRIPT), SCRIPT_PATH))
+    for number, (source, destination) in enumerate(uploads):
+        yield FileUploadCommand(source, str(destination), remote_temp_filename=f"{upload_dir}/{number}")
+    yield StringCommand("rm", "-rf", upload_dir, _sudo=False)
+    yield StringCommand("chmod", "-R", "go-rwx", RUN_DIR)
+
+    # Validation failure: pyinfra shows the validator's message and stops here, untouched.
+    yield StringCommand("python3", SCRIPT_PATH, "validate", PLAN_PATH)
+    yield StringCommand(
+        "systemctl", "reset-failed", f"{APPLY_UNIT}.service", "2>/dev/null", ";",
+        "systemd-run", f"--unit={APPLY_UNIT}", "--collect", "--quiet",
+        QuoteString("--description=roslab: apply the network change, roll back unless confirmed"),
+        "python3", SCRIPT_PATH, "apply", PLAN_PATH,
+    )
+    yield FunctionCommand(
+        confirm_network_change,
+        (),
+        {
+            "token": plan.token,
+            "new_address": reach_address,
+            "old_address": current_address,
+            "confirm_timeout": settings.confirm_timeout,
+            "roster_path": roster_path,
+        },
+    )
