@@ -2,34 +2,19 @@
 
 from __future__ import annotations
 
-import re
-from pathlib import Path
+from io import StringIO
 
 from pyinfra import host
-from pyinfra.api import DeployError, deploy
+from pyinfra.api import deploy
 from pyinfra.operations import apt, files
 
-from deploy.common import setting, should_run, where
-from roslab.operations import locale_generated
+from deploy.common import should_run
+from roslab import settings
+from roslab.operations import apt_install_options, locale_generated
+from roslab.quoting import shell_word
+from roslab.templating import render
 
-TEMPLATES = Path(__file__).resolve().parent.parent / "templates"
-
-DEFAULTS = {
-    # Generate the locale and set it system-wide.
-    "locale_enabled": True,
-    # The system-wide locale (LANG); must be a UTF-8 locale.
-    "locale": "en_US.UTF-8",
-}
-
-UTF8_LOCALE = re.compile(r"^[a-z]{2,3}(_[A-Z]{2})?(@[a-z]+)?\.UTF-8$")
-
-
-def checked_locale(value) -> str:
-    if not isinstance(value, str) or not UTF8_LOCALE.match(value):
-        raise DeployError(
-            f"{where()}: locale {value!r} is not a UTF-8 locale name like 'en_US.UTF-8'"
-        )
-    return value
+DEFAULTS = settings.defaults("locale")
 
 
 @deploy("A UTF-8 locale is generated and set system-wide", data_defaults=DEFAULTS)
@@ -37,21 +22,22 @@ def system_locale():
     """Generate the locale and make it the system default in /etc/default/locale.
 
     Reads host.data: locale_enabled, locale, apt_lock_timeout.
+    (`locale` is a UTF-8 locale name: roslab.formats.utf8_locale checked it.)
     """
     if not should_run("locale_enabled"):
         return
-    locale = checked_locale(host.data.locale)
+    locale = host.data.locale
 
     apt.packages(
         name="Ensure the locales package is installed",
         packages=["locales"],
-        extra_install_args=f"-o DPkg::Lock::Timeout={setting('apt_lock_timeout')}",
+        extra_install_args=apt_install_options(host.data.apt_lock_timeout),
     )
     locale_generated(name=f"Ensure the locale {locale} is generated", locale=locale)
-    files.template(
+    files.put(
         name=f"Ensure {locale} is the system-wide locale",
-        src=str(TEMPLATES / "default-locale.j2"),
+        # /etc/default/locale is read by pam_env and sourced by shells.
+        src=StringIO(render("default-locale.j2", locale=shell_word(locale))),
         dest="/etc/default/locale",
         mode="644",
-        locale=locale,
     )

@@ -3,62 +3,19 @@
 from __future__ import annotations
 
 import ipaddress
-import re
-from pathlib import Path
 
 from pyinfra import host
-from pyinfra.api import DeployError, deploy
+from pyinfra.api import deploy
 from pyinfra.facts.systemd import SystemdEnabled
 from pyinfra.operations import apt, server, systemd
 
-from deploy.common import controller_path, login_user, setting, should_run, where
-from roslab.operations import managed_block
+from deploy.common import login_home, login_user, should_run
+from roslab import settings
+from roslab.operations import apt_install_options, managed_block
 
-DEFAULTS = {
-    # Install and run sshd, authorise the teacher's keys, set hostname and /etc/hosts.
-    "ssh_identity_enabled": True,
-    # The teacher's public keys for the login user's authorized_keys: key lines
-    # ("ssh-ed25519 AAAA... teacher") or paths to .pub files on the machine running pyinfra.
-    "teacher_ssh_keys": [],
-    # Set the hostname to the host's name in the roster.
-    "manage_hostname": True,
-    # List every classroom host in /etc/hosts (a marked block) so names resolve without DNS.
-    "manage_etc_hosts": True,
-}
+DEFAULTS = settings.defaults("ssh_identity")
 
-PUBLIC_KEY = re.compile(r"^(ssh-[a-z0-9-]+|ecdsa-sha2-\S+|sk-\S+)\s+[A-Za-z0-9+/=]+(\s.*)?$")
 ETC_HOSTS_LABEL = "classroom hosts"
-
-
-def public_keys(entries, resolve_path=Path) -> list[str]:
-    """Key lines from `teacher_ssh_keys`: key text as is, .pub paths read on this machine.
-
-    `resolve_path` turns an entry into a local path (the deploy resolves relative paths
-    against the roster's directory).
-    """
-    if isinstance(entries, str):
-        entries = [entries]
-    keys: list[str] = []
-    for entry in entries or []:
-        entry = str(entry).strip()
-        if PUBLIC_KEY.match(entry):
-            keys.append(entry)
-            continue
-        path = resolve_path(entry)
-        if not path.is_file():
-            raise DeployError(
-                f"{where()}: teacher_ssh_keys entry {entry!r} is neither a public key line "
-                "nor a readable .pub file"
-            )
-        lines = [line.strip() for line in path.read_text().splitlines()]
-        for line in lines:
-            if line and not line.startswith("#"):
-                if not PUBLIC_KEY.match(line):
-                    raise DeployError(
-                        f"{where()}: teacher_ssh_keys file {path} holds a line that is not a public key"
-                    )
-                keys.append(line)
-    return keys
 
 
 def etc_hosts_lines(classroom_hosts) -> list[str]:
@@ -80,15 +37,16 @@ def etc_hosts_lines(classroom_hosts) -> list[str]:
 def ssh_identity():
     """Install and run sshd, authorise the teacher's keys, set hostname and /etc/hosts.
 
-    Reads host.data: ssh_identity_enabled, teacher_ssh_keys, manage_hostname,
-    manage_etc_hosts, login_user, roslab_hostname, roslab_classroom_hosts, apt_lock_timeout.
+    Reads host.data: ssh_identity_enabled, teacher_ssh_keys (key lines: the roster loader
+    read the .pub files), manage_hostname, manage_etc_hosts, login_user, roslab_hostname,
+    roslab_classroom_hosts, apt_lock_timeout.
     """
     if not should_run("ssh_identity_enabled"):
         return
     apt.packages(
         name="Ensure openssh-server is installed",
         packages=["openssh-server"],
-        extra_install_args=f"-o DPkg::Lock::Timeout={setting('apt_lock_timeout')}",
+        extra_install_args=apt_install_options(host.data.apt_lock_timeout),
     )
     # Ubuntu 24.04 starts sshd through ssh.socket; forcing ssh.service there would fight it.
     unit = "ssh.socket" if host.get_fact(SystemdEnabled).get("ssh.socket") else "ssh.service"
@@ -99,9 +57,11 @@ def ssh_identity():
         enabled=True,
     )
 
-    keys = public_keys(host.data.teacher_ssh_keys, resolve_path=controller_path)
+    keys = list(host.data.teacher_ssh_keys)
     if keys:
         user = login_user()
+        if login_home() is None:  # no such user on the host: it is stopped
+            return
         server.user_authorized_keys(
             name=f"Ensure the teacher's SSH keys are authorised for {user}",
             user=user,

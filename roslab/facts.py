@@ -9,32 +9,74 @@ from pyinfra.api import FactBase, QuoteString, StringCommand
 from typing_extensions import override
 
 
+# apt's words for a dpkg lock another process holds (apt-get check waited for it).
+_LOCK_HELD = ("Could not get lock", "Unable to acquire the dpkg frontend lock", "Unable to lock")
+_UPDATE_PREFIX = "roslab-dpkg-update: "
+_AUDIT_PREFIX = "roslab-dpkg-audit: "
+_EXIT_PREFIX = "roslab-apt-exit="
+
+
 class AptProblem(FactBase):
     """
     Waits (bounded) until apt can take the dpkg lock, then reports whether apt is usable.
 
-    Returns ``None`` when ``apt-get check`` succeeds within ``lock_timeout`` seconds, else
-    apt's own error lines (e.g. the lock still held by unattended-upgrades, or broken
-    dependencies). Fresh Ubuntu images hold the lock for minutes at first boot.
+    Returns ``None`` when ``apt-get check`` succeeds within ``lock_timeout`` seconds and
+    dpkg has nothing half-done, else ``{"interrupted": bool, "message": str}``:
+
+    - ``interrupted``: dpkg was stopped in the middle of an install (a Pi unplugged,
+      dpkg killed): its journal ``/var/lib/dpkg/updates/`` is not empty, ``dpkg --audit``
+      lists half-installed or unconfigured packages, or apt says "dpkg was interrupted".
+      ``dpkg --configure -a`` and ``apt-get -f install`` heal it
+      (``roslab.operations.dpkg_interrupted_install_finished``).
+    - otherwise apt's own error lines, e.g. the lock still held by unattended-upgrades
+      after the wait, or broken dependencies. Fresh Ubuntu images hold the lock for
+      minutes at first boot.
+
+    While another process holds the lock its half-done work is normal, not interrupted.
     """
 
     @override
     def command(self, lock_timeout: int) -> StringCommand:
+        from roslab.operations import apt_lock_options  # operations imports this module
+
         # `; echo` keeps the fact's exit status 0 so the failure reaches process().
         return StringCommand(
-            f"apt-get -qq -o DPkg::Lock::Timeout={int(lock_timeout)} check 2>&1;",
-            'echo "roslab-apt-exit=$?"',
+            f"apt-get -qq {apt_lock_options(lock_timeout)} check 2>&1;",
+            f'echo "{_EXIT_PREFIX}$?";',
+            f"ls -A /var/lib/dpkg/updates 2>/dev/null | sed 's/^/{_UPDATE_PREFIX}/';",
+            f"dpkg --audit 2>&1 | sed 's/^/{_AUDIT_PREFIX}/'",
         )
 
     @override
     def process(self, output):
-        lines = list(output)
-        status = lines.pop() if lines else ""
-        if status == "roslab-apt-exit=0":
+        check, updates, audit, status = [], [], [], ""
+        for line in output:
+            if line.startswith(_EXIT_PREFIX):
+                status = line
+            elif line.startswith(_UPDATE_PREFIX):
+                updates.append(line[len(_UPDATE_PREFIX):])
+            elif line.startswith(_AUDIT_PREFIX):
+                if line[len(_AUDIT_PREFIX):].strip():
+                    audit.append(line[len(_AUDIT_PREFIX):].strip())
+            # apt prints "Waiting for cache lock" lines while it waits: keep the verdict only.
+            elif not line.startswith("Waiting for cache lock"):
+                check.append(line)
+        text = "\n".join(check)
+        ok = status == f"{_EXIT_PREFIX}0"
+        lock_held = not ok and any(words in text for words in _LOCK_HELD)
+        interrupted = not lock_held and bool(updates or audit or "dpkg was interrupted" in text)
+        if ok and not interrupted:
             return None
-        # apt prints "Waiting for cache lock" lines while it waits: keep the verdict only.
-        errors = [line for line in lines if not line.startswith("Waiting for cache lock")]
-        return "\n".join(errors) or status
+        if interrupted:
+            found = []
+            if updates:
+                found.append(f"{len(updates)} pending entries in /var/lib/dpkg/updates/")
+            if audit:
+                found.append("dpkg --audit: " + " ".join(audit)[:300])
+            message = "dpkg was interrupted" + (f" ({'; '.join(found)})" if found else "")
+        else:
+            message = text or status or "apt-get check printed nothing"
+        return {"interrupted": interrupted, "message": message}
 
 
 class FileAge(FactBase):

@@ -8,17 +8,21 @@ again when an operation executes, so an operation that follows another one sees 
 from __future__ import annotations
 
 import re
+import shlex
+import time
+import weakref
 from io import StringIO
 
 from pyinfra import host, logger, state
 from pyinfra.api import FileUploadCommand, QuoteString, StringCommand, operation
 from pyinfra.api.util import format_text
-from pyinfra.facts.deb import DebPackage, DebPackages
+from pyinfra.context import ctx_host
 from pyinfra.facts.files import File, FileContents, Link
 from pyinfra.facts.server import Locales, Which
 from pyinfra.operations.util.files import chmod, chown, generate_color_diff
 
 from roslab.facts import FileAge
+from roslab.quoting import apt_arguments, deb822_value, sources_list_word
 
 # Ubuntu touches this after every successful `apt-get update`; Debian does not, so we do.
 APT_UPDATE_STAMP = "/var/lib/apt/periodic/update-success-stamp"
@@ -27,12 +31,38 @@ ROSDEP_SOURCES_LIST = "/etc/ros/rosdep/sources.list.d/20-default.list"
 ROSDEP_CACHE_INDEX = ".ros/rosdep/sources.cache/index"
 
 
+# Keep the host's edited configuration files when a package brings new ones (never ask).
+DPKG_KEEP_CONFFILES = "-o Dpkg::Options::=--force-confdef -o Dpkg::Options::=--force-confold"
+# apt >= 2.1.16 (Ubuntu 22.04 has 2.4): `update` exits non-zero when any index failed to
+# download, instead of 0 with "W: Failed to fetch" and the old lists kept.
+APT_UPDATE_FAIL_ON_ANY_ERROR = "-o APT::Update::Error-Mode=any"
+
+
+def apt_lock_options(lock_timeout: int) -> str:
+    """apt-get options that wait (bounded) for the dpkg lock instead of failing at once.
+
+    The one place roslab spells the lock wait: every apt-get command line, the AptProblem
+    fact and `apt.packages(extra_install_args=apt_install_options(...))` use it.
+    """
+    return f"-o DPkg::Lock::Timeout={int(lock_timeout)}"
+
+
+def apt_install_options(lock_timeout: int) -> str:
+    """`extra_install_args`/`extra_uninstall_args` for pyinfra's apt.packages.
+
+    The lock wait, then `--`: apt.packages appends the package names after these
+    arguments, so none of them can ever be read as an option (`-oAPT::...`).
+    """
+    return f"{apt_lock_options(lock_timeout)} --"
+
+
 def apt_get(command: str, lock_timeout: int) -> str:
-    """An apt-get command line that waits (bounded) for the dpkg lock instead of failing."""
-    return (
-        f"DEBIAN_FRONTEND=noninteractive apt-get -y -o DPkg::Lock::Timeout={int(lock_timeout)} "
-        f"{command}"
-    )
+    """An apt-get command line that waits (bounded) for the dpkg lock instead of failing.
+
+    `command` is roslab's own text (a subcommand and options); values go after it quoted,
+    behind `--` for package names.
+    """
+    return f"DEBIAN_FRONTEND=noninteractive apt-get -y {apt_lock_options(lock_timeout)} {command}"
 
 
 def _log_diff(path: str, current_lines: list[str] | None, desired_lines: list[str]) -> None:
@@ -63,21 +93,101 @@ def _upload_text(path: str, lines: list[str], user=None, group=None, mode=None):
 
 # --- marked blocks ---------------------------------------------------------------
 
+# One name per pyinfra run for the backups a repair leaves beside a file.
+BACKUP_SUFFIX = ".roslab-" + time.strftime("%Y%m%d-%H%M%S")
+# (path, label) of the repairs already reported, per host of this run.
+_REPAIRS_REPORTED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
 
 def block_markers(label: str) -> tuple[str, str]:
     return (f"# BEGIN roslab managed block ({label})", f"# END roslab managed block ({label})")
 
 
-def with_block(lines: list[str], label: str, content: str) -> list[str]:
-    """`lines` with roslab's block for `label` holding `content`: replaced in place, else appended."""
+def _scan_markers(lines: list[str], begin: str, end: str):
+    """Marker kinds by line index, the (begin, end) pairs in order, and the lone markers.
+
+    An end closes the nearest open begin before it; a begin that another begin follows
+    before any end, and an end with no open begin, are lone markers.
+    """
+    kinds: dict[int, str] = {}
+    for index, line in enumerate(lines):
+        if line.strip() == begin:
+            kinds[index] = "begin"
+        elif line.strip() == end:
+            kinds[index] = "end"
+    pairs: list[tuple[int, int]] = []
+    lone: list[int] = []
+    open_begin = None
+    for index, kind in kinds.items():
+        if kind == "begin":
+            if open_begin is not None:
+                lone.append(open_begin)
+            open_begin = index
+        elif open_begin is None:
+            lone.append(index)
+        else:
+            pairs.append((open_begin, index))
+            open_begin = None
+    if open_begin is not None:
+        lone.append(open_begin)
+    return kinds, pairs, sorted(lone)
+
+
+def block_repair(lines: list[str], label: str, content: str) -> tuple[list[str], str | None]:
+    """`lines` with one roslab block for `label` holding `content`, and what was repaired.
+
+    The usual cases repair nothing (None): no block yet (appended after the user's lines)
+    or one begin/end pair (replaced in place). Any other arrangement of markers (a
+    deleted end or begin marker, a second begin, two blocks, an end before its begin) is
+    repaired without dropping a single line outside the markers:
+
+    - the lines between a begin and its end are roslab's (as in the usual case) and go;
+    - a lone marker goes, and with it the lines beside it only when they are exactly
+      `content` (the old block, on the side the missing marker would have closed);
+    - every other line stays where it is, and the one block goes where the first marker was.
+    """
     begin, end = block_markers(label)
-    block = [begin, *content.rstrip("\n").split("\n"), end]
-    if begin in lines and end in lines[lines.index(begin) :]:
-        start = lines.index(begin)
-        stop = lines.index(end, start)
-        return lines[:start] + block + lines[stop + 1 :]
-    separator = [""] if lines and lines[-1].strip() else []
-    return lines + separator + block
+    body = content.rstrip("\n").split("\n")
+    block = [begin, *body, end]
+    kinds, pairs, lone = _scan_markers(lines, begin, end)
+    if not kinds:
+        separator = [""] if lines and lines[-1].strip() else []
+        return lines + separator + block, None
+    if len(pairs) == 1 and not lone:
+        start, stop = pairs[0]
+        return lines[:start] + block + lines[stop + 1 :], None
+
+    drop: set[int] = set()
+    for start, stop in pairs:
+        drop.update(range(start, stop + 1))
+
+    def is_old_block(first: int) -> bool:
+        span = range(first, first + len(body))
+        return (first >= 0 and span.stop <= len(lines) and not drop.intersection(span)
+                and not kinds.keys() & set(span)
+                and [line.rstrip() for line in lines[first : span.stop]] == [line.rstrip() for line in body])
+
+    for index in lone:
+        drop.add(index)
+        first = index + 1 if kinds[index] == "begin" else index - len(body)
+        if is_old_block(first):
+            drop.update(range(first, first + len(body)))
+    at = min(kinds)
+    repaired = []
+    for index, line in enumerate(lines):
+        if index == at:
+            repaired.extend(block)
+        if index not in drop:
+            repaired.append(line)
+    begins = sum(kind == "begin" for kind in kinds.values())
+    ends = len(kinds) - begins
+    found = ", ".join(f"{'begin' if kinds[i] == 'begin' else 'end'} at line {i + 1}" for i in sorted(kinds))
+    return repaired, f"{begins} begin and {ends} end markers ({found}), expected one pair"
+
+
+def with_block(lines: list[str], label: str, content: str) -> list[str]:
+    """`lines` with roslab's block for `label` holding `content` (see `block_repair`)."""
+    return block_repair(lines, label, content)[0]
 
 
 @operation()
@@ -98,6 +208,9 @@ def managed_block(
     + user/group/mode: owner and mode for a file this creates; an existing file keeps its own
 
     Unlike ``files.block``, this prints a unified diff of the file under ``--diff``.
+    Markers someone edited (a deleted end marker, a duplicated block, ...) are repaired
+    without dropping any line outside the block (see ``block_repair``): the file is first
+    copied to ``<path>.roslab-<date>-<time>`` and the repair is logged in one line.
 
     **Example:**
 
@@ -112,7 +225,7 @@ def managed_block(
         )
     """
     current = host.get_fact(FileContents, path=path)
-    desired = with_block(current or [], label, content)
+    desired, repaired = block_repair(current or [], label, content)
     if current == desired:
         host.noop(f"block ({label}) in {path} is already up to date")
         return
@@ -120,6 +233,17 @@ def managed_block(
     existing = host.get_fact(File, path=path) if current is not None else None
     if existing:
         user, group, mode = existing["user"], existing["group"], f"{existing['mode']:03d}"
+    if repaired:
+        backup = path + BACKUP_SUFFIX
+        # Once per host and file, whether pyinfra calls this when planning, executing or both.
+        reported = _REPAIRS_REPORTED.setdefault(ctx_host.get(), set())
+        if (path, label) not in reported:
+            reported.add((path, label))
+            logger.warning(
+                f"{host.print_prefix}roslab repairs the markers of the block ({label}) in {path}: "
+                f"{repaired}; no line outside the block is dropped, the file is kept as {backup}"
+            )
+        yield StringCommand("cp -p --", QuoteString(path), QuoteString(backup))
     _log_diff(path, current, desired)
     yield from _upload_text(path, desired, user=user, group=group, mode=mode)
 
@@ -129,6 +253,15 @@ def managed_block(
 
 def _is_release_suite(suite: str, codename: str) -> bool:
     return suite == codename or suite.startswith(f"{codename}-")
+
+
+def _source_word(value: str) -> str:
+    """A suite or component roslab adds to an apt source, checked for both layouts.
+
+    Only roslab's additions go through here: the host's own words are written back as
+    they were (refusing them would stop the whole run over one host's file).
+    """
+    return deb822_value(sources_list_word(value))
 
 
 def with_deb822_suites(
@@ -154,14 +287,14 @@ def with_deb822_suites(
             return
         if "components" in fields:
             comp_at, current_components = fields["components"]
-            wanted = current_components + [c for c in components if c not in current_components]
-            if wanted != current_components:
-                out[comp_at] = "Components: " + " ".join(wanted)
+            added = [_source_word(c) for c in components if c not in current_components]
+            if added:
+                out[comp_at] = "Components: " + " ".join(current_components + added)
         if codename in current_suites:
             extra = [f"{codename}-{s}" for s in suites]
-            wanted = current_suites + [s for s in extra if s not in current_suites]
-            if wanted != current_suites:
-                out[suites_at] = "Suites: " + " ".join(wanted)
+            added = [_source_word(s) for s in extra if s not in current_suites]
+            if added:
+                out[suites_at] = "Suites: " + " ".join(current_suites + added)
 
     for index, line in enumerate(lines):
         if line.strip():
@@ -183,24 +316,32 @@ ONE_LINE_SOURCE = re.compile(
 def with_one_line_suites(
     lines: list[str], codename: str, components: list[str], suites: list[str]
 ) -> list[str]:
-    """One-line `sources.list` with `components` and `<codename>-<suites>` lines added."""
-    parsed = [ONE_LINE_SOURCE.match(line) for line in lines]
-    present = {(m["type"], m["uri"], m["suite"]) for m in parsed if m}
+    """One-line `sources.list` with `components` and `<codename>-<suites>` lines added.
+
+    apt reads everything from a `#` on as a comment: a line's comment is kept at its end.
+    """
+    parsed = []
+    for line in lines:
+        code, hash_sign, comment = line.partition("#")
+        parsed.append((ONE_LINE_SOURCE.match(code), hash_sign + comment))
+    present = {(m["type"], m["uri"], m["suite"]) for m, _ in parsed if m}
     out: list[str] = []
-    for line, match in zip(lines, parsed):
+    for line, (match, comment) in zip(lines, parsed):
         if not match or not _is_release_suite(match["suite"], codename):
             out.append(line)
             continue
         current = match["components"].split()
-        wanted = current + [c for c in components if c not in current]
+        wanted = current + [_source_word(c) for c in components if c not in current]
         prefix = f"{match['type']} {match['options'] or ''}{match['uri']}"
-        out.append(f"{prefix} {match['suite']} {' '.join(wanted)}" if wanted != current else line)
+        tail = f" {comment}" if comment else ""
+        out.append(f"{prefix} {match['suite']} {' '.join(wanted)}{tail}" if wanted != current else line)
         if match["suite"] == codename:
             for suite in suites:
-                key = (match["type"], match["uri"], f"{codename}-{suite}")
+                suite = _source_word(f"{codename}-{suite}")
+                key = (match["type"], match["uri"], suite)
                 if key not in present:
                     present.add(key)
-                    out.append(f"{prefix} {codename}-{suite} {' '.join(wanted)}")
+                    out.append(f"{prefix} {suite} {' '.join(wanted)}")
     return out
 
 
@@ -238,6 +379,23 @@ def ubuntu_apt_sources(codename: str, components: list[str], suites: list[str]):
         host.noop(f"Ubuntu apt sources already enable {wanted}")
 
 
+def apt_update_command(lock_timeout: int) -> str:
+    """`apt-get update` that fails on any failed download and marks the lists fresh only then.
+
+    The stamp goes first: a failed or interrupted update leaves the lists stale, so the
+    next run updates again instead of trusting lists that lack a source for a day. On a
+    failure apt's E:/W: lines are reported as one line, not its whole progress output.
+    """
+    stamp = shlex.quote(APT_UPDATE_STAMP)
+    update = apt_get(f"{APT_UPDATE_FAIL_ON_ANY_ERROR} update", lock_timeout)
+    return (
+        f"rm -f {stamp} && if out=$({update} 2>&1); "
+        f"then mkdir -p /var/lib/apt/periodic && touch {stamp}; "
+        "else status=$?; echo \"roslab: apt-get update failed, the lists stay stale until one succeeds: "
+        "$(printf '%s\\n' \"$out\" | grep -E '^(E|W):' | tr -s '\\n ' '  ')\" >&2; exit $status; fi"
+    )
+
+
 @operation(is_idempotent=False)
 def apt_lists_updated(lock_timeout: int, max_age: int | None = None):
     """
@@ -246,14 +404,36 @@ def apt_lists_updated(lock_timeout: int, max_age: int | None = None):
     + lock_timeout: seconds apt waits for the dpkg lock
     + max_age: update only when the lists are older than this many seconds;
       ``None`` always updates (gate it with ``_if=`` on a sources change)
+
+    A download that fails (a mirror gone, a source unreachable) fails the operation,
+    and the lists count as stale until an update succeeds (see ``apt_update_command``).
     """
     if max_age is not None:
         age = host.get_fact(FileAge, path=APT_UPDATE_STAMP)
         if age is not None and age < max_age:
             host.noop(f"apt lists are {age} s old (max age {max_age} s)")
             return
-    yield apt_get("update", lock_timeout)
-    yield StringCommand("mkdir -p /var/lib/apt/periodic && touch", APT_UPDATE_STAMP)
+    yield apt_update_command(lock_timeout)
+
+
+@operation(is_idempotent=False)
+def dpkg_interrupted_install_finished(lock_timeout: int):
+    """
+    Finish the install dpkg was interrupted in (a Pi unplugged, dpkg killed), as apt asks.
+
+    + lock_timeout: seconds apt waits for the dpkg lock
+
+    Call it when the ``AptProblem`` fact says ``interrupted``: ``dpkg --configure -a``
+    configures what was unpacked, then ``apt-get -f install`` reinstalls what was left
+    half-installed and completes missing dependencies. A package whose configuration
+    still fails makes the second command fail, with apt's own message.
+    """
+    # dpkg's own failure (e.g. a half-installed dependency) is for apt-get -f to fix.
+    yield (
+        "DEBIAN_FRONTEND=noninteractive dpkg --force-confdef --force-confold --configure -a "
+        "|| echo 'roslab: dpkg --configure -a failed; apt-get -f install follows' >&2"
+    )
+    yield apt_get(f"{DPKG_KEEP_CONFFILES} -f install", lock_timeout)
 
 
 @operation()
@@ -268,34 +448,9 @@ def command_installed(command: str, package: str, lock_timeout: int):
     if host.get_fact(Which, command=command):
         host.noop(f"{command} is already installed")
         return
-    yield StringCommand(apt_get("install", lock_timeout), QuoteString(package))
-
-
-@operation()
-def deb_file_installed(src: str):
-    """
-    Ensure the package in a ``.deb`` already on the host is installed at that file's version.
-
-    + src: path of the ``.deb`` on the host
-    """
-    info = host.get_fact(DebPackage, package=src)
-    if info and info.get("version") in host.get_fact(DebPackages).get(info.get("name"), []):
-        host.noop(f"{info['name']} {info['version']} is already installed")
-        return
-    yield StringCommand("dpkg --force-confdef --force-confold -i", QuoteString(src))
-
-
-@operation()
-def deb_purged(package: str):
-    """
-    Ensure a package is not installed (purged, with its configuration).
-
-    + package: the package name
-    """
-    if package not in host.get_fact(DebPackages):
-        host.noop(f"{package} is not installed")
-        return
-    yield StringCommand("dpkg --purge", QuoteString(package))
+    yield StringCommand(
+        apt_get(f"{DPKG_KEEP_CONFFILES} install --", lock_timeout), QuoteString(apt_arguments([package])[0])
+    )
 
 
 @operation()

@@ -1,15 +1,20 @@
-"""apt readiness: the bounded lock wait, the sources, and lists refreshed only when needed."""
+"""apt readiness: the bounded lock wait, an interrupted dpkg healed, the sources, and lists
+refreshed only when needed (and never trusted after a failed update)."""
 
 from __future__ import annotations
 
+import pytest
 from fixtures.classroom import host_data
 from fixtures.fake_host import plan
 from fixtures.fake_ubuntu import FakeUbuntu
 
 from deploy.apt_ready import apt_ready
 from deploy.common import supported_host
+from roslab import settings
+from roslab.operations import apt_update_command
 
 STAMP = "/var/lib/apt/periodic/update-success-stamp"
+UPDATE = apt_update_command(600)  # fails on any failed download; the stamp only after success
 
 
 def run_apt_ready():
@@ -19,11 +24,35 @@ def run_apt_ready():
 
 def test_a_held_dpkg_lock_stops_the_host_with_apts_reason(tmp_path):
     host = FakeUbuntu()
-    host.apt_problem = "E: Could not get lock /var/lib/dpkg/lock-frontend. It is held by process 812 (unattended-upgr)"
+    host.apt_problem = {
+        "interrupted": False,
+        "message": "E: Could not get lock /var/lib/dpkg/lock-frontend. It is held by process 812 (unattended-upgr)",
+    }
     result = plan(run_apt_ready, host.facts(), host_data(tmp_path, apt_lock_timeout=5))
     assert result.failed and result.operations == []
-    assert "after waiting up to 5 s (apt_lock_timeout)" in result.errors[0]
-    assert "unattended-upgr" in result.errors[0]
+    (error,) = result.errors
+    assert "host pi (team team1): apt is not usable after waiting up to 5 s (apt_lock_timeout)" in error
+    assert "unattended-upgr" in error
+
+
+def test_a_dpkg_killed_mid_install_is_finished_first_and_reported_in_one_line(tmp_path, caplog):
+    host = FakeUbuntu()
+    host.apt_problem = {"interrupted": True, "message": "dpkg was interrupted (1 pending entries in /var/lib/dpkg/updates/)"}
+    with caplog.at_level("WARNING"):
+        result = plan(run_apt_ready, host.facts(), host_data(tmp_path))
+    assert not result.failed, result.errors
+    first = result.operations[0]
+    assert "install dpkg was interrupted in is finished" in first.name
+    assert first.text()[0].startswith("DEBIAN_FRONTEND=noninteractive dpkg --force-confdef --force-confold --configure -a")
+    assert first.text()[1].endswith("-o DPkg::Lock::Timeout=600 -o Dpkg::Options::=--force-confdef "
+                                    "-o Dpkg::Options::=--force-confold -f install")
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert "host pi (team team1): dpkg was interrupted" in warning and "\n" not in warning
+
+
+def test_a_healthy_apt_adds_no_repair_step(tmp_path):
+    result = plan(run_apt_ready, FakeUbuntu().facts(), host_data(tmp_path))
+    assert not any("interrupted" in op.name for op in result.operations)
 
 
 def test_changed_sources_refresh_the_lists_even_when_they_are_young(tmp_path):
@@ -36,8 +65,7 @@ def test_changed_sources_refresh_the_lists_even_when_they_are_young(tmp_path):
         "deb http://10.11.0.1/ubuntu jammy-backports main restricted universe",
         "deb http://10.11.0.1/ubuntu jammy-security main restricted universe",
     ]
-    update = result.operation("include the changed sources").text()
-    assert update[0].endswith("apt-get -y -o DPkg::Lock::Timeout=600 update")
+    assert result.operation("include the changed sources").text() == [UPDATE]
 
 
 def test_complete_sources_and_young_lists_change_nothing(tmp_path):
@@ -54,7 +82,43 @@ def test_lists_older_than_the_max_age_are_refreshed(tmp_path):
     host.apply(plan(run_apt_ready, host.facts(), host_data(tmp_path)))
     host.ages[STAMP] = 7200
     result = plan(run_apt_ready, host.facts(), host_data(tmp_path, apt_cache_max_age=3600))
+    assert result.changing() == {
+        "apt is ready: the dpkg lock is free, the sources complete and the lists fresh"
+        " | Ensure the apt lists are younger than apt_cache_max_age": [UPDATE]
+    }
+
+
+def test_lists_a_failed_update_left_stale_are_updated_on_the_next_run(tmp_path):
+    """The update removes the stamp before it runs: after a failure the stamp is missing."""
+    host = FakeUbuntu()
+    host.apply(plan(run_apt_ready, host.facts(), host_data(tmp_path)))
+    host.ages.pop(STAMP)  # what a failed `apt-get update` leaves
+    result = plan(run_apt_ready, host.facts(), host_data(tmp_path))
+    assert result.operation("younger than apt_cache_max_age").text() == [UPDATE]
+
+
+@pytest.mark.parametrize("suites", [["updates\nTrusted: yes"], ["updates backports"], ["-o"], ["Updates"]])
+def test_a_suite_that_is_not_a_plain_word_is_refused_by_the_schema(suites):
+    assert settings.check_value(settings.SETTINGS["apt_extra_suites"], suites)
+
+
+def test_a_legal_extra_suite_is_written_into_the_hosts_layout(tmp_path):
+    assert settings.check_value(settings.SETTINGS["apt_extra_suites"], ["proposed"]) is None
+    result = plan(run_apt_ready, FakeUbuntu().facts(), host_data(tmp_path, apt_extra_suites=["proposed"]))
+    sources = result.uploads()["/etc/apt/sources.list.d/ubuntu.sources"].splitlines()
+    assert "Suites: noble noble-security noble-proposed" in sources
+
+
+def test_the_old_ros_source_is_moved_aside_before_the_update_it_would_fail(tmp_path):
+    host = FakeUbuntu("jammy")
+    host.ages[STAMP] = 60
+    host.files["/etc/apt/sources.list.d/ros2.list"] = ["deb http://packages.ros.org/ros2/ubuntu jammy main"]
+    host.files["/etc/apt/sources.list"] = [line.replace("main restricted", "main restricted universe")
+                                           for line in host.files["/etc/apt/sources.list"]]
+    result = plan(run_apt_ready, host.facts(), host_data(tmp_path, "jammy", apt_extra_suites=[]))
     assert list(result.changing()) == [
         "apt is ready: the dpkg lock is free, the sources complete and the lists fresh"
-        " | Ensure the apt lists are younger than apt_cache_max_age"
+        " | Ensure the old ROS 2 apt source files are gone (kept in /var/backups/roslab)",
+        "apt is ready: the dpkg lock is free, the sources complete and the lists fresh"
+        " | Ensure the apt lists include the changed sources",
     ]

@@ -43,3 +43,22 @@ def test_a_host_that_cannot_get_its_ros_is_stopped_before_any_change(tmp_path, f
     assert result.operations == []
     (error,) = result.errors
     assert "host pi (team team1)" in error and reason in error and "nothing was changed" in error
+
+
+def test_a_login_user_the_host_lacks_stops_that_host_in_one_line_without_raising(tmp_path):
+    host = with_stand_in_deb(FakeUbuntu())
+    result = plan(run_deploy_py, host.facts(), host_data(tmp_path, login_user="ghost"))
+    assert result.failed and result.operations == []
+    (error,) = result.errors
+    assert "host pi (team team1): login_user 'ghost' does not exist on the host" in error
+    assert "\n" not in error
+
+
+def test_a_dpkg_interrupted_on_an_earlier_run_is_healed_and_the_run_converges(tmp_path):
+    host = with_stand_in_deb(FakeUbuntu())
+    host.apt_problem = {"interrupted": True, "message": "dpkg was interrupted"}
+    result = plan(run_deploy_py, host.facts(), host_data(tmp_path))
+    assert not result.failed, result.errors
+    names = [op.name for op in result.operations]
+    assert "install dpkg was interrupted in is finished" in names[0]
+    assert any("Ensure ROS 2 jazzy is installed" in name for name in result.changing())

@@ -22,7 +22,7 @@ def test_first_run_converges_and_second_run_changes_nothing(tmp_path, codename, 
     first = plan(run_deploy_py, host.facts(), data)
     assert not first.failed, first.errors
     install = first.changing()[next(name for name in first.changing() if "Ensure ROS 2" in name)]
-    assert install[0].endswith(f"install -o DPkg::Lock::Timeout=600 {ros_packages}")
+    assert install[0].endswith(f"install -o DPkg::Lock::Timeout=600 -- {ros_packages}")
     assert f"/opt/ros/{ros_packages.split('-')[1]}/setup.bash" in host_bashrc_after(host, first)
 
     second = plan(run_deploy_py, host.facts(), data)
@@ -63,3 +63,30 @@ def test_each_step_can_be_switched_off(tmp_path):
     data = host_data(tmp_path, **{f"{name}_enabled": False for name in switches})
     result = plan(run_deploy_py, host.facts(), data)
     assert result.operations == [] and not result.failed
+
+
+def test_a_deleted_end_marker_costs_no_user_line_over_two_runs(tmp_path, caplog):
+    """Issue 9: the first run used to add a second block, the next deleted the lines between."""
+    host = with_stand_in_deb(FakeUbuntu())
+    host.apply(plan(run_deploy_py, host.facts(), host_data(tmp_path)))
+    bashrc = host.files["/home/student/.bashrc"]
+    bashrc.remove("# END roslab managed block (ROS 2 environment)")
+    bashrc += ["source ~/my_ws/install/setup.bash", "alias ws='cd ~/my_ws'"]
+    user_lines = [line for line in bashrc if not line.startswith(("# BEGIN roslab", "# END roslab"))]
+
+    with caplog.at_level("WARNING"):
+        first = plan(run_deploy_py, host.facts(), host_data(tmp_path))
+    assert list(first.changing()) == [
+        "The login user's shell sources ROS 2 with the team's domain and discovery settings"
+        " | Ensure student's ~/.bashrc sets up the ROS 2 environment"
+    ]
+    assert any("repairs the markers" in r.getMessage() for r in caplog.records)
+    host.apply(first)
+    after = host.files["/home/student/.bashrc"]
+    assert sum(line.startswith("# BEGIN roslab") for line in after) == 1
+    assert sum(line.startswith("# END roslab") for line in after) == 1
+    for line in user_lines:
+        assert line in after, line
+    assert after[-2:] == ["source ~/my_ws/install/setup.bash", "alias ws='cd ~/my_ws'"]
+
+    assert plan(run_deploy_py, host.facts(), host_data(tmp_path)).changing() == {}

@@ -4,35 +4,112 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import urllib.request
 
 import pytest
 from fixtures.classroom import HOST_DEB, host_data, with_stand_in_deb
 from fixtures.fake_host import plan
 from fixtures.fake_ubuntu import FakeUbuntu
-from pyinfra.api import DeployError
 
-from deploy.ros_apt_source import cached_package, dearmored, ros_apt_source
+from deploy.ros_apt_source import dearmored, ros_apt_source
+from roslab import downloads, quoting, settings
+from roslab.operations import apt_update_command
 
 OLD_LIST = "/etc/apt/sources.list.d/ros2.list"
 SOURCES = "/etc/apt/sources.list.d/ros2.sources"
+NAME = "ros2-apt-source_1.2.0.noble_all.deb"
+
+
+def sha(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+# --- the controller's download and cache ------------------------------------------------
 
 
 def test_the_deb_is_downloaded_once_checked_and_then_served_from_the_cache(tmp_path):
-    origin = tmp_path / "ros2-apt-source_1.2.0.noble_all.deb"
+    origin = tmp_path / NAME
     origin.write_bytes(b"package bytes")
-    sha = hashlib.sha256(b"package bytes").hexdigest()
-    cached = cached_package(f"file://{origin}", sha, tmp_path / "cache")
-    assert cached.read_bytes() == b"package bytes"
-    origin.unlink()  # a second host (or run) must not need the origin again
-    assert cached_package(f"file://{origin}", sha, tmp_path / "cache") == cached
+    pin = sha(b"package bytes")
+    url = f"file://{origin}"
+    assert downloads.pinned(url, pin, tmp_path / "cache", NAME, "ros_apt_source_sha256") == b"package bytes"
+    assert (tmp_path / "cache" / pin / NAME).read_bytes() == b"package bytes"
+    origin.unlink()  # a later run (a new process) must not need the origin again
+    downloads._fetched.clear()
+    assert downloads.pinned(url, pin, tmp_path / "cache", NAME, "ros_apt_source_sha256") == b"package bytes"
 
 
-def test_a_download_with_the_wrong_sha256_is_discarded_and_stops_the_run(tmp_path):
-    origin = tmp_path / "ros2-apt-source_1.2.0.noble_all.deb"
+def test_a_download_with_the_wrong_sha256_is_discarded(tmp_path):
+    origin = tmp_path / NAME
     origin.write_bytes(b"tampered")
-    with pytest.raises(DeployError, match="pins 0{64}: the file was discarded"):
-        cached_package(f"file://{origin}", "0" * 64, tmp_path / "cache")
-    assert list((tmp_path / "cache").iterdir()) == []
+    with pytest.raises(downloads.DownloadError, match="ros_apt_source_sha256 pins 0{64}: the file was discarded"):
+        downloads.pinned(f"file://{origin}", "0" * 64, tmp_path / "cache", NAME, "ros_apt_source_sha256")
+    assert not (tmp_path / "cache").exists() or not any((tmp_path / "cache").rglob("*.deb"))
+
+
+def test_the_cache_is_keyed_by_the_pin_so_another_rosters_file_never_stands_in(tmp_path):
+    """Two rosters on one controller share the cache dir: each pin has its own file."""
+    cache = tmp_path / "cache"
+    origin = tmp_path / NAME
+    origin.write_bytes(b"the real package")
+    pin = sha(b"the real package")
+    # Another roster's (or an attacker's) file under the same name, and a corrupt copy under our pin.
+    (cache / sha(b"other")).mkdir(parents=True)
+    (cache / sha(b"other") / NAME).write_bytes(b"other")
+    (cache / NAME).write_bytes(b"old flat cache entry")
+    (cache / pin).mkdir()
+    (cache / pin / NAME).write_bytes(b"half-written")
+    assert downloads.pinned(f"file://{origin}", pin, cache, NAME, "ros_apt_source_sha256") == b"the real package"
+    assert (cache / pin / NAME).read_bytes() == b"the real package"  # re-verified, replaced
+    assert [p.name for p in (cache / pin).iterdir()] == [NAME]  # no temporary file left
+
+
+def test_the_uploaded_bytes_are_the_checked_bytes_whatever_happens_to_the_cache_later(tmp_path):
+    host = with_stand_in_deb(FakeUbuntu())
+    data = host_data(tmp_path)
+    pin = data["ros_apt_source_sha256"]["noble"]
+    with_cache_swapped = []
+
+    def deploy_then_swap():
+        ros_apt_source()
+        # Between planning and the upload, someone replaces the cached file.
+        cached = tmp_path / "cache" / pin / NAME
+        cached.write_bytes(b"evil")
+        with_cache_swapped.append(cached)
+
+    result = plan(deploy_then_swap, host.facts(), data)
+    assert with_cache_swapped
+    assert result.uploads()[HOST_DEB.format(codename="noble")] == "stand-in ros2-apt-source for noble"
+
+
+def test_a_failed_download_is_remembered_for_the_run(tmp_path, monkeypatch):
+    calls = []
+
+    def refuse(url, timeout):
+        calls.append(url)
+        raise OSError("Connection refused")
+
+    monkeypatch.setattr(urllib.request, "urlopen", refuse)
+    url = f"http://10.11.0.1/{tmp_path.name}/{NAME}"
+    for _ in range(3):
+        with pytest.raises(downloads.DownloadError, match=f"cannot download {url}: Connection refused"):
+            downloads.fetch(url)
+    assert calls == [url]
+
+
+def test_a_failed_download_stops_only_the_hosts_that_need_it(tmp_path):
+    data = host_data(tmp_path, ros_apt_source_url=f"file://{tmp_path}/gone/{{codename}}.deb")
+    result = plan(ros_apt_source, FakeUbuntu().facts(), data)
+    assert result.failed and result.operations == []
+    (error,) = result.errors
+    assert "roslab stops this host: host pi (team team1): ros2-apt-source: cannot download" in error
+    assert f"file://{tmp_path}/gone/noble.deb" in error and "nothing was changed on it" in error
+    # A host that does not need it (mirror mode, or the step switched off) is not stopped.
+    other = plan(ros_apt_source, FakeUbuntu().facts(), {**data, "ros_apt_source_enabled": False})
+    assert not other.failed
+
+
+# --- package mode -------------------------------------------------------------------------
 
 
 def test_package_mode_copies_the_deb_installs_it_and_moves_old_method_files_aside(tmp_path):
@@ -40,14 +117,15 @@ def test_package_mode_copies_the_deb_installs_it_and_moves_old_method_files_asid
     host.files[OLD_LIST] = ["deb [signed-by=/usr/share/keyrings/ros-archive-keyring.gpg] http://packages.ros.org/ros2/ubuntu noble main"]
     result = plan(ros_apt_source, host.facts(), host_data(tmp_path))
     host_deb = HOST_DEB.format(codename="noble")
+    names = [op.name for op in result.operations]
+    assert names.index(next(n for n in names if "old ROS 2 apt source" in n)) == 0  # before apt runs
     assert result.operation("old ROS 2 apt source files").text() == [
         "mkdir -p /var/backups/roslab", f"mv --backup=numbered {OLD_LIST} /var/backups/roslab",
     ]
     assert result.uploads()[host_deb] == "stand-in ros2-apt-source for noble"
-    assert result.operation("ros2-apt-source 1.2.0 is installed").text() == [
-        f"dpkg --force-confdef --force-confold -i {host_deb}"
-    ]
-    assert result.operation("include the ROS 2 source").text()[0].endswith("update")
+    install = result.operation("ros2-apt-source 1.2.0 is installed").text()  # pyinfra's apt.deb
+    assert install[-1] == f"dpkg --force-confdef --force-confold -i {host_deb}"
+    assert result.operation("include the ROS 2 source").text() == [apt_update_command(600)]
 
 
 def test_package_mode_with_the_package_installed_is_a_noop(tmp_path):
@@ -56,14 +134,17 @@ def test_package_mode_with_the_package_installed_is_a_noop(tmp_path):
     host.links[SOURCES] = "/usr/share/ros-apt-source/ros2.sources"  # the package's own symlink
     result = plan(ros_apt_source, host.facts(), host_data(tmp_path))
     assert result.changing() == {}
-    assert "ros2-apt-source 1.2.0.noble is already installed" in result.noops
+    assert f"deb {HOST_DEB.format(codename='noble')} is installed" in result.noops
 
 
-def test_a_codename_without_a_pinned_sha256_is_a_clear_error(tmp_path):
+def test_a_codename_without_a_pinned_sha256_stops_only_that_host(tmp_path):
     data = host_data(tmp_path, ros_apt_source_sha256={"jammy": "0" * 64})
-    with pytest.raises(DeployError, match="ros_apt_source_sha256 has no sha256 for Ubuntu noble"):
-        plan(ros_apt_source, FakeUbuntu().facts(), data)
+    result = plan(ros_apt_source, FakeUbuntu().facts(), data)
+    assert result.failed
+    assert "ros_apt_source_sha256 has no sha256 for Ubuntu noble" in result.errors[0]
 
+
+# --- mirror mode --------------------------------------------------------------------------
 
 KEY = bytes(range(40))
 ARMORED = (
@@ -78,15 +159,22 @@ def test_dearmoring_gives_the_binary_key_and_leaves_binary_keys_alone():
     assert dearmored(KEY) == KEY
 
 
-def test_mirror_mode_writes_the_keyring_and_a_signed_by_source_and_drops_the_package(tmp_path):
+def mirror_data(tmp_path, **more):
     key_file = tmp_path / "mirror.asc"
     key_file.write_text(ARMORED)
+    mirror = {"ros_apt_mirror_url": "http://10.11.0.1/ros2", "ros_apt_mirror_key_file": str(key_file)}
+    return host_data(tmp_path, ros_apt_source_mode="mirror", **{**mirror, **more})
+
+
+def test_mirror_mode_writes_the_keyring_and_a_signed_by_source_and_drops_the_package(tmp_path):
     host = FakeUbuntu()
     host.packages["ros2-apt-source"] = {"1.2.0.noble"}
-    data = host_data(tmp_path, ros_apt_source_mode="mirror", ros_apt_mirror_url="http://10.11.0.1/ros2",
-                     ros_apt_mirror_key_file=str(key_file))
+    data = mirror_data(tmp_path)
     result = plan(ros_apt_source, host.facts(), data)
-    assert result.operation("ros2-apt-source package is not installed").text() == ["dpkg --purge ros2-apt-source"]
+    assert result.operation("ros2-apt-source package is not installed").text() == [
+        "DEBIAN_FRONTEND=noninteractive apt-get -y -o Dpkg::Options::=\"--force-confdef\" "
+        "-o Dpkg::Options::=\"--force-confold\" purge -o DPkg::Lock::Timeout=600 -- ros2-apt-source"
+    ]
     assert result.uploads()["/usr/share/keyrings/ros2-archive-keyring.gpg"].encode("latin-1") == KEY
     assert result.uploads()[SOURCES].splitlines()[1:] == [
         "Types: deb",
@@ -96,10 +184,38 @@ def test_mirror_mode_writes_the_keyring_and_a_signed_by_source_and_drops_the_pac
         "Signed-By: /usr/share/keyrings/ros2-archive-keyring.gpg",
     ]
     host.apply(result)
+    host.packages.pop("ros2-apt-source")  # FakeUbuntu models `dpkg --purge`, not apt-get purge
     assert plan(ros_apt_source, host.facts(), data).changing() == {}
 
 
-def test_mirror_mode_without_a_url_names_the_missing_field(tmp_path):
+def test_mirror_mode_without_a_url_stops_that_host_naming_the_field(tmp_path):
     data = host_data(tmp_path, ros_apt_source_mode="mirror", ros_apt_mirror_key_file="/k.asc")
-    with pytest.raises(DeployError, match="host pi \\(team team1\\).*ros_apt_mirror_url is not set"):
-        plan(ros_apt_source, FakeUbuntu().facts(), data)
+    result = plan(ros_apt_source, FakeUbuntu().facts(), data)
+    assert result.failed
+    assert "host pi (team team1): ros_apt_source_mode is 'mirror' but ros_apt_mirror_url is not set" in result.errors[0]
+
+
+def test_an_unreadable_mirror_key_stops_that_host(tmp_path):
+    data = mirror_data(tmp_path, ros_apt_mirror_key_file=str(tmp_path / "missing.asc"))
+    result = plan(ros_apt_source, FakeUbuntu().facts(), data)
+    assert result.failed and "ros_apt_mirror_key_file" in result.errors[0]
+
+
+@pytest.mark.parametrize("url", [
+    "http://10.11.0.1/ros2\nTrusted: yes",
+    "http://10.11.0.1/ros2 [trusted=yes]",
+    "http://10.11.0.1/ros2\u2028Trusted: yes",
+    "ftp://10.11.0.1/ros2",
+])
+def test_a_mirror_url_that_would_add_a_field_is_refused_by_the_schema_and_the_writer(url):
+    assert settings.check_value(settings.SETTINGS["ros_apt_mirror_url"], url)
+    if "\n" in url or "\u2028" in url:
+        with pytest.raises(ValueError):
+            quoting.deb822_value(url)
+
+
+def test_a_legal_but_awkward_mirror_url_is_written_exactly(tmp_path):
+    url = "https://mirror.example.org:8443/ros2/ubuntu/?token=a%20b&x=1;y"
+    assert settings.check_value(settings.SETTINGS["ros_apt_mirror_url"], url) is None
+    result = plan(ros_apt_source, FakeUbuntu().facts(), mirror_data(tmp_path, ros_apt_mirror_url=url))
+    assert f"URIs: {url}" in result.uploads()[SOURCES].splitlines()

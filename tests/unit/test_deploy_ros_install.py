@@ -6,10 +6,10 @@ import pytest
 from fixtures.classroom import host_data
 from fixtures.fake_host import plan
 from fixtures.fake_ubuntu import FakeUbuntu
-from pyinfra.api import DeployError
 
-from deploy.ros_install import DEFAULTS, ros_packages
+from deploy.ros_install import DEFAULTS, ros_install, ros_packages
 from deploy.rosdep import rosdep
+from roslab import settings as schema
 
 
 def settings(**changes):
@@ -29,9 +29,28 @@ def test_variant_override_dev_tools_switch_and_extras_with_the_distro_filled_in(
     assert packages == ["ros-jazzy-desktop", "ros-jazzy-turtlesim", "htop"]
 
 
-def test_an_unknown_variant_is_a_clear_error():
-    with pytest.raises(DeployError, match="variant 'desktop-lite' is unknown"):
-        ros_packages("jazzy", "main", settings(ros_variant_main="desktop-lite"))
+def test_an_unknown_variant_is_refused_by_the_schema():
+    assert "is not one of" in schema.check_value(schema.SETTINGS["ros_variant_main"], "desktop-lite")
+
+
+@pytest.mark.parametrize("name", ["-oAPT::Get::AllowUnauthenticated=1", "--allow-downgrades", "htop vim",
+                                  "ros-{distro}-x\n-y", "ros-{ros_distro}-turtlesim", "Htop"])
+def test_an_extra_package_that_is_not_a_package_name_is_refused_by_the_schema(name):
+    assert schema.check_value(schema.SETTINGS["ros_extra_packages"], [name])
+
+
+def test_package_names_can_never_reach_apt_get_as_options():
+    with pytest.raises(ValueError, match="starts with '-'"):
+        ros_packages("jazzy", "main", settings(ros_extra_packages=["-oAPT::Get::AllowUnauthenticated=1"]))
+
+
+def test_packages_go_after_the_lock_wait_and_an_end_of_options(tmp_path):
+    data = host_data(tmp_path, ros_extra_packages=["ros-{distro}-turtlesim", "g++"])
+    assert schema.check_value(schema.SETTINGS["ros_extra_packages"], data["ros_extra_packages"]) is None
+    result = plan(ros_install, FakeUbuntu().facts(), data)
+    (command,) = result.operation("Ensure ROS 2 jazzy is installed").text()
+    assert command.endswith(
+        "install -o DPkg::Lock::Timeout=600 -- ros-jazzy-desktop ros-dev-tools ros-jazzy-turtlesim g++")
 
 
 def test_rosdep_is_initialised_and_updated_as_the_login_user(tmp_path):
@@ -60,3 +79,21 @@ def test_rosdep_data_from_a_mirror_replaces_rosdep_init(tmp_path):
     again = plan(rosdep, host.facts(), data)
     assert again.changing() == {}
     assert "rosdep cache is 0 s old (max age 604800 s)" in again.noops
+
+
+def test_a_sources_list_the_controller_cannot_fetch_stops_only_the_hosts_that_need_it(tmp_path):
+    host = FakeUbuntu()
+    host.commands_on_path.add("rosdep")
+    url = f"file://{tmp_path}/no-such/20-default.list"
+    result = plan(rosdep, host.facts(), host_data(tmp_path, rosdep_sources_list_url=url))
+    assert result.failed and result.operations == []
+    (error,) = result.errors
+    assert "host pi (team team1): rosdep_sources_list_url: cannot download" in error and url in error
+    assert not plan(rosdep, host.facts(), host_data(tmp_path)).failed  # hosts using rosdep init
+
+
+def test_rosdep_for_a_login_user_the_host_lacks_stops_that_host(tmp_path):
+    host = FakeUbuntu()
+    result = plan(rosdep, host.facts(), host_data(tmp_path, login_user="ghost"))
+    assert result.failed and result.operations == []
+    assert "login_user 'ghost' does not exist on the host" in result.errors[0]

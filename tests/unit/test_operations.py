@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+
 import pytest
 from fixtures.fake_host import plan
-from pyinfra.facts.deb import DebPackage, DebPackages
 from pyinfra.facts.files import File, FileContents, Link
 from pyinfra.facts.server import Locales, Which
 
-from roslab import operations
+from roslab import operations, quoting
 from roslab.facts import AptProblem, FileAge
 
 BASHRC = ["# user's own settings", "alias ll='ls -alF'"]
@@ -79,6 +81,99 @@ def test_managed_block_prints_a_unified_diff_under_diff(caplog):
     assert "+ export ROS_DOMAIN_ID=11" in printed
 
 
+# --- managed_block: markers someone edited -------------------------------------------
+
+CONTENT = "source /opt/ros/jazzy/setup.bash\nexport ROS_DOMAIN_ID=11"
+BODY = CONTENT.split("\n")
+BLOCK = [BLOCK_BEGIN, *BODY, BLOCK_END]
+OLD_BODY = ["source /opt/ros/jazzy/setup.bash", "export ROS_DOMAIN_ID=3"]  # an older block
+MINE = ["# my own settings", "alias gs='git status'", "fi", "export EDITOR=vim"]  # "fi" as in a block
+LATER = ["source ~/my_ws/install/setup.bash", "echo hello"]
+
+
+def is_subsequence(needles: list[str], haystack: list[str]) -> bool:
+    remaining = iter(haystack)
+    return all(any(line == candidate for candidate in remaining) for line in needles)
+
+
+def one_block_holding_the_content(lines: list[str]) -> bool:
+    begins = [i for i, line in enumerate(lines) if line == BLOCK_BEGIN]
+    ends = [i for i, line in enumerate(lines) if line == BLOCK_END]
+    return len(begins) == len(ends) == 1 and lines[begins[0] + 1 : ends[0]] == BODY
+
+
+# accident: (the file, the user's lines in it, the file repaired). Lines between a begin
+# marker and its end are roslab's (as when the markers are fine); every other line is the user's.
+ACCIDENTS = {
+    # A student deleted the end marker (and wrote more lines below the block later).
+    "end marker deleted": (
+        [*MINE, BLOCK_BEGIN, *BODY, *LATER], [*MINE, *LATER], [*MINE, *BLOCK, *LATER]),
+    # ... while the block's content changed too: the old lines stay, as the student's.
+    "end marker deleted, old content": (
+        [*MINE, BLOCK_BEGIN, *OLD_BODY, *LATER], [*MINE, *OLD_BODY, *LATER],
+        [*MINE, *BLOCK, *OLD_BODY, *LATER]),
+    "begin marker deleted": (
+        [*MINE, *BODY, BLOCK_END, *LATER], [*MINE, *LATER], [*MINE, *BLOCK, *LATER]),
+    # What roslab before this fix left after the end marker was deleted: a second block.
+    "two begin markers": (
+        [*MINE, BLOCK_BEGIN, *BODY, *LATER, "", BLOCK_BEGIN, *BODY, BLOCK_END], [*MINE, *LATER, ""],
+        [*MINE, *BLOCK, *LATER, ""]),
+    "two blocks": (
+        [*MINE, *BLOCK, *LATER, BLOCK_BEGIN, *OLD_BODY, BLOCK_END, "echo end"], [*MINE, *LATER, "echo end"],
+        [*MINE, *BLOCK, *LATER, "echo end"]),
+    "markers in the wrong order": (
+        [*MINE, BLOCK_END, *LATER, BLOCK_BEGIN, *BODY, "echo end"], [*MINE, *LATER, "echo end"],
+        [*MINE, *BLOCK, *LATER, "echo end"]),
+    "two end markers": (
+        [*MINE, *BLOCK, *LATER, BLOCK_END], [*MINE, *LATER], [*MINE, *BLOCK, *LATER]),
+    "nested blocks": (
+        [*MINE, BLOCK_BEGIN, "x", BLOCK_BEGIN, *OLD_BODY, BLOCK_END, "y", BLOCK_END, *LATER],
+        [*MINE, "x", "y", *LATER], [*MINE, *BLOCK, "x", "y", *LATER]),
+}
+
+
+@pytest.mark.parametrize("accident", sorted(ACCIDENTS))
+def test_an_edited_marker_is_repaired_without_losing_a_user_line(accident):
+    current, user_lines, expected = ACCIDENTS[accident]
+    repaired, what = operations.block_repair(current, "ROS 2 environment", CONTENT)
+    assert is_subsequence(user_lines, repaired), f"a user line was lost: {user_lines} vs {repaired}"
+    assert one_block_holding_the_content(repaired)
+    assert repaired == expected
+    assert what and "expected one pair" in what
+    # Repaired once, then left alone.
+    assert operations.block_repair(repaired, "ROS 2 environment", CONTENT) == (repaired, None)
+
+
+def test_a_repair_backs_the_file_up_first_logs_one_line_and_shows_the_diff(caplog):
+    current = [*MINE, BLOCK_BEGIN, *OLD_BODY, *LATER]  # the end marker was deleted
+    with caplog.at_level("INFO"):
+        result = block(files({"/home/student/.bashrc": current}), content=CONTENT, diff=True)
+    commands = result.changing()["operations.managed_block"]
+    backup = f"/home/student/.bashrc{operations.BACKUP_SUFFIX}"
+    assert commands[0] == f"cp -p -- /home/student/.bashrc {backup}"
+    assert commands[1] == "upload /home/student/.bashrc"
+    uploaded = result.uploads()["/home/student/.bashrc"].splitlines()
+    assert uploaded == [*MINE, *BLOCK, *OLD_BODY, *LATER]
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1 and "\n" not in warnings[0]
+    assert "pi" in warnings[0] and "/home/student/.bashrc" in warnings[0] and backup in warnings[0]
+    assert "1 begin and 0 end markers" in warnings[0]
+    printed = "\n".join(r.getMessage() for r in caplog.records)
+    assert f"+ {BLOCK_END}" in printed
+
+
+def test_lines_like_the_block_beside_a_lone_marker_stay_unless_they_are_all_of_it():
+    # Only the whole old block, right at the marker, is taken as roslab's.
+    current = [*MINE, BLOCK_BEGIN, BODY[0], *LATER]
+    repaired, _ = operations.block_repair(current, "ROS 2 environment", CONTENT)
+    assert repaired == [*MINE, *BLOCK, BODY[0], *LATER]
+
+
+def test_an_ordinary_update_takes_no_backup():
+    result = block(files({"/home/student/.bashrc": [*BASHRC, BLOCK_BEGIN, "old", BLOCK_END]}))
+    assert not any(command.startswith("cp ") for command in result.changing()["operations.managed_block"])
+
+
 # --- Ubuntu apt sources -------------------------------------------------------------
 
 NOBLE = [
@@ -147,18 +242,99 @@ def test_complete_sources_are_a_noop():
     assert result.noops == ["Ubuntu apt sources already enable universe noble-updates noble-backports"]
 
 
+def test_a_one_line_sources_comment_stays_a_comment():
+    lines = operations.with_one_line_suites(
+        ["deb http://ports.ubuntu.com/ubuntu-ports jammy main # the Pi's mirror"], "jammy", ["universe"], [],
+    )
+    assert lines == ["deb http://ports.ubuntu.com/ubuntu-ports jammy main universe # the Pi's mirror"]
+
+
+def test_the_hosts_own_odd_words_are_kept_as_they_are_never_refused():
+    # A word roslab would never write (a control character) in the host's own file: kept, no error.
+    odd = ["Types: deb", "URIs: http://x/", "Suites: noble noble-\x1bodd", "Components: main"]
+    lines = operations.with_deb822_suites(odd, "noble", ["universe"], ["updates"])
+    assert lines[2] == "Suites: noble noble-\x1bodd noble-updates"
+
+
+@pytest.mark.parametrize("word", ["updates\nTrusted: yes", "updates backports", "up#dates", "[trusted=yes]"])
+def test_a_suite_that_would_change_the_sources_meaning_is_refused(word):
+    with pytest.raises(ValueError):
+        quoting.sources_list_word(word)
+    with pytest.raises(ValueError):
+        operations.with_deb822_suites(NOBLE, "noble", [], [word])
+    with pytest.raises(ValueError):
+        operations.with_one_line_suites(["deb http://x jammy main"], "jammy", [], [word])
+
+
+def test_an_empty_word_is_refused():
+    with pytest.raises(ValueError):
+        quoting.sources_list_word("")
+
+
+def test_legal_suites_are_written_as_they_are_in_both_layouts():
+    assert operations.with_deb822_suites(NOBLE, "noble", [], ["proposed"])[2] == (
+        "Suites: noble noble-security noble-proposed")
+    assert operations.with_one_line_suites(["deb http://x jammy main"], "jammy", [], ["proposed"]) == [
+        "deb http://x jammy main", "deb http://x jammy-proposed main"]
+
+
 # --- apt lists, packages, .debs ------------------------------------------------------
 
 STAMP = "/var/lib/apt/periodic/update-success-stamp"
 
 
+UPDATE = operations.apt_update_command(30)
+
+
 @pytest.mark.parametrize("age", [None, 90000])
 def test_stale_or_missing_apt_lists_are_updated_with_a_bounded_lock_wait(age):
     result = plan(operations.apt_lists_updated, {FileAge: lambda path: age}, lock_timeout=30, max_age=86400)
-    assert result.changing()["operations.apt_lists_updated"] == [
-        "DEBIAN_FRONTEND=noninteractive apt-get -y -o DPkg::Lock::Timeout=30 update",
-        f"mkdir -p /var/lib/apt/periodic && touch {STAMP}",
-    ]
+    assert result.changing()["operations.apt_lists_updated"] == [UPDATE]
+    assert "-o DPkg::Lock::Timeout=30 -o APT::Update::Error-Mode=any update" in UPDATE
+
+
+def run_update(tmp_path, apt_get_script: str):
+    """The update command in a shell, with a stand-in apt-get and the stamp under tmp_path."""
+    stamp = tmp_path / "periodic" / "update-success-stamp"
+    stamp.parent.mkdir(exist_ok=True)
+    stamp.write_text("")
+    fake_bin = tmp_path / "bin"
+    fake_bin.mkdir(exist_ok=True)
+    (fake_bin / "apt-get").write_text("#!/bin/sh\n" + apt_get_script)
+    (fake_bin / "apt-get").chmod(0o755)
+    command = UPDATE.replace(STAMP, str(stamp)).replace("/var/lib/apt/periodic", str(stamp.parent))
+    done = subprocess.run(["sh", "-c", command], env={**os.environ, "PATH": f"{fake_bin}:{os.environ['PATH']}"},
+                          capture_output=True, text=True)
+    return done, stamp
+
+
+# apt-get update as it behaves when one index fails to download: exit 0 with warnings, or
+# (with APT::Update::Error-Mode=any, apt >= 2.1.16) exit 100 with errors.
+MIRROR_GONE = """echo "Hit:1 http://10.11.0.1/ubuntu noble InRelease"
+echo "Err:2 http://10.11.0.1/ros2/ubuntu noble InRelease"
+echo "  Could not connect to 10.11.0.1:80 (10.11.0.1), connection refused"
+case "$*" in *Error-Mode=any*) level=E status=100 ;; *) level=W status=0 ;; esac
+echo "$level: Failed to fetch http://10.11.0.1/ros2/ubuntu/dists/noble/InRelease  Could not connect"
+echo "$level: Some index files failed to download. They have been ignored, or old ones used instead."
+exit $status
+"""
+
+
+def test_an_update_with_a_failed_download_fails_in_one_line_and_leaves_the_lists_stale(tmp_path):
+    """The mirror gone mid-update: the run fails, and the next run updates again instead of
+    trusting lists without the mirror's packages for a day."""
+    done, stamp = run_update(tmp_path, MIRROR_GONE)
+    assert done.returncode == 100
+    assert not stamp.exists()
+    assert done.stdout == ""
+    (line,) = done.stderr.splitlines()
+    assert line.startswith("roslab: apt-get update failed, the lists stay stale until one succeeds: "
+                           "E: Failed to fetch http://10.11.0.1/ros2/ubuntu/dists/noble/InRelease")
+
+
+def test_a_successful_update_marks_the_lists_fresh(tmp_path):
+    done, stamp = run_update(tmp_path, 'echo "Hit:1 http://10.11.0.1/ubuntu noble InRelease"\n')
+    assert done.returncode == 0 and stamp.exists() and done.stderr == ""
 
 
 def test_fresh_apt_lists_are_a_noop():
@@ -167,30 +343,38 @@ def test_fresh_apt_lists_are_a_noop():
     assert result.noops == ["apt lists are 60 s old (max age 86400 s)"]
 
 
-def test_deb_file_is_installed_when_its_version_is_not():
-    facts = {
-        DebPackage: lambda package: {"name": "ros2-apt-source", "version": "1.2.0"},
-        DebPackages: {"ros2-apt-source": {"1.1.0"}},
-    }
-    result = plan(operations.deb_file_installed, facts, src="/var/cache/roslab/x.deb")
-    assert result.changing() == {
-        "operations.deb_file_installed": ["dpkg --force-confdef --force-confold -i /var/cache/roslab/x.deb"]
-    }
-    facts[DebPackages] = {"ros2-apt-source": {"1.2.0"}}
-    result = plan(operations.deb_file_installed, facts, src="/var/cache/roslab/x.deb")
-    assert result.changing() == {}
-    assert result.noops == ["ros2-apt-source 1.2.0 is already installed"]
+def test_the_lock_wait_is_spelled_once():
+    assert operations.apt_lock_options(600) == "-o DPkg::Lock::Timeout=600"
+    assert operations.apt_install_options(5) == "-o DPkg::Lock::Timeout=5 --"
+    assert operations.apt_get("update", 7) == "DEBIAN_FRONTEND=noninteractive apt-get -y -o DPkg::Lock::Timeout=7 update"
+
+
+def test_an_interrupted_dpkg_is_finished_then_apt_completes_it():
+    result = plan(operations.dpkg_interrupted_install_finished, {}, lock_timeout=30)
+    configure, fix = result.changing()["operations.dpkg_interrupted_install_finished"]
+    assert configure.startswith("DEBIAN_FRONTEND=noninteractive dpkg --force-confdef --force-confold --configure -a ||")
+    assert fix == (
+        "DEBIAN_FRONTEND=noninteractive apt-get -y -o DPkg::Lock::Timeout=30 "
+        "-o Dpkg::Options::=--force-confdef -o Dpkg::Options::=--force-confold -f install"
+    )
 
 
 def test_command_installed_installs_the_package_only_when_the_command_is_missing():
     facts = {Which: lambda command: None}
     result = plan(operations.command_installed, facts, command="rosdep", package="python3-rosdep", lock_timeout=5)
     assert result.changing()["operations.command_installed"] == [
-        "DEBIAN_FRONTEND=noninteractive apt-get -y -o DPkg::Lock::Timeout=5 install python3-rosdep"
+        "DEBIAN_FRONTEND=noninteractive apt-get -y -o DPkg::Lock::Timeout=5 "
+        "-o Dpkg::Options::=--force-confdef -o Dpkg::Options::=--force-confold install -- python3-rosdep"
     ]
     facts = {Which: lambda command: "/usr/bin/rosdep"}
     result = plan(operations.command_installed, facts, command="rosdep", package="python3-rosdep", lock_timeout=5)
     assert result.noops == ["rosdep is already installed"]
+
+
+def test_command_installed_never_passes_an_option_as_a_package():
+    with pytest.raises(ValueError, match="starts with '-'"):
+        plan(operations.command_installed, {Which: lambda command: None},
+             command="rosdep", package="-oAPT::Get::AllowUnauthenticated=1", lock_timeout=5)
 
 
 def test_old_files_are_moved_aside_and_symlinks_kept_when_asked():
@@ -259,7 +443,7 @@ def test_rosdep_update_reads_the_rosdistro_index_from_the_setting_when_stale():
 # --- facts ----------------------------------------------------------------------------
 
 
-def test_apt_problem_fact_is_none_when_apt_check_succeeds():
+def test_apt_problem_fact_is_none_when_apt_check_succeeds_and_dpkg_is_done():
     assert AptProblem().process(["roslab-apt-exit=0"]) is None
 
 
@@ -268,8 +452,37 @@ def test_apt_problem_fact_reports_apts_verdict_not_its_waiting_lines():
         "Waiting for cache lock: Could not get lock /var/lib/dpkg/lock-frontend. It is held by process 812 (unattended-upgr)...",
         "E: Unable to acquire the dpkg frontend lock (/var/lib/dpkg/lock-frontend), is another process using it?",
         "roslab-apt-exit=100",
+        # unattended-upgrades is mid-install: its journal is no interruption
+        "roslab-dpkg-update: 0001",
+        "roslab-dpkg-audit: The following packages have been unpacked but not yet configured.",
     ]
-    assert AptProblem().process(output) == output[1]
+    assert AptProblem().process(output) == {"interrupted": False, "message": output[1]}
+
+
+def test_apt_problem_fact_reports_a_dpkg_interrupted_mid_install():
+    output = [
+        "E: dpkg was interrupted, you must manually run 'dpkg --configure -a' to correct the problem. ",
+        "roslab-apt-exit=100",
+        "roslab-dpkg-update: 0000",
+        "roslab-dpkg-update: 0001",
+        "roslab-dpkg-audit: The following packages are only half configured, probably due to problems",
+        "roslab-dpkg-audit:  ros-jazzy-ros-base   ROS 2 stand-in",
+    ]
+    problem = AptProblem().process(output)
+    assert problem["interrupted"] is True
+    assert problem["message"].startswith("dpkg was interrupted (2 pending entries in /var/lib/dpkg/updates/; dpkg --audit:")
+    assert "ros-jazzy-ros-base" in problem["message"] and "\n" not in problem["message"]
+
+
+def test_apt_problem_fact_sees_unconfigured_packages_that_apt_check_lets_pass():
+    output = ["roslab-apt-exit=0", "roslab-dpkg-audit: The following packages have been unpacked but not yet configured."]
+    assert AptProblem().process(output)["interrupted"] is True
+
+
+def test_apt_problem_fact_waits_with_the_one_lock_option():
+    command = AptProblem().command(lock_timeout=42).get_raw_value()
+    assert command.startswith("apt-get -qq -o DPkg::Lock::Timeout=42 check 2>&1;")
+    assert "ls -A /var/lib/dpkg/updates" in command and "dpkg --audit" in command
 
 
 def test_file_age_fact_parses_seconds_and_missing_files():
