@@ -1,6 +1,7 @@
 """The `roslab` command.
 
     roslab check [ROSTER]     validate a roster and print the classroom as a table
+    roslab verify [INVENTORY] check that each team's main host hears its robot (roslab.verify)
 
 `roslab sandbox ...` comes from `roslab.sandbox.cli` when that module is present.
 Exit status: 0 when the roster is valid, 1 when it has errors, 2 on bad usage.
@@ -62,7 +63,7 @@ def run_check(args: argparse.Namespace) -> int:
 
 
 def run_verify(args: argparse.Namespace) -> int:
-    from deploy.verify import main as verify_main  # connects to hosts: imported only when asked
+    from roslab.verify import main as verify_main  # connects to hosts: imported only when asked
 
     return verify_main(args.verify_args)
 

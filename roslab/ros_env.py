@@ -1,0 +1,47 @@
+"""The ROS 2 environment of a host: the variables its shell, its nodes and `roslab verify` use.
+
+One source for the ~/.bashrc block (deploy/shell_env.py), the roslab-nodes unit
+(deploy/workspace.py) and the check `roslab verify` runs on a main host, so a student's
+terminal, the service and the check always share the team's domain and discovery settings.
+Values arrive checked by the settings schema; each destination quotes them its own way
+(`roslab.quoting`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from roslab.distro import DISCOVERY_RANGE_DISTROS
+
+# The host.data keys `ros_variables_of` reads (all from the shell_env concern).
+SETTING_KEYS = ("ros_domain_id", "ros_automatic_discovery_range", "ros_static_peers")
+
+
+def ros_variables(
+    distro: str, domain_id: int, discovery_range: str = "SUBNET", static_peers: Iterable[str] = (),
+) -> dict[str, str]:
+    """The ROS variables a shell or a service of this host needs, in export order.
+
+    Jazzy and later have ROS_AUTOMATIC_DISCOVERY_RANGE and ROS_STATIC_PEERS; Humble has
+    neither, and its LOCALHOST is ROS_LOCALHOST_ONLY=1.
+    """
+    variables = {"ROS_DOMAIN_ID": str(domain_id)}
+    static_peers = list(static_peers or ())
+    if distro in DISCOVERY_RANGE_DISTROS:
+        variables["ROS_AUTOMATIC_DISCOVERY_RANGE"] = str(discovery_range)
+        if static_peers:
+            variables["ROS_STATIC_PEERS"] = ";".join(static_peers)
+    elif discovery_range == "LOCALHOST":
+        variables["ROS_LOCALHOST_ONLY"] = "1"
+    return variables
+
+
+def ros_variables_of(data, distro: str) -> dict[str, str]:
+    """`ros_variables` for a host's data: pyinfra's host.data or a roster host's dict (anything with .get)."""
+    get = data.get
+    return ros_variables(
+        distro,
+        get("ros_domain_id"),
+        get("ros_automatic_discovery_range"),
+        get("ros_static_peers") or (),
+    )

@@ -1,0 +1,376 @@
+"""Verify each team's main host hears its robot: a table per team, non-zero exit unless all do.
+
+    roslab verify [INVENTORY] [--limit team1 ...]      (or: python -m roslab.verify ...)
+
+Read-only and bounded. On every host it asks systemd for the state of
+roslab-nodes.service (that unit only). On each main host, as the login user and with the
+team's ROS environment (the same as the service's, `roslab.ros_env`), it lists the topics
+and waits up to `nodes_verify_timeout` seconds for one message on `nodes_verify_topic`,
+with `--no-daemon` so no ros2 daemon is left behind (and one the check started anyway is
+stopped). Every ros2 call runs under `timeout --kill-after`, and the whole check under one
+more bound: a node that ignores SIGTERM cannot hang the check.
+
+A team passes only when the message itself is a robot's greeting (`Hello from <robot> #<n>`,
+the demo talker's `chatter_text`) naming one of the team's robots: a greeting from another
+team's robot (domain IDs crossed) or any other text is not a pass. A host without a ROS 2
+runtime (no `ros2` command, as in the sandbox's stand-in ROS) is reported as such.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shlex
+import sys
+from dataclasses import dataclass, field
+
+from pyinfra.api import Config, FactBase, State
+from pyinfra.api.connect import connect_all, disconnect_all
+from pyinfra.context import ctx_config, ctx_host, ctx_inventory, ctx_state
+from pyinfra.facts.server import LinuxDistribution
+
+from roslab.distro import default_distro
+from roslab.quoting import shell_home_path, shell_word
+from roslab.ros_env import ros_variables_of
+from roslab.workspace import NODES_SERVICE, NodesUnitState
+
+# The demo talker's message: nodes/roslab_demo/roslab_demo/logic.py, CHATTER_FORMAT
+# 'Hello from {robot_name} #{count}' (nodes/README.md documents it). Parsed here the same
+# way as logic.robot_name_from_chatter, without importing the nodes (a unit test checks
+# this against chatter_text's own output).
+CHATTER_PATTERN = re.compile(r"Hello from (?P<robot_name>.+) #(?P<count>[0-9]+)", re.DOTALL)
+# The message type the talker publishes on the verify topic.
+CHATTER_TYPE = "std_msgs/msg/String"
+
+# Bounds, in seconds. Each ros2 call gets SIGTERM at its bound and SIGKILL KILL_AFTER later.
+KILL_AFTER = 5
+LIST_TIMEOUT = 15  # `ros2 topic list`
+LIST_SPIN_TIME = 3  # discovery time `ros2 topic list --no-daemon` waits
+DAEMON_TIMEOUT = 15  # `ros2 daemon status|stop`
+MESSAGE_LIMIT = 4096  # bytes of the message kept
+
+
+def robot_name_from_chatter(text: str) -> str | None:
+    """The robot name in a whole chatter message, or None if it is not a greeting."""
+    match = CHATTER_PATTERN.fullmatch(text)
+    return match["robot_name"] if match else None
+
+
+def check_bound(timeout: int, kill_after: int = KILL_AFTER) -> int:
+    """Seconds after which the whole check is killed: every step's bound, plus slack."""
+    steps = [LIST_TIMEOUT, int(timeout)] + [DAEMON_TIMEOUT] * 3
+    return sum(steps) + kill_after * (len(steps) + 1) + 10
+
+
+class NodesHeard(FactBase):
+    """
+    What a main host hears on its ROS domain, as its login user.
+
+    ``{"ros": bool, "topics": [...], "message": str | None, "robot": str | None,
+    "echo_status": int | None, "daemon_stopped": bool, "finished": bool}``: ``ros`` is
+    False when there is no ``ros2`` command after sourcing the distro; ``message`` is the
+    first message on ``topic`` within ``timeout`` seconds and ``robot`` the robot name in
+    it; ``finished`` is False when the whole check hit its bound.
+    """
+
+    @staticmethod
+    def default():
+        return parse_check_output([])
+
+    def command(self, distro: str, environment: dict, workspace_dir: str, topic: str,
+                timeout: int, kill_after: int = KILL_AFTER) -> str:
+        script = check_script(distro, environment, workspace_dir, topic, timeout, kill_after)
+        bound = check_bound(timeout, kill_after)
+        # The check always "succeeds" as a command; what happened is in its sections.
+        return (f"timeout --kill-after={int(kill_after)} {bound} bash -c {shlex.quote(script)}; "
+                "echo \"## exit $?\"")
+
+    def process(self, output):
+        return parse_check_output(output)
+
+
+def check_script(distro: str, environment: dict, workspace_dir: str, topic: str, timeout: int,
+                 kill_after: int = KILL_AFTER) -> str:
+    """The bash script the fact runs (as the login user): it reports in `## ` sections."""
+    timeout, kill_after = int(timeout), int(kill_after)
+
+    def bounded(seconds: int) -> str:
+        return f"timeout --kill-after={kill_after} {int(seconds)}"
+
+    ros_setup = shell_word(f"/opt/ros/{distro}/setup.bash")
+    workspace_setup = shell_home_path(workspace_dir.rstrip("/") + "/install/setup.bash")
+    exports = [f"export {name}={shell_word(value)}" for name, value in sorted(environment.items())]
+    daemon_status = f"{bounded(DAEMON_TIMEOUT)} ros2 daemon status 2>/dev/null | grep -q 'is running'"
+    return "\n".join(
+        [
+            f"[ -f {ros_setup} ] && source {ros_setup}",
+            f"[ -f {workspace_setup} ] && source {workspace_setup}",
+            *exports,
+            # No ros2, or one that cannot even list its own commands: no ROS runtime.
+            f"if ! command -v ros2 >/dev/null 2>&1 || ! {bounded(LIST_TIMEOUT)} ros2 --help"
+            " >/dev/null 2>&1; then echo '## ros missing'; exit 0; fi",
+            f"if {daemon_status}; then daemon_before=1; else daemon_before=0; fi",
+            "echo '## topics'",
+            f"{bounded(LIST_TIMEOUT)} ros2 topic list --no-daemon --spin-time {LIST_SPIN_TIME} 2>/dev/null",
+            "echo '## message'",
+            f"{bounded(timeout)} ros2 topic echo --no-daemon --once --field data --full-length"
+            f" {shell_word(topic)} {CHATTER_TYPE} 2>/dev/null | head -c {MESSAGE_LIMIT}",
+            "echo \"## echo status ${PIPESTATUS[0]}\"",
+            # --no-daemon starts none; should one have been started anyway, stop it.
+            f"if [ $daemon_before = 0 ] && {daemon_status}; then",
+            f"  {bounded(DAEMON_TIMEOUT)} ros2 daemon stop >/dev/null 2>&1",
+            "  echo '## daemon stopped'",
+            "fi",
+            "exit 0",
+        ]
+    )
+
+
+def parse_check_output(lines) -> dict:
+    result = {"ros": True, "topics": [], "message": None, "robot": None, "echo_status": None,
+              "daemon_stopped": False, "finished": False}
+    section = None
+    message: list[str] = []
+    seen = False
+    for line in lines:
+        if line.startswith("## "):
+            seen = True
+            section = line[3:].strip()
+            if section == "ros missing":
+                result["ros"] = False
+            elif section == "daemon stopped":
+                result["daemon_stopped"] = True
+            elif section.startswith("echo status "):
+                status = section.removeprefix("echo status ").strip()
+                result["echo_status"] = int(status) if status.isdigit() else None
+            elif section.startswith("exit "):
+                result["finished"] = section == "exit 0"
+            continue
+        if section == "topics" and line.strip():
+            result["topics"].append(line.strip())
+        elif section == "message":
+            message.append(line)
+    if not seen:
+        result["ros"] = None  # nothing came back: the check could not run
+    # `--field data` prints the text, then a `---` line.
+    while message and not message[-1].strip():
+        message.pop()
+    if message and message[-1].strip() == "---":
+        message.pop()
+    if message:
+        # Lines ros2 printed before the message (QoS notes) are not part of it.
+        for start in range(len(message)):
+            text = "\n".join(message[start:])
+            robot = robot_name_from_chatter(text)
+            if robot is not None:
+                result["message"], result["robot"] = text, robot
+                break
+        else:
+            result["message"] = "\n".join(message).strip() or None
+    return result
+
+
+@dataclass
+class TeamResult:
+    team: str
+    main: str | None = None
+    robots: list[str] = field(default_factory=list)
+    topic: str = "/chatter"
+    timeout: int = 20
+    services: dict = field(default_factory=dict)  # host name -> "active (running)", "failed (...)", ...
+    heard: dict | None = None  # NodesHeard of the main host
+    error: str | None = None
+
+    @property
+    def passed(self) -> bool:
+        return bool(
+            not self.error and self.heard and self.heard["ros"] and self.heard["robot"]
+            and self.heard["robot"] in self.robots
+        )
+
+    def verdict(self) -> str:
+        if self.error:
+            return self.error
+        if not self.main:
+            return "no main host in the team"
+        heard = self.heard or parse_check_output([])
+        if heard["ros"] is None:
+            return f"the check on {self.main} returned nothing"
+        if not heard["ros"]:
+            return f"no ROS runtime on {self.main}: not verified"
+        if not self.robots:
+            return "no robot in the team: nothing to hear"
+        if heard["robot"] is not None:
+            if heard["robot"] in self.robots:
+                return f"heard {heard['robot']}"
+            return (f"heard {heard['robot']!r}, which is not a robot of team {self.team} "
+                    f"({', '.join(self.robots)}): are two teams on one ROS_DOMAIN_ID?")
+        if heard["message"]:
+            return f"{self.topic} carries a message that is not a robot's greeting"
+        if not heard["finished"]:
+            return f"the check on {self.main} did not finish in time"
+        if self.topic in heard["topics"]:
+            return f"{self.topic} listed but no message within {self.timeout} s"
+        return f"{self.main} does not see {self.topic}"
+
+
+def _service_cell(result: TeamResult, name: str | None) -> str:
+    return result.services.get(name, "?") if name else "-"
+
+
+def format_table(results: list[TeamResult]) -> str:
+    header = ("team", "main", "robot", "main service", "robot service", "topics seen", "message heard", "result")
+    rows = [header]
+    for result in sorted(results, key=lambda r: r.team):
+        heard = result.heard or parse_check_output([])
+        topics = ", ".join(t for t in heard["topics"] if not t.startswith(("/rosout", "/parameter_events")))
+        message = " ".join((heard["message"] or "-").split())
+        if len(message) > 40:
+            message = message[:37] + "..."
+        rows.append(
+            (
+                result.team,
+                result.main or "-",
+                ", ".join(result.robots) or "-",
+                _service_cell(result, result.main),
+                ", ".join(_service_cell(result, robot) for robot in result.robots) or "-",
+                topics or "-",
+                message,
+                ("PASS " if result.passed else "FAIL ") + result.verdict(),
+            )
+        )
+    widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
+    lines = ["  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip() for row in rows]
+    lines.insert(1, "  ".join("-" * width for width in widths))
+    return "\n".join(lines)
+
+
+# Running it against an inventory
+# -------------------------------
+
+
+def service_state(unit_state: dict) -> str:
+    """A unit's state for the table: 'active (running)', 'failed (start-limit-hit)', ..."""
+    if not unit_state or unit_state.get("LoadState") == "not-found":
+        return "not installed"
+    active, sub = unit_state.get("ActiveState", "?"), unit_state.get("SubState", "")
+    if active == "failed" and unit_state.get("Result") not in (None, "", "success"):
+        return f"failed ({unit_state['Result']})"
+    return f"{active} ({sub})" if sub and sub != active else active
+
+
+def host_distro(host) -> str:
+    """The host's ROS 2 distro: ros_distro, else its Ubuntu release's default."""
+    if host.data.get("ros_distro"):
+        return host.data.ros_distro
+    release = host.get_fact(LinuxDistribution)["release_meta"]
+    return default_distro(release.get("UBUNTU_CODENAME") or release.get("VERSION_CODENAME"))
+
+
+def _check_host(state: State, host) -> tuple[str, dict | None, str | None]:
+    """(service state, NodesHeard on main hosts, error) for one host."""
+    with ctx_host.use(host):
+        try:
+            service = service_state(host.get_fact(NodesUnitState, service=NODES_SERVICE))
+            if host.data.get("roslab_role") != "main":
+                return service, None, None
+            timeout = int(host.data.nodes_verify_timeout)
+            distro = host_distro(host)
+            heard = host.get_fact(
+                NodesHeard,
+                distro=distro,
+                environment=ros_variables_of(host.data, distro),
+                workspace_dir=host.data.workspace_dir,
+                topic=host.data.nodes_verify_topic,
+                timeout=timeout,
+                _sudo=True,
+                _sudo_user=host.data.get("login_user") or host.data.get("ssh_user"),
+                # The connection's own bound, beyond the check's.
+                _timeout=check_bound(timeout) + 30,
+            )
+            return service, heard, None
+        except Exception as error:  # one host's trouble is its team's row, not a crash
+            return "?", None, f"{host.name}: {error}"
+
+
+def verify(state: State) -> list[TeamResult]:
+    """Check every active host in parallel and group the results by team."""
+    hosts = [host for host in state.inventory.iter_activated_hosts() if host in state.active_hosts]
+    greenlets = {host: state.pool.spawn(_check_host, state, host) for host in hosts}
+    teams: dict[str, TeamResult] = {}
+
+    def team_of(host) -> TeamResult:
+        name = host.data.get("roslab_team") or host.name
+        if name not in teams:
+            teams[name] = TeamResult(
+                name, topic=host.data.get("nodes_verify_topic") or "/chatter",
+                timeout=host.data.get("nodes_verify_timeout") or 0,
+            )
+        return teams[name]
+
+    for host, greenlet in greenlets.items():
+        service, heard, error = greenlet.get()
+        team = team_of(host)
+        team.services[host.name] = service
+        if host.data.get("roslab_role") == "main":
+            team.main, team.heard = host.name, heard
+            team.topic = host.data.get("nodes_verify_topic") or team.topic
+            team.timeout = host.data.get("nodes_verify_timeout") or team.timeout
+        else:
+            team.robots.append(host.name)
+        team.error = team.error or error
+    for host in state.inventory.iter_activated_hosts():
+        if host not in state.active_hosts:
+            team = team_of(host)
+            if host.data.get("roslab_role") == "main":
+                team.main = host.name
+            else:
+                team.robots.append(host.name)
+            team.services[host.name] = "unreachable"
+            team.error = team.error or f"{host.name} is unreachable"
+    for team in teams.values():
+        team.robots.sort()
+    return list(teams.values())
+
+
+def connect(inventory_path: str, limit: list[str] | None = None) -> State:
+    """A pyinfra state connected to the inventory's hosts (as `pyinfra INVENTORY ...` would)."""
+    from pyinfra_cli.cli import _apply_inventory_limit
+    from pyinfra_cli.inventory import make_inventory
+
+    state = State(check_for_changes=False)
+    state.cwd = os.getcwd()
+    config = Config()
+    ctx_state.set(state)
+    ctx_config.set(config)
+    inventory = make_inventory(inventory_path, cwd=state.cwd)
+    ctx_inventory.set(inventory)
+    # The same --limit patterns as pyinfra's (group or host names, globs).
+    state.init(inventory, config, initial_limit=_apply_inventory_limit(inventory, limit))
+    connect_all(state)
+    return state
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="roslab verify", description=__doc__.splitlines()[0])
+    parser.add_argument("inventory", nargs="?", default="inventories/lab.py",
+                        help="pyinfra inventory (default: inventories/lab.py)")
+    parser.add_argument("--limit", action="append", help="a group or host name (repeatable)")
+    args = parser.parse_args(argv)
+    state = connect(args.inventory, args.limit)
+    try:
+        results = verify(state)
+    finally:
+        disconnect_all(state)
+    print(format_table(results))
+    failed = [r.team for r in results if not r.passed]
+    if failed:
+        print(f"\nnot verified: {', '.join(sorted(failed))}", file=sys.stderr)
+        return 1
+    print(f"\nevery team's main host hears its robot ({len(results)} teams)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,311 @@
+"""roslab verify: what the main host's check finds, that it is bounded and leaves no daemon,
+that the robot is read from the message itself, and the table a teacher reads."""
+
+from __future__ import annotations
+
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from roslab import verify
+from roslab.workspace import NodesUnitState
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "nodes" / "roslab_demo"))
+
+from roslab_demo import logic  # noqa: E402  (importable only once the path is set)
+
+ENV = {"ROS_DOMAIN_ID": "11", "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"}
+
+
+def stand_in_ros(tmp_path: Path, ros2_body: str | None) -> Path:
+    """A home with a stand-in distro whose `ros2` does what `ros2_body` says."""
+    home = tmp_path / "home"
+    home.mkdir()
+    setup = tmp_path / "setup.bash"
+    setup.write_text(f"export PATH={tmp_path / 'bin'}:/usr/bin:/bin\n")
+    if ros2_body is not None:
+        (tmp_path / "bin").mkdir()
+        ros2 = tmp_path / "bin" / "ros2"
+        ros2.write_text(f"#!/bin/bash\necho \"$*\" >> {tmp_path}/calls\n{ros2_body}\n")
+        ros2.chmod(0o755)
+    return home
+
+
+def run_check(tmp_path, ros2_body: str | None, timeout: int = 2, kill_after: int = 1,
+              whole: bool = False) -> dict:
+    """Run the check as the fact would (`whole`: the fact's command, with its outer bound)."""
+    home = stand_in_ros(tmp_path, ros2_body)
+    if whole:
+        script = verify.NodesHeard().command("jazzy", ENV, "~/ros2_ws", "/chatter", timeout, kill_after)
+    else:
+        script = verify.check_script("jazzy", ENV, "~/ros2_ws", "/chatter", timeout, kill_after)
+    script = script.replace("/opt/ros/jazzy/setup.bash", str(tmp_path / "setup.bash"))
+    result = subprocess.run(["bash", "-c", script], capture_output=True, text=True,
+                            env={"HOME": str(home)}, timeout=120)
+    assert result.returncode == 0  # a fact command must not fail; the result says what happened
+    return verify.parse_check_output(result.stdout.splitlines())
+
+
+def calls(tmp_path) -> list[str]:
+    path = tmp_path / "calls"
+    return path.read_text().splitlines() if path.exists() else []
+
+
+# A ros2 that answers like a real one on domain 11, with the demo talker's greeting. If a
+# call could use the daemon (no --no-daemon), it "starts" one, as the real ros2 would.
+FAKE_ROS2 = """
+daemon=$(dirname "$0")/../daemon-running
+case " $* " in *" --no-daemon "*) ;; *" topic "*) touch "$daemon" ;; esac
+case "$1 $2" in
+  "topic list") printf '/chatter\\n/parameter_events\\n/robot_status\\n/rosout\\n' ;;
+  "topic echo") [ "$ROS_DOMAIN_ID" = 11 ] && printf '%s\\n---\\n' "$GREETING" ;;
+  "daemon status") if [ -e "$daemon" ]; then echo 'The daemon is running'; else echo 'The daemon is not running'; fi ;;
+  "daemon stop") rm -f "$daemon"; echo 'The daemon has been stopped' ;;
+esac
+"""
+
+
+def with_greeting(text: str) -> str:
+    return f"GREETING={shlex.quote(text)}\n{FAKE_ROS2}"
+
+
+def test_the_main_host_hears_the_robot_on_the_teams_domain(tmp_path):
+    heard = run_check(tmp_path, with_greeting(logic.chatter_text("team1-robot", 7)))
+    assert heard["ros"] is True and heard["finished"] is False  # (no outer wrapper here)
+    assert heard["topics"] == ["/chatter", "/parameter_events", "/robot_status", "/rosout"]
+    assert heard["message"] == "Hello from team1-robot #7"
+    assert heard["robot"] == "team1-robot"
+    assert heard["echo_status"] == 0
+
+
+def test_the_check_asks_without_the_daemon_for_one_typed_message_as_the_text(tmp_path):
+    run_check(tmp_path, with_greeting("Hello from r #1"))
+    (echo,) = [call for call in calls(tmp_path) if call.startswith("topic echo")]
+    assert echo == "topic echo --no-daemon --once --field data --full-length /chatter std_msgs/msg/String"
+    (listing,) = [call for call in calls(tmp_path) if call.startswith("topic list")]
+    assert "--no-daemon" in listing
+    assert not (tmp_path / "daemon-running").exists()
+
+
+def test_a_daemon_the_check_started_is_stopped_and_one_already_running_is_left(tmp_path):
+    # A ros2 that ignores --no-daemon: the check notices the daemon it left and stops it.
+    leaky = FAKE_ROS2.replace('case " $* " in *" --no-daemon "*) ;; *" topic "*)', 'case " $* " in *" topic "*)')
+    heard = run_check(tmp_path, with_greeting("Hello from r #1") + leaky)
+    assert heard["daemon_stopped"] is True
+    assert not (tmp_path / "daemon-running").exists()
+
+    # A daemon the student runs already is theirs: not stopped.
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "daemon-running").touch()
+    heard = run_check(other, with_greeting("Hello from r #1"))
+    assert heard["daemon_stopped"] is False and (other / "daemon-running").exists()
+
+
+def test_no_ros2_command_is_reported_as_no_ros_runtime(tmp_path):
+    heard = run_check(tmp_path, None)
+    assert heard["ros"] is False and heard["topics"] == [] and heard["message"] is None
+
+
+def test_the_workspace_is_sourced_from_the_users_home(tmp_path):
+    home = stand_in_ros(tmp_path, with_greeting("Hello from r #1"))
+    setup = home / "ros2_ws" / "install" / "setup.bash"
+    setup.parent.mkdir(parents=True)
+    setup.write_text(f"touch {tmp_path}/workspace-sourced\n")
+    script = verify.check_script("jazzy", ENV, "~/ros2_ws", "/chatter", 2, 1)
+    script = script.replace("/opt/ros/jazzy/setup.bash", str(tmp_path / "setup.bash"))
+    subprocess.run(["bash", "-c", script], env={"HOME": str(home)}, check=True, capture_output=True)
+    assert (tmp_path / "workspace-sourced").exists()
+
+
+def test_a_silent_topic_times_out_instead_of_hanging(tmp_path):
+    started = time.monotonic()
+    heard = run_check(tmp_path, 'case "$2" in list) echo /chatter ;; echo) sleep 30 ;; esac')
+    assert time.monotonic() - started < 10
+    assert heard["ros"] is True and heard["topics"] == ["/chatter"] and heard["message"] is None
+    assert heard["echo_status"] == 124
+
+
+def test_an_echo_that_ignores_sigterm_is_killed(tmp_path):
+    """The hang seen in class: `timeout N ros2 topic echo` sent one SIGTERM and waited >10 min."""
+    started = time.monotonic()
+    heard = run_check(tmp_path, "trap '' TERM\ncase \"$2\" in echo) sleep 60 ; sleep 60 ;; esac",
+                      timeout=1, kill_after=1)
+    assert time.monotonic() - started < 15
+    assert heard["echo_status"] == 137  # timeout's status after SIGKILL
+    assert heard["message"] is None
+
+
+def test_the_whole_check_has_one_more_bound(tmp_path, monkeypatch):
+    # Even a step outside the ros2 calls (here: a setup.bash that hangs) cannot hang the fact.
+    monkeypatch.setattr(verify, "check_bound", lambda timeout, kill_after=1: 2)
+    home = stand_in_ros(tmp_path, with_greeting("Hello from r #1"))
+    (tmp_path / "setup.bash").write_text("trap '' TERM; sleep 60; sleep 60\n")
+    command = verify.NodesHeard().command("jazzy", ENV, "~/ros2_ws", "/chatter", 2, 1)
+    command = command.replace("/opt/ros/jazzy/setup.bash", str(tmp_path / "setup.bash"))
+    started = time.monotonic()
+    result = subprocess.run(["bash", "-c", command], capture_output=True, text=True,
+                            env={"HOME": str(home), "PATH": "/usr/bin:/bin"}, timeout=60)
+    assert time.monotonic() - started < 10
+    heard = verify.parse_check_output(result.stdout.splitlines())
+    assert heard["finished"] is False and heard["message"] is None
+    assert "## exit 137" in result.stdout
+
+
+def test_a_check_that_finishes_says_so(tmp_path):
+    heard = run_check(tmp_path, with_greeting("Hello from r #1"), whole=True)
+    assert heard["finished"] is True and heard["robot"] == "r"
+
+
+def test_the_outer_bound_covers_every_step():
+    bound = verify.check_bound(20, 5)
+    steps = verify.LIST_TIMEOUT + 20 + 3 * verify.DAEMON_TIMEOUT
+    assert bound > steps + 5 * 5
+    assert bound < 10 * 60  # the >10 min hang this replaces
+    assert verify.NodesHeard().command("jazzy", ENV, "~/ros2_ws", "/chatter", 20).startswith(
+        f"timeout --kill-after=5 {bound} bash -c ")
+
+
+# The robot's name, read from the message itself
+# -----------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "robot_name",
+    ["team1-robot", "r", "my robot", "rover #2", "Hello from x #1", "robôt-ü", "two\nlines"],
+)
+@pytest.mark.parametrize("count", [1, 7, 10**9])
+def test_verify_reads_the_robot_back_from_what_the_talker_says(robot_name, count):
+    text = logic.chatter_text(robot_name, count)
+    assert verify.robot_name_from_chatter(text) == robot_name
+    assert verify.robot_name_from_chatter(text) == logic.robot_name_from_chatter(text)
+
+
+@pytest.mark.parametrize(
+    "text",
+    ["", "hello world", "Hello from team1-robot", "Hello from  #7"[:-1], "Hello from team1-robot #",
+     "Hello from team1-robot #7a", "data: Hello from team1-robot #7",
+     "[INFO] [talker]: Hello from team1-robot #7"],
+)
+def test_anything_else_is_not_a_greeting(text):
+    assert verify.robot_name_from_chatter(text) is None
+    assert logic.robot_name_from_chatter(text) is None
+
+
+@pytest.mark.parametrize("robot_name", ["team1-robot", "two\nlines", "rover #2"])
+def test_the_check_reads_the_robot_from_the_echoed_text(tmp_path, robot_name):
+    heard = run_check(tmp_path, with_greeting(logic.chatter_text(robot_name, 3)))
+    assert heard["robot"] == robot_name
+
+
+def test_notes_ros2_prints_before_the_message_are_not_part_of_it():
+    lines = ["## message", "Some, but not all, publishers are offering QoSReliabilityPolicy.RELIABLE.",
+             "Hello from team1-robot #12", "---", "## echo status 0"]
+    heard = verify.parse_check_output(lines)
+    assert heard["robot"] == "team1-robot" and heard["message"] == "Hello from team1-robot #12"
+
+
+def test_a_message_that_is_not_a_greeting_names_no_robot():
+    heard = verify.parse_check_output(["## topics", "/chatter", "## message", "hello world", "---"])
+    assert heard["robot"] is None and heard["message"] == "hello world"
+
+
+# The verdict and the table
+# -------------------------
+
+
+def heard(robot=None, ros=True, topics=("/chatter",), message=None, finished=True):
+    message = message if message is not None else (logic.chatter_text(robot, 4) if robot else None)
+    return {"ros": ros, "topics": list(topics), "message": message, "robot": robot,
+            "echo_status": 0 if message else 124, "daemon_stopped": False, "finished": finished}
+
+
+def result(team="team1", heard=None, robots=None, **kwargs):
+    robots = [f"{team}-robot"] if robots is None else robots
+    return verify.TeamResult(
+        team, main=f"{team}-main", robots=robots, heard=heard,
+        services={f"{team}-main": "active (running)", **{r: "active (running)" for r in robots}},
+        **kwargs,
+    )
+
+
+def test_table_has_a_row_per_team_and_says_what_failed():
+    results = [
+        result("team2", heard=heard(ros=False, topics=())),
+        result("team1", heard=heard("team1-robot", topics=("/chatter", "/rosout"))),
+        result("team3", heard=heard(topics=("/rosout",))),
+        result("team4", heard=heard()),
+        result("team5", heard=heard("team1-robot")),
+        result("team6", heard=heard(message="hello world")),
+        result("team7", heard=heard(topics=(), finished=False)),
+    ]
+    table = verify.format_table(results).splitlines()
+    assert table[0].split()[:3] == ["team", "main", "robot"]
+    rows = {line.split()[0]: line for line in table[2:]}
+    assert "PASS heard team1-robot" in rows["team1"]
+    assert "Hello from team1-robot #4" in rows["team1"]
+    assert "/rosout" not in rows["team1"]  # ROS's own topics are noise here
+    assert "FAIL no ROS runtime on team2-main: not verified" in rows["team2"]
+    assert "FAIL team3-main does not see /chatter" in rows["team3"]
+    assert "FAIL /chatter listed but no message within 20 s" in rows["team4"]
+    # A greeting, but from another team's robot: two teams share a domain.
+    assert "FAIL heard 'team1-robot', which is not a robot of team team5 (team5-robot)" in rows["team5"]
+    assert "FAIL /chatter carries a message that is not a robot's greeting" in rows["team6"]
+    assert "FAIL the check on team7-main did not finish in time" in rows["team7"]
+    assert [r.passed for r in results] == [False, True, False, False, False, False, False]
+
+
+def test_any_of_a_teams_robots_passes_it():
+    two = result("team1", heard=heard("team1-robot2"), robots=["team1-robot1", "team1-robot2"])
+    assert two.passed and "team1-robot1, team1-robot2" in verify.format_table([two])
+
+
+def test_a_team_without_a_robot_is_not_verified():
+    alone = result("team1", heard=heard(), robots=[])
+    assert not alone.passed and "no robot in the team" in alone.verdict()
+
+
+def test_an_unreachable_host_fails_its_team():
+    failed = result("team5", heard=None, error="team5-robot is unreachable")
+    assert not failed.passed
+    assert "FAIL team5-robot is unreachable" in verify.format_table([failed])
+
+
+@pytest.mark.parametrize(
+    ("state", "cell"),
+    [
+        ({"LoadState": "loaded", "ActiveState": "active", "SubState": "running"}, "active (running)"),
+        ({"LoadState": "loaded", "ActiveState": "failed", "SubState": "failed", "Result": "start-limit-hit"},
+         "failed (start-limit-hit)"),
+        ({"LoadState": "loaded", "ActiveState": "activating", "SubState": "auto-restart"},
+         "activating (auto-restart)"),
+        ({"LoadState": "not-found", "ActiveState": "inactive", "SubState": "dead"}, "not installed"),
+        ({}, "not installed"),
+    ],
+)
+def test_service_cells_say_what_systemd_says(state, cell):
+    assert verify.service_state(state) == cell
+
+
+def test_verify_reads_the_unit_with_the_workspace_deploys_fact():
+    assert verify.NodesUnitState is NodesUnitState
+
+
+def test_nothing_in_roslab_imports_the_deploys():
+    roslab = Path(__file__).resolve().parents[2] / "roslab"
+    offenders = [
+        str(path.relative_to(roslab)) for path in roslab.rglob("*.py")
+        if any(line.startswith(("from deploy", "import deploy"))
+               for line in path.read_text().splitlines())
+    ]
+    assert offenders == []
+
+
+def test_a_ros2_that_cannot_even_answer_help_is_no_ros_runtime(tmp_path):
+    # Like the sandbox's stand-in ros2: every command but `launch` exits 127.
+    heard = run_check(tmp_path, 'echo "stand-in: no ROS runtime" >&2\nexit 127\n')
+    assert heard["ros"] is False
