@@ -6,54 +6,36 @@ are removed, a student's own packages in `src/` are not touched), `rosdep instal
 when a `package.xml` changed, `colcon build` as the user when a source changed or
 the last build did not finish, and restart the role's service when the build or the
 unit changed.
+
+Classroom accidents heal on the next run, each named in one line for its host:
+- a workspace (or part of it) a student gave to root is given back to the login user;
+- a Python file of roslab's packages that does not compile fails this host's build with
+  file and line, before colcon runs (the service keeps its last good build, no restart);
+- a nodes unit that gave up (failed after its start limit) or was stopped is started again.
 """
 
 from __future__ import annotations
 
 import posixpath
-import shlex
+from io import StringIO
 from pathlib import Path
 
-from pyinfra import host
-from pyinfra.api import DeployError, deploy
+from pyinfra import host, logger
+from pyinfra.api import OperationError, deploy
 from pyinfra.facts.files import File
 from pyinfra.operations import files, systemd
-from pyinfra.operations.util import any_changed
 
-from deploy.common import host_distro, login_home, login_user, setting, should_run, where
-from deploy.shell_env import ros_variables
+from deploy.common import as_login_user, host_distro, login_home, login_user, should_run, stop_host, where
+from roslab import settings
 from roslab import workspace as ws_ops
+from roslab.quoting import shell_word, systemd_assignment, systemd_value, systemd_word
+from roslab.ros_env import ros_variables_of
+from roslab.templating import render
+from roslab.workspace import NODES_SERVICE, NODES_UNIT_PATH
 
 REPO = Path(__file__).resolve().parent.parent
-TEMPLATES = REPO / "templates"
-NODES_SERVICE = "roslab-nodes.service"
-NODES_UNIT_PATH = f"/etc/systemd/system/{NODES_SERVICE}"
-# Templates render without the blank lines a `{% for %}` line would leave.
-JINJA_ENV = {"trim_blocks": True, "lstrip_blocks": True}
 
-DEFAULTS = {
-    # Copy nodes/ into the login user's workspace, build it and run the role's launch.
-    "workspace_enabled": True,
-    # The login user's colcon workspace; `~/` is the login user's home.
-    "workspace_dir": "~/ros2_ws",
-    # Controller directory whose ROS packages are copied into the workspace's src/;
-    # None: this checkout's nodes/.
-    "workspace_nodes_dir": None,
-    # Arguments after `colcon build`; a sequential build is what colcon advises on a Pi.
-    "workspace_colcon_args": ["--executor", "sequential"],
-    # Run `rosdep install --from-paths src --ignore-src -y` when a package.xml changed.
-    "workspace_rosdep_install": True,
-    # Run the role's launch as the systemd service roslab-nodes, restarted on failure.
-    "nodes_service_enabled": True,
-    # What the service runs on main hosts: `ros2 launch <package> <launch file>`.
-    "nodes_launch_main": "roslab_bringup main.launch.py",
-    # What the service runs on robots: `ros2 launch <package> <launch file>`.
-    "nodes_launch_robot": "roslab_bringup robot.launch.py",
-    # The topic the verify step expects each team's main host to hear from its robot.
-    "nodes_verify_topic": "/chatter",
-    # Seconds the verify step waits for a message on that topic.
-    "nodes_verify_timeout": 20,
-}
+DEFAULTS = settings.defaults("workspace")
 
 # A launch that keeps failing is retried this many times in this many seconds, then left failed.
 START_LIMIT_BURST = 5
@@ -61,114 +43,49 @@ START_LIMIT_INTERVAL = 300
 RESTART_SEC = 5
 
 
-# Settings, checked (bad input names the host, team and field)
-# --------------------------------------------------------------
-
-
-def workspace_path(home: str) -> str:
-    # setting(): the verify step reads this outside the workspace deploy (no data_defaults there).
-    value = setting("workspace_dir")
-    if not isinstance(value, str) or not value.strip():
-        raise DeployError(f"{where()}: workspace_dir must be a path, got {value!r}")
-    if value == "~" or value.startswith("~/"):
-        value = posixpath.join(home, value[2:])
-    if not posixpath.isabs(value):
-        raise DeployError(f"{where()}: workspace_dir {value!r} must be absolute or start with ~/")
-    return posixpath.normpath(value)
-
-
 def nodes_dir() -> str:
+    """The controller directory whose packages are copied (absolute: the roster made it so)."""
     value = host.data.workspace_nodes_dir
-    path = Path(value) if value else REPO / "nodes"
-    if not path.is_dir():
-        raise DeployError(f"{where()}: workspace_nodes_dir {str(path)!r} is not a directory")
-    return str(path)
+    return str(Path(value) if value else REPO / "nodes")
 
 
-def colcon_args() -> list[str]:
-    value = host.data.workspace_colcon_args
-    if not isinstance(value, (list, tuple)) or not all(isinstance(arg, str) for arg in value):
-        raise DeployError(
-            f"{where()}: workspace_colcon_args must be a list of strings, got {value!r}"
-        )
-    return list(value)
-
-
-def launch_for(role: str) -> tuple[str, str]:
-    """(package, launch file) of the role's `nodes_launch_<role>` setting."""
-    key = f"nodes_launch_{role}"
-    value = host.data.get(key)
-    words = value.split() if isinstance(value, str) else []
-    if len(words) != 2 or not ws_ops.PACKAGE_NAME.match(words[0]):
-        raise DeployError(
-            f"{where()}: {key} must be '<package> <launch file>' "
-            f"like 'roslab_bringup main.launch.py', got {value!r}"
-        )
-    return words[0], words[1]
-
-
-def host_role() -> str:
-    role = host.data.get("roslab_role")
-    if role not in ("main", "robot"):
-        raise DeployError(f"{where()}: roslab_role must be main or robot, got {role!r}")
-    return role
-
-
-# The service's environment: the same variables as the shell block
-# ------------------------------------------------------------------
-
-
-def ros_environment(distro: str) -> dict[str, str]:
-    """The ROS variables the nodes need: the same ones the ~/.bashrc block exports."""
-    return ros_variables(
-        distro,
-        setting("ros_domain_id"),
-        setting("ros_automatic_discovery_range"),
-        setting("ros_static_peers") or [],
-    )
-
-
-def systemd_environment(environment: dict[str, str]) -> list[str]:
-    """`Environment=` values, quoted for systemd (quotes, backslashes and % specifiers)."""
-    quoted = []
-    for name, value in sorted(environment.items()):
-        text = f"{name}={value}".replace("\\", "\\\\").replace('"', '\\"').replace("%", "%%")
-        quoted.append(f'"{text}"')
-    return quoted
-
-
-def unit_variables(
-    *, role: str, user: str, home: str, workspace_dir: str, distro: str,
-    launch: tuple[str, str], environment: dict[str, str],
-) -> dict:
-    """Everything templates/roslab-nodes.service.j2 needs."""
-    package, launch_file = launch
-    script = " && ".join(
+def exec_script(*, distro: str, workspace_dir: str, launch: str) -> str:
+    """The bash script the unit runs: the distro's and the workspace's setup, then the launch."""
+    package, launch_file = launch.split(" ")
+    return " && ".join(
         [
-            f"source /opt/ros/{distro}/setup.bash",
-            f"source {shlex.quote(posixpath.join(workspace_dir, 'install', 'setup.bash'))}",
-            f"exec ros2 launch {package} {shlex.quote(launch_file)}",
+            f"source {shell_word(f'/opt/ros/{distro}/setup.bash')}",
+            f"source {shell_word(posixpath.join(workspace_dir, 'install', 'setup.bash'))}",
+            f"exec ros2 launch {shell_word(package)} {shell_word(launch_file)}",
         ]
     )
-    # Not "user": files.template takes that as the owner of the unit file itself.
-    return {
-        "role": role,
-        "service_user": user,
-        "home": home,
-        "workspace_dir": workspace_dir,
-        "launch": f"{package} {launch_file}",
-        "service": NODES_SERVICE,
-        "environment": systemd_environment(environment),
-        "exec_script": shlex.quote(script).replace("%", "%%"),
-        "restart_sec": RESTART_SEC,
-        "start_limit_burst": START_LIMIT_BURST,
-        "start_limit_interval": START_LIMIT_INTERVAL,
-    }
 
 
-def as_login_user(user: str) -> dict:
-    """pyinfra arguments that run an operation as the workspace's owner."""
-    return {"_sudo": True, "_sudo_user": user}
+def unit_text(
+    *, role: str, user: str, home: str, workspace_dir: str, distro: str, launch: str,
+    environment: dict[str, str],
+) -> str:
+    """templates/roslab-nodes.service.j2 with every value written for systemd.
+
+    `launch` is the role's `nodes_launch_<role>` ("<package> <launch file>").
+    """
+    script = exec_script(distro=distro, workspace_dir=workspace_dir, launch=launch)
+    return render(
+        "roslab-nodes.service.j2",
+        role=systemd_value(role),
+        launch=systemd_value(launch),
+        workspace_dir=systemd_value(workspace_dir),
+        description=systemd_value(f"roslab {role} nodes (ros2 launch {launch})"),
+        service=NODES_SERVICE,
+        service_user=systemd_value(user),
+        working_directory=systemd_value(home),
+        environment=[systemd_assignment(name, value) for name, value in sorted(environment.items())],
+        # ExecStart un-escapes \, expands % and $ in every word: the script is one escaped word.
+        exec_start=f"/bin/bash -c {systemd_word(script)}",
+        restart_sec=RESTART_SEC,
+        start_limit_burst=START_LIMIT_BURST,
+        start_limit_interval=START_LIMIT_INTERVAL,
+    )
 
 
 @deploy("The demo nodes are built in the login user's workspace and run as the role's service",
@@ -185,18 +102,39 @@ def workspace():
         return
     user = login_user()
     home = login_home()
+    if home is None:  # the login user does not exist: login_home() stopped this host
+        return
     distro = host_distro()
-    role = host_role()
-    workspace_dir = workspace_path(home)
+    role = host.data.roslab_role
+    workspace_dir = ws_ops.workspace_path(home, host.data.workspace_dir)
     src_dir = posixpath.join(workspace_dir, "src")
     source_dir = nodes_dir()
-    launch = launch_for(role)
-    packages = ws_ops.local_packages(source_dir)
+    try:
+        packages = ws_ops.local_packages(source_dir)
+    except OperationError as error:
+        stop_host(f"{where()}: workspace: {error}; nothing was changed by this step")
+        return
+
+    try:  # before any change: a value the unit cannot carry stops this host only
+        unit_file = unit_text(
+            role=role, user=user, home=home, workspace_dir=workspace_dir, distro=distro,
+            launch=host.data.get(f"nodes_launch_{role}"),
+            environment=ros_variables_of(host.data, distro),
+        )
+    except ValueError as error:  # e.g. a home directory whose name holds a newline
+        stop_host(f"{where()}: workspace: {error}; nothing was changed by this step")
+        return
 
     for path in (workspace_dir, src_dir):
         files.directory(
             name=f"Ensure {path} exists, owned by {user}", path=path, user=user,
         )
+    # Before anything runs as the user: a tree a student gave to root would fail the build.
+    ws_ops.owned(
+        name=f"Ensure everything in {workspace_dir} belongs to {user}",
+        workspace_dir=workspace_dir,
+        user=user,
+    )
     ws_ops.packages(
         name=f"Ensure {src_dir} holds the packages of {source_dir}",
         nodes_dir=source_dir,
@@ -213,6 +151,7 @@ def workspace():
             user=user,
             ros_home=posixpath.join(home, ".ros"),
         )
+    managed = [f"src/{name}" for name in sorted(packages)]
     build = ws_ops.built(
         name=f"Ensure {workspace_dir} is built from these sources (colcon)",
         workspace_dir=workspace_dir,
@@ -220,8 +159,9 @@ def workspace():
         # Only roslab's packages: a student's broken package in src/ must not fail the
         # classroom's deploy. (`--paths` is colcon-core's; `--packages-up-to` needs an
         # extension that not every colcon install has.)
-        colcon_args=[*colcon_args(), "--paths", *(f"src/{name}" for name in sorted(packages))],
+        colcon_args=[*host.data.workspace_colcon_args, "--paths", *managed],
         sources_hash=ws_ops.tree_hash(packages),
+        python_paths=managed,
         **as_login_user(user),
     )
 
@@ -233,26 +173,27 @@ def workspace():
             )
         return
 
-    unit = files.template(
+    unit = files.put(
         name=f"Ensure {NODES_SERVICE} runs the {role}'s launch as {user}",
-        src=str(TEMPLATES / "roslab-nodes.service.j2"),
+        src=StringIO(unit_file),
         dest=NODES_UNIT_PATH,
+        user="root",
+        group="root",
         mode="644",
-        jinja_env_kwargs=JINJA_ENV,
-        **unit_variables(
-            role=role, user=user, home=home, workspace_dir=workspace_dir, distro=distro,
-            launch=launch, environment=ros_environment(distro),
-        ),
     )
+    # Read when planning: a unit that gave up (or was stopped) is started again below.
+    stopped = ws_ops.stopped_reason(host.get_fact(ws_ops.NodesUnitState, service=NODES_SERVICE))
+    if stopped:
+        host.log(f"workspace: {NODES_SERVICE} is {stopped}: starting it again", logger.warning)
     systemd.daemon_reload(name="Ensure systemd has read the changed unit", _if=unit.did_change)
-    # running=None: starting belongs to the restart below (only after a change), so a
-    # node that keeps failing does not make every re-run report a start.
+    # running=None: starting belongs to the restart below (after a change, or when the unit
+    # is failed or stopped), so a healthy re-run reports nothing.
     systemd.service(
         name=f"Ensure {NODES_SERVICE} starts at boot", service=NODES_SERVICE,
         enabled=True, running=None,
     )
     ws_ops.restarted(
-        name=f"Ensure {NODES_SERVICE} runs the new build and unit",
+        name=f"Ensure {NODES_SERVICE} runs the current build and unit",
         service=NODES_SERVICE,
-        _if=any_changed(unit, build),
+        _if=lambda: bool(stopped) or unit.did_change() or build.did_change(),
     )

@@ -1,7 +1,7 @@
 """pyinfra facts and operations for a colcon workspace that roslab fills from `nodes/`.
 
-Used by `deploy/workspace.py`. The design goals, and why the operations look the way
-they do:
+Used by `deploy/workspace.py` (and the unit facts by `roslab verify`). The design goals,
+and why the operations look the way they do:
 
 - One remote command reads the whole managed tree (checksums, modes, owners), not
   one fact per file: on a classroom of a dozen Pis that is the difference between a
@@ -14,6 +14,10 @@ they do:
   the sources of the last *successful* run). pyinfra evaluates operations again
   when it executes them, so these facts are read after the sync has run; a build
   that failed or was interrupted left no stamp and is retried on the next run.
+- Classroom accidents heal on the next run, each named in one line: a workspace a
+  student chowned to root is given back to the login user (`owned`), a node with a
+  Python syntax error fails its host's build with file and line before colcon runs
+  (`built`), and a nodes unit that gave up is started again (`NodesUnitState`).
 """
 
 from __future__ import annotations
@@ -38,6 +42,10 @@ MANIFEST_HEADER = (
     "# roslab overwrites edits inside them and removes them when they leave nodes/;\n"
     "# packages of your own beside them in src/ are never touched.\n"
 )
+
+# The systemd unit that runs the role's launch.
+NODES_SERVICE = "roslab-nodes.service"
+NODES_UNIT_PATH = f"/etc/systemd/system/{NODES_SERVICE}"
 
 # roslab's state in the workspace: stamps of the last successful rosdep install / build.
 STATE_DIR_NAME = ".roslab"
@@ -123,6 +131,17 @@ def tree_hash(packages: dict[str, dict[str, LocalFile]], only: str | None = None
 
 def manifest_text(package_names) -> str:
     return MANIFEST_HEADER + "".join(f"{name}\n" for name in sorted(package_names))
+
+
+def workspace_path(home: str, workspace_dir: str) -> str:
+    """The workspace on the host: `workspace_dir` (`~/...`, schema-checked) under `home`.
+
+    An absolute `workspace_dir` (only a `pyinfra --data` override can give one: the
+    roster's schema wants `~/`) is taken as it is.
+    """
+    if workspace_dir == "~" or workspace_dir.startswith("~/"):
+        workspace_dir = posixpath.join(home, workspace_dir[2:])
+    return posixpath.normpath(workspace_dir)
 
 
 # Host side: what the workspace's src/ holds
@@ -372,6 +391,81 @@ def _log_sync_diff(plan: SyncPlan, local_files, remote, remote_path) -> None:
             logger.info("  (binary file)")
 
 
+# Host side: who owns the workspace
+# ----------------------------------
+
+FOREIGN_EXAMPLES = 3
+
+
+class WorkspaceForeign(FactBase):
+    """
+    Paths in a workspace that do not belong to its user (and the user's primary group).
+
+    Returns ``{"count": n, "examples": [up to 3 paths relative to the workspace]}``;
+    a count of 0 when every path does, or when there is no workspace yet. The whole tree
+    is read (build/, install/, log/, src/ and roslab's state): a student who ran
+    `sudo colcon build` or `sudo chown -R root ~/ros2_ws` left root's files anywhere.
+    Symbolic links are not followed.
+    """
+
+    @staticmethod
+    def default():
+        return {"count": 0, "examples": []}
+
+    def command(self, workspace_dir: str, user: str) -> str:
+        ws, who = shlex.quote(workspace_dir), shlex.quote(user)
+        return (
+            f"[ -d {ws} ] || exit 0; group=$(id -gn {who}) || exit 0; "
+            f"find {ws} \\( ! -user {who} -o ! -group \"$group\" \\) -printf '%P\\n' 2>/dev/null"
+            f" | awk 'NR <= {FOREIGN_EXAMPLES} {{ print \"path \" $0 }} END {{ print \"count \" NR }}'"
+        )
+
+    def process(self, output):
+        result = self.default()
+        for line in output:
+            kind, _, value = line.partition(" ")
+            if kind == "count" and value.strip().isdigit():
+                result["count"] = int(value)
+            elif kind == "path":
+                result["examples"].append(value or ".")
+        return result
+
+
+@operation()
+def owned(workspace_dir: str, user: str):
+    """
+    Give every path in a workspace back to its user (and the user's primary group).
+
+    + workspace_dir: the workspace on the host (absolute)
+    + user: the login user who owns it
+
+    Runs ``chown -R`` (as root) only when some path belongs to someone else, and says
+    how many and which in one line. ``chown -R`` does not follow symbolic links: a link
+    a student made to a system file changes owner itself, never its target.
+    """
+    foreign = host.get_fact(WorkspaceForeign, workspace_dir=workspace_dir, user=user)
+    if not foreign["count"]:
+        host.noop(f"everything in {workspace_dir} belongs to {user}")
+        return
+    # One line per host and run: pyinfra may run this body when planning and again when
+    # executing (with -y only then).
+    reported = getattr(state, "roslab_reported", None)
+    if reported is None:
+        reported = set()
+        state.roslab_reported = reported
+    said = (host.name, getattr(host, "current_op_hash", None))
+    if said not in reported:
+        reported.add(said)
+        examples = ", ".join(foreign["examples"])
+        more = ", ..." if foreign["count"] > len(foreign["examples"]) else ""
+        host.log(
+            f"workspace: {foreign['count']} paths in {workspace_dir} do not belong to {user} "
+            f"({examples}{more}): giving them back",
+            logger.warning,
+        )
+    yield StringCommand("chown", "-R", "--", f"{shlex.quote(user)}:", shlex.quote(workspace_dir))
+
+
 # Host side: stamps of the last successful rosdep install and build
 # ------------------------------------------------------------------
 
@@ -452,12 +546,55 @@ def dependencies(
     )
 
 
-def build_script(workspace_dir: str, distro: str, colcon_args: list[str], stamp: str) -> str:
-    """The bash script that builds the workspace, keeping its log, stamping success."""
+# Compiles every .py below the given directories with the host's python3 (the one colcon
+# builds with), writing no byte-code: a syntax error names file and line before colcon
+# runs, where an ament_python build would install the broken file and succeed.
+PYTHON_SYNTAX_CHECK = """\
+import os, sys, warnings
+warnings.simplefilter("ignore")
+bad = 0
+for top in sys.argv[1:]:
+    for folder, dirs, files in os.walk(top):
+        dirs.sort()
+        for name in sorted(files):
+            if not name.endswith(".py"):
+                continue
+            path = os.path.join(folder, name)
+            try:
+                with open(path, "rb") as source:
+                    compile(source.read(), path, "exec", dont_inherit=True)
+            except (SyntaxError, ValueError) as error:
+                bad += 1
+                where = os.path.abspath(path) + ":" + str(getattr(error, "lineno", None) or 0)
+                detail = getattr(error, "msg", None) or str(error)
+                print(where + ": " + type(error).__name__ + ": " + detail, file=sys.stderr)
+sys.exit(1 if bad else 0)
+"""
+SYNTAX_ERROR_EXIT = 65  # EX_DATAERR
+
+
+def build_script(
+    workspace_dir: str, distro: str, colcon_args: list[str], stamp: str, python_paths=(),
+) -> str:
+    """The bash script that builds the workspace, keeping its log, stamping success.
+
+    `python_paths` (relative to the workspace) are compiled first: a syntax error there
+    fails the build with file and line, before colcon runs, and leaves no stamp.
+    """
     state_dir = posixpath.join(workspace_dir, STATE_DIR_NAME)
     build_stamp = posixpath.join(state_dir, "build.sha256")
     log = posixpath.join("log", BUILD_LOG_NAME)
     colcon = " ".join(shlex.quote(arg) for arg in ["colcon", "build", *colcon_args])
+    syntax_check = []
+    if python_paths:
+        paths = " ".join(shlex.quote(path) for path in python_paths)
+        syntax_check = [
+            f"if ! python3 -B -c {shlex.quote(PYTHON_SYNTAX_CHECK)} {paths}; then",
+            "  echo \"workspace: not built: fix the Python file named above where roslab copies it"
+            " from (workspace_nodes_dir, by default the checkout's nodes/) and run again\" >&2",
+            f"  exit {SYNTAX_ERROR_EXIT}",
+            "fi",
+        ]
     return "\n".join(
         [
             f"cd {shlex.quote(workspace_dir)} || exit 1",
@@ -465,6 +602,7 @@ def build_script(workspace_dir: str, distro: str, colcon_args: list[str], stamp:
             # No stamp while building: an interrupted build is retried on the next run.
             f"rm -f {shlex.quote(build_stamp)}",
             f"source /opt/ros/{shlex.quote(distro)}/setup.bash || exit 1",
+            *syntax_check,
             f"if {colcon} > {log} 2>&1; then",
             f"  {_write_stamp(build_stamp, stamp)}",
             "else",
@@ -479,7 +617,9 @@ def build_script(workspace_dir: str, distro: str, colcon_args: list[str], stamp:
 
 
 @operation()
-def built(workspace_dir: str, distro: str, colcon_args: list[str], sources_hash: str):
+def built(
+    workspace_dir: str, distro: str, colcon_args: list[str], sources_hash: str, python_paths=(),
+):
     """
     Build a colcon workspace when its sources changed since the last successful build.
 
@@ -487,10 +627,13 @@ def built(workspace_dir: str, distro: str, colcon_args: list[str], sources_hash:
     + distro: ROS 2 distro whose ``/opt/ros/<distro>/setup.bash`` is sourced for the build
     + colcon_args: arguments after ``colcon build``
     + sources_hash: hash of the sources roslab manages
+    + python_paths: directories (relative to the workspace) whose ``.py`` files must
+      compile before colcon runs (roslab's packages)
 
     Run it as the workspace's owner (``_sudo_user``). The build's output goes to
     ``log/roslab-build.log`` in the workspace; when the build fails its tail is the
-    operation's error output. A build is needed when the stamp of the last successful
+    operation's error output, and a Python syntax error fails it with file and line
+    before colcon runs. A build is needed when the stamp of the last successful
     build (sources, distro and arguments) differs or ``install/setup.sh`` is missing.
     """
     stamp = hashlib.sha256(
@@ -500,7 +643,51 @@ def built(workspace_dir: str, distro: str, colcon_args: list[str], sources_hash:
     if stamps.get("build") == stamp and stamps.get("installed"):
         host.noop(f"{workspace_dir} is built from these sources already")
         return
-    yield StringCommand("bash", "-c", shlex.quote(build_script(workspace_dir, distro, colcon_args, stamp)))
+    script = build_script(workspace_dir, distro, colcon_args, stamp, python_paths)
+    yield StringCommand("bash", "-c", shlex.quote(script))
+
+
+# Host side: the nodes' unit
+# --------------------------
+
+
+class NodesUnitState(FactBase):
+    """
+    One unit's state as systemd has it: ``{"LoadState": ..., "ActiveState": ..., "SubState": ...,
+    "Result": ...}`` (e.g. loaded, failed, failed, start-limit-hit).
+
+    Asks about this unit only (``systemctl show -p ... <unit>``), never every unit.
+    """
+
+    @staticmethod
+    def default():
+        return {}
+
+    def requires_command(self, service: str = NODES_SERVICE) -> str:
+        return "systemctl"
+
+    def command(self, service: str = NODES_SERVICE) -> str:
+        return f"systemctl show --property=LoadState,ActiveState,SubState,Result {shlex.quote(service)}"
+
+    def process(self, output):
+        return dict(line.split("=", 1) for line in output if "=" in line)
+
+
+def stopped_reason(unit_state: dict) -> str | None:
+    """Why a loaded unit that should run is not running and would not start by itself, or None.
+
+    failed: it gave up (its start limit, or a crash with no restart left); inactive:
+    someone stopped it. activating (auto-restart) is systemd still trying: left alone.
+    """
+    if unit_state.get("LoadState") != "loaded":
+        return None  # not installed yet: writing the unit starts it
+    active = unit_state.get("ActiveState")
+    if active == "failed":
+        result = unit_state.get("Result")
+        return f"failed ({result})" if result and result != "success" else "failed"
+    if active == "inactive":
+        return "inactive (stopped)"
+    return None
 
 
 @operation()

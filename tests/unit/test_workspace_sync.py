@@ -28,6 +28,8 @@ GROUP = grp.getgrgid(os.getgid()).gr_name
 class LocalDirHost:
     """A stand-in for pyinfra's host whose facts run as shell commands on this machine."""
 
+    name = "local"
+
     def __init__(self, facts: dict | None = None):
         self.facts = facts or {}
         self.noops: list[str] = []
