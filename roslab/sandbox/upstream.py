@@ -40,7 +40,7 @@ from . import image
 from .system import SandboxError, file_lock, log, pid_alive, run, terminate, write_file
 
 # Bump when the archives' layout or the stand-ins change: part of the cache keys.
-ARCHIVE_VERSION = 2
+ARCHIVE_VERSION = 3
 
 ROS_APT_SOURCE_VERSION = "1.2.0"
 
@@ -220,6 +220,8 @@ def _build_deb(workdir: Path, package: str, version: str, description: str,
     shutil.rmtree(root, ignore_errors=True)
     for path, content in (files or {}).items():
         write_file(root / path.lstrip("/"), content)
+        if "/bin/" in path:
+            (root / path.lstrip("/")).chmod(0o755)
     for path, target in (links or {}).items():
         link = root / path.lstrip("/")
         link.parent.mkdir(parents=True, exist_ok=True)
@@ -333,6 +335,28 @@ def setup_script(distro: str) -> str:
         f'  *":/opt/ros/{distro}:"*) ;;\n'
         f'  *) export AMENT_PREFIX_PATH="/opt/ros/{distro}${{AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}}" ;;\n'
         "esac\n"
+        'case ":${PATH}:" in\n'
+        f'  *":/opt/ros/{distro}/bin:"*) ;;\n'
+        f'  *) export PATH="/opt/ros/{distro}/bin:$PATH" ;;\n'
+        "esac\n"
+    )
+
+
+def standin_ros2(distro: str) -> str:
+    """A stand-in `ros2`: only `ros2 launch` works, and it only stays up like a healthy launch.
+
+    That is what the deploy needs (the nodes' service runs, so a re-run is a no-op); every
+    other command says there is no ROS runtime and exits 127, as a missing command would.
+    """
+    return (
+        "#!/bin/sh\n"
+        f"# {STANDIN_NOTE} for ROS 2 {distro}'s ros2: there is no ROS code behind it.\n"
+        'if [ "$1" = launch ]; then\n'
+        f'  echo "{STANDIN_NOTE}: no ROS runtime; \\`ros2 $*\\` only stays up like a healthy launch" >&2\n'
+        "  exec sleep infinity\n"
+        "fi\n"
+        f'echo "{STANDIN_NOTE}: ros2 $* needs a ROS 2 runtime, which the sandbox does not have" >&2\n'
+        "exit 127\n"
     )
 
 
@@ -340,7 +364,8 @@ def standin_marker(distro: str) -> str:
     return (
         f"This /opt/ros/{distro} comes from the roslab sandbox's STAND-IN ROS packages.\n"
         "They install these setup scripts and depend on the real Debian rosdep and colcon,\n"
-        "but hold no ROS code: `import rclpy` fails, `ros2` does not exist.\n"
+        "but hold no ROS code: `import rclpy` fails; `ros2` is a stand-in whose `launch` only\n"
+        "stays up (so the nodes' service runs) and whose other commands fail with exit 127.\n"
         "A real classroom installs the real packages from packages.ros.org.\n"
     )
 
@@ -370,6 +395,7 @@ def ros_archive(extra_keys: set[str]) -> Path:
                     files = {f"{prefix}/{name}": setup_script(distro)
                              for name in ("setup.bash", "setup.sh", "local_setup.bash", "local_setup.sh")}
                     files[f"{prefix}/STANDIN"] = standin_marker(distro)
+                    files[f"{prefix}/bin/ros2"] = standin_ros2(distro)
                 elif key not in VARIANT_DEPENDS:
                     depends = [debian_name(distro, ROS_WORKSPACE_KEY)]
                 _build_deb(work, package, f"0.0.0-1{codename}", f"{STANDIN_NOTE}: {key} for ROS 2 {distro} "

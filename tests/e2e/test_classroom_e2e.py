@@ -68,16 +68,9 @@ def deploy_with_roster(sandbox, roster, *args):
     return sandbox.pyinfra(*args, inventory="inventories/lab.py", env={"ROSLAB_ROSTER": str(roster)})
 
 
-# The sandbox has no ROS runtime (stand-in packages, no `ros2`): the nodes' service fails,
-# systemd gives up on it after a few tries, and every later run starts it again (the
-# workspace deploy heals a failed unit; tests/e2e/test_workspace_e2e.py covers that). Here
-# that restart is not a change of the host's provisioning.
-NODES_RESTART = "runs the current build and unit"
-
-
 def changes(run) -> dict[str, set[str]]:
-    """Operation name -> hosts it changed, without the sandbox-only restart of the nodes."""
-    return {name: hosts for name, hosts in run.changed.items() if NODES_RESTART not in name}
+    """Operation name -> hosts it changed."""
+    return run.changed
 
 
 def changed_hosts(run) -> set[str]:
@@ -203,9 +196,25 @@ def test_drift_is_repaired_and_only_the_drift_is_reported(sandbox, first_run):
     assert sandbox.ssh("team2-main", "systemctl is-enabled ssh").stdout.strip() == "enabled"
 
 
-def test_bad_roster_stops_before_any_host_is_contacted(sandbox, first_run, tmp_path):
+BAD_HOST_VALUES = {
+    # A typo in a key: the message suggests the right one.
+    "typo": ("ros_varaint", "desktop", "did you mean 'ros_variant'"),
+    # Values the deploys used to check only after connecting, or never.
+    "subshell in a path": ("workspace_dir", "~/ws$(touch /tmp/pwned)", "'~/ws$(touch /tmp/pwned)'"),
+    "one-word launch": ("nodes_launch_main", "roslab_bringup", "is not '<package> <launch file>'"),
+    "apt option as a package": ("ros_extra_packages", ["-oAPT::Get::AllowUnauthenticated=1"],
+                                "is not a Debian package name"),
+    "new line in a unit value": ("nodes_launch_main", "roslab_bringup main.launch.py\nUser=root",
+                                 "must be a single line"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_HOST_VALUES))
+def test_one_bad_host_value_stops_before_any_host_is_contacted(sandbox, first_run, tmp_path, case):
+    key, value, message = BAD_HOST_VALUES[case]
+
     def edit(data):
-        data["teams"]["team2"]["hosts"]["team2-main"]["ros_varaint"] = "desktop"  # a typo
+        data["teams"]["team2"]["hosts"]["team2-main"][key] = value
 
     roster = changed_roster(sandbox, tmp_path, edit)
     logins = "journalctl -u ssh --no-pager | grep -c 'Accepted publickey'"
@@ -215,11 +224,12 @@ def test_bad_roster_stops_before_any_host_is_contacted(sandbox, first_run, tmp_p
 
     output = bad.stdout + bad.stderr
     assert bad.returncode != 0
-    assert "roster.yaml" in output
-    assert "team 'team2'" in output and "host 'team2-main'" in output
-    assert "'ros_varaint'" in output and "did you mean 'ros_variant'" in output
+    assert "roster.yaml" in output and "no host was touched" in output
+    assert f"team 'team2', host 'team2-main', field '{key}'" in output
+    assert message in output, output
     # Only this check's own login since: pyinfra never connected.
     assert int(sandbox.sudo("team1-main", logins, check=True).stdout) == before + 1
+    assert sandbox.ssh("team2-main", "ls /tmp/pwned 2>/dev/null || true").stdout.strip() == ""
 
 
 # --- issue 9: faults injected for real -------------------------------------------------------
