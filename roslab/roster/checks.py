@@ -32,9 +32,11 @@ def unknown_key_message(key: str, level: str) -> str:
         where = " or ".join(f"a {other}" for other in known.levels)
         return f"{key!r} can only be set on {where}, not on a {level}"
     message = f"unknown key {key!r}"
-    close = difflib.get_close_matches(key, list(settings.keys_at(level)), n=1)
+    close = difflib.get_close_matches(key, list(settings.SETTINGS), n=1)
     if close:
-        message += f" (did you mean {close[0]!r}?)"
+        levels = settings.SETTINGS[close[0]].levels
+        where = "" if level in levels else f", set on {' or '.join(f'a {other}' for other in levels)}"
+        message += f" (did you mean {close[0]!r}{where}?)"
     return message
 
 

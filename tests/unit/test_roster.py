@@ -587,3 +587,9 @@ def test_bad_secrets_file_errors_never_show_a_value(tmp_path):
     errors = errors_of(one_team(tmp_path, "wifi_password_secret: lab_wifi\n"))
     assert "secrets.yaml:2: secret 'lab_wifi' is defined twice (also at line 1)" in errors
     assert not any(SECRET_VALUE in error for error in errors)
+
+
+def test_a_typo_of_a_team_setting_on_a_host_suggests_it_and_where_it_belongs(tmp_path):
+    assert one_error(one_team(tmp_path, "ros_domian_id: 3\n")) == (
+        "lab.yaml:10: team 'team1', host 'team1-main', field 'ros_domian_id': unknown key "
+        "'ros_domian_id' (did you mean 'ros_domain_id', set on a classroom or a team?)")
