@@ -13,6 +13,7 @@ from pyinfra.context import ctx_host
 from pyinfra.facts.server import Home, LinuxDistribution, User
 
 from roslab import settings
+from roslab.operations import as_user
 from roslab.distro import DistroError, UBUNTU_CODENAMES, check_distro, codename_for, default_distro
 
 DEFAULTS = settings.defaults("common")
@@ -51,7 +52,7 @@ def login_user() -> str:
 
 def as_login_user(user: str) -> dict:
     """pyinfra arguments that run an operation as the login user (rosdep and colcon refuse root)."""
-    return {"_sudo": True, "_sudo_user": user}
+    return as_user(user)
 
 
 def login_home() -> str | None:

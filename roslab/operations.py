@@ -38,6 +38,11 @@ DPKG_KEEP_CONFFILES = "-o Dpkg::Options::=--force-confdef -o Dpkg::Options::=--f
 APT_UPDATE_FAIL_ON_ANY_ERROR = "-o APT::Update::Error-Mode=any"
 
 
+def as_user(user: str) -> dict:
+    """pyinfra arguments that run an operation or fact as `user` (rosdep and colcon refuse root)."""
+    return {"_sudo": True, "_sudo_user": user}
+
+
 def apt_lock_options(lock_timeout: int) -> str:
     """apt-get options that wait (bounded) for the dpkg lock instead of failing at once.
 

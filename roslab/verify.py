@@ -31,6 +31,7 @@ from pyinfra.context import ctx_config, ctx_host, ctx_inventory, ctx_state
 from pyinfra.facts.server import LinuxDistribution
 
 from roslab.distro import default_distro
+from roslab.operations import as_user
 from roslab.quoting import shell_home_path, shell_word
 from roslab.ros_env import ros_variables_of
 from roslab.workspace import NODES_SERVICE, NodesUnitState
@@ -284,8 +285,7 @@ def _check_host(state: State, host) -> tuple[str, dict | None, str | None]:
                 workspace_dir=host.data.workspace_dir,
                 topic=host.data.nodes_verify_topic,
                 timeout=timeout,
-                _sudo=True,
-                _sudo_user=host.data.get("login_user") or host.data.get("ssh_user"),
+                **as_user(host.data.get("login_user") or host.data.get("ssh_user")),
                 # The connection's own bound, beyond the check's.
                 _timeout=check_bound(timeout) + 30,
             )
