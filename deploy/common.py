@@ -12,7 +12,7 @@ from pyinfra.api import deploy
 from pyinfra.context import ctx_host
 from pyinfra.facts.server import Home, LinuxDistribution, User
 
-from roslab import settings
+from roslab import settings, summary
 from roslab.operations import as_user
 from roslab.distro import DistroError, UBUNTU_CODENAMES, check_distro, codename_for, default_distro
 
@@ -34,7 +34,10 @@ def stop_host(message: str) -> None:
     instead (pyinfra then runs nothing on it and exits 1 at the end).
     """
     logger.error(f"{host.print_prefix}roslab stops this host: {message}")
-    state.fail_hosts({host})
+    summary.record_stop(host, message)
+    # The real Host, not the context proxy: pyinfra reads failed_hosts after the run,
+    # when the proxy points at no host any more (its --json output crashed on it).
+    state.fail_hosts({ctx_host.get()})
 
 
 def host_is_active() -> bool:

@@ -1,0 +1,476 @@
+"""The run summary a teacher reads at the end of `pyinfra inventories/lab.py deploy.py`.
+
+pyinfra's own output ends with a table of operations; a host that failed shows up in it
+as a count, and in the log as "Error: executed 0 commands" somewhere above. This module
+prints, last of all (real run or --dry), one line per host: `ok`, `changed` or `failed`,
+and for a failed host the step (the operation, or the deploy that stopped it) and one
+line of why. Then the exit code pyinfra gives and the counts:
+
+    --> roslab summary
+        team1-main   changed
+        team1-robot  failed   in "ROS 2 is installed ... | Ensure ROS 2 ...": E: Unable to locate package foo
+        exit code 1: 1 failed, 1 changed, 0 ok (2 hosts)
+
+How it hears about the run:
+
+- `RunSummary` is a pyinfra state callback handler (`BaseStateCallback`). deploy.py
+  registers it with `install()`, once per run although pyinfra executes deploy.py once
+  per host. Its callbacks note which operation failed on which host; the operation's
+  output is read at the end (pyinfra completes an operation's result only after
+  `operation_host_error` has fired).
+- `record_stop(host, message)` is called by `deploy.common.stop_host`: a host roslab
+  stops while planning fails without any operation failing.
+- A logging handler on pyinfra's logger keeps each host's warning and error lines
+  (pyinfra prefixes them with `[host]`), for failures no callback carries: a command
+  timeout, an SSH error, a fact that could not load, an exception in a Python step.
+- The summary is printed at interpreter exit (`atexit`, CLI runs only), after pyinfra
+  has disconnected and printed its own error, so it is the last thing on screen.
+  The network deploy reconnects hosts mid-run, so "the last host disconnected" is no
+  end-of-run signal.
+
+It never prints host data: only host names, operation and deploy names, and lines
+pyinfra already logged. Secrets (`HiddenValue`s such as `roslab.secrets.Secret`, and
+password keys) are masked in every line all the same, in case a command echoed one.
+"""
+
+from __future__ import annotations
+
+import atexit
+import logging
+import re
+import sys
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Iterable, TextIO
+
+import pyinfra
+from pyinfra.api import HiddenValue
+from pyinfra.api.state import BaseStateCallback, State, StateStage
+from pyinfra.context import ctx_host, ctx_state
+
+OK, CHANGED, FAILED, PLANNED, NOT_RUN = "ok", "changed", "failed", "planned", "not run"
+MASK = "***"
+MAX_REASON = 240  # characters of a reason kept on its one line
+MAX_LOG_LINES = 200  # warning/error lines kept per host (the latest)
+
+STOP_PREFIX = "roslab stops this host: "
+_ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
+_PREFIXED = re.compile(r"^\s*\[([^\]\s]+)\]\s*(?:nested\s+)?(.*)$")
+# `where()` in deploy.common and the network deploy start a stop message with the host,
+# which the summary's own host column already shows.
+_WHERE = re.compile(r"^host \S+(?: \(team [^)]*\))?: ")
+# pyinfra's own lines that say only that something failed.
+_GENERIC = re.compile(r"^Error(?: \(ignored[^)]*\))?(?::\s*(?:executed \d+ commands.*)?)?$")
+_PYINFRA_ERROR = re.compile(r"^Error(?: \(ignored[^)]*\))?: ")
+_ROSLAB = re.compile(r"^roslab\b")
+_APT_ERROR = re.compile(r"^E: ")
+_EXCEPTION = re.compile(r"^[\w.]+(?:Error|Exception)\b:?")
+_ERROR_WORDS = re.compile(
+    r"(?i)\b(?:error|errors|failed|failure|fatal|denied|not found|no such|unable|cannot|"
+    r"can't|could not|couldn't|timed out|refused|unreachable|invalid|missing)\b"
+)
+
+
+def one_line(text: str) -> str:
+    """`text` without colour codes, on one line with single spaces, cut to MAX_REASON."""
+    text = " ".join(_ANSI.sub("", str(text)).split())
+    if len(text) > MAX_REASON:
+        text = text[: MAX_REASON - 3].rstrip() + "..."
+    return text
+
+
+def stop_reason(message: str) -> str:
+    """The first line of a `stop_host` message, without the host it names."""
+    lines = [line for line in _ANSI.sub("", str(message)).splitlines() if line.strip()]
+    first = lines[0].strip() if lines else ""
+    if first.startswith(STOP_PREFIX):
+        first = first[len(STOP_PREFIX):]
+    return _WHERE.sub("", first)
+
+
+def most_useful_line(lines: Iterable[str]) -> str | None:
+    """The line of a failure's output that says most about why, or None.
+
+    In order: roslab's stop message, another roslab report, apt's `E:` line, an exception,
+    the first line with an error word, the last line; pyinfra's own "Error: ..." lines
+    only when nothing else is there, and never "Error: executed 0 commands".
+    """
+    cleaned = [one_line(line) for line in lines]
+    cleaned = [line for line in cleaned if line and not _GENERIC.match(line)]
+    for line in cleaned:
+        if line.startswith(STOP_PREFIX):
+            return stop_reason(line)
+    own = [line for line in cleaned if not _PYINFRA_ERROR.match(line)]
+    for pattern in (_ROSLAB, _APT_ERROR, _EXCEPTION, _ERROR_WORDS):
+        for line in own:
+            if pattern.search(line):
+                return line
+    if own:
+        return own[-1]
+    return cleaned[0] if cleaned else None
+
+
+@dataclass
+class LogLine:
+    level: int
+    text: str
+    op_hash: str | None = None  # the operation executing on the host when it was logged
+    step: str | None = None  # the deploy planning on the host when it was logged
+
+
+@dataclass
+class HostEvents:
+    error_ops: list[str] = field(default_factory=list)  # op hashes, in the order they failed
+    stop: tuple[str, str] | None = None  # (step, message) from record_stop
+    connect_error: str | None = None
+    log: deque = field(default_factory=lambda: deque(maxlen=MAX_LOG_LINES))
+
+
+@dataclass
+class Row:
+    host: str
+    status: str
+    step: str | None = None
+    reason: str | None = None
+
+    def text(self, width: int) -> str:
+        line = f"{self.host:<{width}}  {self.status:<7}"
+        if self.status == FAILED:
+            line += f"  in \"{self.step}\": {self.reason}"
+        return line.rstrip()
+
+
+class RunSummary(BaseStateCallback):
+    """Collects what happened to each host during one pyinfra run, and prints the table."""
+
+    def __init__(self) -> None:
+        self.events: dict[str, HostEvents] = {}
+        self.planned: set[str] = set()  # hosts whose deploy.py ran to its end
+
+    def host(self, name: str) -> HostEvents:
+        return self.events.setdefault(name, HostEvents())
+
+    # pyinfra callbacks (pyinfra calls them as handler.<name>(state, ...))
+
+    def host_connect_error(self, state: State, host, error) -> None:
+        text = error.args[0] if getattr(error, "args", None) else error
+        self.host(host.name).connect_error = one_line(text)
+
+    def operation_host_error(self, state: State, host, op_hash, retry_count: int = 0,
+                             max_retries: int = 0) -> None:
+        self.host(host.name).error_ops.append(op_hash)
+
+    # roslab's own events
+
+    def record_stop(self, name: str, step: str | None, message: str) -> None:
+        events = self.host(name)
+        if events.stop is None:  # the first stop is the reason; later ones follow from it
+            events.stop = (step or "planning", message)
+
+    def record_log(self, name: str, line: LogLine) -> None:
+        self.host(name).log.append(line)
+
+    def mark_planned(self, name: str) -> None:
+        self.planned.add(name)
+
+    # the summary
+
+    def run_finished(self, state: State) -> bool:
+        """Whether pyinfra got to the end of the run (or of the plan, for --dry) on its own."""
+        if state.current_stage >= StateStage.Disconnect:
+            return True
+        if state.current_stage == StateStage.Prepare and not state.is_executing:
+            return all(host.name in self.planned for host in state.active_hosts)
+        return False
+
+    def exit_code(self, state: State) -> int:
+        if state.failed_hosts or not self.run_finished(state):
+            return 1
+        return 0
+
+    def rows(self, state: State) -> list[Row]:
+        rows = []
+        finished = self.run_finished(state)
+        for host in state.inventory:
+            if not state.is_host_in_limit(host):
+                continue
+            if host_failed(state, host):
+                step, reason = self.failure(state, host)
+                rows.append(Row(host.name, FAILED, step, reason))
+            elif state.is_executing:
+                if self.did_change(state, host):
+                    rows.append(Row(host.name, CHANGED))
+                else:
+                    rows.append(Row(host.name, OK if finished or self.all_ops_ran(state, host) else NOT_RUN))
+            elif not finished:
+                rows.append(Row(host.name, NOT_RUN))  # the run stopped while planning
+            elif not state.should_check_for_changes():
+                rows.append(Row(host.name, PLANNED))  # --dry with -y: changes were not detected
+            else:
+                changes = state.get_meta_for_host(host).ops_change
+                rows.append(Row(host.name, CHANGED if changes else OK))
+        return rows
+
+    @staticmethod
+    def all_ops_ran(state: State, host) -> bool:
+        return all(op_data.operation_meta.is_complete() for op_data in state.ops.get(host, {}).values())
+
+    @staticmethod
+    def did_change(state: State, host) -> bool:
+        for op_data in state.ops.get(host, {}).values():
+            meta = op_data.operation_meta
+            if meta.is_complete() and meta.did_change():
+                return True
+        return False
+
+    def failure(self, state: State, host) -> tuple[str, str]:
+        """(step, reason) for a failed host, from the best source there is."""
+        events = self.host(host.name)
+        if events.stop:
+            step, message = events.stop
+            return step, stop_reason(message) or "roslab stopped it"
+        op_hash = self.failed_op(state, host)
+        if op_hash is not None:
+            return op_name(state, op_hash, host), self.op_reason(state, host, op_hash)
+        if events.connect_error or host not in state.activated_hosts:
+            reason = events.connect_error or most_useful_line(
+                line.text for line in events.log if line.level >= logging.ERROR
+            )
+            return "connect", reason or "pyinfra could not connect to it (its message is above)"
+        # Planning failures no callback carries: a fact that could not load, stop_host's
+        # own log line (most_useful_line prefers it).
+        errors = [line for line in events.log if line.level >= logging.ERROR]
+        reason = most_useful_line(line.text for line in errors)
+        if reason:
+            step = next((line.step for line in reversed(errors) if line.step), None)
+            if step is None:
+                step = next((op_name(state, line.op_hash, host) for line in reversed(errors)
+                             if line.op_hash in state.op_meta), "planning")
+            return step, reason
+        return "unknown", "pyinfra marked it failed without saying why (see its output above)"
+
+    def failed_op(self, state: State, host) -> str | None:
+        """The operation that failed the host: its first error that was not ignored."""
+        ops = state.ops.get(host, {})
+        for op_hash in self.host(host.name).error_ops:
+            op_data = ops.get(op_hash)
+            if op_data is None or not op_data.global_arguments.get("_ignore_errors"):
+                return op_hash
+        return None
+
+    def op_reason(self, state: State, host, op_hash: str) -> str:
+        """The most useful line of the operation's stderr, else its stdout, else of what
+        pyinfra logged for the host while it ran (a timeout, an SSH or Python error)."""
+        op_data = state.ops.get(host, {}).get(op_hash)
+        sources: list[list[str]] = []
+        if op_data is not None and op_data.operation_meta.is_complete():
+            sources += [op_data.operation_meta.stderr_lines, op_data.operation_meta.stdout_lines]
+        sources.append([line.text for line in self.host(host.name).log if line.op_hash == op_hash])
+        for lines in sources:
+            reason = most_useful_line(lines)
+            if reason:
+                return reason
+        return "the operation failed without printing an error"
+
+    def lines(self, state: State) -> list[str]:
+        rows = self.rows(state)
+        secrets = secrets_in(state)
+        width = max([len(row.host) for row in rows] + [4])
+        header = "--> roslab summary"
+        if not state.is_executing and self.run_finished(state):
+            if state.should_check_for_changes():
+                header += " (nothing was executed: changed = would change)"
+            else:
+                header += " (nothing was executed; with -y changes were not detected)"
+        out = [header]
+        out += [f"    {mask(row.text(width), secrets)}" for row in rows]
+        counts = {status: sum(row.status == status for row in rows) for status in (FAILED, CHANGED, OK)}
+        tally = ", ".join(f"{number} {status}" for status, number in counts.items())
+        not_run = sum(row.status == NOT_RUN for row in rows)
+        if not_run:
+            tally += f", {not_run} not run"
+        planned = sum(row.status == PLANNED for row in rows)
+        if planned:
+            tally += f", {planned} planned"
+        code = self.exit_code(state)
+        stopped = "" if self.run_finished(state) else "pyinfra stopped before the end of the run (its error is above); "
+        out.append(f"    exit code {code}: {stopped}{tally} ({len(rows)} host{'s' if len(rows) != 1 else ''})")
+        return out
+
+    def write(self, state: State, stream: TextIO | None = None) -> None:
+        stream = stream or sys.stderr
+        stream.write("\n" + "\n".join(self.lines(state)) + "\n")
+        stream.flush()
+
+
+def host_failed(state: State, host) -> bool:
+    """Whether pyinfra failed `host` in this run.
+
+    Not `host in state.failed_hosts`: a deploy that fails the current host with
+    `state.fail_hosts({host})` puts pyinfra's context proxy in that set, and the proxy
+    stands for no host once the run is over. `active_hosts` loses the real host.
+    """
+    if any(failed is host for failed in state.failed_hosts):
+        return True
+    if host not in state.activated_hosts:
+        return True  # it never connected
+    return host not in state.active_hosts
+
+
+def op_name(state: State, op_hash: str, host=None) -> str:
+    """The operation's name as pyinfra printed it for `host`.
+
+    pyinfra keeps one set of names per operation for all hosts (one name per host when
+    the name holds host values: "Ensure ROS 2 jazzy ...", "Ensure ROS 2 humble ...");
+    the host's own `name=` argument picks its one.
+    """
+    meta = state.op_meta.get(op_hash)
+    names = sorted(meta.names) if meta else []
+    op_data = state.ops.get(host, {}).get(op_hash) if host is not None else None
+    own = (op_data.global_arguments.get("name") if op_data is not None else None) or None
+    if own:
+        mine = [name for name in names if name == own or name.endswith(f" | {own}")]
+        if mine:
+            names = mine[:1]
+    return one_line(", ".join(names)) or "an operation"
+
+
+def secrets_in(state: State) -> list[str]:
+    """Every secret value in the run's host data, longest first (only to mask them)."""
+    found: set[str] = set()
+
+    def walk(key: str, value: Any) -> None:
+        if isinstance(value, HiddenValue):
+            found.add(str(value.unmask()))
+        elif isinstance(value, dict):
+            for sub_key, sub_value in value.items():
+                walk(str(sub_key), sub_value)
+        elif isinstance(value, (list, tuple, set)):
+            for item in value:
+                walk(key, item)
+        elif isinstance(value, str) and "password" in key.lower():
+            found.add(value)
+
+    for host in state.inventory:
+        try:
+            walk("", host.data.dict())
+        except Exception:  # noqa: BLE001 - masking must never stop the summary
+            continue
+    return sorted((secret for secret in found if secret), key=len, reverse=True)
+
+
+def mask(text: str, secrets: list[str]) -> str:
+    for secret in secrets:
+        text = text.replace(secret, MASK)
+    return text
+
+
+# --- wiring: one summary per run ----------------------------------------------------------
+
+_current: tuple[RunSummary, State] | None = None
+_atexit_registered = False
+
+
+def summary_for(state: State | None) -> RunSummary | None:
+    """The RunSummary registered on `state`, if any."""
+    for handler in getattr(state, "callback_handlers", None) or []:
+        if isinstance(handler, RunSummary):
+            return handler
+    return None
+
+
+def install(state: State | None = None) -> RunSummary:
+    """Register the run summary on the current pyinfra state, once per run.
+
+    deploy.py calls this for every host; only the first call registers. In the pyinfra
+    CLI the summary is printed to stderr at exit.
+    """
+    global _current, _atexit_registered
+    state = state if isinstance(state, State) else ctx_state.get()
+    summary = summary_for(state)
+    if summary is None:
+        summary = RunSummary()
+        state.add_callback_handler(summary)
+        _current = (summary, state)
+        _attach_log_capture()
+        if pyinfra.is_cli and not _atexit_registered:
+            atexit.register(_print_at_exit)
+            _atexit_registered = True
+    return summary
+
+
+def _print_at_exit() -> None:
+    if _current is None:
+        return
+    summary, state = _current
+    try:
+        summary.write(state)
+    except Exception as error:  # noqa: BLE001 - the run's result stands; say why there is no table
+        sys.stderr.write(f"\n--> roslab summary unavailable: {type(error).__name__}: {error}\n")
+
+
+def _host_name(host) -> str:
+    return str(getattr(host, "name", host))
+
+
+def record_stop(host, message: str) -> None:
+    """Note that roslab stopped `host` (deploy.common.stop_host), with its message.
+
+    The step is the deploy (or operation) the host was in. Without a summary on the run
+    (a unit test calling a deploy directly) this does nothing.
+    """
+    state = getattr(host, "state", None) or ctx_state.get()
+    summary = summary_for(state)
+    if summary is None:
+        return
+    step = None
+    op_hash = getattr(host, "executing_op_hash", None)
+    if op_hash and op_hash in getattr(state, "op_meta", {}):
+        step = op_name(state, op_hash, host)
+    step = step or getattr(host, "current_deploy_name", None)
+    summary.record_stop(_host_name(host), step, message)
+
+
+def mark_planned(host=None) -> None:
+    """Note that deploy.py ran to its end for this host (the plan is complete for it)."""
+    host = host if host is not None else ctx_host.get()
+    if host is None:
+        return
+    summary = summary_for(getattr(host, "state", None) or ctx_state.get())
+    if summary is not None:
+        summary.mark_planned(_host_name(host))
+
+
+class _LogCapture(logging.Handler):
+    """Keeps pyinfra's `[host] ...` warning and error lines for the current run's summary."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            if _current is None:
+                return
+            summary, state = _current
+            match = _PREFIXED.match(_ANSI.sub("", record.getMessage()))
+            if not match:
+                return
+            name, text = match.groups()
+            host = ctx_host.get()
+            if host is None or getattr(host, "name", None) != name:
+                host = None
+            summary.record_log(name, LogLine(
+                record.levelno,
+                text,
+                op_hash=getattr(host, "executing_op_hash", None),
+                step=getattr(host, "current_deploy_name", None),
+            ))
+        except Exception:  # noqa: BLE001 - logging must never break the run
+            pass
+
+
+_log_capture: _LogCapture | None = None
+
+
+def _attach_log_capture() -> None:
+    global _log_capture
+    if _log_capture is None:
+        _log_capture = _LogCapture(level=logging.WARNING)
+        pyinfra.logger.addHandler(_log_capture)

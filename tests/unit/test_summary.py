@@ -1,0 +1,365 @@
+"""roslab.summary: the table a teacher reads at the end of a run, and the exit code line.
+
+The handler is fed the events pyinfra gives it (callbacks, roslab's stop_host, pyinfra's
+log lines) on a real pyinfra State; one test drives pyinfra's own run_ops so the order
+the callbacks fire in (before an operation's result is complete) is the real one.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+from unittest import mock
+
+import pytest
+from fixtures.classroom import host_data, run_deploy_py, with_stand_in_deb
+from fixtures.fake_host import fake_host
+from fixtures.fake_ubuntu import FakeUbuntu
+from pyinfra import logger
+from pyinfra.api import Config, Inventory, State, operation
+from pyinfra.api.host import Host
+from pyinfra.api.operation import OperationMeta
+from pyinfra.api.operations import run_ops
+from pyinfra.api.state import StateOperationHostData, StateOperationMeta, StateStage
+from pyinfra.connectors.util import CommandOutput, OutputLine
+from pyinfra.context import ctx_host, ctx_state
+
+from roslab import summary
+from roslab.secrets import Secret
+
+INSTALL = "ROS 2 is installed for the host's distro and role | Ensure ROS 2 jazzy is installed"
+SUPPORTED = "The host runs an Ubuntu release that has packages for its ROS 2 distro"
+
+
+def classroom(*names: str, data: dict | None = None) -> tuple[State, summary.RunSummary]:
+    """A pyinfra State over `names` (all connected) with the run summary installed."""
+    inventory = Inventory(([(name, dict((data or {}).get(name, {}))) for name in names], {}))
+    state = State(inventory, Config())
+    for host in inventory:
+        state.activate_host(host)
+    state.set_stage(StateStage.Prepare)
+    return state, summary.install(state)
+
+
+def operation_on(state: State, host_name: str, op_hash: str, name: str, *, changed: bool) -> OperationMeta:
+    """An operation planned on one host, as pyinfra records it (not yet executed)."""
+    host = state.inventory.get_host(host_name)
+    op_meta = state.op_meta.setdefault(op_hash, StateOperationMeta((len(state.op_meta),)))
+    op_meta.names.add(name)
+    meta = OperationMeta(op_hash, is_change=changed)
+    state.set_op_data_for_host(
+        host, op_hash, StateOperationHostData(lambda: iter(()), {"_ignore_errors": False}, meta),
+    )
+    state.get_meta_for_host(host).ops += 1
+    if changed:
+        state.get_meta_for_host(host).ops_change += 1
+    return meta
+
+
+def executed(state: State, handler, host_name: str, op_hash: str, *, success: bool,
+             commands: int = 1, output: list[tuple[str, str]] = ()) -> None:
+    """pyinfra's order: the callback first, then the operation's result is completed."""
+    host = state.inventory.get_host(host_name)
+    if success:
+        handler.operation_host_success(state, host, op_hash)
+    else:
+        handler.operation_host_error(state, host, op_hash)
+    state.ops[host][op_hash].operation_meta.set_complete(
+        success, ["command"] * commands, CommandOutput([OutputLine(buffer, line) for buffer, line in output]),
+    )
+
+
+def printed(state: State, handler) -> list[str]:
+    out = io.StringIO()
+    handler.write(state, out)
+    return out.getvalue().splitlines()
+
+
+def finished_run(state: State) -> None:
+    state.set_stage(StateStage.Execute)
+    state.is_executing = True
+    state.set_stage(StateStage.Disconnect)
+
+
+def test_three_hosts_ok_changed_failed_and_the_exit_code():
+    state, handler = classroom("team1-main", "team1-robot", "team2-main")
+    for name in ("team1-main", "team1-robot", "team2-main"):
+        operation_on(state, name, "op-install", INSTALL, changed=name != "team1-main")
+    finished_run(state)
+
+    executed(state, handler, "team1-main", "op-install", success=True, commands=0)
+    executed(state, handler, "team1-robot", "op-install", success=True)
+    executed(state, handler, "team2-main", "op-install", success=False, commands=0, output=[
+        ("stdout", "Reading package lists..."),
+        ("stderr", "W: an unrelated warning"),
+        ("stderr", "E: Unable to locate package roslab-no-such-package"),
+        ("stderr", "E: a second error line"),
+    ])
+    state.fail_hosts({state.inventory.get_host("team2-main")})
+
+    assert printed(state, handler) == [
+        "",
+        "--> roslab summary",
+        "    team1-main   ok",
+        "    team1-robot  changed",
+        f'    team2-main   failed   in "{INSTALL}": E: Unable to locate package roslab-no-such-package',
+        "    exit code 1: 1 failed, 1 changed, 1 ok (3 hosts)",
+    ]
+    assert handler.exit_code(state) == 1
+
+
+def test_no_failure_exits_0():
+    state, handler = classroom("team1-main", "team1-robot")
+    operation_on(state, "team1-main", "op", INSTALL, changed=True)
+    finished_run(state)
+    executed(state, handler, "team1-main", "op", success=True)
+
+    assert printed(state, handler)[-3:] == [
+        "    team1-main   changed",
+        "    team1-robot  ok",
+        "    exit code 0: 0 failed, 1 changed, 1 ok (2 hosts)",
+    ]
+
+
+def test_a_host_roslab_stopped_shows_the_deploy_and_the_first_line_of_the_message():
+    state, handler = classroom("team1-main", "team1-robot", "team2-main")
+    robot = state.inventory.get_host("team1-robot")
+    operation_on(state, "team1-main", "op", INSTALL, changed=True)
+    with ctx_host.use(robot):
+        robot.current_deploy_name = SUPPORTED  # stop_host runs inside the deploy
+        summary.record_stop(
+            robot,
+            "host team1-robot (team team1): ubuntu_release is 22.04 (jammy) in the roster but the host "
+            "runs Ubuntu noble; nothing was changed on it\nsecond line not shown",
+        )
+        robot.current_deploy_name = None
+    state.fail_hosts({robot})
+    for host in state.active_hosts:
+        summary.mark_planned(host)
+
+    # --dry: planning ended, nothing was executed.
+    assert printed(state, handler)[1:] == [
+        "--> roslab summary (nothing was executed: changed = would change)",
+        "    team1-main   changed",
+        f'    team1-robot  failed   in "{SUPPORTED}": ubuntu_release is 22.04 (jammy) in the roster '
+        "but the host runs Ubuntu noble; nothing was changed on it",
+        "    team2-main   ok",
+        "    exit code 1: 1 failed, 1 changed, 1 ok (3 hosts)",
+    ]
+
+
+def test_a_host_failed_through_pyinfras_context_proxy_is_still_failed_after_the_run():
+    """deploy.common.stop_host calls `state.fail_hosts({host})` with pyinfra's `host` proxy:
+    once the run is over that proxy stands for no host, so `host in state.failed_hosts` is False."""
+    from pyinfra import host as host_proxy
+
+    state, handler = classroom("team1-main", "team1-robot")
+    robot = state.inventory.get_host("team1-robot")
+    with ctx_state.use(state), ctx_host.use(robot):
+        robot.current_deploy_name = SUPPORTED
+        summary.record_stop(host_proxy, "host team1-robot (team team1): it runs Debian, not Ubuntu")
+        state.fail_hosts({host_proxy})
+        robot.current_deploy_name = None
+    summary.mark_planned(state.inventory.get_host("team1-main"))
+
+    assert robot not in state.failed_hosts  # what the summary must not rely on
+    assert printed(state, handler)[3:] == [
+        f'    team1-robot  failed   in "{SUPPORTED}": it runs Debian, not Ubuntu',
+        "    exit code 1: 1 failed, 0 changed, 1 ok (2 hosts)",
+    ]
+
+
+def test_the_step_is_the_failed_hosts_own_operation_name():
+    """One operation, a name per host (pyinfra keeps them in one set): the host's own is shown."""
+    state, handler = classroom("team1-main", "team2-main")
+    jazzy, humble = "Ensure ROS 2 jazzy is installed", "Ensure ROS 2 humble is installed"
+    for name, op in (("team1-main", jazzy), ("team2-main", humble)):
+        operation_on(state, name, "op", f"ROS 2 is installed | {op}", changed=True)
+        state.ops[state.inventory.get_host(name)]["op"].global_arguments["name"] = op
+    finished_run(state)
+    executed(state, handler, "team1-main", "op", success=True)
+    executed(state, handler, "team2-main", "op", success=False, output=[("stderr", "E: Unable to locate package x")])
+    state.fail_hosts({state.inventory.get_host("team2-main")})
+
+    assert printed(state, handler)[3] == (
+        f'    team2-main  failed   in "ROS 2 is installed | {humble}": E: Unable to locate package x'
+    )
+
+
+def test_a_stop_only_logged_by_stop_host_is_found_in_pyinfras_log():
+    """Until deploy.common.stop_host calls record_stop, its log line is the record."""
+    state, handler = classroom("team1-main", "team1-robot")
+    robot = state.inventory.get_host("team1-robot")
+    with ctx_state.use(state), ctx_host.use(robot):
+        robot.current_deploy_name = SUPPORTED
+        logger.error(f"{robot.print_prefix}roslab stops this host: host team1-robot (team team1): "
+                     "it runs Debian GNU/Linux 12, not Ubuntu; nothing was changed on it")
+        robot.current_deploy_name = None
+    state.fail_hosts({robot})
+    summary.mark_planned(state.inventory.get_host("team1-main"))
+
+    assert printed(state, handler)[3] == (
+        f'    team1-robot  failed   in "{SUPPORTED}": it runs Debian GNU/Linux 12, not Ubuntu; '
+        "nothing was changed on it"
+    )
+
+
+def test_a_fact_that_failed_while_planning_names_its_stderr_not_pyinfras_error_line():
+    state, handler = classroom("team1-main", "team1-robot")
+    robot = state.inventory.get_host("team1-robot")
+    with ctx_state.use(state), ctx_host.use(robot):
+        robot.current_deploy_name = "apt is ready"
+        logger.error(f"{robot.print_prefix}sudo: a password is required")
+        logger.error(f"{robot.print_prefix}Error: could not load fact: server.Home user=student")
+        robot.current_deploy_name = None
+    state.fail_hosts({robot})
+    summary.mark_planned(state.inventory.get_host("team1-main"))
+
+    assert printed(state, handler)[3] == '    team1-robot  failed   in "apt is ready": sudo: a password is required'
+
+
+@operation()
+def step_for_test(commands_by_host: dict):
+    """Yields this host's commands: none (no change), or some that succeed or fail."""
+    from pyinfra import host
+
+    yield from commands_by_host.get(host.name, [])
+
+
+def test_a_real_pyinfra_run_reports_the_failed_operations_stderr():
+    """pyinfra's own run_ops: callbacks fire before the result is complete; the summary still
+    shows the operation's stderr line, never pyinfra's "Error: executed 0 commands"."""
+    state, handler = classroom("quiet", "busy", "broken")
+    state.set_stage(StateStage.Execute)
+    results = {"true": (True, []), "fail": (False, [
+        OutputLine("stderr", "Reading package lists..."),
+        OutputLine("stderr", "E: Unable to locate package roslab-no-such-package"),
+    ])}
+
+    def run_shell_command(self, command, **kwargs):
+        status, lines = results[command.get_raw_value()]
+        return status, CommandOutput(lines)
+
+    from pyinfra.api.operation import add_op
+
+    with mock.patch.object(Host, "run_shell_command", run_shell_command):
+        add_op(state, step_for_test, name="Extra packages are installed",
+               commands_by_host={"busy": ["true"], "broken": ["fail"]})
+        run_ops(state)
+    state.set_stage(StateStage.Disconnect)
+
+    assert printed(state, handler)[2:] == [
+        "    quiet   ok",
+        "    busy    changed",
+        '    broken  failed   in "Extra packages are installed": E: Unable to locate package roslab-no-such-package',
+        "    exit code 1: 1 failed, 1 changed, 1 ok (3 hosts)",
+    ]
+
+
+def test_secrets_never_appear_in_the_summary():
+    wifi = "correct-horse-battery"
+    sudo = "s3cret-sudo"
+    state, handler = classroom("team1-main", "team1-robot", data={
+        "team1-main": {"wifi_password": Secret(wifi), "_sudo_password": sudo},
+        "team1-robot": {},
+    })
+    operation_on(state, "team1-robot", "op", "Network is in effect", changed=True)
+    finished_run(state)
+    executed(state, handler, "team1-robot", "op", success=False, output=[
+        ("stderr", f"netplan: invalid password {wifi} (sudo {sudo})"),
+    ])
+    state.fail_hosts({state.inventory.get_host("team1-robot")})
+
+    text = "\n".join(printed(state, handler))
+    assert wifi not in text and sudo not in text
+    assert 'failed   in "Network is in effect": netplan: invalid password *** (sudo ***)' in text
+
+
+def test_a_run_pyinfra_stopped_midway_is_exit_code_1_even_without_a_failed_host():
+    state, handler = classroom("team1-main", "team1-robot")
+    state.set_stage(StateStage.Execute)  # an exception ended run_ops: never reached Disconnect
+    state.is_executing = True
+
+    operation_on(state, "team1-main", "op-1", INSTALL, changed=False)
+    operation_on(state, "team1-main", "op-2", "Workspace is built", changed=True)
+    operation_on(state, "team1-robot", "op-1", INSTALL, changed=False)
+    executed(state, handler, "team1-main", "op-1", success=True, commands=0)
+    executed(state, handler, "team1-robot", "op-1", success=True, commands=0)
+
+    assert printed(state, handler)[-3:] == [
+        "    team1-main   not run",  # op-2 never ran
+        "    team1-robot  ok",
+        "    exit code 1: pyinfra stopped before the end of the run (its error is above); "
+        "0 failed, 0 changed, 1 ok, 1 not run (2 hosts)",
+    ]
+
+
+def test_a_run_pyinfra_stopped_while_planning_runs_no_host():
+    state, handler = classroom("team1-main", "team1-robot")
+    summary.mark_planned(state.inventory.get_host("team1-main"))  # team1-robot raised while planning
+
+    assert printed(state, handler)[-3:] == [
+        "    team1-main   not run",
+        "    team1-robot  not run",
+        "    exit code 1: pyinfra stopped before the end of the run (its error is above); "
+        "0 failed, 0 changed, 0 ok, 2 not run (2 hosts)",
+    ]
+
+
+def test_a_plan_that_did_not_reach_the_end_of_deploy_py_is_exit_code_1():
+    state, handler = classroom("team1-main", "team1-robot")
+    summary.mark_planned(state.inventory.get_host("team1-main"))  # team1-robot raised while planning
+
+    assert handler.exit_code(state) == 1
+    summary.mark_planned(state.inventory.get_host("team1-robot"))
+    assert handler.exit_code(state) == 0
+
+
+def test_install_registers_one_handler_per_run():
+    state, handler = classroom("team1-main", "team1-robot")
+    assert summary.install(state) is handler
+    assert sum(isinstance(h, summary.RunSummary) for h in state.callback_handlers) == 1
+
+
+def test_deploy_py_installs_the_summary_and_marks_the_host_planned(tmp_path):
+    host = with_stand_in_deb(FakeUbuntu())
+    with fake_host(host.facts(), host_data(tmp_path)) as (state, pi):
+        run_deploy_py()
+        run_deploy_py()  # pyinfra runs deploy.py once per host
+        handlers = [h for h in state.callback_handlers if isinstance(h, summary.RunSummary)]
+        assert len(handlers) == 1
+        assert handlers[0].planned == {pi.name}
+
+
+def test_record_stop_without_a_summary_does_nothing():
+    with fake_host({}) as (state, pi):
+        summary.record_stop(pi, "host pi: anything")  # a unit test calling a deploy directly
+
+
+@pytest.mark.parametrize(("lines", "expected"), [
+    (["Error: executed 0 commands"], None),
+    (["Reading package lists...", "E: Unable to locate package x", "E: second"], "E: Unable to locate package x"),
+    (["roslab: apt-get update failed, the lists stay stale until one succeeds: E: Failed to fetch"],
+     "roslab: apt-get update failed, the lists stay stale until one succeeds: E: Failed to fetch"),
+    (["Traceback (most recent call last):", '  File "x.py", line 1', "ValueError: bad value"],
+     "ValueError: bad value"),
+    (["Starting >>> pkg", "Failed   <<< pkg [0.5s, exited with code 1]", "Summary: 0 packages finished"],
+     "Failed <<< pkg [0.5s, exited with code 1]"),
+    (["one", "two"], "two"),
+    (["Error: could not load fact: server.Home"], "Error: could not load fact: server.Home"),
+    (["\x1b[31mE: coloured\x1b[0m"], "E: coloured"),
+    (["x" * 400], "x" * (summary.MAX_REASON - 3) + "..."),
+])
+def test_most_useful_line(lines, expected):
+    assert summary.most_useful_line(lines) == expected
+
+
+def test_log_capture_ignores_info_lines_and_lines_without_a_host():
+    state, handler = classroom("team1-main", "team1-robot")
+    with ctx_state.use(state):
+        logger.info("[team1-robot] Success")
+        logger.error("no host prefix here")
+        logger.warning("[team1-robot] roslab: a warning")
+    assert [(line.level, line.text) for line in handler.host("team1-robot").log] == [
+        (logging.WARNING, "roslab: a warning"),
+    ]
