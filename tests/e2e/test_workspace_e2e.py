@@ -6,8 +6,8 @@ import of rclpy: the workspace is synced and owned by the login user, the real c
 builds it and installs the console scripts where `ros2 run` looks, and running one stops
 at `ModuleNotFoundError: No module named 'rclpy'`.
 
-The stand-in ROS's `ros2` only keeps a launch running; this module replaces it on each host
-(/opt/ros/<distro>/bin/ros2) with one whose `ros2 launch` runs until stopped, as a healthy
+The stand-in ROS's `ros2` only keeps a launch running; after the first run this module
+replaces it on each host (/opt/ros/<distro>/bin/ros2) with one whose `ros2 launch` runs until stopped, as a healthy
 launch does, or fails at once while /etc/roslab-e2e-launch-fails exists. With it the nodes units
 are really active, can be driven into systemd's failed state, and a re-run of a healthy
 classroom must report nothing.
@@ -75,8 +75,6 @@ def install_stand_in(sandbox, host: str, text: str) -> None:
 def sandbox(e2e_sandbox):
     """The session's classroom, freshly imaged for this module (and again after it)."""
     e2e_sandbox.reset()
-    for host in e2e_sandbox.hosts:
-        install_stand_in(e2e_sandbox, host.name, STAND_IN_ROS2)
     yield e2e_sandbox
     e2e_sandbox.reset()
 
@@ -156,7 +154,11 @@ def fingerprint(sandbox, host: str) -> str:
 
 @pytest.fixture(scope="module")
 def first_run(sandbox, nodes_copy):
-    return deploy(sandbox, nodes_copy)
+    run = deploy(sandbox, nodes_copy)
+    # The stand-in ROS package's ros2 is installed now; this module's takes its place.
+    for host in sandbox.hosts:
+        install_stand_in(sandbox, host.name, STAND_IN_ROS2)
+    return run
 
 
 def test_first_run_builds_and_starts_every_host(classroom, sandbox, first_run):
