@@ -33,6 +33,11 @@ def apt_ready():
     lock_timeout = host.data.apt_lock_timeout
 
     problem = host.get_fact(AptProblem, lock_timeout=lock_timeout)
+    if problem and problem.get("waited"):
+        # Not silent: a first-boot unattended-upgrades can hold the lock for minutes.
+        logger.warning(f"{host.print_prefix}roslab: {where()}: waited for the dpkg lock "
+                       f"(up to {lock_timeout} s, apt_lock_timeout): {problem['waited'][:200]}")
+        problem = None
     if problem and not problem["interrupted"]:
         stop_host(
             f"{where()}: apt is not usable after waiting up to {lock_timeout} s "

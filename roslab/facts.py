@@ -21,7 +21,9 @@ class AptProblem(FactBase):
     Waits (bounded) until apt can take the dpkg lock, then reports whether apt is usable.
 
     Returns ``None`` when ``apt-get check`` succeeds within ``lock_timeout`` seconds and
-    dpkg has nothing half-done, else ``{"interrupted": bool, "message": str}``:
+    dpkg has nothing half-done (``{"interrupted": False, "message": None, "waited": line}``
+    when it had to wait for the lock first: apt's line naming who held it), else
+    ``{"interrupted": bool, "message": str}``:
 
     - ``interrupted``: dpkg was stopped in the middle of an install (a Pi unplugged,
       dpkg killed): its journal ``/var/lib/dpkg/updates/`` is not empty, ``dpkg --audit``
@@ -49,7 +51,7 @@ class AptProblem(FactBase):
 
     @override
     def process(self, output):
-        check, updates, audit, status = [], [], [], ""
+        check, updates, audit, status, waited = [], [], [], "", ""
         for line in output:
             if line.startswith(_EXIT_PREFIX):
                 status = line
@@ -58,15 +60,19 @@ class AptProblem(FactBase):
             elif line.startswith(_AUDIT_PREFIX):
                 if line[len(_AUDIT_PREFIX):].strip():
                     audit.append(line[len(_AUDIT_PREFIX):].strip())
-            # apt prints "Waiting for cache lock" lines while it waits: keep the verdict only.
-            elif not line.startswith("Waiting for cache lock"):
+            # apt prints "Waiting for cache lock" lines while it waits: keep the verdict,
+            # and the first of them to say who held the lock.
+            elif line.startswith("Waiting for cache lock"):
+                waited = waited or line
+            else:
                 check.append(line)
         text = "\n".join(check)
         ok = status == f"{_EXIT_PREFIX}0"
         lock_held = not ok and any(words in text for words in _LOCK_HELD)
         interrupted = not lock_held and bool(updates or audit or "dpkg was interrupted" in text)
         if ok and not interrupted:
-            return None
+            # A wait that ended well is no problem, but the teacher should know it happened.
+            return {"interrupted": False, "message": None, "waited": waited} if waited else None
         if interrupted:
             found = []
             if updates:

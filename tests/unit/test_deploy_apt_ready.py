@@ -122,3 +122,15 @@ def test_the_old_ros_source_is_moved_aside_before_the_update_it_would_fail(tmp_p
         "apt is ready: the dpkg lock is free, the sources complete and the lists fresh"
         " | Ensure the apt lists include the changed sources",
     ]
+
+
+def test_a_lock_wait_that_ended_well_is_reported_in_one_line_and_the_run_goes_on(tmp_path, caplog):
+    host = FakeUbuntu()
+    host.apt_problem = {"interrupted": False, "message": None,
+                        "waited": "Waiting for cache lock: ... held by process 812 (unattended-upgr)..."}
+    with caplog.at_level("WARNING"):
+        result = plan(run_apt_ready, host.facts(), host_data(tmp_path, apt_lock_timeout=300))
+    assert not result.failed, result.errors
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert "host pi (team team1): waited for the dpkg lock (up to 300 s, apt_lock_timeout)" in warning
+    assert "unattended-upgr" in warning

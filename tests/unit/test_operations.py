@@ -488,3 +488,9 @@ def test_apt_problem_fact_waits_with_the_one_lock_option():
 def test_file_age_fact_parses_seconds_and_missing_files():
     assert FileAge().process(["42"]) == 42
     assert FileAge().process([]) is None
+
+
+def test_apt_problem_fact_says_who_held_the_lock_when_the_wait_ended_well():
+    waiting = "Waiting for cache lock: Could not get lock /var/lib/dpkg/lock-frontend. It is held by process 812 (unattended-upgr)..."
+    assert AptProblem().process([waiting, waiting, "roslab-apt-exit=0"]) == {
+        "interrupted": False, "message": None, "waited": waiting}
