@@ -14,8 +14,7 @@ import ipaddress
 from collections.abc import Callable
 
 from roslab import distro as distros
-from roslab import formats, settings
-from roslab.roster.loading import line_of
+from roslab import settings
 from roslab.roster.model import ROLES, Classroom, Host
 from roslab.roster.problems import Report
 
@@ -38,12 +37,6 @@ def unknown_key_message(key: str, level: str) -> str:
         where = "" if level in levels else f", set on {' or '.join(f'a {other}' for other in levels)}"
         message += f" (did you mean {close[0]!r}{where}?)"
     return message
-
-
-def value_problem(setting: settings.Setting, value, context: formats.Context) -> str | None:
-    if setting.key == "ssh_strict_host_key_checking" and isinstance(value, bool):
-        value = "yes" if value else "no"  # YAML 1.1 reads yes/no/off as booleans
-    return settings.check_value(setting, value, context)
 
 
 # --- the classroom as a whole ---------------------------------------------------------
@@ -171,4 +164,4 @@ def host_ip(host: Host) -> str | None:
         return None
 
 
-__all__ = ["Validator", "check_classroom", "host_ip", "line_of", "unknown_key_message", "value_problem"]
+__all__ = ["Validator", "check_classroom", "host_ip", "unknown_key_message"]

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from roslab import distro as distros
 from roslab import formats, secrets, settings
-from roslab.roster.checks import unknown_key_message, value_problem
+from roslab.roster.checks import unknown_key_message
 from roslab.roster.loading import Mapping, line_of, load_yaml, nested_mappings, without
 from roslab.roster.model import Classroom, Host, Team
 from roslab.roster.problems import Report, display_path
@@ -71,7 +71,7 @@ class RosterReader:
                 continue
             if key == "ssh_strict_host_key_checking" and isinstance(value, bool):
                 value = "yes" if value else "no"  # YAML 1.1 reads yes/no/off as booleans
-            problem = value_problem(setting, value, self.context)
+            problem = settings.check_value(setting, value, self.context)
             if problem is None and secrets.is_secret_reference(key) and value is not None:
                 problem = self.secret_problem(value)
             if problem:
@@ -263,8 +263,6 @@ class RosterReader:
             value = item.value
             if isinstance(value, str) and _is_controller_path(setting):
                 value = str(self.context.controller_path(value))
-            if key == "ssh_strict_host_key_checking" and isinstance(value, bool):
-                value = "yes" if value else "no"
             if value is None and key in CONNECTION_KEYS:
                 continue  # pyinfra's own default
             data[key] = value
