@@ -35,6 +35,7 @@ import pytest
 import yaml
 
 from roslab.distro import DEFAULT_DISTRO, UBUNTU_CODENAMES
+from roslab import verify
 from roslab.roster import load_roster
 
 pytestmark = pytest.mark.e2e
@@ -402,3 +403,38 @@ def test_verify_says_the_sandbox_has_no_ros_runtime_instead_of_passing(classroom
         main = next(host.name for host in team.hosts if host.role == "main")
         assert f"no ROS runtime on {main}: not verified" in proc.stdout, proc.stdout
     assert "not verified: team1, team2" in proc.stderr
+
+
+# A ros2 on the main host whose robot stopped answering mid-verify: the topic is gone and
+# `ros2 topic echo` never returns, ignoring SIGTERM (as one was seen to for 10 minutes).
+SILENT_ROBOT_ROS2 = """#!/bin/sh
+# roslab e2e: the robot stopped answering; this echo hears nothing and ignores SIGTERM
+case "$1" in launch) exec sleep infinity ;; esac
+[ "$1" = --help ] && exit 0
+case "$1 $2" in
+  "topic list") printf '/rosout\\n' ;;
+  "topic echo") trap '' TERM; exec sleep 3600 ;;
+  "daemon status") echo 'The daemon is not running' ;;
+esac
+"""
+
+
+def test_verify_is_bounded_when_a_robot_stops_answering(classroom, sandbox, first_run):
+    mains = [host.name for host in classroom.hosts if host.role == "main"]
+    for main in mains:
+        install_stand_in(sandbox, main, SILENT_ROBOT_ROS2)
+    try:
+        proc = roslab_verify(sandbox)
+        print(f"roslab verify, robots silent: {proc.seconds:.1f} s")
+        leftovers = {main: sandbox.sudo(main, "ps -eo args= | grep -c '^sleep 3600$' || true").stdout.strip()
+                     for main in mains}
+    finally:
+        for main in mains:
+            install_stand_in(sandbox, main, STAND_IN_ROS2)
+    timeout = classroom.hosts[0].data["nodes_verify_timeout"]
+    # Killed after its own timeout plus the kill grace, not hung for minutes.
+    assert proc.seconds < timeout + verify.KILL_AFTER + 60, proc.seconds
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    for main in mains:
+        assert f"{main} does not see /chatter" in proc.stdout, proc.stdout
+    assert leftovers == {main: "0" for main in mains}  # nothing of the check left running
