@@ -319,10 +319,8 @@ def teacher_key(value: str, context: Context | None = None) -> str | None:
     return None
 
 
-def static_peer(value: str, context: Context | None = None) -> str | None:
-    if ip_address(value) is None or hostname(value) is None:
-        return None
-    return f"{value!r} is neither an IP address nor a host name"
+# A ROS static peer is reached the way SSH reaches a host: an IP address or a host name.
+static_peer = address
 
 
 def wifi_ssid(value: str, context: Context | None = None) -> str | None:
@@ -367,7 +365,6 @@ for _check, _words in {
     home_path: "~/ and a path inside the home",
     launch: "<package> <file>.launch.py",
     teacher_key: "key lines or .pub files",
-    static_peer: "host names or IP addresses",
     wifi_ssid: "1 to 32 bytes, one line",
     package_template: "Debian package names",
 }.items():

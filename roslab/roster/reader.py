@@ -49,6 +49,7 @@ class RosterReader:
         self.secrets_line: int | None = None
         self._secrets: dict | None = None
         self._secrets_read = False
+        self._key_files: dict[str, list[str]] = {}  # teacher_ssh_keys entry -> its key lines
 
     # --- one level ---
 
@@ -300,9 +301,11 @@ class RosterReader:
             if formats.PUBLIC_KEY.fullmatch(entry):
                 keys.append(entry)
                 continue
-            try:
-                text = self.context.controller_path(entry).read_text(encoding="utf-8")
-            except (OSError, UnicodeDecodeError):
-                continue  # reported by the value check
-            keys.extend(formats.public_key_lines(text) or [])
+            if entry not in self._key_files:  # a classroom-wide file: read once, not per host
+                try:
+                    text = self.context.controller_path(entry).read_text(encoding="utf-8")
+                except (OSError, UnicodeDecodeError):
+                    text = ""  # reported by the value check
+                self._key_files[entry] = formats.public_key_lines(text) or []
+            keys.extend(self._key_files[entry])
         return keys
