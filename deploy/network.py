@@ -13,17 +13,12 @@ from __future__ import annotations
 from pyinfra import host
 from pyinfra.api import deploy
 
-from deploy.common import should_run, stop_host
+from deploy.common import should_run, stop_host, where
 from roslab import settings as schema
 from roslab.network.operation import network_in_effect
 from roslab.network.settings import NetworkSettingError, network_settings
 
 DEFAULTS = schema.defaults("network")
-
-
-def host_and_team() -> str:
-    team = host.data.get("roslab_team")
-    return f"host {host.name}" + (f" (team {team})" if team else "")
 
 
 def current_address() -> str:
@@ -45,7 +40,7 @@ def network():
     try:
         settings = network_settings(host.data)
     except NetworkSettingError as error:
-        stop_host(f"{host_and_team()}: field {error.field!r}: {error.message}; the network was not changed")
+        stop_host(f"{where()}: field {error.field!r}: {error.message}; the network was not changed")
         return
     if settings is None:
         host.noop("network left alone: the roster gives this host no network_address")
