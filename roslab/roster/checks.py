@@ -48,6 +48,7 @@ def check_classroom(classroom: Classroom, report: Report) -> None:
     check_unique(classroom, report, None, lambda host: host.name.lower())
     check_unique(classroom, report, "address", _address_key)
     check_unique(classroom, report, "network_address", _network_ip_key)
+    check_apt_cache_host(classroom, report)
     for host in classroom.hosts:
         check_host(host, report)
 
@@ -77,6 +78,23 @@ def check_host(host: Host, report: Report) -> None:
         field = "login_user" if data.get("login_user") else "ssh_user"
         report.error("the ROS environment belongs to a student account, not root: set login_user",
                      field=field, line=host.lines.get(field), **where)
+    elif data.get("ssh_user") == "root" and data.get("ssh_hardening_enabled") \
+            and data.get("ssh_permit_root_login") == "no":
+        report.error("roslab logs in as root, and ssh hardening (PermitRootLogin no) would lock it out: "
+                     "log in as the lab user, or set ssh_permit_root_login: prohibit-password",
+                     field="ssh_user", line=host.lines.get("ssh_user"), **where)
+
+
+def check_apt_cache_host(classroom: Classroom, report: Report) -> None:
+    """apt_cache_host (a classroom setting) names a host of this roster."""
+    names = {host.name for host in classroom.hosts}
+    for host in classroom.hosts[:1]:  # the same classroom value on every host: report it once
+        cache_host = host.data.get("apt_cache_host")
+        if cache_host and cache_host not in names:
+            close = difflib.get_close_matches(cache_host, sorted(names), n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            report.error(f"{cache_host!r} is not a host of this roster{hint}", field="apt_cache_host",
+                         line=host.lines.get("apt_cache_host"))
 
 
 def check_groups(classroom: Classroom, report: Report) -> None:

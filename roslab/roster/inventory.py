@@ -7,6 +7,7 @@ from pathlib import Path
 
 import yaml
 
+from roslab import identity
 from roslab.network.state import addresses_path, last_known_addresses
 from roslab.roster.checks import host_ip
 from roslab.roster.model import ROLES, Classroom
@@ -42,6 +43,12 @@ def inventory_groups(classroom: Classroom) -> dict[str, list[tuple[str, dict]]]:
 
     A host the network deploy has moved is reached at its last confirmed address
     (recorded beside the roster), not at the roster's now stale `address`.
+
+    Hosts connect with strict host key checking against the classroom's known_hosts
+    (`roslab.identity`) unless the roster sets `ssh_known_hosts_file` or
+    `ssh_strict_host_key_checking`; a known host's key is listed there under every
+    address it will be reached at in this run (`known_addresses`), and a refusal is
+    explained by one line naming the roslab command to run.
     """
     try:
         moved = last_known_addresses(classroom.path)
@@ -51,12 +58,47 @@ def inventory_groups(classroom: Classroom) -> dict[str, list[tuple[str, dict]]]:
         raise RosterError([Problem(state_file, f"cannot read where moved hosts are: {reason}; "
                                    "fix or delete the file")]) from None
     groups: dict[str, list[tuple[str, dict]]] = {role: [] for role in ROLES}
+    classroom_known_hosts = str(identity.known_hosts_path(classroom.path))
+    checked: dict[str, tuple[list[str], int]] = {}
     for team in classroom.teams:
         groups[team.group] = []
         for host in team.hosts:
-            entry = (host.name, {**host.data, "ssh_hostname": moved.get(host.name) or host.address})
+            data = {
+                "ssh_known_hosts_file": classroom_known_hosts,
+                "ssh_strict_host_key_checking": "yes",
+                **host.data,
+                "ssh_hostname": moved.get(host.name) or host.address,
+            }
+            if data["ssh_known_hosts_file"] == classroom_known_hosts:
+                checked[host.name] = (known_addresses(host, moved.get(host.name)), data.get("ssh_port") or 22)
+            entry = (host.name, data)
             groups[team.group].append(entry)
             groups[host.role].append(entry)
             if host.distro:
                 groups.setdefault(host.distro, []).append(entry)
+    if checked:
+        explain_refusals(classroom, checked)
+        try:
+            identity.sync_addresses(classroom.path, checked)
+        except (OSError, identity.IdentityError) as error:
+            shown = display_path(identity.known_hosts_path(classroom.path))
+            raise RosterError([Problem(shown, f"cannot update the classroom's known hosts: "
+                                       f"{getattr(error, 'strerror', None) or error}")]) from None
     return groups
+
+
+def known_addresses(host, moved_to: str | None) -> list[str]:
+    """Every address this host may be reached at in a run: the roster's, the last confirmed
+    one, and the static address the network deploy moves it to (and reconnects at)."""
+    addresses = [host.address, moved_to]
+    network_address = host.data.get("network_address")
+    if network_address and host.data.get("network_enabled", True):
+        addresses.append(network_address.split("/")[0])
+    return [address for address in dict.fromkeys(addresses) if address]
+
+
+def explain_refusals(classroom: Classroom, checked: dict[str, tuple[list[str], int]]) -> None:
+    """Teach the log filter on pyinfra's logger which host each address is (see identity)."""
+    known_hosts = identity.known_hosts_path(classroom.path)
+    identity.explainer().add_classroom(
+        display_path(classroom.path), display_path(known_hosts), checked, known_hosts_file=str(known_hosts))

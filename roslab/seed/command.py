@@ -1,0 +1,143 @@
+"""`roslab seed`: check the whole roster and every seed, then write them and record the keys."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from roslab import identity
+from roslab.network.state import last_known_addresses
+from roslab.roster import RosterError, default_roster_path, display_path, load_roster
+from roslab.roster.inventory import known_addresses
+from roslab.seed import targets, tools
+from roslab.seed.documents import SeedError, authorized_keys, host_seed, network_config
+
+
+def _secrets_of(host, roster_path) -> list[str]:
+    """What a checker's message must never show: the host's private key (also as a quoted
+    string would show it) and its WiFi password."""
+    private = identity.host_keys(roster_path, host.name).private_text()
+    found = [private, private.replace("\n", "\\n"),
+             *(line for line in private.splitlines() if not line.startswith("-----"))]
+    password = host.data.get("wifi_password")
+    if password is not None:
+        found.append(str(getattr(password, "unmask", lambda: password)()))
+    return found
+
+
+def run_seed(args: argparse.Namespace) -> int:
+    path = Path(args.roster) if args.roster else default_roster_path()
+    try:
+        classroom = load_roster(path)
+    except RosterError as error:
+        print(error, file=sys.stderr)
+        print("roslab seed: the roster has errors; nothing was written", file=sys.stderr)
+        return 1
+    hosts = classroom.hosts
+    if args.host:
+        by_name = {host.name: host for host in hosts}
+        unknown = [name for name in args.host if name not in by_name]
+        if unknown:
+            print(f"roslab seed: no host {', '.join(map(repr, unknown))} in {display_path(path)} "
+                  f"(it has: {', '.join(sorted(by_name))})", file=sys.stderr)
+            return 2
+        hosts = [by_name[name] for name in dict.fromkeys(args.host)]
+    if (args.boot_partition or args.image) and (not args.host or len(hosts) != 1):
+        # A card is one Pi's identity: name it, so no card gets another Pi's key by accident.
+        print("roslab seed: --boot-partition and --image take the seed of one host: give one --host NAME",
+              file=sys.stderr)
+        return 2
+    try:
+        if args.boot_partition:
+            targets.check_boot_partition(Path(args.boot_partition))
+    except targets.TargetError as error:
+        print(f"roslab seed: {error}; nothing was written", file=sys.stderr)
+        return 1
+
+    # What the roster cannot say on its own: every host first, before any key or file.
+    problems = []
+    for host in hosts:
+        for check in (authorized_keys, network_config):
+            try:
+                check(host)
+            except SeedError as error:
+                problems.append(f"{display_path(path)}: {error}")
+    if problems:
+        print("\n".join(dict.fromkeys(problems)), file=sys.stderr)
+        print("roslab seed: nothing was written", file=sys.stderr)
+        return 1
+
+    seeds = {host.name: host_seed(host, path) for host in hosts}
+    secrets = [secret for host in hosts for secret in _secrets_of(host, path)]
+    try:
+        user_problems = tools.check_user_data(
+            {name: files["user-data"].content.decode() for name, files in seeds.items()}, secrets)
+        for name, files in seeds.items():
+            for problem in user_problems.get(name, []):
+                problems.append(f"{name}: user-data: cloud-init: {problem}")
+            for problem in tools.check_network_config("network-config", files["network-config"].content.decode(),
+                                                      secrets):
+                problems.append(f"{name}: network-config: netplan: {problem}")
+    except tools.SeedToolError as error:
+        print(f"roslab seed: {error}; nothing was written", file=sys.stderr)
+        return 1
+    if problems:
+        print("\n".join(problems), file=sys.stderr)
+        print("roslab seed: a seed failed its check (a roslab bug: please report it); nothing was written",
+              file=sys.stderr)
+        return 1
+
+    moved = last_known_addresses(path)
+    for host in hosts:
+        files = seeds[host.name]
+        try:
+            if args.image:
+                where = display_path(args.image)
+                changed = targets.write_image(Path(args.image), files)
+            elif args.boot_partition:
+                where = display_path(args.boot_partition)
+                changed = targets.write_boot_partition(Path(args.boot_partition), files)
+            else:
+                where = display_path(Path(args.out) / host.name)
+                changed = targets.write_directory(Path(args.out) / host.name, files)
+        except (targets.TargetError, OSError) as error:
+            print(f"roslab seed: {host.name}: {error}", file=sys.stderr)
+            return 1
+        public = identity.host_keys(path, host.name).public_line()
+        recorded = identity.known_key(path, host.name)
+        identity.trust(path, host.name, known_addresses(host, moved.get(host.name)), public,
+                       port=host.data.get("ssh_port") or 22)
+        key = f"host key {identity.fingerprint(public)}"
+        if changed:
+            print(f"{host.name}: wrote {', '.join(changed)} in {where} ({key})")
+        else:
+            print(f"{host.name}: unchanged in {where} ({key})")
+        if recorded is not None and recorded.public_line() != " ".join(public.split()[:2]):
+            print(f"{host.name}: its recorded host key is now the seeded one: until it boots from this "
+                  "seed, pyinfra refuses it")
+    print(f"The keys are recorded in {display_path(identity.known_hosts_path(path))}; "
+          "pyinfra connects to these Pis with strict host key checking.")
+    return 0
+
+
+def register(commands) -> None:
+    seed = commands.add_parser(
+        "seed",
+        help="write first-boot seeds (cloud-init NoCloud) that boot fresh Pis into the roster",
+        description="Per Pi, a NoCloud user-data, network-config and meta-data from the roster: "
+        "hostname, the lab user with the teacher's keys and sudo, no password login, the Pi's own "
+        "SSH host key (generated once, kept beside the roster), its network, locale, time zone and "
+        "time sync. Checked with cloud-init's and netplan's own parsers before anything is written.",
+    )
+    seed.add_argument("roster", nargs="?", metavar="ROSTER",
+                      help="roster file (default: as for roslab check)")
+    where = seed.add_mutually_exclusive_group(required=True)
+    where.add_argument("--out", metavar="DIR", help="write DIR/<host>/{user-data,network-config,meta-data}")
+    where.add_argument("--boot-partition", metavar="PATH",
+                       help="a mounted Ubuntu Pi system-boot partition (with --host)")
+    where.add_argument("--image", metavar="FILE",
+                       help="a raw Ubuntu Pi image: its boot partition is written with mtools, "
+                       "not mounted (with --host)")
+    seed.add_argument("--host", action="append", metavar="NAME", help="only this host (repeatable)")
+    seed.set_defaults(run=run_seed)
