@@ -7,8 +7,9 @@ import logging
 import os
 import signal
 import sys
+from pathlib import Path
 
-from . import lifecycle
+from . import lifecycle, seeding
 from .system import SandboxError
 
 
@@ -27,8 +28,23 @@ def register(subparsers) -> argparse.ArgumentParser:
                     help="make HOST an Ubuntu Desktop-like host (NetworkManager instead of networkd); repeatable")
     commands.add_parser("status", help="list the hosts and whether they answer")
     commands.add_parser("down", help="stop the hosts and remove everything the sandbox made")
-    reset = commands.add_parser("reset", help="give hosts a fresh image and boot them")
+    reset = commands.add_parser(
+        "reset", help="re-flash hosts: a fresh image, booted (a seeded host keeps its SSH host key)",
+        description="Give hosts a fresh image and boot them, as re-flashing a Pi's card would. A host made "
+                    "by `up` or re-flashed with --seed counts as seeded and keeps its SSH host key; any "
+                    "other host makes a new random one.")
     reset.add_argument("hosts", nargs="+", metavar="HOST")
+    flash = reset.add_mutually_exclusive_group()
+    flash.add_argument("--unseeded", action="store_true",
+                       help="re-flash without a seed: a new random host key roslab does not know "
+                            "(the host no longer counts as seeded)")
+    flash.add_argument("--seed", type=Path, metavar="DIR",
+                       help="re-flash one HOST with a NoCloud seed (user-data, meta-data, network-config, "
+                            "as `roslab seed` writes): it boots through cloud-init, as a flashed Pi does")
+    reset.add_argument("--apt-lock-seconds", type=float, default=None, metavar="S",
+                       help="on a boot from a seed, how long the stand-in for first-boot "
+                            f"unattended-upgrades holds the dpkg lock (default {seeding.FIRST_BOOT_APT_LOCK_SECONDS}; "
+                            "0: not at all)")
     reboot = commands.add_parser("reboot", help="reboot a host")
     reboot.add_argument("host")
     ssh = commands.add_parser("ssh", help="log in to a host as the login user (or run CMD there)")
@@ -68,8 +84,11 @@ def run(args: argparse.Namespace) -> int:
         elif args.sandbox_command == "down":
             lifecycle.down()
         elif args.sandbox_command == "reset":
-            seconds = lifecycle.reset(args.hosts)
-            print(f"{', '.join(args.hosts)}: fresh image, ssh ready after {seconds:.1f} s")
+            seconds = lifecycle.reset(args.hosts, unseeded=args.unseeded, seed=args.seed,
+                                      apt_lock_seconds=args.apt_lock_seconds)
+            how = ("booted from the seed with cloud-init" if args.seed else
+                   "new random SSH host key, unknown to roslab" if args.unseeded else "fresh image")
+            print(f"{', '.join(args.hosts)}: {how}, ssh ready after {seconds:.1f} s")
         elif args.sandbox_command == "reboot":
             print(f"{args.host}: rebooted, ssh ready after {lifecycle.reboot(args.host):.1f} s")
         elif args.sandbox_command == "ssh":

@@ -5,7 +5,8 @@ What the deploys read to tell an Ubuntu release and its apt layout is written
 here per host, each file saying it is an emulation: `/etc/os-release`,
 `/etc/lsb-release`, Ubuntu's apt sources (pointing at the sandbox upstream),
 and the netplan file cloud-init would have written from the boot partition.
-cloud-init itself is not installed; only its configuration directory exists.
+cloud-init (Debian's) is installed but disabled on these hosts, as on a Pi after
+its first boot; a host booted from a seed runs it for real (seeding.py).
 """
 
 from __future__ import annotations
@@ -89,7 +90,7 @@ def netplan_cloud_init(host: HostIdentity) -> str:
     """The netplan file cloud-init writes on Ubuntu Server from the boot partition's network-config."""
     return (
         "# roslab sandbox emulation of the file cloud-init writes on Ubuntu Server\n"
-        "# from the boot partition's network-config (cloud-init is not installed here).\n"
+        "# from the boot partition's network-config (cloud-init is disabled on this host).\n"
         "# No default route: sandbox hosts reach only the sandbox network.\n"
         "network:\n"
         "  version: 2\n"
@@ -117,9 +118,9 @@ def netplan_desktop(host: HostIdentity) -> str:
 
 
 CLOUD_CFG_README = (
-    "roslab sandbox: cloud-init is NOT installed on sandbox hosts. This directory exists\n"
-    "because Ubuntu Server images have it, and deploys may drop configuration here\n"
-    "(e.g. 99-disable-network-config.cfg).\n"
+    "roslab sandbox: cloud-init is installed but disabled on this host (/etc/cloud/cloud-init.disabled),\n"
+    "as on a Pi after its first boot; `roslab sandbox reset HOST --seed DIR` boots a host through it.\n"
+    "Deploys may drop configuration here (e.g. 99-disable-network-config.cfg).\n"
 )
 
 

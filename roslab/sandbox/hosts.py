@@ -19,9 +19,10 @@ import socket
 import subprocess
 import time
 import uuid
+from dataclasses import dataclass
 from pathlib import Path
 
-from . import emulation, image
+from . import emulation, image, seeding
 from .instance import Instance, SandboxHost
 from .system import SandboxError, log, run, terminate, write_file
 
@@ -170,27 +171,52 @@ def mount_fresh(instance: Instance, host: SandboxHost, rootfs: Path) -> Path:
     return paths["merged"]
 
 
-def write_host_files(instance: Instance, host: SandboxHost, root: Path, ubuntu_keyring: bytes) -> None:
-    """Write what makes this host itself: identity, keys, and the Ubuntu emulation."""
+@dataclass(frozen=True)
+class Boot:
+    """How a host boots: with a given SSH host key, or "as flashed" from a NoCloud seed.
+
+    `host_key` is (private key, public key line) written as the host's ed25519 key;
+    with `seed` (a directory holding user-data, meta-data, network-config) cloud-init
+    runs on the seed instead, which brings the key, user, hostname and address, and a
+    stand-in for first-boot unattended-upgrades holds the dpkg lock `apt_lock_seconds`.
+    """
+
+    host_key: tuple[str, str] | None = None
+    seed: Path | None = None
+    apt_lock_seconds: float = seeding.FIRST_BOOT_APT_LOCK_SECONDS
+
+
+def write_host_files(instance: Instance, host: SandboxHost, root: Path, ubuntu_keyring: bytes, boot: Boot) -> None:
+    """Write what makes this host itself: identity, keys, and the Ubuntu emulation.
+
+    A host booted from a seed gets only the emulation (Ubuntu's release files and apt
+    layout): its user, keys, hostname and network come from the seed, through cloud-init.
+    """
     identity = host.identity(instance.subnet.prefixlen)
     for path, (content, mode) in emulation.host_files(identity, f"{instance.upstream_url}/ubuntu").items():
+        if boot.seed and path.startswith("/etc/netplan/"):
+            continue  # cloud-init writes 50-cloud-init.yaml from the seed's network-config
         write_file(root / path.lstrip("/"), content, mode=mode)
     if host.flavour == "desktop":
         # As on Ubuntu Desktop: NetworkManager runs the network, networkd is off.
         run("systemctl", f"--root={root}", "disable", "--quiet", "systemd-networkd.service",
             "systemd-networkd.socket", "systemd-networkd-wait-online.service")
         run("systemctl", f"--root={root}", "enable", "--quiet", "NetworkManager.service")
-    write_file(root / "etc/hostname", f"{host.name}\n")
-    write_file(root / "etc/hosts", f"127.0.0.1 localhost\n127.0.1.1 {host.name}\n"
-               "::1 localhost ip6-localhost ip6-loopback\n")
     write_file(root / "etc/machine-id", uuid.uuid4().hex + "\n", mode=0o444)
     # Ubuntu's keyring in both places ubuntu-keyring installs it; the key is the sandbox's.
     write_file(root / emulation.UBUNTU_KEYRING.lstrip("/"), ubuntu_keyring)
     write_file(root / "etc/apt/trusted.gpg.d/ubuntu-keyring-2018-archive.gpg", ubuntu_keyring)
-    host_key = instance.host_dir(host) / "ssh_host_ed25519_key"
-    for suffix, mode in (("", 0o600), (".pub", 0o644)):
-        source = host_key.with_name(host_key.name + suffix)
-        write_file(root / "etc/ssh" / source.name, source.read_bytes(), mode=mode)
+    if boot.seed:
+        _prepare_seeded_boot(root, boot)
+        return
+    write_file(root / "etc/hostname", f"{host.name}\n")
+    write_file(root / "etc/hosts", f"127.0.0.1 localhost\n127.0.1.1 {host.name}\n"
+               "::1 localhost ip6-localhost ip6-loopback\n")
+    if boot.host_key is None:
+        raise SandboxError(f"host {host.name!r}: no host key and no seed to boot with")
+    private, public = boot.host_key
+    write_file(root / "etc/ssh/ssh_host_ed25519_key", private, mode=0o600)
+    write_file(root / "etc/ssh/ssh_host_ed25519_key.pub", public.rstrip("\n") + "\n", mode=0o644)
     uid = image.LOGIN_UID
     ssh_dir = root / "home" / image.LOGIN_USER / ".ssh"
     ssh_dir.mkdir(mode=0o700, exist_ok=True)
@@ -199,16 +225,60 @@ def write_host_files(instance: Instance, host: SandboxHost, root: Path, ubuntu_k
                mode=0o600, owner=(uid, uid))
 
 
-def ensure_host_key(instance: Instance, host: SandboxHost) -> None:
+def _prepare_seeded_boot(root: Path, boot: Boot) -> None:
+    """A freshly flashed card: cloud-init enabled, the seed where NoCloud finds it, no host key yet."""
+    (root / seeding.CLOUD_INIT_DISABLED.lstrip("/")).unlink(missing_ok=True)
+    for key in (root / "etc/ssh").glob("ssh_host_*"):
+        key.unlink()
+    # The image's own name and hosts file until cloud-init sets the roster's hostname.
+    write_file(root / "etc/hostname", "ubuntu\n")
+    write_file(root / "etc/hosts", "127.0.0.1 localhost\n::1 localhost ip6-localhost ip6-loopback\n")
+    # Stand-in for the lookup of the boot partition by its label (a container has no block devices).
+    link = root / seeding.NOCLOUD_SEED_DIR.lstrip("/")
+    link.parent.mkdir(parents=True, exist_ok=True)
+    if link.is_symlink() or link.exists():
+        link.unlink()
+    link.symlink_to(seeding.BOOT_PARTITION)
+    (root / seeding.BOOT_PARTITION.lstrip("/")).mkdir(parents=True, exist_ok=True)
+    for path, (content, mode) in seeding.seeded_boot_files(boot.apt_lock_seconds).items():
+        write_file(root / path.lstrip("/"), content, mode=mode)
+    if boot.apt_lock_seconds:
+        run("systemctl", f"--root={root}", "enable", "--quiet", seeding.FIRST_BOOT_UNIT)
+    locale_gen = root / "etc/locale.gen"
+    if locale_gen.exists() and (boot.seed / "user-data").is_file():
+        enabled = seeding.seed_locale_enabled(locale_gen.read_text(), (boot.seed / "user-data").read_text())
+        write_file(locale_gen, enabled)
+
+
+def random_host_key(instance: Instance, host: SandboxHost) -> tuple[str, str]:
+    """A new ed25519 host key (private, public line), as a Pi flashed without a seed makes itself."""
     key = instance.host_dir(host) / "ssh_host_ed25519_key"
-    if not key.exists():
-        key.parent.mkdir(parents=True, exist_ok=True)
-        run("ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-C", f"root@{host.name}", "-f", key)
+    key.parent.mkdir(parents=True, exist_ok=True)
+    for path in (key, key.with_name(key.name + ".pub")):
+        path.unlink(missing_ok=True)
+    run("ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-C", f"root@{host.name}", "-f", key)
+    return key.read_text(), key.with_name(key.name + ".pub").read_text().strip()
+
+
+def keep_seed(instance: Instance, host: SandboxHost, seed: Path) -> Path:
+    """Copy a seed beside the host (root-only: it may hold a WiFi password); return the copy.
+
+    The copy is the host's "card": a later plain reset boots from it again.
+    """
+    copy = instance.host_dir(host) / "seed"
+    if seed.resolve() == copy.resolve():
+        return copy
+    shutil.rmtree(copy, ignore_errors=True)
+    copy.mkdir(mode=0o700, parents=True)
+    for name in seeding.SEED_FILES:
+        if (seed / name).is_file():
+            write_file(copy / name, (seed / name).read_bytes(), mode=0o600)
+    return copy
 
 
 # -- processes ---------------------------------------------------------------------------
 
-def nspawn_argv(instance: Instance, host: SandboxHost, merged: Path) -> list[str]:
+def nspawn_argv(instance: Instance, host: SandboxHost, merged: Path, seed: Path | None = None) -> list[str]:
     argv = [
         "systemd-nspawn", "--boot", f"--directory={merged}", f"--machine={instance.machine_name(host)}",
         f"--network-namespace-path=/run/netns/{instance.netns(host)}",
@@ -220,10 +290,12 @@ def nspawn_argv(instance: Instance, host: SandboxHost, merged: Path) -> list[str
     ]
     if lxcfs_running():
         argv.append(f"--bind-ro={LXCFS_DIR}")
+    if seed:  # the seed where a Pi's boot partition is mounted (read-only)
+        argv.append(f"--bind-ro={seed}:{seeding.BOOT_PARTITION}")
     return argv
 
 
-def start(instance: Instance, host: SandboxHost, merged: Path) -> None:
+def start(instance: Instance, host: SandboxHost, merged: Path, seed: Path | None = None) -> None:
     """Boot the host under a supervisor that restarts nspawn when the host reboots."""
     cgroups = host_cgroups(instance, host.name)
     for path in cgroups:
@@ -232,7 +304,7 @@ def start(instance: Instance, host: SandboxHost, merged: Path) -> None:
     script = (
         join
         + "while :; do\n"
-        + f"  {shlex.join(nspawn_argv(instance, host, merged))}\n"
+        + f"  {shlex.join(nspawn_argv(instance, host, merged, seed))}\n"
         + "  rc=$?\n"
         + f'  [ "$rc" -eq {REBOOT_EXIT_CODE} ] || exit "$rc"\n'
         + "done\n"

@@ -15,16 +15,19 @@ import os
 import shutil
 from pathlib import Path
 
+from . import seeding
 from .system import SandboxError, file_lock, log, run, write_file
 
 # Bump when the way the image is built or customised changes: it is part of the cache key.
-BUILDER_VERSION = 4
+BUILDER_VERSION = 5
 
 # What a Pi's server image brings, minus the kernel: the deploys find these installed.
+# cloud-init (Debian's) stays disabled unless a host boots from a seed (seeding.py);
+# systemd-timesyncd is the time sync a seed's `ntp:` configures (idle in a container).
 BASE_PACKAGES = (
     "openssh-server", "sudo", "python3", "locales", "systemd", "systemd-sysv", "dbus",
     "iproute2", "netplan.io", "network-manager", "ca-certificates", "gnupg", "curl",
-    "iputils-ping", "procps", "libpam-systemd", "less", "nano",
+    "iputils-ping", "procps", "libpam-systemd", "less", "nano", "cloud-init", "systemd-timesyncd",
 )
 
 LOGIN_USER = "ubuntu"
@@ -152,6 +155,13 @@ def _customise(rootfs: Path) -> None:
     # installed for desktop-flavoured hosts but stays off here.
     _chroot(rootfs, "systemctl", "enable", "systemd-networkd.service")
     _chroot(rootfs, "systemctl", "disable", "NetworkManager.service", "NetworkManager-wait-online.service")
+    # cloud-init runs only on hosts booted from a seed: the others boot without its
+    # four stages (seconds each), as a Pi does once cloud-init has done its first boot.
+    for path in (rootfs / "var/lib/cloud").glob("*"):
+        shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
+    write_file(rootfs / seeding.CLOUD_INIT_DISABLED.lstrip("/"), seeding.CLOUD_INIT_DISABLED_TEXT)
+    for path, content in seeding.cloud_init_image_files().items():
+        write_file(rootfs / path.lstrip("/"), content)
     # A host's own periodic apt runs would race the tests' apt runs for the dpkg lock.
     _chroot(rootfs, "systemctl", "mask", "apt-daily.timer", "apt-daily-upgrade.timer")
     # Nothing to resolve: hosts reach only the sandbox upstream by address, and an

@@ -19,7 +19,9 @@ from pathlib import Path
 
 import yaml
 
-from . import hosts, image, upstream
+from roslab import identity
+
+from . import hosts, image, seeding, upstream
 from .instance import STATE_ROOT, UPSTREAM_PORT, Instance, SandboxHost
 from .system import SandboxError, file_lock, log, run, write_file
 
@@ -63,13 +65,46 @@ def load(instance: Instance | None = None) -> Classroom:
     return Classroom(instance, instance.plan_hosts(state["hosts"], state.get("desktop", ())))
 
 
-def ssh_argv(instance: Instance, address: str, *command: str) -> list[str]:
-    """An ssh command line reaching a host as the login user with the instance key."""
+def known_hosts(instance: Instance) -> Path:
+    """The sandbox classroom's known_hosts: roslab's, beside the sandbox roster."""
+    return identity.known_hosts_path(instance.roster_path)
+
+
+def ssh_argv(instance: Instance, address: str, *command: str, host_name: str | None = None) -> list[str]:
+    """An ssh command line reaching a host as the login user with the instance key.
+
+    The host's key is checked strictly against the sandbox's known_hosts; with
+    `host_name` it is looked up by the host's name (its line lists the name first),
+    so a host that moved to another address is still recognised.
+    """
+    alias = ["-o", f"HostKeyAlias={host_name}"] if host_name else []
     return [
         "ssh", "-i", str(instance.key_path), "-o", "IdentitiesOnly=yes", "-o", "BatchMode=yes",
-        "-o", "UserKnownHostsFile=/dev/null", "-o", "StrictHostKeyChecking=no", "-o", "LogLevel=ERROR",
+        "-o", f"UserKnownHostsFile={known_hosts(instance)}", "-o", "StrictHostKeyChecking=yes",
+        "-o", "GlobalKnownHostsFile=/dev/null", *alias, "-o", "LogLevel=ERROR",
         "-o", "ConnectTimeout=5", f"{image.LOGIN_USER}@{address}", *command,
     ]
+
+
+# -- per-host boot state ----------------------------------------------------------------------
+# sandbox.json keeps, per host, how its card was last "flashed": `seeded` (its host key comes
+# from roslab's identity store or from a seed, so a plain reset keeps it) and `seed` (the
+# host's copy of a NoCloud seed it boots from with cloud-init), `apt_lock_seconds`.
+
+def _host_states(instance: Instance) -> dict[str, dict]:
+    return json.loads(_state_file(instance).read_text()).get("boot", {})
+
+
+def _save_host_states(instance: Instance, states: dict[str, dict]) -> None:
+    state = json.loads(_state_file(instance).read_text())
+    state["boot"] = states
+    write_file(_state_file(instance), json.dumps(state) + "\n")
+
+
+def _store_boot(instance: Instance, host: SandboxHost) -> hosts.Boot:
+    """The host's key from the sandbox roster's identity store (made once, kept across resets)."""
+    keys = identity.host_keys(instance.roster_path, host.name)
+    return hosts.Boot(host_key=(keys.private_text(), keys.public_line()))
 
 
 # -- up -------------------------------------------------------------------------------------
@@ -120,17 +155,21 @@ def _up_locked(instance: Instance, planned: list[SandboxHost]) -> Classroom:
     upstream.start_server(instance.state_dir / "upstream", instance.bridge_address, UPSTREAM_PORT,
                           instance.state_dir / "upstream.pid", instance.state_dir / "upstream.log")
     keyring = upstream.ubuntu_key().keyring.read_bytes()
+    write_roster(classroom, published)  # first: the hosts' keys live in the identity store beside it
+
+    boots = {host.name: _store_boot(instance, host) for host in planned}
 
     def boot(host: SandboxHost) -> None:
-        hosts.ensure_host_key(instance, host)
         hosts.wire_host(instance, host)
         merged = hosts.mount_fresh(instance, host, rootfs)
-        hosts.write_host_files(instance, host, merged, keyring)
+        hosts.write_host_files(instance, host, merged, keyring, boots[host.name])
         hosts.start(instance, host, merged)
         hosts.wait_for_ssh(host.address)
 
     _on_all(classroom.hosts, boot)
-    write_roster(classroom, published)
+    for host in planned:  # one writer: known_hosts is rewritten whole each time
+        identity.trust(instance.roster_path, host.name, [host.address], boots[host.name].host_key[1])
+    _save_host_states(instance, {host.name: {"seeded": True} for host in planned})
     log.info("sandbox %r up: %d hosts in %.1f s", instance.name, len(planned), time.monotonic() - started)
     return classroom
 
@@ -157,8 +196,10 @@ def roster(classroom: Classroom, published: upstream.Upstream) -> dict:
             "name": f"sandbox-{instance.name}",
             "ssh_user": image.LOGIN_USER,
             "ssh_key": str(instance.key_path),
-            "ssh_known_hosts_file": "/dev/null",
-            "ssh_strict_host_key_checking": "off",
+            # Named explicitly so that copies of this roster elsewhere (as tests make)
+            # still check the sandbox hosts' keys strictly against the sandbox's store.
+            "ssh_known_hosts_file": str(known_hosts(instance)),
+            "ssh_strict_host_key_checking": "yes",
             **published.roster_settings(),
         },
         "teams": teams,
@@ -252,26 +293,79 @@ def status(instance: Instance | None = None) -> dict:
     return report
 
 
-def reset(host_names: list[str] | str, instance: Instance | None = None) -> float:
-    """Give hosts a fresh image (their changes are lost) and boot them; return the seconds taken."""
+def reset(host_names: list[str] | str, instance: Instance | None = None, *, unseeded: bool = False,
+          seed: Path | None = None, apt_lock_seconds: float | None = None) -> float:
+    """Re-flash hosts: a fresh image (their changes are lost), booted; return the seconds taken.
+
+    Like a Pi's SD card written again, the host's SSH host key survives only if the card
+    was seeded: a host made by `up` keeps its key from the sandbox roster's identity store,
+    a host re-flashed with `seed` boots from that seed again. Otherwise, and always with
+    `unseeded`, it makes a new random key that roslab does not know (the host then no
+    longer counts as seeded). With `seed` (one host) it boots "as flashed": cloud-init
+    runs on the NoCloud seed presented as the boot partition, and a stand-in for
+    first-boot unattended-upgrades holds the dpkg lock `apt_lock_seconds` (default 20).
+    """
     started = time.monotonic()
     classroom = load(instance)
     names = [host_names] if isinstance(host_names, str) else list(host_names)
     targets = [classroom.host(name) for name in names]
     instance = classroom.instance
+    if seed is not None:
+        if unseeded:
+            raise SandboxError("reset: --seed and --unseeded exclude each other")
+        if len(targets) != 1:
+            raise SandboxError("reset --seed: a seed is one host's: name exactly one HOST")
+        seeding.seed_address(Path(seed), instance.subnet)
+    if apt_lock_seconds is not None:
+        seeding.check_apt_lock_seconds(apt_lock_seconds)
     rootfs = image.base_image()
     keyring = upstream.ubuntu_key().keyring.read_bytes()
 
-    def fresh(host: SandboxHost) -> None:
-        hosts.stop(instance, host.name)
-        merged = hosts.mount_fresh(instance, host, rootfs)
-        hosts.write_host_files(instance, host, merged, keyring)
-        hosts.start(instance, host, merged)
-        hosts.wait_for_ssh(host.address)
-
     with file_lock(_instance_lock(instance)):
-        _on_all(targets, fresh)
+        states = _host_states(instance)
+
+        def boot_for(host: SandboxHost) -> hosts.Boot:
+            seed_copy = hosts.keep_seed(instance, host, Path(seed)) if seed is not None else None
+            state = states[host.name] = reflash_state(states.get(host.name, {}), seed_copy=seed_copy,
+                                                      unseeded=unseeded, apt_lock_seconds=apt_lock_seconds)
+            if state["seed"]:
+                return hosts.Boot(seed=Path(state["seed"]), apt_lock_seconds=state["apt_lock_seconds"])
+            if state["seeded"]:
+                return _store_boot(instance, host)
+            return hosts.Boot(host_key=hosts.random_host_key(instance, host))
+
+        boots = {host.name: boot_for(host) for host in targets}
+
+        def fresh(host: SandboxHost) -> None:
+            boot = boots[host.name]
+            hosts.stop(instance, host.name)
+            merged = hosts.mount_fresh(instance, host, rootfs)
+            hosts.write_host_files(instance, host, merged, keyring, boot)
+            hosts.start(instance, host, merged, boot.seed)
+            if boot.seed:  # at the seed's address, after cloud-init's first stages (docs/sandbox.md)
+                hosts.wait_for_ssh(seeding.seed_address(boot.seed, instance.subnet), timeout=180)
+            else:
+                hosts.wait_for_ssh(host.address)
+
+        try:
+            _on_all(targets, fresh)
+        finally:
+            _save_host_states(instance, states)
     return time.monotonic() - started
+
+
+def reflash_state(state: dict, *, seed_copy: Path | None = None, unseeded: bool = False,
+                  apt_lock_seconds: float | None = None) -> dict:
+    """A host's boot state after a re-flash: a seed makes it seeded (and boots from it from
+    now on), `unseeded` makes it unseeded; a plain re-flash keeps what it was."""
+    state = {"seeded": False, "seed": None, "apt_lock_seconds": seeding.FIRST_BOOT_APT_LOCK_SECONDS, **state}
+    if seed_copy is not None:
+        state.update(seeded=True, seed=str(seed_copy))
+    elif unseeded:
+        state.update(seeded=False, seed=None)
+    if apt_lock_seconds is not None:
+        state["apt_lock_seconds"] = apt_lock_seconds
+    return state
 
 
 def reboot(host_name: str, instance: Instance | None = None, timeout: float = 60.0) -> float:
@@ -296,5 +390,5 @@ def reboot(host_name: str, instance: Instance | None = None, timeout: float = 60
 def ssh(host_name: str, command: list[str], instance: Instance | None = None) -> None:
     """Replace this process with ssh to the host (interactive when no command)."""
     classroom = load(instance)
-    argv = ssh_argv(classroom.instance, classroom.host(host_name).address, *command)
+    argv = ssh_argv(classroom.instance, classroom.host(host_name).address, *command, host_name=host_name)
     os.execvp(argv[0], argv)

@@ -105,7 +105,7 @@ class SandboxClassroom:
 
     def ssh(self, host: str, command: str, check: bool = False, timeout: float = 300) -> Result:
         """Run a shell command on a host as the login user over plain ssh."""
-        argv = lifecycle.ssh_argv(self.instance, self.host(host).address, command)
+        argv = lifecycle.ssh_argv(self.instance, self.host(host).address, command, host_name=host)
         proc = subprocess.run(argv, capture_output=True, text=True, timeout=timeout)
         if check and proc.returncode != 0:
             raise AssertionError(f"on {host}: {command!r} exited {proc.returncode}:\n{proc.stdout}\n{proc.stderr}")

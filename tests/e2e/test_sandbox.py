@@ -43,11 +43,13 @@ def test_each_host_sets_its_own_address_from_the_cloud_init_netplan_file(e2e_san
         result = e2e_sandbox.sudo(
             host.name, "ip -4 -o addr show dev eth0; cat /etc/netplan/50-cloud-init.yaml; "
             "cat /etc/ssh/ssh_host_ed25519_key.pub; test -d /etc/cloud/cloud.cfg.d && echo has-cloud-cfg-d; "
-            "command -v cloud-init || echo no-cloud-init",
+            "test -e /etc/cloud/cloud-init.disabled && echo cloud-init-disabled; "
+            "systemctl is-active cloud-init-local.service cloud-init.service || true",
             check=True)
         assert f"inet {host.address}/24" in result.stdout
         assert "renderer: networkd" in result.stdout
-        assert "has-cloud-cfg-d\nno-cloud-init" in result.stdout  # its directory, not cloud-init itself
+        # cloud-init is installed but does not run (only a host booted from a seed runs it).
+        assert "has-cloud-cfg-d\ncloud-init-disabled\ninactive\ninactive\n" in result.stdout
         host_keys.add(next(line for line in result.stdout.splitlines() if line.startswith("ssh-ed25519")))
     assert len(host_keys) == len(e2e_sandbox.hosts)  # each host has its own host key
 
@@ -117,7 +119,9 @@ def test_a_host_moves_itself_to_a_new_address_with_netplan(fresh_hosts):
         netplan generate
         systemd-run --on-active=0.5 sh -c 'networkctl reload && networkctl reconfigure eth0'
     """, check=True)
-    argv = lifecycle.ssh_argv(fresh_hosts.instance, new_address, "ip -4 -o addr show dev eth0")
+    # Strict host key checking: the moved host is recognised by its name's known_hosts line.
+    argv = lifecycle.ssh_argv(fresh_hosts.instance, new_address, "ip -4 -o addr show dev eth0",
+                              host_name="team1-robot")
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline:
         moved = subprocess.run(argv, capture_output=True, text=True, timeout=30)

@@ -15,7 +15,7 @@ import yaml
 
 from roslab import settings
 from roslab.roster import inventory_groups, load_roster
-from roslab.sandbox import emulation, image, lifecycle, upstream
+from roslab.sandbox import emulation, hosts, image, lifecycle, seeding, upstream
 from roslab.sandbox.instance import Instance, default_subnet
 from roslab.sandbox.system import SandboxError
 
@@ -121,7 +121,10 @@ def test_written_roster_is_a_valid_roster(tmp_path):
     groups = inventory_groups(loaded)
     assert sorted(name for name, _ in groups["main"]) == ["team1-main", "team2-main"]
     data = yaml.safe_load(path.read_text())
-    assert data["classroom"]["ssh_strict_host_key_checking"] == "off"
+    # Strict host key checking through roslab's known_hosts beside the sandbox roster,
+    # named explicitly so a copy of the roster elsewhere checks against the same file.
+    assert data["classroom"]["ssh_strict_host_key_checking"] == "yes"
+    assert data["classroom"]["ssh_known_hosts_file"] == "/run/roslab/sandbox/roslab/.roslab-state/known_hosts"
     assert data["classroom"]["ssh_key"] == "/run/roslab/sandbox/roslab/id_ed25519"
     assert data["classroom"]["ros_apt_source_url"].format(version="1.2.0", codename="noble") == (
         f"{URL}/ros-apt-source/1.2.0/ros2-apt-source_1.2.0.noble_all.deb")
@@ -309,3 +312,176 @@ def test_desktop_hosts_get_networkmanager_netplan_instead_of_cloud_init():
 def test_unknown_desktop_host_is_refused():
     with pytest.raises(SandboxError, match="--desktop team9-main: no such host"):
         Instance.from_env().plan_hosts(4, desktop=["team9-main"])
+
+
+# -- host keys, re-flashing and seeded boots -------------------------------------------------------
+
+def test_ssh_checks_host_keys_strictly_against_the_sandbox_known_hosts():
+    instance = Instance.from_env()
+    argv = lifecycle.ssh_argv(instance, "10.213.0.11", "true")
+    options = [argv[i + 1] for i, word in enumerate(argv) if word == "-o"]
+    assert "StrictHostKeyChecking=yes" in options
+    assert "UserKnownHostsFile=/run/roslab/sandbox/roslab/.roslab-state/known_hosts" in options
+    assert not any(option.startswith("HostKeyAlias") for option in options)
+    # By name, a host that moved to another address is still recognised by its key.
+    moved = lifecycle.ssh_argv(instance, "10.213.0.111", "true", host_name="team1-main")
+    assert "HostKeyAlias=team1-main" in moved and moved[-2:] == ["ubuntu@10.213.0.111", "true"]
+
+
+@pytest.mark.parametrize("flashes, expected", [
+    ([{}], {"seeded": True, "seed": None}),  # made by `up`: keeps its key from the store
+    ([{"unseeded": True}], {"seeded": False, "seed": None}),
+    ([{"unseeded": True}, {}], {"seeded": False, "seed": None}),  # stays unseeded: a new key each time
+    ([{"seed_copy": Path("/s")}], {"seeded": True, "seed": "/s"}),
+    ([{"seed_copy": Path("/s")}, {}], {"seeded": True, "seed": "/s"}),  # the same card again
+    ([{"seed_copy": Path("/s")}, {"unseeded": True}], {"seeded": False, "seed": None}),
+])
+def test_a_reflash_keeps_the_host_seeded_only_as_asked(flashes, expected):
+    state = {"seeded": True}  # what `up` records
+    for flash in flashes:
+        state = lifecycle.reflash_state(state, **flash)
+    assert {key: state[key] for key in expected} == expected
+    assert state["apt_lock_seconds"] == seeding.FIRST_BOOT_APT_LOCK_SECONDS
+    assert lifecycle.reflash_state(state, apt_lock_seconds=3)["apt_lock_seconds"] == 3
+
+
+@pytest.fixture
+def host_root(tmp_path, monkeypatch):
+    """A host's root (with the base image's cloud-init files) and what `systemctl --root` was asked."""
+    root = tmp_path / "root"
+    for path, content in seeding.cloud_init_image_files().items():
+        (root / path.lstrip("/")).parent.mkdir(parents=True, exist_ok=True)
+        (root / path.lstrip("/")).write_text(content)
+    (root / seeding.CLOUD_INIT_DISABLED.lstrip("/")).write_text(seeding.CLOUD_INIT_DISABLED_TEXT)
+    (root / "home/ubuntu").mkdir(parents=True)
+    (root / "etc/ssh").mkdir(parents=True)
+    (root / "etc/ssh/ssh_host_ed25519_key").write_text("from an earlier boot\n")
+    calls = []
+    monkeypatch.setattr(hosts, "run", lambda *argv, **kwargs: calls.append([str(arg) for arg in argv]))
+    monkeypatch.setattr(hosts.os, "chown", lambda *args: None)
+    instance = Instance("unit", ipaddress.IPv4Network("10.213.99.0/24"))
+    monkeypatch.setattr(Instance, "state_dir", property(lambda self: tmp_path / "state"))
+    instance.key_path.parent.mkdir(parents=True)
+    instance.key_path.with_suffix(".pub").write_text("ssh-ed25519 AAAAlogin login\n")
+    return instance, instance.plan_hosts(2)[0], root, calls
+
+
+def test_a_host_booted_with_a_key_gets_that_key_and_keeps_cloud_init_disabled(host_root):
+    instance, host, root, _ = host_root
+    boot = hosts.Boot(host_key=("PRIVATE\n", "ssh-ed25519 AAAAhost root@team1-main"))
+    hosts.write_host_files(instance, host, root, b"keyring", boot)
+    assert (root / "etc/ssh/ssh_host_ed25519_key").read_text() == "PRIVATE\n"
+    assert (root / "etc/ssh/ssh_host_ed25519_key").stat().st_mode & 0o777 == 0o600
+    assert (root / "etc/ssh/ssh_host_ed25519_key.pub").read_text() == "ssh-ed25519 AAAAhost root@team1-main\n"
+    assert (root / seeding.CLOUD_INIT_DISABLED.lstrip("/")).exists()
+    assert (root / "etc/netplan/50-cloud-init.yaml").exists()
+    assert (root / "etc/hostname").read_text() == "team1-main\n"
+    assert (root / "home/ubuntu/.ssh/authorized_keys").read_text() == "ssh-ed25519 AAAAlogin login\n"
+
+
+def test_a_host_booted_from_a_seed_gets_cloud_init_and_nothing_the_seed_brings(host_root):
+    instance, host, root, calls = host_root
+    hosts.write_host_files(instance, host, root, b"keyring", hosts.Boot(seed=Path("/seed"), apt_lock_seconds=7))
+    # cloud-init runs, finds the boot partition's files where NoCloud reads them (with network-config).
+    assert not (root / seeding.CLOUD_INIT_DISABLED.lstrip("/")).exists()
+    assert (root / "var/lib/cloud/seed/nocloud").readlink() == Path("/boot/firmware")
+    datasource = yaml.safe_load((root / "etc/cloud/cloud.cfg.d/99-fake_cloud.cfg").read_text())
+    assert datasource == {"datasource_list": ["NoCloud", "None"],
+                          "datasource": {"NoCloud": {"fs_label": "system-boot"}}}
+    # What the seed brings is left to cloud-init: host key, user's key, hostname, network.
+    assert not list((root / "etc/ssh").glob("ssh_host_*"))
+    assert not (root / "home/ubuntu/.ssh/authorized_keys").exists()
+    assert not (root / "etc/netplan/50-cloud-init.yaml").exists()
+    assert (root / "etc/hostname").read_text() == "ubuntu\n"
+    # The Ubuntu emulation stays.
+    assert "ID=ubuntu" in (root / "usr/lib/os-release").read_text()
+    # The first-boot unattended-upgrades stand-in, named as one, holding the lock 7 s.
+    unit = (root / "etc/systemd/system" / seeding.FIRST_BOOT_UNIT).read_text()
+    assert "STAND-IN for Ubuntu's first-boot unattended-upgrades" in unit
+    assert "STAND-IN" in (root / seeding.FIRST_BOOT_SCRIPT.lstrip("/")).read_text()
+    assert "HOLD_SECONDS=7\n" in (root / seeding.FIRST_BOOT_CONFIG.lstrip("/")).read_text()
+    assert ["systemctl", f"--root={root}", "enable", "--quiet", seeding.FIRST_BOOT_UNIT] in calls
+
+
+def test_no_lock_stand_in_when_asked_for_zero_seconds(host_root):
+    instance, host, root, calls = host_root
+    hosts.write_host_files(instance, host, root, b"keyring", hosts.Boot(seed=Path("/seed"), apt_lock_seconds=0))
+    assert not (root / "etc/systemd/system" / seeding.FIRST_BOOT_UNIT).exists()
+    assert not calls
+
+
+def test_the_seed_is_bound_read_only_as_the_boot_partition(tmp_path):
+    instance = Instance.from_env()
+    host = instance.plan_hosts(1)[0]
+    plain = hosts.nspawn_argv(instance, host, tmp_path)
+    seeded = hosts.nspawn_argv(instance, host, tmp_path, seed=tmp_path / "seed")
+    assert seeded[:len(plain)] == plain
+    assert seeded[len(plain):] == [f"--bind-ro={tmp_path / 'seed'}:/boot/firmware"]
+
+
+def test_the_stand_in_script_is_valid_python_that_locks_as_apt_does():
+    compile(seeding.FIRST_BOOT_SCRIPT_TEXT, seeding.FIRST_BOOT_SCRIPT, "exec")
+    text = seeding.FIRST_BOOT_SCRIPT_TEXT
+    assert text.index("/var/lib/dpkg/lock-frontend") < text.index('"/var/lib/dpkg/lock"')  # apt's order
+    assert "fcntl.lockf(handle, fcntl.LOCK_EX)" in text
+
+
+SUBNET = ipaddress.IPv4Network("10.213.41.0/24")
+STATIC = "network:\n  version: 2\n  ethernets:\n    eth0:\n      addresses: [10.213.41.12/24]\n"
+
+
+@pytest.mark.parametrize("files, message", [
+    (None, "not a directory"),
+    ({"meta-data": ""}, "no user-data"),
+    ({"user-data": "", "network-config": STATIC}, "no meta-data"),
+    # No DHCP server on the sandbox network: a seed without a static address would never answer.
+    ({"user-data": "", "meta-data": ""}, "no static address in the sandbox's subnet 10.213.41.0/24 .*DHCP only"),
+    ({"user-data": "", "meta-data": "", "network-config": "network: {version: 2, ethernets: {eth0: {dhcp4: true}}}"},
+     "DHCP only.*network_address"),
+    ({"user-data": "", "meta-data": "", "network-config": STATIC.replace("10.213.41.", "192.168.50.")},
+     "it has 192.168.50.12"),
+])
+def test_a_folder_that_is_not_a_usable_seed_is_refused(tmp_path, files, message):
+    seed = tmp_path / "seed"
+    if files is not None:
+        seed.mkdir()
+        for name, text in files.items():
+            (seed / name).write_text(text)
+    with pytest.raises(SandboxError, match=message):
+        seeding.seed_address(seed, SUBNET)
+
+
+def test_a_seed_gives_its_static_address(tmp_path):
+    for name, text in {"user-data": "#cloud-config\n", "meta-data": "", "network-config": STATIC}.items():
+        (tmp_path / name).write_text(text)
+    assert seeding.seed_address(tmp_path, SUBNET) == "10.213.41.12"
+
+
+@pytest.mark.parametrize("user_data, enabled", [
+    ("#cloud-config\nlocale: de_DE.UTF-8\n", "de_DE.UTF-8 UTF-8\n"),
+    ("#cloud-config\nhostname: x\n", None),  # no locale: nothing to emulate
+    ("#cloud-config\nlocale: 'x; rm -rf /'\n", None),  # not a locale name
+])
+def test_the_seeds_locale_is_enabled_as_ubuntus_locale_gen_would_generate_it(user_data, enabled):
+    locale_gen = "# en_US.UTF-8 UTF-8\n# de_DE.UTF-8 UTF-8\n"
+    result = seeding.seed_locale_enabled(locale_gen, user_data)
+    if enabled is None:
+        assert result == locale_gen
+    else:
+        assert enabled in result.splitlines(keepends=True)
+        assert "# en_US.UTF-8 UTF-8\n" in result
+
+
+def test_a_kept_seed_is_root_only(tmp_path, monkeypatch):
+    monkeypatch.setattr(Instance, "state_dir", property(lambda self: tmp_path / "state"))
+    instance = Instance.from_env()
+    host = instance.plan_hosts(1)[0]
+    seed = tmp_path / "seed"
+    seed.mkdir()
+    for name in ("user-data", "meta-data", "network-config", "README"):
+        (seed / name).write_text(name)
+    copy = hosts.keep_seed(instance, host, seed)
+    assert sorted(path.name for path in copy.iterdir()) == ["meta-data", "network-config", "user-data"]
+    assert copy.stat().st_mode & 0o777 == 0o700
+    assert {path.stat().st_mode & 0o777 for path in copy.iterdir()} == {0o600}
+    assert hosts.keep_seed(instance, host, copy) == copy  # booting from the kept copy again

@@ -1,0 +1,196 @@
+"""Re-flashing a Pi, played by a sandbox host: with a seed it keeps its identity, without one it is refused.
+
+- A host re-flashed with a seed from `roslab seed` (`roslab sandbox reset HOST --seed DIR`)
+  boots "as flashed": Debian's cloud-init reads the seed from the boot partition and the
+  host comes up with the roster's hostname, lab user, authorised key, address and the host
+  key stored beside the roster, while a stand-in for Ubuntu's first-boot unattended-upgrades
+  holds the dpkg lock. The deploy connects with strict host key checking, waits for the lock,
+  converges, and a second run changes nothing.
+- A host re-flashed without a seed (`reset --unseeded`) shows a new host key: the deploy
+  refuses it with the command to run, and after `roslab forget` + `roslab trust` it is
+  reachable again.
+
+Runs on its own sandbox instance (ROSLAB_REFLASH_E2E_SANDBOX, default reflash-e2e, on
+ROSLAB_REFLASH_E2E_SUBNET, default 10.213.41.0/24), always taken down at the end.
+"""
+
+from __future__ import annotations
+
+import atexit
+import ipaddress
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from roslab import identity
+from roslab.sandbox import lifecycle, seeding
+from roslab.sandbox.instance import Instance
+
+pytestmark = pytest.mark.e2e
+
+REPO = Path(__file__).resolve().parents[2]
+BIN = Path(sys.executable).parent
+INSTANCE = Instance(os.environ.get("ROSLAB_REFLASH_E2E_SANDBOX", "reflash-e2e"),
+                    ipaddress.IPv4Network(os.environ.get("ROSLAB_REFLASH_E2E_SUBNET", "10.213.41.0/24")))
+ENV = {**os.environ, "ROSLAB_SANDBOX": INSTANCE.name, "ROSLAB_SANDBOX_SUBNET": str(INSTANCE.subnet)}
+SEEDED = "team1-robot"  # re-flashed with a seed
+UNSEEDED = "team1-main"  # re-flashed without one
+LAB_USER = "lab"  # not in the sandbox image: only cloud-init can make it, from the seed
+# Long enough that the deploy, started once cloud-init's config stage is done, meets the lock.
+APT_LOCK_SECONDS = 40
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")  # pytest unwinds through the finalizers
+
+
+@pytest.fixture(scope="module")
+def sandbox(sandbox_support):
+    """Two sandbox hosts (Ubuntu 24.04), always taken down again."""
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    atexit.register(lifecycle.down, INSTANCE)  # a last resort; down is idempotent
+    try:
+        yield lifecycle.up(2, INSTANCE)
+    finally:
+        lifecycle.down(INSTANCE)
+        signal.signal(signal.SIGTERM, previous)
+
+
+@pytest.fixture(scope="module")
+def classroom_copy(sandbox, tmp_path_factory) -> Path:
+    """A teacher's roster for the sandbox's hosts, in its own folder (its own identity store):
+    a lab user the image does not have, and a static address for the seeded host."""
+    data = yaml.safe_load(INSTANCE.roster_path.read_text())
+    for key in ("ssh_known_hosts_file", "ssh_strict_host_key_checking"):  # roslab's defaults apply
+        data["classroom"].pop(key)
+    data["classroom"]["ssh_user"] = LAB_USER
+    # Lean: the steps a re-flash concerns (apt and its lock, the ROS source, locale, shell,
+    # SSH, network); installing ROS and building the nodes are tested elsewhere.
+    data["classroom"].update(ros_install_enabled=False, rosdep_enabled=False, workspace_enabled=False)
+    host = data["teams"]["team1"]["hosts"][SEEDED]
+    host["network_address"] = f"{host['address']}/{INSTANCE.subnet.prefixlen}"
+    path = tmp_path_factory.mktemp("classroom") / "roster.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def roslab(*args: str, check: bool = True) -> subprocess.CompletedProcess:
+    proc = subprocess.run([str(BIN / "roslab"), *args], cwd=REPO, env=ENV, capture_output=True, text=True,
+                          timeout=600)
+    if check:
+        assert proc.returncode == 0, f"roslab {' '.join(args)}:\n{proc.stdout}\n{proc.stderr}"
+    return proc
+
+
+def strict_ssh(known_hosts: Path, user: str, address: str, command: str) -> subprocess.CompletedProcess:
+    """ssh with strict host key checking against `known_hosts` only, retried while sshd restarts
+    (cloud-init restarts it once after changing its configuration)."""
+    argv = ["ssh", "-i", str(INSTANCE.key_path), "-o", "IdentitiesOnly=yes", "-o", "BatchMode=yes",
+            "-o", f"UserKnownHostsFile={known_hosts}", "-o", "GlobalKnownHostsFile=/dev/null",
+            "-o", "StrictHostKeyChecking=yes", "-o", "ConnectTimeout=5", f"{user}@{address}", command]
+    deadline = time.monotonic() + 30
+    while True:
+        proc = subprocess.run(argv, capture_output=True, text=True, timeout=120)
+        if proc.returncode != 255 or "Connection refused" not in proc.stderr or time.monotonic() > deadline:
+            return proc
+        time.sleep(0.5)
+
+
+def deploy(roster: Path, host: str) -> tuple[subprocess.CompletedProcess, dict[str, set[str]]]:
+    """deploy.py on one host of `roster` (inventories/lab.py); the run and its changes per operation."""
+    proc = subprocess.run(
+        [str(BIN / "pyinfra"), "-y", "--json", "inventories/lab.py", "deploy.py", "--limit", host],
+        cwd=REPO, env={**ENV, "ROSLAB_ROSTER": str(roster)}, capture_output=True, text=True, timeout=1200,
+    )
+    changed: dict[str, set[str]] = {}
+    try:
+        for op in json.loads(proc.stdout)["results"]["operations"]:
+            if op["success"]:
+                changed[op["name"]] = set(op["success"])
+    except (ValueError, KeyError, TypeError):
+        pass  # pyinfra stopped before reporting: the return code and stderr say why
+    return proc, changed
+
+
+def test_a_host_reflashed_with_its_seed_boots_as_flashed_and_the_deploy_converges(sandbox, classroom_copy):
+    seeds = classroom_copy.parent / "seeds"
+    roslab("seed", str(classroom_copy), "--out", str(seeds), "--host", SEEDED)
+    known_hosts = identity.known_hosts_path(classroom_copy)
+    stored_key = identity.host_keys(classroom_copy, SEEDED).public_line()
+    address = sandbox.host(SEEDED).address
+
+    flashed = roslab("sandbox", "reset", SEEDED, "--seed", str(seeds / SEEDED),
+                     "--apt-lock-seconds", str(APT_LOCK_SECONDS))
+    assert "booted from the seed with cloud-init" in flashed.stdout
+
+    # Reached as the seed's user, with strict checking against the roster's known_hosts only:
+    # the host serves the key stored beside the roster.
+    def on_host(command: str) -> str:
+        proc = strict_ssh(known_hosts, LAB_USER, address, command)
+        assert proc.returncode == 0, f"{command}: {proc.stderr}"
+        return proc.stdout
+
+    assert on_host("hostname").strip() == SEEDED
+    assert "sudo" in on_host("id -nG").split()
+    login_key = INSTANCE.key_path.with_suffix(".pub").read_text()
+    assert on_host("cat ~/.ssh/authorized_keys").split()[:2] == login_key.split()[:2]
+    assert on_host("sudo -n cat /etc/ssh/ssh_host_ed25519_key.pub").split()[:2] == stored_key.split()[:2]
+    # The address comes from the seed's network-config, written out by cloud-init.
+    assert f"inet {address}/24" in on_host("ip -4 -o addr show dev eth0")
+    assert "information provided by the datasource" in on_host("sudo -n cat /etc/netplan/50-cloud-init.yaml")
+
+    # cloud-init's stages so far went through without an error (schema, users, keys, locale, time).
+    assert json.loads(on_host("cloud-init status --format json"))["errors"] == []
+
+    # The deploy starts while the stand-in for first-boot unattended-upgrades holds the dpkg lock,
+    # once cloud-init's config stage (which restarts sshd) is done, as a teacher's first deploy would.
+    deadline = time.monotonic() + 120
+    while strict_ssh(known_hosts, LAB_USER, address,
+                     "systemctl is-active -q cloud-config.service || systemctl is-failed -q cloud-config.service"
+                     ).returncode != 0:
+        assert time.monotonic() < deadline, "cloud-init's config stage did not finish"
+        time.sleep(1)
+    holding, started = on_host(f"systemctl is-active {seeding.FIRST_BOOT_UNIT}; date +%s.%N").split()
+    assert holding == "active", "the lock was released before the deploy began: raise APT_LOCK_SECONDS"
+
+    first, changed = deploy(classroom_copy, SEEDED)
+    output = first.stdout + first.stderr
+    assert first.returncode == 0, output[-6000:]
+    assert changed, "a freshly flashed host needs provisioning"
+    # The deploy began while the dpkg lock was held, so its apt steps waited for the release.
+    released = on_host(f"date -r {seeding.FIRST_BOOT_DONE} +%s.%N")
+    assert float(started) < float(released)
+
+    again, changed = deploy(classroom_copy, SEEDED)
+    assert again.returncode == 0, (again.stdout + again.stderr)[-6000:]
+    assert changed == {}, changed
+
+
+def test_a_host_reflashed_without_a_seed_is_refused_until_forgotten_and_trusted(sandbox):
+    roster = INSTANCE.roster_path
+    roslab("sandbox", "reset", "--unseeded", UNSEEDED)
+
+    refused, _ = deploy(roster, UNSEEDED)
+    assert refused.returncode != 0
+    output = refused.stdout + refused.stderr
+    assert f"roslab forget {UNSEEDED}" in output, output[-4000:]
+    assert "ssh-keygen -R" not in output  # pyinfra's hint edits another known_hosts
+    assert roslab("sandbox", "ssh", UNSEEDED, "true", check=False).returncode != 0  # strict there too
+
+    roslab("forget", UNSEEDED, "--roster", str(roster))
+    trusted = roslab("trust", str(roster), "--host", UNSEEDED)
+    assert "SHA256:" in trusted.stdout + trusted.stderr  # the fingerprint to compare
+
+    reached = subprocess.run(
+        [str(BIN / "pyinfra"), "-y", "inventories/lab.py", "exec", "--limit", UNSEEDED, "--", "hostname"],
+        cwd=REPO, env={**ENV, "ROSLAB_ROSTER": str(roster)}, capture_output=True, text=True, timeout=300,
+    )
+    assert reached.returncode == 0, (reached.stdout + reached.stderr)[-4000:]
+    assert roslab("sandbox", "ssh", UNSEEDED, "hostname").stdout.strip() == UNSEEDED
