@@ -30,6 +30,16 @@ class Secret(HiddenValue):
         # pyinfra's JSON output (debug-inventory) uses `to_json` for unknown objects.
         return self.masked_value
 
+    # Equal by value: pyinfra hands out copies of host data and type-checks a global
+    # argument (`_sudo_password` must be a str) only when it differs from the host's own.
+    def __eq__(self, other) -> bool:
+        if isinstance(other, HiddenValue):
+            return self.unmask() == other.unmask()
+        return NotImplemented
+
+    def __hash__(self) -> int:
+        return hash(self.unmask())
+
 
 def is_secret_reference(key: str) -> bool:
     """Whether a roster key names a secret rather than holding a value."""
@@ -47,14 +57,13 @@ def resolved_key(reference_key: str) -> str:
     return reference_key[: -len(SECRET_SUFFIX)]
 
 
-def wrap(reference_key: str, value: str):
-    """The host data value for a resolved secret.
+def wrap(reference_key: str, value: str) -> Secret:
+    """The host data value for a resolved secret: a `Secret`, masked in every output.
 
-    pyinfra masks `_sudo_password` itself and needs the plain string (it wraps it
-    in its own HiddenValue); every other secret becomes a `Secret`.
+    The sudo password too: `roslab.sudo` unmasks it only to write it into the
+    host's askpass file. Without `roslab.sudo` installed, pyinfra would send the
+    mask instead of the password (sudo fails), never the password on a command line.
     """
-    if reference_key == "sudo_password_secret":
-        return value
     return Secret(value)
 
 
