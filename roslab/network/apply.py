@@ -14,12 +14,13 @@ under the run directory, then:
     systemd-run --unit=roslab-network-apply python3 network_apply.py apply PLAN
 
 `apply` runs detached from the SSH session (a dropped connection cannot kill it):
-it backs up the files it replaces, installs the new ones, applies them, checks
-the host got its address and can reach its gateway, then waits for the
-controller to write the plan's token into the confirmation file over a *new*
-connection at the new address. Without that, within the plan's timeout, it
-restores the backup and applies the old configuration again. Its progress is in
-the status file (JSON), which the controller reads to report what happened.
+it backs up the files it replaces (keeping only the plan's `backups_keep` newest
+backups), installs the new ones, applies them, checks the host got its address
+and can reach its gateway, then waits for the controller to write the plan's
+token into the confirmation file over a *new* connection at the new address.
+Without that, within the plan's timeout, it restores the backup and applies the
+old configuration again. Its progress is in the status file (JSON), which the
+controller reads to report what happened.
 """
 
 from __future__ import annotations
@@ -45,6 +46,8 @@ LAYOUTS = (NETPLAN_NETWORKD, NETPLAN_NM, NM_KEYFILE)
 # Where things are on the host.
 RUN_DIR = "/run/roslab/network"
 BACKUP_ROOT = "/var/backups/roslab/network"
+# Its directories: `<time stamp>-<token prefix>` (backup()), so their names sort oldest first.
+BACKUP_NAME = re.compile(r"[0-9]{8}T[0-9]{6}-[0-9A-Za-z_-]{1,8}")
 NETPLAN_DIR = "/etc/netplan"
 # Inside the run directory: the new files (by their target path), the status, the confirmation.
 STAGING_DIR = "staging"
@@ -93,6 +96,7 @@ class Plan:
     expect_address: str | None  # the address the interface must get, e.g. "10.0.0.11/24"; None: DHCP
     gateway: str | None  # must answer ARP on the interface; None: not checked
     confirm_timeout: int  # seconds to wait for the controller's confirmation
+    backups_keep: int = 5  # backup directories kept under backup_root, this run's included
     run_dir: str = RUN_DIR
     backup_root: str = BACKUP_ROOT
     netplan_dir: str = NETPLAN_DIR
@@ -113,6 +117,8 @@ class Plan:
         if isinstance(self.confirm_timeout, bool) or not isinstance(self.confirm_timeout, (int, float)) \
                 or self.confirm_timeout <= 0:
             problems.append(f"confirm_timeout {self.confirm_timeout!r} is not a number of seconds")
+        if isinstance(self.backups_keep, bool) or not isinstance(self.backups_keep, int) or self.backups_keep < 1:
+            problems.append(f"backups_keep {self.backups_keep!r} is not a positive number")
         if problems:
             raise ValueError("bad plan: " + "; ".join(problems))
 
@@ -266,6 +272,23 @@ def backup(plan: Plan) -> Path:
     return directory
 
 
+def prune_backups(plan: Plan, current: Path) -> list[Path]:
+    """Remove the oldest backup directories beyond `plan.backups_keep`; return what went.
+
+    Only directories named like backup() names them are counted or removed, and never
+    `current`: the backup this run restores from if the change is rolled back.
+    """
+    root = Path(plan.backup_root)
+    backups = sorted(
+        path for path in root.iterdir()
+        if BACKUP_NAME.fullmatch(path.name) and path.is_dir() and not path.is_symlink() and path != current
+    )
+    removed = backups[: max(0, len(backups) - (plan.backups_keep - 1))]
+    for path in removed:
+        shutil.rmtree(path)
+    return removed
+
+
 def install(plan: Plan) -> None:
     """Put the staged files in place (root-owned, 0600) and move superseded files away."""
     for target in plan.files:
@@ -405,6 +428,10 @@ def apply(plan: Plan) -> int:
     except Exception as exc:
         write_status(plan, STATE_ROLLED_BACK, f"nothing changed: could not back up the old files: {exc}")
         return 1
+    try:
+        prune_backups(plan, backup_dir)
+    except OSError:
+        pass  # an old backup that cannot go is no reason to stop the change
     try:
         install(plan)
         apply_files(plan)

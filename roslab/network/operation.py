@@ -198,6 +198,7 @@ def network_in_effect(
         expect_address=str(settings.address) if settings.address else None,
         gateway=str(settings.gateway) if settings.gateway else None,
         confirm_timeout=settings.confirm_timeout,
+        backups_keep=settings.backups_keep,
     )
 
     staged_dirs = sorted({str(apply.staged_path(plan, path).parent) for path in wanted.files})

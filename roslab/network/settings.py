@@ -67,6 +67,7 @@ class NetworkSettings:
     wifi_password: Any = field(default=None, repr=False)
     confirm_timeout: int = 60
     disable_cloud_init: bool = True
+    backups_keep: int = 5
 
     @property
     def password(self) -> str | None:
@@ -264,6 +265,10 @@ def network_settings(data: Mapping) -> NetworkSettings | None:
             "network_disable_cloud_init", f"{disable_cloud_init!r} is not true or false"
         )
 
+    backups_keep = data.get("network_backups_keep")
+    if isinstance(backups_keep, bool) or not isinstance(backups_keep, int) or not 1 <= backups_keep <= 100:
+        raise NetworkSettingError("network_backups_keep", f"{backups_keep!r} is not a number from 1 to 100")
+
     return NetworkSettings(
         kind=kind,
         method=method,
@@ -277,6 +282,7 @@ def network_settings(data: Mapping) -> NetworkSettings | None:
         wifi_password=password,
         confirm_timeout=timeout,
         disable_cloud_init=disable_cloud_init,
+        backups_keep=backups_keep,
     )
 
 
@@ -328,9 +334,13 @@ def check_classroom_network(
             owners[ip] = name
 
     # Moving onto an address another host answers at now would collide mid-run.
+    # (Indexed by address: a classroom of thousands of static hosts stays linear.)
+    reached_at: dict[str, list[str]] = {}
+    for other, other_address in ssh_addresses.items():
+        reached_at.setdefault(other_address, []).append(other)
     for team, name, settings in parsed:
-        for other, other_address in ssh_addresses.items():
-            if other != name and other_address == str(settings.address.ip):
+        for other in reached_at.get(str(settings.address.ip), ()):
+            if other != name:
                 problems.append(
                     NetworkProblem(
                         team,

@@ -133,6 +133,43 @@ def test_stale_or_foreign_confirmation_does_not_count(host, network):
     assert status(host).state == "rolled-back"
 
 
+def old_backups(plan, count: int) -> list[Path]:
+    """Backup directories of `count` earlier runs, oldest first, as backup() names them."""
+    root = Path(plan.backup_root)
+    made = []
+    for day in range(1, count + 1):
+        directory = root / f"202601{day:02d}T120000-run{day:05d}"
+        (directory / "files").mkdir(parents=True)
+        (directory / "manifest.json").write_text("{}")
+        made.append(directory)
+    return made
+
+
+def test_backups_are_pruned_to_the_newest_few_this_runs_included(host, network):
+    earlier = old_backups(host, 6)
+    foreign = Path(host.backup_root) / "keep-me"  # not a backup of ours: never counted or removed
+    foreign.mkdir()
+    plan = dataclasses.replace(host, backups_keep=3)
+    confirm_soon(plan)
+    assert network_apply.apply(plan) == 0
+
+    current = Path(status(plan).backup)
+    left = sorted(path.name for path in Path(plan.backup_root).iterdir())
+    assert left == sorted([earlier[-2].name, earlier[-1].name, current.name, "keep-me"])
+    assert (current / "files" / plan.superseded[0].lstrip("/")).read_text() == "old: dhcp\n"
+
+
+def test_a_rolled_back_change_keeps_its_backup_when_pruning(host, network):
+    old_backups(host, 2)
+    plan = dataclasses.replace(host, backups_keep=1)
+    assert network_apply.apply(plan) == 1  # no confirmation: rolled back from this run's backup
+
+    result = status(plan)
+    assert result.state == "rolled-back"
+    assert [path.name for path in Path(plan.backup_root).iterdir()] == [Path(result.backup).name]
+    assert Path(plan.superseded[0]).read_text() == "old: dhcp\n"
+
+
 def test_gateway_failure_rolls_back_at_once(host, network):
     network["check_error"] = "gateway 10.0.0.254 does not answer on eth0"
     host = dataclasses.replace(host, confirm_timeout=30)
@@ -260,6 +297,8 @@ def test_usage_error_for_unknown_command(capsys):
         ({"superseded": ["/etc/netplan/../shadow"]}, "not an absolute path"),
         ({"token": "$(reboot)"}, "not a token"),
         ({"confirm_timeout": 0}, "not a number of seconds"),
+        ({"backups_keep": 0}, "backups_keep 0 is not a positive number"),
+        ({"backups_keep": True}, "is not a positive number"),
     ],
 )
 def test_plan_refuses_what_the_script_must_not_act_on(host, changes, words):

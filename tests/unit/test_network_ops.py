@@ -116,6 +116,12 @@ def test_first_run_stages_validates_and_launches_detached_apply():
     assert confirm.kwargs["token"] == plan_file.token
 
 
+@pytest.mark.parametrize("data, kept", [({}, 5), ({"network_backups_keep": 2}, 2)])
+def test_the_roster_says_how_many_backups_the_host_keeps(data, kept):
+    uploads = run_network(data=data, files={CLOUD_INIT: "x"}).uploads()
+    assert Plan.from_json(uploads["/run/roslab/network/plan.json"]).backups_keep == kept
+
+
 def test_second_run_changes_nothing():
     first = run_network(files={CLOUD_INIT: "x"}).uploads()
     in_place = {NETPLAN: first[STAGED + NETPLAN], DISABLE: first[STAGED + DISABLE]}
