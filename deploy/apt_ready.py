@@ -1,17 +1,31 @@
 """apt ready to install: the dpkg lock free, an interrupted install finished, universe and
--updates/-backports enabled, lists fresh."""
+-updates/-backports enabled (`apt_ready`), then, once every source is written (the ROS 2
+source by deploy.ros_apt_source too), the lists fresh with one `apt-get update` (`apt_lists`)."""
 
 from __future__ import annotations
 
 from pyinfra import host, logger
 from pyinfra.api import deploy
-from pyinfra.operations.util import any_changed
 
-from deploy.common import host_codename, should_run, stop_host, where
-from deploy.ros_apt_source import old_method_moved_aside
-from roslab import settings
+from deploy.common import (
+    apt_sources_written,
+    host_codename,
+    host_is_active,
+    should_run,
+    stop_host,
+    where,
+)
+from deploy.ros_apt_source import OLD_METHOD_FILES, old_method_moved_aside
+from roslab import probe, settings
 from roslab.facts import AptProblem
-from roslab.operations import apt_lists_updated, dpkg_interrupted_install_finished, ubuntu_apt_sources
+from roslab.operations import (
+    apt_lists_updated,
+    apt_lists_updated_reads,
+    dpkg_interrupted_install_finished,
+    files_moved_aside_reads,
+    ubuntu_apt_sources,
+    ubuntu_apt_sources_reads,
+)
 
 DEFAULTS = settings.defaults("apt_ready")
 
@@ -21,12 +35,12 @@ DEFAULTS = settings.defaults("apt_ready")
     data_defaults=DEFAULTS,
 )
 def apt_ready():
-    """Wait for apt, finish an interrupted install, enable universe and the extra suites,
-    refresh the lists when needed.
+    """Wait for apt, finish an interrupted install, enable universe and the extra suites.
 
     Reads host.data: apt_ready_enabled, apt_lock_timeout, apt_enable_universe,
-    apt_extra_suites, apt_cache_max_age, ros_apt_source_enabled (the old ROS 2 source
-    files are moved aside here, before the update they would fail).
+    apt_extra_suites, ros_apt_source_enabled (the old ROS 2 source files are moved aside
+    here, before the update they would fail). The update itself is `apt_lists`, after
+    every source is written.
     """
     if not should_run("apt_ready_enabled"):
         return
@@ -64,15 +78,46 @@ def apt_ready():
     )]
     if host.data.ros_apt_source_enabled:
         # The pre-2025 ROS source fails every `apt-get update` (expired key, conflicting
-        # Signed-By): gone before the update below, not after it.
+        # Signed-By): gone before the update in apt_lists, not after it.
         sources.append(old_method_moved_aside())
+    apt_sources_written(*sources)
+
+
+@deploy(
+    "The apt lists are fresh: one apt-get update after every source is written",
+    data_defaults=DEFAULTS,
+)
+def apt_lists():
+    """Update the apt lists once: when an earlier step changed a source (apt_ready's, the
+    ROS 2 source), or when they are older than apt_cache_max_age.
+
+    Runs after every step that writes apt sources (deploy.py) and before any install.
+    Reads host.data: apt_ready_enabled, apt_lock_timeout, apt_cache_max_age,
+    ros_apt_source_enabled (without apt_ready, the lists are updated only after the ROS 2
+    source changed).
+    """
+    ready = bool(host.data.apt_ready_enabled)
+    if not host_is_active() or not (ready or host.data.ros_apt_source_enabled):
+        return
+    sources = apt_sources_written()
     apt_lists_updated(
-        name="Ensure the apt lists include the changed sources",
-        lock_timeout=lock_timeout,
-        _if=any_changed(*sources),
+        name=("Ensure the apt lists are fresh: updated after a source changed"
+              + (", and younger than apt_cache_max_age" if ready else "")),
+        lock_timeout=host.data.apt_lock_timeout,
+        max_age=host.data.apt_cache_max_age if ready else None,
+        sources=sources,
     )
-    apt_lists_updated(
-        name="Ensure the apt lists are younger than apt_cache_max_age",
-        lock_timeout=lock_timeout,
-        max_age=host.data.apt_cache_max_age,
-    )
+
+
+@probe.reader
+def apt_reads() -> list:
+    """What apt_ready and apt_lists read on a host that needs no change."""
+    if not host_is_active():
+        return []
+    reads = []
+    if host.data.apt_ready_enabled:
+        reads += [probe.read(AptProblem, lock_timeout=host.data.apt_lock_timeout),
+                  *ubuntu_apt_sources_reads(), *apt_lists_updated_reads()]
+    if host.data.ros_apt_source_enabled:
+        reads += files_moved_aside_reads(OLD_METHOD_FILES)
+    return reads

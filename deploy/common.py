@@ -14,6 +14,7 @@ from pyinfra.facts.server import Home, LinuxDistribution, User
 
 from roslab import settings, summary
 from roslab.operations import as_user
+from roslab.probe import read, read_ahead, registered_reads
 from roslab.distro import DistroError, UBUNTU_CODENAMES, check_distro, codename_for, default_distro
 
 DEFAULTS = settings.defaults("common")
@@ -49,6 +50,16 @@ def should_run(enabled_key: str) -> bool:
     return host_is_active() and bool(host.data.get(enabled_key))
 
 
+def apt_sources_written(*operations) -> list:
+    """Note operations that write apt sources; all noted so far.
+
+    deploy.apt_ready.apt_lists runs one `apt-get update` after them when any changed.
+    """
+    noted = [*(host.data.get("_roslab_apt_sources") or []), *operations]
+    host.data._roslab_apt_sources = noted
+    return noted
+
+
 def login_user() -> str:
     return host.data.get("login_user") or host.data.get("ssh_user") or host.get_fact(User)
 
@@ -63,12 +74,17 @@ def login_home() -> str | None:
 
     None, with this host stopped, when the user does not exist there.
     """
-    user = login_user()
-    home = host.get_fact(Home, user=user)
-    if not home or home.startswith("~"):
-        stop_host(f"{where()}: login_user {user!r} does not exist on the host; nothing was changed by this step")
-        return None
+    home = existing_login_home()
+    if home is None:
+        stop_host(f"{where()}: login_user {login_user()!r} does not exist on the host; "
+                  "nothing was changed by this step")
     return home
+
+
+def existing_login_home() -> str | None:
+    """The login user's home directory, or None when the user does not exist (nothing stopped)."""
+    home = host.get_fact(Home, user=login_user())
+    return None if not home or home.startswith("~") else home
 
 
 def host_codename() -> str | None:
@@ -128,8 +144,15 @@ def supported_host() -> bool:
 
     Reads host.data: ubuntu_release, ros_distro, login_user, ssh_user.
     Returns whether the host is still active.
+
+    Reads the host in two remote commands (roslab.probe): its release and the login
+    user's home (no sudo needed), then, for a host that can be provisioned, everything the
+    deploys' operations read when nothing needs changing (under sudo: apt's lock, root's files).
     """
+    read_ahead([read(LinuxDistribution), read(Home, user=login_user())], _sudo=False)
     problem = host_problem()
     if problem:
         stop_host(f"{where()}: {problem}; nothing was changed on it")
+    else:
+        read_ahead(registered_reads())
     return host_is_active()

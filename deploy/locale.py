@@ -9,12 +9,14 @@ from pyinfra.api import deploy
 from pyinfra.operations import apt, files
 
 from deploy.common import should_run
-from roslab import settings
-from roslab.operations import apt_install_options, locale_generated
+from roslab import probe, settings
+from roslab.operations import apt_install_options, locale_generated, locale_generated_reads
 from roslab.quoting import shell_word
 from roslab.templating import render
 
 DEFAULTS = settings.defaults("locale")
+
+DEFAULT_LOCALE = "/etc/default/locale"
 
 
 @deploy("A UTF-8 locale is generated and set system-wide", data_defaults=DEFAULTS)
@@ -38,6 +40,14 @@ def system_locale():
         name=f"Ensure {locale} is the system-wide locale",
         # /etc/default/locale is read by pam_env and sourced by shells.
         src=StringIO(render("default-locale.j2", locale=shell_word(locale))),
-        dest="/etc/default/locale",
+        dest=DEFAULT_LOCALE,
         mode="644",
     )
+
+
+@probe.reader
+def locale_reads() -> list:
+    """What system_locale's operations read on a host that needs no change."""
+    if not should_run("locale_enabled"):
+        return []
+    return [*probe.packages_reads(), *locale_generated_reads(), *probe.put_reads(DEFAULT_LOCALE)]

@@ -33,7 +33,8 @@ def network():
     Reads host.data: network_enabled, network_backend, network_interface, network_kind,
     network_method, network_address, network_prefix, network_gateway, network_nameservers,
     network_ipv6, wifi_ssid, wifi_password_secret, wifi_password (the resolved secret),
-    network_confirm_timeout, network_disable_cloud_init, ssh_hostname, roslab_roster_path.
+    network_confirm_timeout, network_disable_cloud_init, network_backups_keep, ssh_hostname,
+    roslab_roster_path.
     """
     if not should_run("network_enabled"):
         return

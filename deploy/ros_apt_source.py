@@ -18,11 +18,10 @@ from pathlib import Path
 from pyinfra import host
 from pyinfra.api import deploy
 from pyinfra.operations import apt, files
-from pyinfra.operations.util import any_changed
 
-from deploy.common import host_codename, should_run, stop_host, where
-from roslab import downloads, settings
-from roslab.operations import apt_install_options, apt_lists_updated, files_moved_aside
+from deploy.common import apt_sources_written, host_codename, should_run, stop_host, where
+from roslab import downloads, probe, settings
+from roslab.operations import apt_install_options, files_moved_aside, files_moved_aside_reads
 from roslab.quoting import deb822_value
 from roslab.templating import render
 
@@ -90,7 +89,7 @@ def _package_mode(codename: str) -> list | None:
     name = deb_name(version, codename)
     try:
         deb = downloads.pinned(url, pins[codename], Path(host.data.ros_apt_source_cache_dir), name,
-                               "ros_apt_source_sha256")
+                               "ros_apt_source_sha256", offline=bool(host.data.get("offline")))
     except downloads.DownloadError as error:
         stop_host(f"{where()}: ros2-apt-source: {error}; nothing was changed on it")
         return None
@@ -155,20 +154,21 @@ def _mirror_mode(codename: str) -> list | None:
     return [purged, keyring, source]
 
 
-@deploy("The ROS 2 apt source is configured and apt knows its packages", data_defaults=DEFAULTS)
+@deploy("The ROS 2 apt source is configured", data_defaults=DEFAULTS)
 def ros_apt_source():
     """Install the ROS 2 apt source and move the old method's leftovers aside.
 
     Reads host.data: ros_apt_source_enabled, ros_apt_source_mode, ros_apt_source_version,
     ros_apt_source_sha256, ros_apt_source_url, ros_apt_source_cache_dir,
-    ros_apt_mirror_url, ros_apt_mirror_key_file, apt_lock_timeout.
+    ros_apt_mirror_url, ros_apt_mirror_key_file, apt_lock_timeout, offline (the .deb only
+    from the controller's cache).
     """
     if not should_run("ros_apt_source_enabled"):
         return
     codename = host_codename()
 
     # First, as apt refuses to work beside them (the package mode's apt-get reads the
-    # sources); apt_ready, when it runs, did it already, before its own update.
+    # sources); apt_ready, when it runs, did it already.
     moved_here = host.data.get("_roslab_old_ros_method_moved") is None
     old_method = old_method_moved_aside()
     # A file the controller cannot get stops this host here: pyinfra then runs none of its
@@ -179,8 +179,19 @@ def ros_apt_source():
         changes = _package_mode(codename)
     if changes is None:
         return
-    apt_lists_updated(
-        name="Ensure the apt lists include the ROS 2 source",
-        lock_timeout=host.data.apt_lock_timeout,
-        _if=any_changed(*([old_method] if moved_here else []), *changes),
-    )
+    # The one `apt-get update` follows every source (deploy.apt_ready.apt_lists).
+    apt_sources_written(*([old_method] if moved_here else []), *changes)
+
+
+@probe.reader
+def ros_apt_source_reads() -> list:
+    """What ros_apt_source's operations read on a host that needs no change."""
+    if not should_run("ros_apt_source_enabled"):
+        return []
+    reads = files_moved_aside_reads(OLD_METHOD_FILES)
+    if host.data.ros_apt_source_mode == "mirror":
+        return [*reads, *probe.packages_reads(), *probe.put_reads(KEYRING), *probe.put_reads(SOURCES)]
+    codename = host_codename()
+    host_deb = f"{HOST_DEB_DIR}/{deb_name(host.data.ros_apt_source_version, codename)}"
+    return [*reads, *files_moved_aside_reads([SOURCES]), *probe.put_reads(host_deb),
+            *probe.deb_reads(host_deb)]

@@ -7,7 +7,7 @@ from pyinfra.api import deploy
 from pyinfra.operations import apt
 
 from deploy.common import host_distro, should_run
-from roslab import settings
+from roslab import probe, settings
 from roslab.operations import apt_install_options
 from roslab.quoting import apt_arguments
 
@@ -47,3 +47,9 @@ def ros_install():
         packages=packages,
         extra_install_args=apt_install_options(host.data.apt_lock_timeout),
     )
+
+
+@probe.reader
+def ros_install_reads() -> list:
+    """What ros_install's operation reads on a host that needs no change."""
+    return probe.packages_reads() if should_run("ros_install_enabled") else []

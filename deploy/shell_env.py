@@ -10,9 +10,17 @@ from __future__ import annotations
 from pyinfra import host
 from pyinfra.api import deploy
 
-from deploy.common import host_distro, login_home, login_user, should_run, stop_host, where
-from roslab import settings
-from roslab.operations import managed_block
+from deploy.common import (
+    existing_login_home,
+    host_distro,
+    login_home,
+    login_user,
+    should_run,
+    stop_host,
+    where,
+)
+from roslab import probe, settings
+from roslab.operations import managed_block, managed_block_reads
 from roslab.quoting import shell_home_path, shell_word
 from roslab.ros_env import ros_variables
 from roslab.templating import render
@@ -82,3 +90,12 @@ def shell_env():
         group=user,
         mode="644",
     )
+
+
+@probe.reader
+def shell_env_reads() -> list:
+    """What shell_env's operation reads on a host that needs no change."""
+    if not should_run("shell_env_enabled"):
+        return []
+    home = existing_login_home()
+    return managed_block_reads(f"{home}/.bashrc") if home else []

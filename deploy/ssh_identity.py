@@ -9,13 +9,21 @@ from pyinfra.api import deploy
 from pyinfra.facts.systemd import SystemdEnabled
 from pyinfra.operations import apt, server, systemd
 
-from deploy.common import login_home, login_user, should_run
-from roslab import settings
-from roslab.operations import apt_install_options, managed_block
+from deploy.common import existing_login_home, login_home, login_user, should_run
+from roslab import probe, settings
+from roslab.operations import apt_install_options, managed_block, managed_block_reads
 
 DEFAULTS = settings.defaults("ssh_identity")
 
 ETC_HOSTS_LABEL = "classroom hosts"
+# Ubuntu 24.04 starts sshd through ssh.socket; forcing ssh.service there would fight it.
+SSHD_SOCKET = "ssh.socket"
+
+
+def sshd_unit() -> str:
+    """ssh.socket where it is enabled, else ssh.service (systemd asked about ssh.socket only)."""
+    enabled = host.get_fact(SystemdEnabled, services=[SSHD_SOCKET]).get(SSHD_SOCKET)
+    return SSHD_SOCKET if enabled else "ssh.service"
 
 
 def etc_hosts_lines(classroom_hosts) -> list[str]:
@@ -48,8 +56,7 @@ def ssh_identity():
         packages=["openssh-server"],
         extra_install_args=apt_install_options(host.data.apt_lock_timeout),
     )
-    # Ubuntu 24.04 starts sshd through ssh.socket; forcing ssh.service there would fight it.
-    unit = "ssh.socket" if host.get_fact(SystemdEnabled).get("ssh.socket") else "ssh.service"
+    unit = sshd_unit()
     systemd.service(
         name=f"Ensure sshd ({unit}) is enabled and running",
         service=unit,
@@ -84,3 +91,20 @@ def ssh_identity():
                 group="root",
                 mode="644",
             )
+
+
+@probe.reader
+def ssh_identity_reads() -> list:
+    """What ssh_identity's operations read on a host that needs no change."""
+    if not should_run("ssh_identity_enabled"):
+        return []
+    # Both units: which one sshd_unit() picks is part of this very read.
+    reads = [*probe.packages_reads(), *probe.service_reads(SSHD_SOCKET), *probe.service_reads("ssh.service")]
+    home = existing_login_home()
+    if host.data.teacher_ssh_keys and home:
+        reads += probe.authorized_keys_reads(login_user(), home)
+    if host.data.manage_hostname:
+        reads += probe.hostname_reads()
+    if host.data.manage_etc_hosts:
+        reads += managed_block_reads("/etc/hosts")
+    return reads

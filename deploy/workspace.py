@@ -25,8 +25,17 @@ from pyinfra.api import OperationError, deploy
 from pyinfra.facts.files import File
 from pyinfra.operations import files, systemd
 
-from deploy.common import as_login_user, host_distro, login_home, login_user, should_run, stop_host, where
-from roslab import settings
+from deploy.common import (
+    as_login_user,
+    existing_login_home,
+    host_distro,
+    login_home,
+    login_user,
+    should_run,
+    stop_host,
+    where,
+)
+from roslab import probe, settings
 from roslab import workspace as ws_ops
 from roslab.quoting import shell_word, systemd_assignment, systemd_value, systemd_word
 from roslab.ros_env import ros_variables_of
@@ -197,3 +206,31 @@ def workspace():
         service=NODES_SERVICE,
         _if=lambda: bool(stopped) or unit.did_change() or build.did_change(),
     )
+
+
+@probe.reader
+def workspace_reads() -> list:
+    """What the workspace's operations read on a host that needs no change."""
+    home = existing_login_home() if should_run("workspace_enabled") else None
+    if home is None:
+        return []
+    user = login_user()
+    workspace_dir = ws_ops.workspace_path(home, host.data.workspace_dir)
+    src_dir = posixpath.join(workspace_dir, "src")
+    try:
+        packages = ws_ops.local_packages(nodes_dir())
+    except OperationError:
+        return []
+    reads = [
+        *probe.directory_reads(workspace_dir),
+        *probe.directory_reads(src_dir),
+        probe.read(ws_ops.WorkspaceForeign, workspace_dir=workspace_dir, user=user),
+        probe.read(ws_ops.WorkspacePackages, src_dir=src_dir, packages=sorted(packages), user=user),
+        probe.read(ws_ops.WorkspaceStamps, workspace_dir=workspace_dir),
+        *probe.service_reads(NODES_SERVICE),
+    ]
+    if host.data.nodes_service_enabled:
+        reads += [*probe.put_reads(NODES_UNIT_PATH), probe.read(ws_ops.NodesUnitState, service=NODES_SERVICE)]
+    else:
+        reads.append(probe.read(File, path=NODES_UNIT_PATH))
+    return reads

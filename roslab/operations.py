@@ -22,6 +22,7 @@ from pyinfra.facts.server import Locales, Which
 from pyinfra.operations.util.files import chmod, chown, generate_color_diff
 
 from roslab.facts import FileAge
+from roslab.probe import read
 from roslab.quoting import apt_arguments, deb822_value, sources_list_word
 
 # Ubuntu touches this after every successful `apt-get update`; Debian does not, so we do.
@@ -253,6 +254,11 @@ def managed_block(
     yield from _upload_text(path, desired, user=user, group=group, mode=mode)
 
 
+def managed_block_reads(path: str) -> list:
+    """What `managed_block` reads on a file it need not change (roslab.probe)."""
+    return [read(FileContents, path=path)]
+
+
 # --- apt sources -----------------------------------------------------------------
 
 
@@ -384,6 +390,11 @@ def ubuntu_apt_sources(codename: str, components: list[str], suites: list[str]):
         host.noop(f"Ubuntu apt sources already enable {wanted}")
 
 
+def ubuntu_apt_sources_reads() -> list:
+    """What `ubuntu_apt_sources` reads (roslab.probe)."""
+    return [read(FileContents, path=path) for path, _ in UBUNTU_SOURCE_FILES]
+
+
 def apt_update_command(lock_timeout: int) -> str:
     """`apt-get update` that fails on any failed download and marks the lists fresh only then.
 
@@ -402,23 +413,38 @@ def apt_update_command(lock_timeout: int) -> str:
 
 
 @operation(is_idempotent=False)
-def apt_lists_updated(lock_timeout: int, max_age: int | None = None):
+def apt_lists_updated(lock_timeout: int, max_age: int | None = None, sources=None):
     """
     Ensure the apt package lists are fresh.
 
     + lock_timeout: seconds apt waits for the dpkg lock
-    + max_age: update only when the lists are older than this many seconds;
-      ``None`` always updates (gate it with ``_if=`` on a sources change)
+    + max_age: update only when the lists are older than this many seconds
+    + sources: the operations (their results) that write apt sources: when one of them
+      changed a source, the lists are updated whatever their age
+    With neither ``max_age`` nor ``sources`` it always updates.
 
     A download that fails (a mirror gone, a source unreachable) fails the operation,
     and the lists count as stale until an update succeeds (see ``apt_update_command``).
     """
+    if sources is not None and any(
+        source.did_change() if source.is_complete() else source.will_change for source in sources
+    ):
+        yield apt_update_command(lock_timeout)
+        return
     if max_age is not None:
         age = host.get_fact(FileAge, path=APT_UPDATE_STAMP)
         if age is not None and age < max_age:
             host.noop(f"apt lists are {age} s old (max age {max_age} s)")
             return
+    elif sources is not None:
+        host.noop("no apt source changed")
+        return
     yield apt_update_command(lock_timeout)
+
+
+def apt_lists_updated_reads() -> list:
+    """What `apt_lists_updated` reads (roslab.probe)."""
+    return [read(FileAge, path=APT_UPDATE_STAMP)]
 
 
 @operation(is_idempotent=False)
@@ -458,6 +484,11 @@ def command_installed(command: str, package: str, lock_timeout: int):
     )
 
 
+def command_installed_reads(command: str) -> list:
+    """What `command_installed` reads (roslab.probe)."""
+    return [read(Which, command=command)]
+
+
 @operation()
 def files_moved_aside(paths: list[str], backup_dir: str, only_regular_files: bool = False):
     """
@@ -481,6 +512,11 @@ def files_moved_aside(paths: list[str], backup_dir: str, only_regular_files: boo
         yield StringCommand("mv --backup=numbered", QuoteString(path), QuoteString(backup_dir))
     if not moved:
         host.noop(f"none of {', '.join(paths)} exists")
+
+
+def files_moved_aside_reads(paths: list[str]) -> list:
+    """What `files_moved_aside` reads (roslab.probe)."""
+    return [item for path in paths for item in (read(File, path=path), read(Link, path=path))]
 
 
 LOCALE_GEN = "/etc/locale.gen"
@@ -520,6 +556,11 @@ def locale_generated(locale: str):
     yield StringCommand("locale-gen", QuoteString(locale))
 
 
+def locale_generated_reads() -> list:
+    """What `locale_generated` reads on a host that has the locale (roslab.probe)."""
+    return [read(Locales)]
+
+
 @operation()
 def rosdep_initialized():
     """
@@ -529,6 +570,11 @@ def rosdep_initialized():
         host.noop(f"{ROSDEP_SOURCES_LIST} already exists")
         return
     yield "rosdep init"
+
+
+def rosdep_initialized_reads() -> list:
+    """What `rosdep_initialized` reads (roslab.probe)."""
+    return [read(File, path=ROSDEP_SOURCES_LIST)]
 
 
 @operation(is_idempotent=False)
@@ -553,3 +599,7 @@ def rosdep_cache_updated(home: str, max_age: int | None = None, rosdistro_index_
     else:
         yield "rosdep update"
 
+
+def rosdep_cache_updated_reads(home: str) -> list:
+    """What `rosdep_cache_updated` reads (roslab.probe)."""
+    return [read(FileAge, path=f"{home}/{ROSDEP_CACHE_INDEX}")]

@@ -59,7 +59,8 @@ def test_a_new_domain_id_rewrites_only_the_block_and_shows_the_diff(tmp_path, ca
 
 def test_each_step_can_be_switched_off(tmp_path):
     host = with_stand_in_deb(FakeUbuntu())
-    switches = ["apt_ready", "locale", "ros_apt_source", "ros_install", "rosdep", "shell_env", "ssh_identity"]
+    switches = ["apt_cache", "apt_ready", "locale", "ros_apt_source", "ros_install", "rosdep", "shell_env", "ssh_identity",
+                "ssh_hardening"]
     data = host_data(tmp_path, **{f"{name}_enabled": False for name in switches})
     result = plan(run_deploy_py, host.facts(), data)
     assert result.operations == [] and not result.failed
@@ -90,3 +91,26 @@ def test_a_deleted_end_marker_costs_no_user_line_over_two_runs(tmp_path, caplog)
     assert after[-2:] == ["source ~/my_ws/install/setup.bash", "alias ws='cd ~/my_ws'"]
 
     assert plan(run_deploy_py, host.facts(), host_data(tmp_path)).changing() == {}
+
+
+@pytest.mark.parametrize(("codename", "role"), [("noble", "main"), ("jammy", "robot")])
+def test_a_first_run_updates_apt_once_and_a_noop_run_reads_the_host_in_two_commands(tmp_path, codename, role):
+    host = with_stand_in_deb(FakeUbuntu(codename), codename)
+    data = host_data(tmp_path, codename, role, teacher_ssh_keys=["ssh-ed25519 AAAAC3NzaC1lZDI1NTE5AAAAIteacher t@lab"])
+
+    first = plan(run_deploy_py, host.facts(), data)
+    assert not first.failed, first.errors
+    changing = list(first.changing())
+    updates = [name for name, commands in first.changing().items()
+               if any("APT::Update::Error-Mode=any update" in command for command in commands)]
+    # Both the Ubuntu sources and the ROS 2 source changed: one update, after both, before any install.
+    assert len(updates) == 1, updates
+    assert changing.index(updates[0]) > changing.index(next(n for n in changing if "ros2-apt-source" in n))
+    assert changing.index(updates[0]) < changing.index(next(n for n in changing if "Ensure ROS 2" in n))
+
+    host.apply(first)
+    second = plan(run_deploy_py, host.facts(), data)
+    assert second.changing() == {}
+    # roslab.probe: the release and home, then everything else; a fact read on its own here
+    # is a remote command per host on every no-op run (add it to its deploy's @probe.reader).
+    assert second.facts_asked == ["HostProbe", "HostProbe"]

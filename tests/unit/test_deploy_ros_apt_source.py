@@ -11,6 +11,7 @@ from fixtures.classroom import HOST_DEB, host_data, with_stand_in_deb
 from fixtures.fake_host import plan
 from fixtures.fake_ubuntu import FakeUbuntu
 
+from deploy.apt_ready import apt_lists
 from deploy.ros_apt_source import dearmored, ros_apt_source
 from roslab import downloads, quoting, settings
 from roslab.operations import apt_update_command
@@ -112,10 +113,16 @@ def test_a_failed_download_stops_only_the_hosts_that_need_it(tmp_path):
 # --- package mode -------------------------------------------------------------------------
 
 
+def ros_apt_source_then_the_lists():
+    ros_apt_source()
+    apt_lists()
+
+
 def test_package_mode_copies_the_deb_installs_it_and_moves_old_method_files_aside(tmp_path):
     host = with_stand_in_deb(FakeUbuntu())
+    host.ages["/var/lib/apt/periodic/update-success-stamp"] = 60  # young lists: the new source updates them
     host.files[OLD_LIST] = ["deb [signed-by=/usr/share/keyrings/ros-archive-keyring.gpg] http://packages.ros.org/ros2/ubuntu noble main"]
-    result = plan(ros_apt_source, host.facts(), host_data(tmp_path))
+    result = plan(ros_apt_source_then_the_lists, host.facts(), host_data(tmp_path))
     host_deb = HOST_DEB.format(codename="noble")
     names = [op.name for op in result.operations]
     assert names.index(next(n for n in names if "old ROS 2 apt source" in n)) == 0  # before apt runs
@@ -125,7 +132,7 @@ def test_package_mode_copies_the_deb_installs_it_and_moves_old_method_files_asid
     assert result.uploads()[host_deb] == "stand-in ros2-apt-source for noble"
     install = result.operation("ros2-apt-source 1.2.0 is installed").text()  # pyinfra's apt.deb
     assert install[-1] == f"dpkg --force-confdef --force-confold -i {host_deb}"
-    assert result.operation("include the ROS 2 source").text() == [apt_update_command(600)]
+    assert result.operation("apt lists are fresh").text() == [apt_update_command(600)]
 
 
 def test_package_mode_with_the_package_installed_is_a_noop(tmp_path):

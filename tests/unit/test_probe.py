@@ -1,0 +1,147 @@
+"""roslab.probe: many facts in one remote command, each value as the fact alone gives it, and
+served only until an operation changes the host."""
+
+from __future__ import annotations
+
+import io
+import subprocess
+
+from fixtures.fake_host import fake_host, plan
+from pyinfra import host
+from pyinfra.api import FactBase, HiddenValue, StringCommand
+from pyinfra.facts.files import Directory, File, FileContents, Sha1File
+
+from roslab import probe
+from roslab.facts import FileAge
+from roslab.operations import managed_block
+from roslab.workspace import WorkspaceForeign, WorkspaceStamps
+
+
+class Fails(FactBase):
+    def command(self):
+        return "echo partial; exit 3"
+
+
+class NeedsAMissingTool(FactBase):
+    def requires_command(self):
+        return "roslab-no-such-tool"
+
+    def command(self):
+        return "roslab-no-such-tool --list"
+
+
+def output_lines(command: str) -> list[str]:
+    """`command`'s stdout run by sh on this machine, split into lines the way pyinfra's
+    connectors split a host's output."""
+    stdout = subprocess.run(["sh", "-c", command], capture_output=True, text=True, check=False).stdout
+    return [line.rstrip("\n") for line in io.StringIO(stdout)]
+
+
+def alone(item: probe.Read):
+    """The fact's value read on its own, as pyinfra does it (same command, same parser)."""
+    fact = item.fact()
+    lines = output_lines(probe._section_command(item, fact))
+    return fact.process(lines) if lines else fact.default()
+
+
+def batched(reads: list[probe.Read]) -> dict:
+    kept = [(item, item.fact()) for item in reads]
+    command = probe.HostProbe().command(
+        probe.Commands(probe._section_command(item, fact) for item, fact in kept), "f" * 32)
+    return probe.values_of(kept, probe.HostProbe().process(output_lines(command)))
+
+
+def test_each_batched_value_is_what_the_fact_gives_alone(tmp_path):
+    (tmp_path / "lines").write_text("one\ntwo\n")
+    (tmp_path / "no-newline").write_text("one\nlast")  # the last line must not merge with the next section
+    (tmp_path / "blank-end").write_text("one\n\n")
+    (tmp_path / "ws" / ".roslab").mkdir(parents=True)
+    (tmp_path / "ws" / ".roslab" / "build.sha256").write_text("abc\n")
+    reads = [
+        probe.read(FileContents, path=str(tmp_path / "lines")),
+        probe.read(FileContents, path=str(tmp_path / "no-newline")),
+        probe.read(FileContents, path=str(tmp_path / "blank-end")),
+        probe.read(FileContents, path=str(tmp_path / "missing")),
+        probe.read(Sha1File, path=str(tmp_path / "lines")),
+        probe.read(File, path=str(tmp_path / "lines")),
+        probe.read(Directory, path=str(tmp_path / "ws")),
+        probe.read(FileAge, path=str(tmp_path / "lines")),
+        probe.read(WorkspaceStamps, workspace_dir=str(tmp_path / "ws")),
+        # Its command ends with `exit 0` when the workspace is missing: the next read still runs.
+        probe.read(WorkspaceForeign, workspace_dir=str(tmp_path / "nothing"), user="root"),
+        probe.read(FileContents, path=str(tmp_path / "lines") + " with space"),
+    ]
+    values = batched(reads)
+    assert list(values) == reads
+    for item in reads:
+        if item.fact is FileAge:  # seconds pass between the two reads on a busy machine
+            assert abs(values[item] - alone(item)) <= 2, item
+        else:
+            assert values[item] == alone(item), item
+    assert values[reads[1]] == ["one", "last"] and values[reads[2]] == ["one", ""]
+
+
+def test_a_read_that_fails_or_lacks_its_tool_is_left_to_the_fact_alone(tmp_path):
+    (tmp_path / "lines").write_text("one\n")
+    ok = probe.read(FileContents, path=str(tmp_path / "lines"))
+    values = batched([probe.read(Fails), ok, probe.read(NeedsAMissingTool)])
+    assert values == {ok: ["one"]}
+
+
+def test_a_file_cannot_forge_the_end_of_its_section(tmp_path):
+    forged = tmp_path / "forged"
+    forged.write_text(f"{'f' * 32} 1 0\nafter\n")  # the marker of a run that is not this one
+    reads = [probe.read(FileContents, path=str(forged)), probe.read(File, path=str(forged))]
+    kept = [(item, item.fact()) for item in reads]
+    command = probe.HostProbe().command(
+        probe.Commands(probe._section_command(item, fact) for item, fact in kept), "0" * 32)
+    values = probe.values_of(kept, probe.HostProbe().process(output_lines(command)))
+    assert values[reads[0]] == [f"{'f' * 32} 1 0", "after"]
+    assert values[reads[1]]["size"] == forged.stat().st_size
+
+
+def test_pyinfras_log_shows_the_count_of_commands_not_the_shell():
+    assert str(probe.Commands(["a", "b"])) == "<2 commands>"
+
+
+HOSTS = "/etc/hosts"
+
+
+def test_the_read_is_served_until_an_operation_changes_the_host():
+    files = {HOSTS: ["127.0.0.1 localhost"]}
+
+    def deploy():
+        probe.read_ahead([probe.read(FileContents, path=HOSTS)])
+        first = host.get_fact(FileContents, path=HOSTS)
+        first.append("edited by the caller")  # a copy: the read keeps its value
+        for text in ("10.0.0.2 pi", "10.0.0.3 pi"):
+            managed_block(name=f"block {text}", path=HOSTS, content=text, label="hosts")
+
+    result = plan(deploy, {FileContents: lambda path: files.get(path), File: lambda path: {
+        "user": "root", "group": "root", "mode": 644}})
+    # Planning both blocks and executing the first read the probe; the second block
+    # executes after a change and reads the file from the host (once).
+    reads = [name for name in result.facts_asked if name in ("HostProbe", "FileContents")]
+    assert reads == ["HostProbe", "FileContents"]
+    assert [bool(op.commands) for op in result.operations] == [True, True]
+
+
+def test_other_arguments_or_connection_arguments_read_from_the_host():
+    facts = {FileContents: lambda path, **connection: [path]}
+    with fake_host(facts) as (state, pi):
+        probe.read_ahead([probe.read(FileContents, path="/a")])
+        assert host.get_fact(FileContents, path="/a") == ["/a"]
+        assert host.get_fact(FileContents, path="/b") == ["/b"]
+        assert host.get_fact(FileContents, path="/a", _sudo=False) == ["/a"]
+        assert [name for name, _ in pi.fake_facts.asked] == ["HostProbe", "FileContents", "FileContents"]
+
+
+class EchoesASecret(FactBase):
+    def command(self, secret):
+        return StringCommand("echo", HiddenValue(secret))
+
+
+def test_a_fact_whose_command_holds_a_secret_is_never_batched():
+    # The probe's command is logged as one string: a HiddenValue would show there. Nothing
+    # is left to batch, so nothing runs (no host is in context here: asking one would raise).
+    assert probe.run_probe([probe.read(EchoesASecret, secret="hunter2")]) == {}
