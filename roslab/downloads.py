@@ -60,13 +60,15 @@ def sha256_hex(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
-def pinned(url: str, sha256: str, cache_dir: Path, name: str, pin_setting: str) -> bytes:
+def pinned(url: str, sha256: str, cache_dir: Path, name: str, pin_setting: str,
+           offline: bool = False) -> bytes:
     """The file at `url` whose sha256 is `sha256`, from the cache or downloaded into it.
 
     The cache holds it as `<cache_dir>/<sha256>/<name>`, written atomically (a complete
     file or none) and checked again on every read: a file another roster (another pin)
     or a half-written download left never stands in for this one. A download whose
-    sha256 differs is discarded (DownloadError naming `pin_setting`).
+    sha256 differs is discarded (DownloadError naming `pin_setting`). `offline`: never
+    download; a file missing from the cache is a DownloadError.
     """
     path = Path(cache_dir) / sha256 / name
     with _lock:
@@ -76,6 +78,9 @@ def pinned(url: str, sha256: str, cache_dir: Path, name: str, pin_setting: str) 
             data = None
         if data is not None and sha256_hex(data) == sha256:
             return data
+    if offline:
+        raise DownloadError(f"offline, and {path} (from {url}) is not in the controller's cache: "
+                            "run once online first")
     data = fetch(url)
     got = sha256_hex(data)
     if got != sha256:
@@ -95,4 +100,37 @@ def pinned(url: str, sha256: str, cache_dir: Path, name: str, pin_setting: str) 
                 os.unlink(part.name)
             except (OSError, NameError):
                 pass
+    return data
+
+
+def _write_atomically(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".part",
+                                     delete=False) as part:
+        part.write(data)
+    os.replace(part.name, path)
+
+
+def kept(url: str, cache_dir: Path, offline: bool = False) -> bytes:
+    """The bytes at `url`: fetched once per run and kept in `cache_dir`, or, offline, the kept copy.
+
+    For files that change upstream (rosdep's data): online, the download is the truth and
+    replaces the kept copy; offline, the copy from the last online run is used, and a
+    file never kept is a DownloadError.
+    """
+    path = Path(cache_dir).expanduser() / hashlib.sha256(url.encode()).hexdigest()[:16] / (
+        os.path.basename(url.rstrip("/")) or "index")
+    if offline:
+        try:
+            return path.read_bytes()
+        except OSError:
+            raise DownloadError(f"offline, and {url} is not in the controller's cache ({path}): "
+                                "run once online first") from None
+    data = fetch(url)
+    with _lock:
+        try:
+            if not path.exists() or path.read_bytes() != data:
+                _write_atomically(path, data)
+        except OSError:
+            pass  # an unwritable cache costs the offline mode this file, nothing else
     return data

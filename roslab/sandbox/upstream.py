@@ -40,7 +40,7 @@ from . import image
 from .system import SandboxError, file_lock, log, pid_alive, run, terminate, write_file
 
 # Bump when the archives' layout or the stand-ins change: part of the cache keys.
-ARCHIVE_VERSION = 3
+ARCHIVE_VERSION = 4
 
 ROS_APT_SOURCE_VERSION = "1.2.0"
 
@@ -70,8 +70,9 @@ SYSTEM_ROSDEP_KEYS = {
 }
 
 # Real Debian packages the universe component offers besides ros-dev-tools' and the
-# rosdep keys' packages (udev: the jammy install docs upgrade systemd and udev first).
-EXTRA_UNIVERSE_PACKAGES = ("udev",)
+# rosdep keys' packages (udev: the jammy install docs upgrade systemd and udev first;
+# apt-cacher-ng: the classroom's apt cache, which Ubuntu has in universe).
+EXTRA_UNIVERSE_PACKAGES = ("udev", "apt-cacher-ng")
 
 # ROS packages every distro gets a stand-in for (rosdep keys, underscores);
 # those the demo nodes' package.xml files declare are added.
@@ -498,6 +499,9 @@ class Upstream:
             "ros_apt_source_sha256": dict(sorted(self.ros_apt_source_sha256.items())),
             "rosdep_sources_list_url": f"{self.url}/rosdep/20-default.list",
             "rosdistro_index_url": f"{self.url}/rosdistro/index-v4.yaml",
+            # An apt cache (apt_cache_host) may fetch from the upstream's port, as from a
+            # classroom's local mirror on a port other than 80.
+            "apt_cache_upstream_ports": [int(self.url.rsplit(":", 1)[1])],
         }
 
     def mirror_settings(self, key_file: Path) -> dict:
@@ -524,11 +528,89 @@ def build(serve_dir: Path, url: str, rootfs: Path, nodes_dir: Path | None = None
 
 # -- the HTTP server ------------------------------------------------------------------------
 
+# Beside the server's log: one line per request, `time client method path status bytes`
+# (tab-separated), so tests and the benchmark can count what the class fetched upstream.
+REQUEST_LOG = "upstream-requests.log"
+SERVER_MODULE = "roslab.sandbox.upstream"
+
+
+@dataclass(frozen=True)
+class Request:
+    """One line of the upstream's request log."""
+
+    time: float
+    client: str
+    method: str
+    path: str
+    status: int
+    bytes: int
+
+
+def read_requests(log_file: Path) -> list[Request]:
+    """The requests logged in `log_file` (none if it does not exist yet)."""
+    try:
+        lines = Path(log_file).read_text().splitlines()
+    except FileNotFoundError:
+        return []
+    requests = []
+    for line in lines:
+        fields = line.split("\t")
+        if len(fields) == 6:
+            requests.append(Request(float(fields[0]), fields[1], fields[2], fields[3], int(fields[4]),
+                                    int(fields[5])))
+    return requests
+
+
+def serve(serve_dir: Path, address: str, port: int, request_log: Path) -> None:
+    """Serve `serve_dir` (a thread per request) and log every request with its status and size."""
+    import threading
+    from functools import partial
+    from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
+
+    lock = threading.Lock()
+
+    class LoggingHandler(SimpleHTTPRequestHandler):
+        # Keep-alive, like a real archive: apt-cacher-ng pipelines its requests on one
+        # connection, and an HTTP/1.0 server's close after each answer fails them (503).
+        protocol_version = "HTTP/1.1"
+        status = 0
+        sent = 0
+
+        def send_response(self, code, message=None):
+            self.status = code
+            super().send_response(code, message)
+
+        def copyfile(self, source, outputfile):
+            while chunk := source.read(64 * 1024):
+                outputfile.write(chunk)
+                self.sent += len(chunk)
+
+        def handle_one_request(self):
+            self.status, self.sent, self.requestline = 0, 0, ""
+            super().handle_one_request()
+            if self.requestline:
+                path = getattr(self, "path", "").replace("\t", " ").replace("\n", " ")
+                with lock, open(request_log, "a") as log_handle:  # reopened: a test may remove it
+                    log_handle.write(f"{time.time():.3f}\t{self.client_address[0]}\t{self.command}\t"
+                                     f"{path}\t{self.status}\t{self.sent}\n")
+
+        def log_message(self, format, *args):  # the request log above replaces stderr's
+            pass
+
+    handler = partial(LoggingHandler, directory=str(serve_dir))
+    with ThreadingHTTPServer((address, port), handler) as server:
+        server.serve_forever()
+
+
 def start_server(serve_dir: Path, address: str, port: int, pid_file: Path, log_file: Path) -> None:
-    """Serve `serve_dir` on address:port in a background process; wait until it answers."""
+    """Serve `serve_dir` on address:port in a background process; wait until it answers.
+
+    Requests are logged in REQUEST_LOG beside `log_file` (kept across restarts of the server).
+    """
+    request_log = log_file.with_name(REQUEST_LOG)
     with open(log_file, "ab") as log_handle:
         process = subprocess.Popen(
-            [sys.executable, "-m", "http.server", "--bind", address, "--directory", str(serve_dir), str(port)],
+            [sys.executable, "-m", SERVER_MODULE, str(serve_dir), address, str(port), str(request_log)],
             stdin=subprocess.DEVNULL, stdout=log_handle, stderr=log_handle, start_new_session=True,
         )
     write_file(pid_file, f"{process.pid}\n")
@@ -554,6 +636,11 @@ def stop_server(pid_file: Path) -> None:
         cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
     except OSError:
         cmdline = []
-    if b"http.server" in cmdline and pid_alive(pid):
+    # http.server: a server started before the request log existed.
+    if (SERVER_MODULE.encode() in cmdline or b"http.server" in cmdline) and pid_alive(pid):
         terminate(pid)
     pid_file.unlink(missing_ok=True)
+
+
+if __name__ == "__main__":  # the server process start_server runs
+    serve(Path(sys.argv[1]), sys.argv[2], int(sys.argv[3]), Path(sys.argv[4]))
