@@ -28,6 +28,10 @@ How it hears about the run:
   The network deploy reconnects hosts mid-run, so "the last host disconnected" is no
   end-of-run signal.
 
+A real run (not --dry) also records each host's outcome and time on the controller, in
+`<roster dir>/.roslab-state/runs.yaml` (`roslab.runs`), for `roslab status`; nothing is
+written onto the hosts.
+
 It never prints host data: only host names, operation and deploy names, and lines
 pyinfra already logged. Secrets (`HiddenValue`s such as `roslab.secrets.Secret`, and
 password keys) are masked in every line all the same, in case a command echoed one.
@@ -47,6 +51,9 @@ import pyinfra
 from pyinfra.api import HiddenValue
 from pyinfra.api.state import BaseStateCallback, State, StateStage
 from pyinfra.context import ctx_host, ctx_state
+
+from roslab import identity
+from roslab.runs import HostRun, record_runs
 
 OK, CHANGED, FAILED, PLANNED, NOT_RUN = "ok", "changed", "failed", "planned", "not run"
 MASK = "***"
@@ -233,7 +240,8 @@ class RunSummary(BaseStateCallback):
         if op_hash is not None:
             return op_name(state, op_hash, host), self.op_reason(state, host, op_hash)
         if events.connect_error or host not in state.activated_hosts:
-            reason = events.connect_error or most_useful_line(
+            # A refused host key: roslab.identity's line says what to run.
+            reason = identity.refusal(host.name) or events.connect_error or most_useful_line(
                 line.text for line in events.log if line.level >= logging.ERROR
             )
             return "connect", reason or "pyinfra could not connect to it (its message is above)"
@@ -301,6 +309,26 @@ class RunSummary(BaseStateCallback):
         stream = stream or sys.stderr
         stream.write("\n" + "\n".join(self.lines(state)) + "\n")
         stream.flush()
+
+    def record(self, state: State, when=None) -> list:
+        """Note each host's outcome in runs.yaml beside its roster (`roslab.runs`), for
+        `roslab status`. Only a run that executed records: --dry (or a run not confirmed)
+        records nothing. Returns the files written."""
+        if not state.is_executing:
+            return []
+        secrets = secrets_in(state)
+        by_roster: dict[str, list[HostRun]] = {}
+        for row in self.rows(state):
+            host = state.inventory.get_host(row.host, None)
+            roster = host.data.get("roslab_roster_path") if host is not None else None
+            if not roster:
+                continue  # not a roslab roster's host: nowhere to record it
+            by_roster.setdefault(str(roster), []).append(HostRun(
+                row.host, row.status,
+                mask(row.step, secrets) if row.step else None,
+                mask(row.reason, secrets) if row.reason else None,
+            ))
+        return [record_runs(roster, runs, when) for roster, runs in by_roster.items()]
 
 
 def host_failed(state: State, host) -> bool:
@@ -407,6 +435,11 @@ def _print_at_exit() -> None:
         summary.write(state)
     except Exception as error:  # noqa: BLE001 - the run's result stands; say why there is no table
         sys.stderr.write(f"\n--> roslab summary unavailable: {type(error).__name__}: {error}\n")
+    try:
+        summary.record(state)
+    except Exception as error:  # noqa: BLE001 - the run's result stands; say why it is not recorded
+        sys.stderr.write(f"--> roslab could not record the run for `roslab status`: "
+                         f"{type(error).__name__}: {error}\n")
 
 
 def _host_name(host) -> str:

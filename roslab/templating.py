@@ -32,3 +32,12 @@ ENVIRONMENT = jinja2.Environment(
 def render(name: str, **variables) -> str:
     """The text of template `name` (a file in templates/) with `variables`."""
     return ENVIRONMENT.get_template(name).render(**variables)
+
+
+# HTML pages (`roslab status`): the same templates, every value escaped for HTML.
+HTML_ENVIRONMENT = ENVIRONMENT.overlay(autoescape=True)
+
+
+def render_html(name: str, **variables) -> str:
+    """The text of HTML template `name` with `variables`, each escaped (jinja2 autoescape)."""
+    return HTML_ENVIRONMENT.get_template(name).render(**variables)

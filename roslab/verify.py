@@ -30,6 +30,7 @@ from pyinfra.api.connect import connect_all, disconnect_all
 from pyinfra.context import ctx_config, ctx_host, ctx_inventory, ctx_state
 from pyinfra.facts.server import LinuxDistribution
 
+from roslab import sudo
 from roslab.distro import default_distro
 from roslab.operations import as_user
 from roslab.quoting import shell_home_path, shell_word
@@ -269,6 +270,31 @@ def host_distro(host) -> str:
     return default_distro(release.get("UBUNTU_CODENAME") or release.get("VERSION_CODENAME"))
 
 
+def hear(host, distro: str | None = None, timeout: int | None = None) -> dict:
+    """NodesHeard on a main host: the topics it lists and the first message on
+    `nodes_verify_topic`, as its login user with the team's ROS environment, bounded.
+
+    `distro`: the host's ROS 2 distro if the caller knows it (else `host_distro` reads
+    the host's release); `timeout`: seconds to wait for a message (else
+    `nodes_verify_timeout`). As the SSH user itself, the check runs without sudo.
+    """
+    timeout = int(host.data.nodes_verify_timeout if timeout is None else timeout)
+    distro = distro or host_distro(host)
+    login_user = host.data.get("login_user") or host.data.get("ssh_user")
+    user = {"_sudo": False} if login_user == host.data.get("ssh_user") else as_user(login_user)
+    return host.get_fact(
+        NodesHeard,
+        distro=distro,
+        environment=ros_variables_of(host.data, distro),
+        workspace_dir=host.data.workspace_dir,
+        topic=host.data.nodes_verify_topic,
+        timeout=timeout,
+        **user,
+        # The connection's own bound, beyond the check's.
+        _timeout=check_bound(timeout) + 30,
+    )
+
+
 def _check_host(state: State, host) -> tuple[str, dict | None, str | None]:
     """(service state, NodesHeard on main hosts, error) for one host."""
     with ctx_host.use(host):
@@ -276,20 +302,7 @@ def _check_host(state: State, host) -> tuple[str, dict | None, str | None]:
             service = service_state(host.get_fact(NodesUnitState, service=NODES_SERVICE))
             if host.data.get("roslab_role") != "main":
                 return service, None, None
-            timeout = int(host.data.nodes_verify_timeout)
-            distro = host_distro(host)
-            heard = host.get_fact(
-                NodesHeard,
-                distro=distro,
-                environment=ros_variables_of(host.data, distro),
-                workspace_dir=host.data.workspace_dir,
-                topic=host.data.nodes_verify_topic,
-                timeout=timeout,
-                **as_user(host.data.get("login_user") or host.data.get("ssh_user")),
-                # The connection's own bound, beyond the check's.
-                _timeout=check_bound(timeout) + 30,
-            )
-            return service, heard, None
+            return service, hear(host), None
         except Exception as error:  # one host's trouble is its team's row, not a crash
             return "?", None, f"{host.name}: {error}"
 
@@ -339,6 +352,7 @@ def connect(inventory_path: str, limit: list[str] | None = None) -> State:
     from pyinfra_cli.cli import _apply_inventory_limit
     from pyinfra_cli.inventory import make_inventory
 
+    sudo.install()  # whatever the inventory: no sudo password on a host's command line
     state = State(check_for_changes=False)
     state.cwd = os.getcwd()
     config = Config()

@@ -1,0 +1,736 @@
+"""`roslab status [ROSTER]`: the classroom at a glance, as a table and as a page.
+
+    roslab status [ROSTER] [--limit NAME ...] [--html FILE] [--listen [--listen-timeout S]]
+
+Per host: whether SSH reaches it, its Ubuntu release, the ROS 2 distros installed, its
+domain ID (the one its `roslab-nodes` service runs with, else the roster's), the address
+it is reached at, the service's state, and the last deploy.py run on it with its time and
+the last successful one (`roslab.runs`, recorded on this machine by each run). A table on
+the terminal, and one self-contained HTML page (inline CSS and SVG, no script, no server,
+nothing fetched) with a picture of each team: its main host, its robots, what the main
+host hears. Default page: `<roster dir>/.roslab-state/status.html`.
+
+Read-only and bounded: the hosts are reached the way deploy.py reaches them (the roster's
+ssh user, key, port, known_hosts and host key policy, and a host the network deploy moved
+at its recorded address), all in parallel, each within `HOST_BOUND` seconds, with one
+command (`StatusProbe`, no sudo). A host that cannot be reached is a row that says why.
+`--listen` adds `roslab verify`'s check on each main host (`roslab.verify.hear`: the topics
+it lists and whether its robot's message arrives), a second bounded command.
+
+Exit status: 0 when every host answered, 1 when one did not or the roster has errors.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import shlex
+import sys
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+
+import yaml
+from pyinfra.api import FactBase
+
+from roslab.roster import (
+    Classroom, RosterError, default_roster_path, display_path, inventory_groups, load_roster,
+)
+from roslab.runs import RunRecord, now_utc, read_runs, runs_path
+from roslab.verify import TeamResult, check_bound, hear, parse_check_output, service_state
+from roslab.workspace import NODES_SERVICE
+
+# Bounds, in seconds.
+CONNECT_TIMEOUT = 8  # the TCP connection (paramiko's timeout; the deploys use pyinfra's 10)
+PROBE_TIMEOUT = 15  # the probe command
+HOST_BOUND = 30  # everything on one host, connection included (without --listen)
+LISTEN_TIMEOUT = 5  # --listen: seconds the main host waits for its robot's message by default
+
+STATUS_PAGE = "status.html"
+# Topics every ROS 2 graph has: not worth a line in the picture.
+BACKGROUND_TOPICS = ("/rosout", "/parameter_events")
+MAX_TOPICS = 8  # topic lines in a team's picture
+UNREACHABLE = "unreachable"
+
+
+class StatusProbe(FactBase):
+    """
+    What `roslab status` shows of one host, in one read-only command that needs no root:
+    ``{"probed": bool, "os": {...os-release...}, "ros": ["jazzy"], "unit": {...}}``.
+
+    ``ros`` lists each ``/opt/ros/<distro>`` with a ``setup.bash``; ``unit`` is systemd's
+    view of the nodes' service (``LoadState``, ``ActiveState``, ``SubState``, ``Result``,
+    ``Environment``); ``probed`` is False when nothing came back.
+    """
+
+    @staticmethod
+    def default():
+        return parse_probe([])
+
+    def command(self, service: str = NODES_SERVICE) -> str:
+        return probe_script(service)
+
+    def process(self, output):
+        return parse_probe(output)
+
+
+def probe_script(service: str = NODES_SERVICE) -> str:
+    return "; ".join([
+        "echo '## os-release'",
+        "cat /etc/os-release 2>/dev/null",
+        "echo '## ros'",
+        "for setup in /opt/ros/*/setup.bash; do [ -f \"$setup\" ] && printf '%s\\n' \"${setup%/setup.bash}\"; done",
+        "echo '## unit'",
+        "systemctl show --property=LoadState,ActiveState,SubState,Result,Environment "
+        f"{shlex.quote(service)} 2>/dev/null",
+        "echo '## end'",
+        "exit 0",
+    ])
+
+
+def parse_os_release(lines) -> dict[str, str]:
+    values = {}
+    for line in lines:
+        key, sep, value = line.partition("=")
+        if not sep or not key.strip().isidentifier():
+            continue
+        try:
+            words = shlex.split(value)
+        except ValueError:
+            words = [value.strip("\"'")]
+        values[key.strip()] = " ".join(words)
+    return values
+
+
+def parse_environment(text: str) -> dict[str, str]:
+    """systemd's `Environment=` property (`A=1 B="x y"`) as a dict."""
+    try:
+        words = shlex.split(text)
+    except ValueError:
+        words = text.split()
+    return dict(word.split("=", 1) for word in words if "=" in word)
+
+
+def parse_probe(lines) -> dict:
+    sections: dict[str, list[str]] = {}
+    section = None
+    for line in lines:
+        if line.startswith("## "):
+            section = line[3:].strip()
+            sections.setdefault(section, [])
+            continue
+        if section is not None:
+            sections[section].append(line)
+    unit = {}
+    for line in sections.get("unit", []):
+        key, sep, value = line.partition("=")
+        if sep:
+            unit[key] = value
+    return {
+        "probed": "end" in sections,
+        "os": parse_os_release(sections.get("os-release", [])),
+        "ros": sorted({os.path.basename(line.strip()) for line in sections.get("ros", []) if line.strip()}),
+        "unit": unit,
+    }
+
+
+# What was found
+# --------------
+
+
+@dataclass
+class HostStatus:
+    """One host as `roslab status` found it."""
+
+    name: str
+    team: str
+    role: str
+    address: str
+    roster_domain: int | None = None
+    expected_release: str | None = None
+    expected_distro: str | None = None
+    reachable: bool = False
+    error: str | None = None  # why it was not reached, or why the probe came back empty
+    probe: dict = field(default_factory=lambda: parse_probe([]))
+    run: RunRecord | None = None
+    heard: dict | None = None  # --listen, main hosts: roslab.verify's NodesHeard
+    listen_error: str | None = None
+
+    @property
+    def release(self) -> str | None:
+        return self.probe["os"].get("VERSION_ID") or None
+
+    @property
+    def codename(self) -> str | None:
+        os_release = self.probe["os"]
+        return os_release.get("UBUNTU_CODENAME") or os_release.get("VERSION_CODENAME") or None
+
+    @property
+    def is_ubuntu(self) -> bool:
+        return self.probe["os"].get("ID") == "ubuntu"
+
+    @property
+    def distros(self) -> list[str]:
+        return self.probe["ros"]
+
+    @property
+    def unit(self) -> dict:
+        return self.probe["unit"]
+
+    @property
+    def service(self) -> str:
+        return service_state(self.unit) if self.reachable and self.probe["probed"] else "?"
+
+    @property
+    def domain(self) -> int | None:
+        """The domain ID the nodes' service runs with, if the host has the service."""
+        if self.unit.get("LoadState") != "loaded":
+            return None
+        value = parse_environment(self.unit.get("Environment", "")).get("ROS_DOMAIN_ID")
+        return int(value) if value is not None and value.isdigit() else None
+
+    @property
+    def distro(self) -> str | None:
+        """The ROS 2 distro that matters here: the roster's, if installed, else the one installed."""
+        if self.expected_distro in self.distros:
+            return self.expected_distro
+        return self.distros[0] if self.distros else None
+
+
+@dataclass
+class Cell:
+    text: str
+    level: str = "plain"  # ok, warn, bad, muted, plain: the page colours it
+
+
+COLUMNS = ("TEAM", "HOST", "ROLE", "ADDRESS", "SSH", "UBUNTU", "ROS", "DOMAIN", "NODES",
+           "LAST RUN", "LAST SUCCESS", "NOTE")
+
+
+def ago(moment: datetime | None, now: datetime) -> str:
+    """'5 min ago', '3 h ago', '2 days ago' (or 'never')."""
+    if moment is None:
+        return "never"
+    seconds = (now - moment).total_seconds()
+    if seconds < 0:
+        return "in the future"  # the controller's clock moved back
+    if seconds < 60:
+        return "just now"
+    if seconds < 3600:
+        return f"{int(seconds // 60)} min ago"
+    if seconds < 2 * 86400:
+        return f"{int(seconds // 3600)} h ago"
+    return f"{int(seconds // 86400)} days ago"
+
+
+def when(moment: datetime | None, now: datetime) -> str:
+    """A recorded time in this machine's local time, and how long ago it was."""
+    if moment is None:
+        return "never"
+    return f"{moment.astimezone().strftime('%Y-%m-%d %H:%M')} ({ago(moment, now)})"
+
+
+def service_level(service: str) -> str:
+    if service == "?":
+        return "muted"
+    if service.startswith("active"):
+        return "ok"
+    if service.startswith("failed"):
+        return "bad"
+    return "warn"  # not installed, inactive, activating
+
+
+def host_cells(host: HostStatus, now: datetime) -> dict[str, Cell]:
+    """The host's row, the same for the terminal and the page."""
+    notes: list[str] = []
+    unknown = Cell("?", "muted")
+    cells = {
+        "TEAM": Cell(host.team), "HOST": Cell(host.name), "ROLE": Cell(host.role),
+        "ADDRESS": Cell(host.address),
+    }
+    if not host.reachable:
+        cells["SSH"] = Cell(UNREACHABLE, "bad")
+        notes.append(host.error or UNREACHABLE)
+    elif not host.probe["probed"]:
+        cells["SSH"] = Cell("ok", "ok")
+        notes.append(host.error or "the status command returned nothing")
+    else:
+        cells["SSH"] = Cell("ok", "ok")
+    probed = host.reachable and host.probe["probed"]
+
+    if not probed:
+        cells["UBUNTU"] = unknown
+    elif not host.is_ubuntu:
+        name = host.probe["os"].get("PRETTY_NAME") or host.probe["os"].get("ID") or "not Ubuntu"
+        cells["UBUNTU"] = Cell(name, "bad")
+        notes.append("not Ubuntu")
+    else:
+        text = " ".join(part for part in (host.release, host.codename) if part) or "?"
+        level = "ok"
+        if host.expected_release and host.release != host.expected_release:
+            level = "bad"
+            notes.append(f"the roster expects Ubuntu {host.expected_release}")
+        cells["UBUNTU"] = Cell(text, level)
+
+    if not probed:
+        cells["ROS"] = unknown
+    elif not host.distros:
+        cells["ROS"] = Cell("none", "warn")
+    else:
+        level = "ok" if not host.expected_distro or host.expected_distro in host.distros else "warn"
+        if level == "warn":
+            notes.append(f"the roster expects ROS 2 {host.expected_distro}")
+        cells["ROS"] = Cell(", ".join(host.distros), level)
+
+    roster_domain = "-" if host.roster_domain is None else str(host.roster_domain)
+    if host.domain is None:
+        cells["DOMAIN"] = Cell(f"{roster_domain} (roster)", "muted")
+    elif host.roster_domain is not None and host.domain != host.roster_domain:
+        cells["DOMAIN"] = Cell(str(host.domain), "bad")
+        notes.append(f"its nodes run on domain {host.domain}, the roster says {roster_domain}")
+    else:
+        cells["DOMAIN"] = Cell(str(host.domain), "ok")
+
+    service = host.service
+    cells["NODES"] = Cell(service, service_level(service))
+
+    run = host.run
+    if run is None or run.last_run is None:
+        cells["LAST RUN"] = Cell("never", "muted")
+    else:
+        result = run.result or "?"
+        level = {"ok": "ok", "changed": "ok", "failed": "bad"}.get(result, "warn")
+        cells["LAST RUN"] = Cell(f"{result} {when(run.last_run, now)}", level)
+        if result == "failed" and (run.step or run.reason):
+            notes.append(f"last run failed in \"{run.step or '?'}\": {run.reason or '?'}")
+    if run is None or run.last_success is None:
+        cells["LAST SUCCESS"] = Cell("never", "warn" if run is not None and run.last_run else "muted")
+    else:
+        cells["LAST SUCCESS"] = Cell(when(run.last_success, now), "ok")
+    if host.listen_error:
+        notes.append(host.listen_error)
+    cells["NOTE"] = Cell("; ".join(notes), "bad" if not host.reachable else "plain")
+    return cells
+
+
+def format_table(hosts: list[HostStatus], now: datetime) -> str:
+    rows = [COLUMNS] + [tuple(host_cells(host, now)[column].text for column in COLUMNS) for host in hosts]
+    widths = [max(len(row[index]) for row in rows) for index in range(len(COLUMNS))]
+    lines = ["  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip() for row in rows]
+    lines.insert(1, "  ".join("-" * width for width in widths))
+    return "\n".join(lines)
+
+
+# Reading the hosts
+# -----------------
+
+
+def host_statuses(classroom: Classroom, groups: dict, limit: list[str] | None = None) -> list[HostStatus]:
+    """One HostStatus per roster host (in roster order) that `limit` selects, without
+    contacting any host. `groups`: the roster's `inventory_groups`, as deploy.py gets them."""
+    addresses = {name: data["ssh_hostname"] for entries in groups.values() for name, data in entries}
+    selected = None if not limit else set(limited_names(groups, limit))
+    statuses = []
+    for host in classroom.hosts:
+        if selected is not None and host.name not in selected:
+            continue
+        statuses.append(HostStatus(
+            name=host.name, team=host.team, role=host.role,
+            address=str(addresses.get(host.name) or host.address),
+            roster_domain=host.ros_domain_id,
+            expected_release=host.ubuntu_release, expected_distro=host.distro,
+        ))
+    return statuses
+
+
+def make_inventory(groups: dict):
+    """pyinfra's inventory of the roster's groups, as inventories/lab.py makes it."""
+    from pyinfra.api import Inventory
+
+    everyone: dict[str, dict] = {}
+    for entries in groups.values():
+        for name, data in entries:
+            everyone[name] = data
+    return Inventory((list(everyone.items()), {}),
+                     **{group: (entries, {}) for group, entries in groups.items()})
+
+
+def limited_names(groups: dict, limit: list[str]) -> list[str]:
+    """Host names `--limit` selects: pyinfra's own patterns (group or host names, globs)."""
+    from pyinfra_cli.cli import _apply_inventory_limit
+
+    inventory = make_inventory(groups)
+    return [host.name for host in _apply_inventory_limit(inventory, limit)]
+
+
+def probe(groups: dict, statuses: list[HostStatus], listen: bool = False,
+          listen_timeout: int = LISTEN_TIMEOUT, host_bound: int = HOST_BOUND) -> None:
+    """Fill in what each host says, all hosts at once, each within `host_bound` seconds
+    (plus the listening check's own bound with `listen`)."""
+    from gevent import monkey
+
+    monkey.patch_all()  # as pyinfra's CLI does: SSH to every host at once (a no-op when done)
+    import gevent
+    from pyinfra.api import Config, State
+    from pyinfra.api.state import MAX_PARALLEL
+    from pyinfra.context import ctx_config, ctx_inventory, ctx_state
+
+    inventory = make_inventory(groups)
+    state = State(check_for_changes=False)
+    state.cwd = os.getcwd()
+    # Every host at once (as many as open files allow), so each host's bound is the whole wait.
+    parallel = max(1, min(len(statuses), MAX_PARALLEL))
+    config = Config(CONNECT_TIMEOUT=min(CONNECT_TIMEOUT, host_bound), PARALLEL=parallel)
+    ctx_state.set(state)
+    ctx_config.set(config)
+    ctx_inventory.set(inventory)
+    state.init(inventory, config)
+    bound = host_bound
+    if listen:
+        bound += check_bound(listen_timeout) + 30
+    pyinfra_logger = logging.getLogger("pyinfra")
+    level = pyinfra_logger.level
+    pyinfra_logger.setLevel(logging.CRITICAL)  # every host's trouble is its row, not a log line
+    try:
+        by_name = {host.name: host for host in inventory}
+        jobs = {state.pool.spawn(_probe_host, state, by_name[status.name], status, listen, listen_timeout,
+                                 bound): status for status in statuses}
+        rounds = -(-len(statuses) // parallel)
+        gevent.joinall(list(jobs), timeout=rounds * bound + 5)
+        for job, status in jobs.items():
+            if not job.ready():
+                job.kill(block=False)
+                status.reachable = status.reachable and status.probe["probed"]
+                status.error = status.error or f"no answer within {bound} s"
+        disconnect = [state.pool.spawn(host.disconnect) for host in inventory if host.connected]
+        gevent.joinall(disconnect, timeout=10)
+    finally:
+        pyinfra_logger.setLevel(level)
+
+
+def _probe_host(state, host, status: HostStatus, listen: bool, listen_timeout: int, bound: int) -> None:
+    import gevent
+    from pyinfra.api.exceptions import ConnectError
+    from pyinfra.api.facts import get_fact
+    from pyinfra.context import ctx_host
+
+    with ctx_host.use(host), gevent.Timeout(bound, False):
+        try:
+            host.connect(show_errors=False, raise_exceptions=True)
+        except ConnectError as error:
+            status.error = explained(host.name, one_line(error.args[0] if error.args else error))
+            return
+        except Exception as error:  # noqa: BLE001 - a host's trouble is its row
+            status.error = one_line(f"{type(error).__name__}: {error}")
+            return
+        status.reachable = True
+        state.activate_host(host)
+        try:
+            status.probe = get_fact(
+                state, host, StatusProbe,
+                kwargs={"_sudo": False, "_timeout": min(PROBE_TIMEOUT, bound), "_ignore_errors": True},
+                apply_failed_hosts=False,
+            )
+        except Exception as error:  # noqa: BLE001
+            status.error = one_line(f"{type(error).__name__}: {error}")
+            return
+        if not status.probe["probed"]:
+            status.error = "the status command returned nothing"
+            return
+        if listen and status.role == "main":
+            if not status.distro:
+                status.listen_error = "no ROS 2 installed: not listened"
+                return
+            try:
+                status.heard = hear(host, distro=status.distro, timeout=listen_timeout)
+            except Exception as error:  # noqa: BLE001
+                status.listen_error = one_line(f"listening failed: {error}")
+    if not status.probe["probed"] and not status.error:  # the bound ended it
+        status.error = f"no answer within {bound} s"
+    elif (listen and status.role == "main" and status.probe["probed"] and status.distro
+          and status.heard is None and not status.listen_error):
+        status.listen_error = f"listening did not finish within {bound} s"
+
+
+def explained(host_name: str, message: str) -> str:
+    """A connection error as deploy.py's log shows it: a refused host key becomes roslab's
+    instruction (`roslab trust ...`, `roslab forget ...`; roslab.identity)."""
+    from roslab import identity
+
+    record = logging.LogRecord("pyinfra", logging.ERROR, __file__, 0, f"[{host_name}] {message}", (), None)
+    identity.explainer().filter(record)
+    return one_line(record.getMessage().removeprefix(f"[{host_name}] ").removeprefix("roslab: "))
+
+
+def one_line(text) -> str:
+    text = " ".join(str(text).split())
+    return text if len(text) <= 400 else text[:397] + "..."
+
+
+# The team pictures and the page
+# ------------------------------
+
+BOX_WIDTH, BOX_HEIGHT, BOX_GAP = 250, 86, 18
+MAIN_X, ROBOT_X, MARGIN = 16, 480, 16
+LINE = 16  # height of a text line in the picture
+TEXT_LIMIT = 32  # characters of a line in a box
+
+
+def clip(text: str, limit: int = TEXT_LIMIT) -> str:
+    return text if len(text) <= limit else text[: limit - 1] + "\u2026"
+
+
+def box_level(host: HostStatus) -> str:
+    if not host.reachable:
+        return "bad"
+    return {"ok": "ok", "bad": "bad"}.get(service_level(host.service), "warn")
+
+
+def host_box(host: HostStatus, x: int, y: int) -> dict:
+    if not host.reachable:
+        facts = UNREACHABLE
+    elif not host.probe["probed"]:
+        facts = "no answer"
+    else:
+        ubuntu = f"Ubuntu {host.release}" if host.is_ubuntu and host.release else "not Ubuntu"
+        facts = f"{ubuntu} \u00b7 ROS {host.distro or 'none'}"
+    lines = [
+        {"text": clip(host.name), "class": "name"},
+        {"text": clip(f"{host.role} \u00b7 {host.address}"), "class": "detail"},
+        {"text": clip(facts), "class": "detail"},
+        {"text": clip(f"nodes: {host.service}"), "class": "detail"},
+    ]
+    return {
+        "x": x, "y": y, "width": BOX_WIDTH, "height": BOX_HEIGHT, "level": box_level(host),
+        "title": f"{host.name} ({host.role}, team {host.team})",
+        "host": host.name,
+        "lines": [{**line, "x": x + 12, "y": y + 22 + index * 19} for index, line in enumerate(lines)],
+    }
+
+
+def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = "/chatter") -> dict:
+    """Coordinates and texts of one team's SVG: main on the left, robots on the right, arrows
+    from each robot to the main host labelled with what the main host hears."""
+    main = next((host for host in hosts if host.role == "main"), None)
+    robots = [host for host in hosts if host.role != "main"]
+    rows = max(1, len(robots))
+    boxes, arrows = [], []
+    main_y = MARGIN + (rows - 1) * (BOX_HEIGHT + BOX_GAP) // 2
+    if main is not None:
+        boxes.append(host_box(main, MAIN_X, main_y))
+    else:
+        boxes.append({"x": MAIN_X, "y": main_y, "width": BOX_WIDTH, "height": BOX_HEIGHT, "level": "muted",
+                      "title": "no main host", "host": "", "lines": [
+                          {"text": "no main host", "class": "name", "x": MAIN_X + 12, "y": main_y + 22}]})
+
+    result = TeamResult(team, main=main.name if main else None, robots=sorted(r.name for r in robots),
+                        topic=topic)
+    if main is not None:
+        result.heard = main.heard
+        if not main.reachable:
+            result.error = f"{main.name} is {UNREACHABLE}"
+        elif main.listen_error:
+            result.error = main.listen_error
+    heard_robot = (main.heard or {}).get("robot") if main is not None else None
+    # Listened for real: the main host answered with a ROS 2 runtime (else nothing is known).
+    listened = listen and main is not None and bool((main.heard or {}).get("ros"))
+    for index, robot in enumerate(robots):
+        y = MARGIN + index * (BOX_HEIGHT + BOX_GAP)
+        boxes.append(host_box(robot, ROBOT_X, y))
+        if not listened:
+            state, label = "unknown", f"{topic}: not checked"
+        elif heard_robot == robot.name:
+            state, label = "ok", f"{topic}: heard"
+        else:
+            state, label = "bad", f"{topic}: not heard"
+        # Each robot's arrow ends at its own point of the main box's edge, so labels stay apart.
+        start = (ROBOT_X - 2, y + BOX_HEIGHT // 2)
+        end = (MAIN_X + BOX_WIDTH + 8, main_y + (index + 1) * BOX_HEIGHT // (len(robots) + 1))
+        arrows.append({"x1": start[0], "y1": start[1], "x2": end[0], "y2": end[1], "state": state,
+                       "label": clip(label, 28), "label_x": (start[0] + end[0]) // 2,
+                       "label_y": (start[1] + end[1]) // 2 - 7})
+
+    # What the main host hears, under its box.
+    heard = (main.heard if main is not None else None) or parse_check_output([])
+    topics_y = main_y + BOX_HEIGHT + 22
+    if not listen:
+        topic_lines = ["topics heard: not checked (roslab status --listen)"]
+    elif main is None or main.heard is None:
+        topic_lines = [f"topics heard: {result.verdict()}"]
+    elif not heard["ros"]:
+        topic_lines = ["topics heard: no ROS 2 runtime on the main host"]
+    else:
+        topics = [name for name in heard["topics"] if name not in BACKGROUND_TOPICS]
+        topic_lines = ["topics heard:" if topics else "topics heard: none"]
+        topic_lines += [f"  {name}" for name in topics[:MAX_TOPICS]]
+        if len(topics) > MAX_TOPICS:
+            topic_lines.append(f"  and {len(topics) - MAX_TOPICS} more")
+    texts = [{"x": MAIN_X + 4, "y": topics_y + index * LINE, "text": clip(line, 60)}
+             for index, line in enumerate(topic_lines)]
+    if not robots:
+        texts.append({"x": ROBOT_X, "y": main_y + BOX_HEIGHT // 2 + 4, "text": "no robot in this team"})
+    height = max(MARGIN + rows * (BOX_HEIGHT + BOX_GAP), topics_y + len(topic_lines) * LINE) + MARGIN
+    if listen:
+        verdict = ("heard " + heard_robot) if result.passed else result.verdict()
+        verdict_level = "ok" if result.passed else "bad" if listened else "warn"
+    else:
+        running = sum(host.service.startswith("active") for host in hosts)
+        verdict = f"{running} of {len(hosts)} hosts run their nodes"
+        verdict_level = "ok" if running == len(hosts) else "warn"
+    return {
+        "name": team, "width": ROBOT_X + BOX_WIDTH + MARGIN, "height": height,
+        "boxes": boxes, "arrows": arrows, "texts": texts,
+        "verdict": verdict, "verdict_level": verdict_level,
+        "domain": next((str(h.roster_domain) for h in hosts if h.roster_domain is not None), "-"),
+        "no_robot": not robots,
+    }
+
+
+def page_context(classroom_name: str | None, roster: str, hosts: list[HostStatus], now: datetime,
+                 listen: bool = False, topics: dict[str, str] | None = None,
+                 warnings: list[str] | None = None) -> dict:
+    """Everything the page shows, computed here (the template only loops and tests)."""
+    teams: dict[str, list[HostStatus]] = {}
+    for host in hosts:
+        teams.setdefault(host.team, []).append(host)
+    topics = topics or {}
+    reachable = sum(host.reachable for host in hosts)
+    running = sum(host.service.startswith("active") for host in hosts)
+    return {
+        "title": f"roslab status: {classroom_name}" if classroom_name else "roslab status",
+        "classroom": classroom_name or "Classroom",
+        "roster": roster,
+        "generated": now.astimezone().strftime("%Y-%m-%d %H:%M:%S %Z"),
+        "counts": [
+            {"text": f"{len(teams)} teams, {len(hosts)} hosts", "level": "plain"},
+            {"text": f"{reachable} reachable", "level": "ok" if reachable == len(hosts) else "bad"},
+            {"text": f"{running} running their nodes", "level": "ok" if running == len(hosts) else "warn"},
+        ],
+        "listen": listen,
+        "teams": [team_picture(name, members, listen, topics.get(name, "/chatter"))
+                  for name, members in teams.items()],
+        "columns": COLUMNS,
+        "rows": [{"host": host.name, "cells": [host_cells(host, now)[column] for column in COLUMNS]}
+                 for host in hosts],
+        "warnings": warnings or [],
+    }
+
+
+def render_page(context: dict) -> str:
+    from roslab.templating import render_html
+
+    return render_html("status.html.j2", **context)
+
+
+def write_page(path: Path, text: str) -> None:
+    """Write the page atomically (a teacher's browser may be reloading it)."""
+    import tempfile
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}-")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as out:
+            out.write(text)
+        os.chmod(temporary, 0o644)
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+
+
+def default_page_path(roster_path: Path) -> Path:
+    return runs_path(roster_path).parent / STATUS_PAGE
+
+
+# The command
+# -----------
+
+
+def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    parser = parser or argparse.ArgumentParser(prog="roslab status", description=__doc__.splitlines()[0])
+    parser.add_argument("roster", nargs="?", metavar="ROSTER",
+                        help="roster file (default: $ROSLAB_ROSTER, else inventories/classroom.yaml "
+                        "if present, else inventories/lab.yaml)")
+    parser.add_argument("--limit", action="append", metavar="NAME",
+                        help="a team, role, distro or host name (pyinfra's --limit; repeatable)")
+    parser.add_argument("--html", metavar="FILE",
+                        help=f"where to write the page (default: .roslab-state/{STATUS_PAGE} beside the roster)")
+    parser.add_argument("--timeout", type=int, default=HOST_BOUND, metavar="S",
+                        help=f"seconds each host gets to answer, connection included (default {HOST_BOUND})")
+    parser.add_argument("--listen", action="store_true",
+                        help="also check what each main host hears (roslab verify's check; slower)")
+    parser.add_argument("--listen-timeout", type=int, default=LISTEN_TIMEOUT, metavar="S",
+                        help=f"--listen: seconds to wait for the robot's message (default {LISTEN_TIMEOUT})")
+    return parser
+
+
+def run(args: argparse.Namespace) -> int:
+    path = Path(args.roster) if args.roster else default_roster_path()
+    try:
+        classroom = load_roster(path)
+    except RosterError as error:
+        print(error, file=sys.stderr)
+        return 1
+    for option, value in (("--timeout", args.timeout), ("--listen-timeout", args.listen_timeout)):
+        if not 1 <= value <= 600:
+            print(f"roslab status: {option} must be 1 to 600 seconds", file=sys.stderr)
+            return 2
+    warnings = [str(warning) for warning in classroom.warnings]
+    try:
+        # Once: it also brings the classroom's known_hosts up to date, as deploy.py's inventory does.
+        groups = inventory_groups(classroom)
+        statuses = host_statuses(classroom, groups, args.limit)
+    except RosterError as error:  # a broken addresses.yaml or known_hosts
+        print(error, file=sys.stderr)
+        return 1
+    if not statuses:
+        print(f"roslab status: --limit {' '.join(args.limit or [])} selects no host of {display_path(path)}",
+              file=sys.stderr)
+        return 2
+    try:
+        runs = read_runs(classroom.path)
+    except (OSError, ValueError, yaml.YAMLError) as error:
+        runs = {}
+        warnings.append(f"{display_path(runs_path(classroom.path))}: cannot read the recorded runs "
+                        f"({getattr(error, 'strerror', None) or 'not a mapping of host to run'})")
+    for status in statuses:
+        status.run = runs.get(status.name)
+
+    probe(groups, statuses, listen=args.listen, listen_timeout=args.listen_timeout, host_bound=args.timeout)
+
+    now = now_utc()
+    topics = {host.team: host.data.get("nodes_verify_topic") or "/chatter"
+              for host in classroom.hosts if host.role == "main"}
+    context = page_context(classroom.name, display_path(path), statuses, now, args.listen, topics, warnings)
+    for warning in warnings:
+        print(f"warning: {warning}", file=sys.stderr)
+    title = f"Classroom {classroom.name!r}" if classroom.name else "Classroom"
+    print(f"{title} ({display_path(path)}), {now.astimezone().strftime('%Y-%m-%d %H:%M:%S')}")
+    print(format_table(statuses, now))
+    if args.listen:
+        print()
+        for picture in context["teams"]:
+            print(f"team {picture['name']}: {picture['verdict']}")
+
+    page = Path(args.html) if args.html else default_page_path(classroom.path)
+    try:
+        write_page(page, render_page(context))
+    except OSError as error:
+        print(f"roslab status: cannot write {page}: {error.strerror or error}", file=sys.stderr)
+        return 1
+    unreachable = [status.name for status in statuses if not status.reachable]
+    print(f"\npage: {display_path(page)}")
+    if unreachable:
+        print(f"{len(unreachable)} of {len(statuses)} hosts unreachable: {', '.join(unreachable)}",
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run(build_parser().parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

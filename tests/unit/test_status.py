@@ -1,0 +1,399 @@
+"""`roslab status`: the record of each run (runs.yaml), the probe, the table and the page.
+
+No host is contacted: the probe's output, the hosts' states and the recorded runs are
+fixtures; the command itself runs against loopback ports where nothing (or something that
+never answers) listens. The page is checked in a real headless browser in
+test_status_browser.py.
+"""
+
+from __future__ import annotations
+
+import html.parser
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from datetime import timedelta
+from pathlib import Path
+
+import pytest
+import yaml
+from fixtures.status_hosts import (
+    HOSTILE, NOW, PROBE_OUTPUT, hostile_page, never_run_host, reachable_host, unreachable_host,
+)
+from pyinfra.api import Config, Inventory, State
+from pyinfra.api.state import StateStage
+
+from roslab import runs, status, summary
+from roslab.runs import HostRun, RunRecord
+from roslab.secrets import Secret
+from roslab.status import format_table, host_cells, page_context, parse_probe, render_page
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+# runs.yaml ------------------------------------------------------------------------------
+
+
+def test_a_run_is_recorded_beside_the_roster_and_read_back(tmp_path):
+    roster = tmp_path / "classroom.yaml"
+    path = runs.record_runs(roster, [
+        HostRun("team1-main", "changed"),
+        HostRun("team1-robot", "failed", "Ensure ROS 2 jazzy is installed", "E: Unable to locate package x"),
+    ], when=NOW)
+
+    assert path == tmp_path / ".roslab-state" / "runs.yaml"
+    assert path.read_text().startswith("# managed by roslab")
+    assert oct(path.stat().st_mode & 0o777) == "0o600"
+    read = runs.read_runs(roster)
+    assert read["team1-main"] == RunRecord(NOW, "changed", None, None, NOW)
+    assert read["team1-robot"] == RunRecord(NOW, "failed", "Ensure ROS 2 jazzy is installed",
+                                            "E: Unable to locate package x", None)
+
+
+def test_a_failed_run_keeps_the_last_success_and_other_hosts_are_kept(tmp_path):
+    roster = tmp_path / "classroom.yaml"
+    earlier = NOW - timedelta(hours=2)
+    runs.record_runs(roster, [HostRun("a", "ok"), HostRun("b", "changed")], when=earlier)
+    runs.record_runs(roster, [HostRun("a", "failed", "connect", "Could not connect")], when=NOW)
+
+    read = runs.read_runs(roster)
+    assert read["a"].result == "failed" and read["a"].last_run == NOW
+    assert read["a"].last_success == earlier
+    assert read["b"] == RunRecord(earlier, "changed", None, None, earlier)  # --limit a: b untouched
+
+
+def test_recording_is_atomic_and_leaves_no_temporary_file(tmp_path, monkeypatch):
+    roster = tmp_path / "classroom.yaml"
+    runs.record_runs(roster, [HostRun("a", "ok")], when=NOW)
+    before = runs.runs_path(roster).read_text()
+
+    def crash(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(runs.yaml, "safe_dump", crash)
+    with pytest.raises(OSError):
+        runs.record_runs(roster, [HostRun("a", "failed")], when=NOW)
+    assert runs.runs_path(roster).read_text() == before  # the old record stands, whole
+    assert sorted(p.name for p in runs.runs_path(roster).parent.iterdir()) == [".runs.yaml.lock", "runs.yaml"]
+
+
+def test_two_runs_ending_at_once_both_land(tmp_path):
+    roster = tmp_path / "classroom.yaml"
+    threads = [threading.Thread(target=runs.record_runs, args=(roster, [HostRun(f"host{i}", "ok")]))
+               for i in range(8)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert sorted(runs.read_runs(roster)) == [f"host{i}" for i in range(8)]
+
+
+def test_a_broken_runs_file_is_an_error_for_the_reader_and_replaced_by_the_next_run(tmp_path):
+    roster = tmp_path / "classroom.yaml"
+    path = runs.runs_path(roster)
+    path.parent.mkdir()
+    path.write_text("- not\n- a mapping\n")
+    with pytest.raises(ValueError):
+        runs.read_runs(roster)
+    runs.record_runs(roster, [HostRun("a", "ok")], when=NOW)
+    assert runs.read_runs(roster)["a"].result == "ok"
+
+
+def finished_state(names, roster, *, executing: bool, data=None) -> tuple[State, summary.RunSummary]:
+    inventory = Inventory(([(name, {"roslab_roster_path": str(roster), **(data or {}).get(name, {})})
+                           for name in names], {}))
+    state = State(inventory, Config())
+    for host in inventory:
+        state.activate_host(host)
+    state.set_stage(StateStage.Prepare)
+    handler = summary.install(state)
+    for name in names:
+        handler.mark_planned(name)
+    if executing:
+        state.set_stage(StateStage.Execute)
+        state.is_executing = True
+        state.set_stage(StateStage.Disconnect)
+    return state, handler
+
+
+def test_the_summary_records_each_host_of_a_real_run(tmp_path):
+    roster = tmp_path / "classroom.yaml"
+    secret = "hunter2-wifi"
+    state, handler = finished_state(["team1-main", "team1-robot"], roster, executing=True,
+                                    data={"team1-robot": {"wifi_password": Secret(secret)}})
+    handler.record_stop("team1-robot", "Network", f"roslab stops this host: bad password {secret}")
+    state.fail_hosts({state.inventory.get_host("team1-robot")})
+
+    assert handler.record(state, when=NOW) == [runs.runs_path(roster)]
+    text = runs.runs_path(roster).read_text()
+    assert secret not in text
+    read = runs.read_runs(roster)
+    assert read["team1-main"] == RunRecord(NOW, "ok", None, None, NOW)
+    assert read["team1-robot"].result == "failed" and read["team1-robot"].step == "Network"
+    assert read["team1-robot"].reason == "bad password ***"
+    assert read["team1-robot"].last_success is None
+
+
+def test_a_dry_run_records_nothing(tmp_path):
+    roster = tmp_path / "classroom.yaml"
+    state, handler = finished_state(["team1-main"], roster, executing=False)
+    assert handler.record(state, when=NOW) == []
+    assert not (tmp_path / ".roslab-state").exists()
+
+
+# the probe --------------------------------------------------------------------------------
+
+def test_the_probe_output_is_parsed():
+    probe = parse_probe(PROBE_OUTPUT)
+    assert probe["probed"] is True
+    assert probe["os"]["VERSION_ID"] == "24.04" and probe["os"]["UBUNTU_CODENAME"] == "noble"
+    assert probe["ros"] == ["jazzy"]
+    assert status.parse_environment(probe["unit"]["Environment"]) == {
+        "ROS_DOMAIN_ID": "11", "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET", "ROS_STATIC_PEERS": "a b"}
+    assert parse_probe([])["probed"] is False
+    assert parse_probe(PROBE_OUTPUT[:-1])["probed"] is False  # cut short: not a whole answer
+
+
+def test_the_probe_is_one_command_without_sudo_that_a_posix_shell_runs():
+    script = status.StatusProbe().command()
+    assert "sudo" not in script and "systemctl show --property=" in script and "roslab-nodes.service" in script
+    # Run for real here (read-only): /etc/os-release, /opt/ros/*, systemctl show.
+    output = subprocess.run(["sh", "-c", script], capture_output=True, text=True, timeout=30)
+    assert output.returncode == 0
+    probe = parse_probe(output.stdout.splitlines())
+    assert probe["probed"] and probe["os"].get("ID")
+
+
+# the table ------------------------------------------------------------------------------
+
+
+def test_table_rows_for_a_reachable_an_unreachable_and_a_never_run_host():
+    hosts = [reachable_host(), unreachable_host(), never_run_host()]
+    lines = format_table(hosts, NOW).splitlines()
+    assert lines[0].split("  ")[0] == "TEAM" and "LAST SUCCESS" in lines[0] and lines[1].startswith("----")
+    cells = {host.name: {k: v.text for k, v in host_cells(host, NOW).items()} for host in hosts}
+
+    main = cells["team1-main"]
+    assert (main["SSH"], main["UBUNTU"], main["ROS"], main["DOMAIN"], main["NODES"]) == (
+        "ok", "24.04 noble", "jazzy", "11", "active (running)")
+    assert main["LAST RUN"].startswith("changed ") and main["LAST RUN"].endswith("(5 min ago)")
+    assert main["NOTE"] == ""
+
+    robot = cells["team1-robot"]
+    assert (robot["SSH"], robot["UBUNTU"], robot["ROS"], robot["NODES"]) == ("unreachable", "?", "?", "?")
+    assert robot["DOMAIN"] == "11 (roster)"
+    assert robot["LAST RUN"].startswith("failed ") and robot["LAST RUN"].endswith("(3 days ago)")
+    assert robot["LAST SUCCESS"].endswith("(4 days ago)")
+    assert "Connection refused" in robot["NOTE"] and 'last run failed in "connect"' in robot["NOTE"]
+
+    fresh = cells["team2-main"]
+    assert (fresh["ROS"], fresh["NODES"], fresh["LAST RUN"], fresh["LAST SUCCESS"]) == (
+        "none", "not installed", "never", "never")
+    # Every column starts at the same offset on every line.
+    offset = lines[0].index("NODES")
+    assert all(line[offset - 2:offset] == "  " for line in lines[2:])
+
+
+def test_a_host_whose_nodes_run_on_another_domain_or_release_is_flagged():
+    host = reachable_host(roster_domain=12, expected_release="22.04", expected_distro="humble")
+    cells = host_cells(host, NOW)
+    assert cells["DOMAIN"].text == "11" and cells["DOMAIN"].level == "bad"
+    assert cells["UBUNTU"].level == "bad" and cells["ROS"].level == "warn"
+    assert "its nodes run on domain 11, the roster says 12" in cells["NOTE"].text
+    assert "the roster expects Ubuntu 22.04" in cells["NOTE"].text
+
+
+def test_a_failed_service_is_bad():
+    host = reachable_host()
+    host.probe["unit"].update(ActiveState="failed", SubState="failed", Result="start-limit-hit")
+    cells = host_cells(host, NOW)
+    assert cells["NODES"].text == "failed (start-limit-hit)" and cells["NODES"].level == "bad"
+
+
+# the page -------------------------------------------------------------------------------
+
+
+class Elements(html.parser.HTMLParser):
+    """Tags, attributes and text of a page, as a browser's parser would see them."""
+
+    def __init__(self, text: str):
+        super().__init__()
+        self.tags: list[tuple[str, dict]] = []
+        self.text: list[str] = []
+        self.feed(text)
+
+    def handle_starttag(self, tag, attrs):
+        self.tags.append((tag, dict(attrs)))
+
+    def handle_data(self, data):
+        self.text.append(data)
+
+
+def test_the_page_is_one_self_contained_file_with_a_managed_header():
+    page = hostile_page()
+    assert page.startswith("<!-- managed by roslab")
+    tags = Elements(page).tags
+    assert not [tag for tag, attrs in tags if tag in ("script", "link", "img", "iframe", "object")]
+    assert not [attrs for tag, attrs in tags if attrs.get("src") or (attrs.get("href") or "").startswith("http")]
+    assert "http://" not in page and "https://" not in page
+    csp = next(attrs["content"] for tag, attrs in tags if attrs.get("http-equiv") == "Content-Security-Policy")
+    assert csp.startswith("default-src 'none'")
+
+
+def test_every_value_on_the_page_is_escaped():
+    page = hostile_page(listen=True)
+    elements = Elements(page)
+    assert [tag for tag, _ in elements.tags].count("script") == 0
+    assert "img" not in [tag for tag, _ in elements.tags] and "b" not in [tag for tag, _ in elements.tags]
+    text = "".join(elements.text)
+    assert HOSTILE in text  # shown as text
+    assert "<b>boom</b> & more" in text
+    assert "&lt;script&gt;" in page and "<script" not in page
+    sections = [attrs for tag, attrs in elements.tags if tag == "section"]
+    assert sections[0]["data-team"] == HOSTILE  # an attribute value, not markup
+
+
+def test_the_page_draws_each_team_with_its_hosts_and_states():
+    hosts = [reachable_host(), unreachable_host(), never_run_host()]
+    page = render_page(page_context("lab", "classroom.yaml", hosts, NOW))
+    tags = Elements(page).tags
+    teams = [attrs["data-team"] for tag, attrs in tags if tag == "section"]
+    assert teams == ["team1", "team2"]
+    boxes = {attrs["data-host"]: attrs["data-level"] for tag, attrs in tags if tag == "g" and "data-host" in attrs}
+    assert boxes == {"team1-main": "ok", "team1-robot": "bad", "team2-main": "warn"}
+    rows = [attrs["data-host"] for tag, attrs in tags if tag == "tr" and "data-host" in attrs]
+    assert rows == ["team1-main", "team1-robot", "team2-main"]
+    arrows = [attrs["class"] for tag, attrs in tags if tag == "line"]
+    assert arrows == ["arrow unknown"]  # robot -> main, not listened
+    assert "topics heard: not checked (roslab status --listen)" in page
+    assert "no robot in this team" in page
+
+
+def test_listening_shows_the_topics_heard_and_whether_the_robot_was_heard():
+    main, robot = reachable_host(), reachable_host(name="team1-robot", role="robot")
+    main.heard = {"ros": True, "topics": ["/chatter", "/robot_status", "/rosout"],
+                  "message": "Hello from team1-robot #3", "robot": "team1-robot", "echo_status": 0,
+                  "daemon_stopped": False, "finished": True}
+    picture = page_context("lab", "x", [main, robot], NOW, listen=True)["teams"][0]
+    assert picture["verdict"] == "heard team1-robot" and picture["verdict_level"] == "ok"
+    assert [arrow["state"] for arrow in picture["arrows"]] == ["ok"]
+    assert [text["text"] for text in picture["texts"]] == ["topics heard:", "  /chatter", "  /robot_status"]
+
+    main.heard = {**main.heard, "message": None, "robot": None, "topics": ["/rosout"]}
+    picture = page_context("lab", "x", [main, robot], NOW, listen=True)["teams"][0]
+    assert picture["verdict_level"] == "bad" and "does not see /chatter" in picture["verdict"]
+    assert [arrow["state"] for arrow in picture["arrows"]] == ["bad"]
+
+    # A main host without a ROS 2 runtime (the sandbox's stand-in) cannot tell: not a "not heard".
+    main.heard = {**main.heard, "ros": False, "topics": []}
+    picture = page_context("lab", "x", [main, robot], NOW, listen=True)["teams"][0]
+    assert picture["verdict"] == "no ROS runtime on team1-main: not verified"
+    assert picture["verdict_level"] == "warn"
+    assert [arrow["state"] for arrow in picture["arrows"]] == ["unknown"]
+    assert [text["text"] for text in picture["texts"]] == ["topics heard: no ROS 2 runtime on the main host"]
+
+
+# the command (subprocesses: it connects with pyinfra's gevent, as the CLI does) -----------------
+
+
+def free_port() -> int:
+    with socket.socket() as probe_socket:
+        probe_socket.bind(("127.0.0.1", 0))
+        return probe_socket.getsockname()[1]
+
+
+def loopback_roster(tmp_path: Path, port: int) -> Path:
+    roster = tmp_path / "classroom.yaml"
+    roster.write_text(yaml.safe_dump({
+        "classroom": {"name": HOSTILE, "ssh_user": "ubuntu", "ssh_port": port, "ubuntu_release": "24.04"},
+        "teams": {
+            "team1": {"ros_domain_id": 11, "hosts": {
+                "team1-main": {"role": "main", "address": "127.0.0.1"},
+                "team1-robot": {"role": "robot", "address": "127.0.0.2"}}},
+            "team2": {"ros_domain_id": 12, "hosts": {"team2-main": {"role": "main", "address": "127.0.0.3"}}},
+        },
+    }, sort_keys=False))
+    return roster
+
+
+def roslab(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
+    env = {key: value for key, value in os.environ.items() if key != "ROSLAB_ROSTER"}
+    return subprocess.run([sys.executable, "-m", "roslab", *args], cwd=REPO, env=env,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def test_unreachable_hosts_are_rows_that_say_so_and_the_page_lands_beside_the_roster(tmp_path):
+    roster = loopback_roster(tmp_path, free_port())  # nothing listens there: refused at once
+    started = time.monotonic()
+    result = roslab("status", str(roster))
+    assert time.monotonic() - started < 30
+    assert result.returncode == 1, result.stderr
+    table = result.stdout.splitlines()
+    rows = [line for line in table if line.startswith("team")]
+    assert [row.split()[1] for row in rows] == ["team1-main", "team1-robot", "team2-main"]
+    assert all(row.split()[4] == "unreachable" for row in rows), table
+    assert "3 of 3 hosts unreachable" in result.stderr
+    page = tmp_path / ".roslab-state" / "status.html"
+    assert f"page: {page}" in result.stdout
+    text = page.read_text()
+    assert "&lt;script&gt;" in text and "<script" not in text
+    assert text.count("Could not connect") == 3
+
+
+def test_limit_selects_hosts_as_pyinfra_does_and_html_goes_where_asked(tmp_path):
+    roster = loopback_roster(tmp_path, free_port())
+    page = tmp_path / "out" / "class.html"
+    result = roslab("status", str(roster), "--limit", "team2", "--html", str(page))
+    rows = [line for line in result.stdout.splitlines() if line.startswith("team")]
+    assert [row.split()[1] for row in rows] == ["team2-main"]
+    assert page.exists() and not (tmp_path / ".roslab-state" / "status.html").exists()
+    assert roslab("status", str(roster), "--limit", "nosuchteam").returncode == 2
+
+
+def test_a_host_that_accepts_but_never_answers_is_bounded(tmp_path):
+    silent = socket.socket()
+    silent.bind(("127.0.0.1", 0))
+    silent.listen(8)
+    accepted = []
+    stop = threading.Event()
+
+    def accept():  # take connections and say nothing: no SSH banner ever comes
+        silent.settimeout(0.2)
+        while not stop.is_set():
+            try:
+                accepted.append(silent.accept()[0])
+            except OSError:
+                continue
+
+    thread = threading.Thread(target=accept, daemon=True)
+    thread.start()
+    try:
+        roster = loopback_roster(tmp_path, silent.getsockname()[1])
+        started = time.monotonic()
+        result = roslab("status", str(roster), "--limit", "team1-main", "--timeout", "3")
+        elapsed = time.monotonic() - started
+    finally:
+        stop.set()
+        thread.join()
+        for connection in accepted:
+            connection.close()
+        silent.close()
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert elapsed < 20, elapsed
+    row = next(line for line in result.stdout.splitlines() if line.startswith("team1"))
+    assert "unreachable" in row and "no answer within 3 s" in row, row
+
+
+def test_a_refused_host_key_says_which_roslab_command_to_run():
+    from roslab import identity
+
+    target = identity.HostTarget("status-test-host", "classroom.yaml", ".roslab-state/known_hosts")
+    identity.explainer().add_host(target, ["127.0.0.99"])
+    message = status.explained("status-test-host", "SSH error (No host key for 127.0.0.99 found in known_hosts)")
+    assert message.startswith("no SSH host key of status-test-host (127.0.0.99) is recorded in "
+                              ".roslab-state/known_hosts"), message
+    assert "`roslab trust classroom.yaml --host status-test-host`" in message
+    assert status.explained("other", "Could not connect (refused)") == "Could not connect (refused)"

@@ -1,0 +1,66 @@
+"""`roslab status`'s page in a real browser (Debian's chromium, headless): what a teacher sees.
+
+The page is rendered from fixtures (a reachable, an unreachable and a never-run host, and
+markup where names belong), opened from a file as a teacher would, and checked on the DOM
+the browser built: each team and host with its state, the injected `<script>` as inert
+text. A screenshot shows the browser painted it (not a blank page).
+"""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+from fixtures.browser import chromium_missing, distinct_rows, dump_dom, screenshot
+from fixtures.status_hosts import HOSTILE, NOW, hostile_page, never_run_host, reachable_host, unreachable_host
+
+from roslab.status import page_context, render_page
+
+pytestmark = pytest.mark.skipif(chromium_missing() is not None, reason=str(chromium_missing()))
+
+
+def test_the_browser_shows_every_team_host_and_state(tmp_path):
+    hosts = [reachable_host(), reachable_host(name="team1-robot", role="robot"), unreachable_host(name="team1-robot2"),
+             never_run_host()]
+    page = tmp_path / "status.html"
+    page.write_text(render_page(page_context("robotics-lab", "classroom.yaml", hosts, NOW)))
+
+    dom = dump_dom(page)
+
+    assert re.findall(r'<section class="team" data-team="([^"]*)"', dom) == ["team1", "team2"]
+    boxes = dict(re.findall(r'<g class="host" data-host="([^"]*)" data-level="([^"]*)"', dom))
+    assert boxes == {"team1-main": "ok", "team1-robot": "ok", "team1-robot2": "bad", "team2-main": "warn"}
+    rows = re.findall(r'<tr data-host="([^"]*)">(.*?)</tr>', dom, re.S)
+    cells = {host: re.findall(r"<td[^>]*>(.*?)</td>", row, re.S) for host, row in rows}
+    assert list(cells) == ["team1-main", "team1-robot", "team1-robot2", "team2-main"]
+    assert cells["team1-main"][4:9] == ["ok", "24.04 noble", "jazzy", "11", "active (running)"]
+    assert cells["team1-robot2"][4] == "unreachable"
+    assert cells["team2-main"][8:11] == ["not installed", "never", "never"]
+    assert dom.count('class="arrow unknown"') == 2  # two robots -> main, not listened
+
+
+def test_markup_in_names_is_inert_text_in_the_browser(tmp_path):
+    page = tmp_path / "status.html"
+    page.write_text(hostile_page(listen=True))
+
+    dom = dump_dom(page)
+
+    as_text = HOSTILE.replace("<", "&lt;").replace(">", "&gt;")
+    assert "<script" not in dom and "<img" not in dom  # no element came from a value
+    # Had the script run, the title would be "pwned".
+    assert re.search(r"<title>(.*?)</title>", dom).group(1) == f"roslab status: {as_text}"
+    assert re.search(r"<h1>(.*?)</h1>", dom).group(1) == as_text  # shown, as text
+    assert '<section class="team" data-team="&lt;script&gt;' in dom
+
+
+def test_the_browser_paints_the_page(tmp_path):
+    page = tmp_path / "status.html"
+    page.write_text(hostile_page())
+    blank = tmp_path / "blank.html"
+    blank.write_text("<!DOCTYPE html><html><body></body></html>")
+
+    shot = screenshot(page, tmp_path / "status.png")
+    empty = screenshot(blank, tmp_path / "blank.png")
+
+    assert distinct_rows(empty) <= 2  # the measure tells a blank page
+    assert distinct_rows(shot) > 100
