@@ -7,7 +7,8 @@ At the end (also with --dry) roslab.summary prints one line per host: ok, change
 failed with the step and the reason.
 """
 
-from deploy.apt_ready import apt_ready
+from deploy.apt_cache import apt_cache_client, apt_cache_server
+from deploy.apt_ready import apt_lists, apt_ready
 from deploy.common import supported_host
 from deploy.locale import system_locale
 from deploy.network import network
@@ -15,20 +16,28 @@ from deploy.ros_apt_source import ros_apt_source
 from deploy.ros_install import ros_install
 from deploy.rosdep import rosdep
 from deploy.shell_env import shell_env
+from deploy.ssh_hardening import ssh_hardening
 from deploy.ssh_identity import ssh_identity
 from deploy.workspace import workspace
-from roslab import summary
+from roslab import sudo, summary
 
 summary.install()  # once per run, although pyinfra runs this file once per host
+sudo.install()  # for any inventory: the sudo password goes to an askpass file, never a command line
 
 if supported_host():
+    # The cache host first: pyinfra runs each operation on every host before the next, so
+    # the cache answers before any host's first apt-get update.
+    apt_cache_server()
+    apt_cache_client()
     apt_ready()
-    system_locale()
     ros_apt_source()
+    apt_lists()  # one apt-get update, after every source above is written
+    system_locale()
     ros_install()
     rosdep()
     shell_env()
     ssh_identity()
+    ssh_hardening()  # only once a key login worked in this run
     # The address change takes effect here, after SSH is known good; the steps
     # after it run at the host's new address.
     network()

@@ -2,6 +2,11 @@
 
     roslab check [ROSTER]     validate a roster and print the classroom as a table
     roslab verify [INVENTORY] check that each team's main host hears its robot (roslab.verify)
+    roslab seed [ROSTER] --out DIR | --boot-partition PATH | --image FILE
+                              first-boot seeds for freshly flashed Pis (roslab.seed)
+    roslab trust [ROSTER]     record the host key of Pis flashed without a seed (roslab.trust)
+    roslab forget HOST        remove a Pi's recorded host key (roslab.trust)
+    roslab status [ROSTER]    every host's state, as a table and an HTML page (roslab.status)
 
 `roslab sandbox ...` comes from `roslab.sandbox.cli` when that module is present.
 Exit status: 0 when the roster is valid, 1 when it has errors, 2 on bad usage.
@@ -98,6 +103,25 @@ def build_parser() -> argparse.ArgumentParser:
     )
     verify.add_argument("verify_args", nargs=argparse.REMAINDER, metavar="[INVENTORY] [--limit NAME]")
     verify.set_defaults(run=run_verify)
+
+    from roslab.seed.command import register as register_seed
+    from roslab.trust import register as register_trust
+
+    register_seed(commands)  # roslab seed
+    register_trust(commands)  # roslab trust, roslab forget
+
+    status = commands.add_parser(
+        "status",
+        help="show every host's state as a table and an HTML page",
+        description="Read-only: reach every host (in parallel, bounded) and show whether it answers, "
+        "its Ubuntu release, ROS 2 distro, domain ID, address, nodes service and last deploy run; "
+        "as a table and as one self-contained HTML page with a picture of each team. "
+        "Exits 1 if a host is unreachable.",
+    )
+    from roslab.status import build_parser as status_arguments, run as run_status
+
+    status_arguments(status)
+    status.set_defaults(run=run_status)
 
     try:
         from roslab.sandbox.cli import register

@@ -89,9 +89,13 @@ SCHEMA: list[Setting] = [
         ("ssh_port", 22, int, "SSH port.", f.int_range(1, 65535)),
         ("ssh_key", None, str, "Private key file on this machine (relative to the roster).",
          f.controller_path("file"), {"nullable": True}),
-        ("ssh_known_hosts_file", None, str, "known_hosts file pyinfra checks host keys against.",
+        ("ssh_known_hosts_file", None, str,
+         "known_hosts file pyinfra checks host keys against; None: the classroom's own, "
+         "`.roslab-state/known_hosts` beside the roster (`roslab seed`, `roslab trust`, `roslab forget`).",
          f.controller_path(), {"nullable": True}),
-        ("ssh_strict_host_key_checking", None, str, "pyinfra's host key policy.",
+        ("ssh_strict_host_key_checking", None, str,
+         "pyinfra's host key policy; None: yes (a host whose key is not recorded, or changed, is refused "
+         "with the roslab command to run).",
          f.choice("yes", "no", "off", "ask", "accept-new"), {"nullable": True}),
         ("sudo_password_secret", None, str, "Name of a secret holding the sudo password.",
          f.secret_name, {"nullable": True}),
@@ -102,6 +106,10 @@ SCHEMA: list[Setting] = [
         ("login_user", None, str,
          "The user who owns the ROS environment (~/.bashrc, ~/ros2_ws, the rosdep cache); "
          "None: the SSH user.", f.linux_user, {"nullable": True}),
+        ("offline", False, bool,
+         "Provision without the internet: the controller uses only its own cache (the ros2-apt-source "
+         ".deb, rosdep's data), the apt cache serves only what it holds, and no host downloads from "
+         "upstream directly.", None, {"levels": ("classroom",)}),
     ),
     *_concern(
         "apt_ready",
@@ -120,10 +128,29 @@ SCHEMA: list[Setting] = [
          f.int_range(0, 365 * SECONDS_PER_DAY, " s")),
     ),
     *_concern(
+        "apt_cache",
+        _enabled("apt_cache", "Use the classroom's apt cache (apt-cacher-ng on apt_cache_host): each .deb is "
+                              "downloaded once for the class."),
+        ("apt_cache_host", None, str,
+         "The roster host that runs the apt cache (e.g. the teacher's machine or a main Pi); every "
+         "host uses it as its apt proxy and falls back to direct downloads while it does not answer. "
+         "None: no cache.", f.host_label, {"nullable": True, "levels": ("classroom",),
+                                           "allowed": "a host in the roster"}),
+        ("apt_cache_port", 3142, int, "The port the apt cache listens on.", f.int_range(1, 65535),
+         {"levels": ("classroom",)}),
+        ("apt_cache_upstream_ports", [80], list,
+         "Ports the apt cache may download from (apt-cacher-ng allows 80 only): add a local "
+         "mirror's port, e.g. 8080.", f.int_range(1, 65535), {"item": int, "levels": ("classroom",)}),
+    ),
+    *_concern(
         "locale",
         _enabled("locale", "Generate the locale and set it system-wide."),
         ("locale", "en_US.UTF-8", str, "The system-wide locale (LANG); must be a UTF-8 locale.",
          f.utf8_locale),
+        ("timezone", "Etc/UTC", str,
+         "The time zone a Pi gets at first boot from its seed (`roslab seed`), like Europe/Berlin.",
+         f.pattern(r"[A-Za-z][A-Za-z0-9_+-]*(/[A-Za-z0-9_+-]+){0,2}",
+                   "a time zone name (like Europe/Berlin or Etc/UTC)")),
     ),
     *_concern(
         "ros_apt_source",
@@ -179,10 +206,17 @@ SCHEMA: list[Setting] = [
          "Package that provides rosdep when ros-dev-tools did not (ros_dev_tools: false).", f.debian_package),
         ("rosdep_sources_list_url", None, str,
          "URL of rosdep's sources list (20-default.list), fetched by the controller; None: "
-         "`rosdep init` fetches the official one.", f.url(("http", "https", "file")), {"nullable": True}),
+         "the official one.", f.url(("http", "https", "file")), {"nullable": True}),
         ("rosdistro_index_url", None, str,
          "URL of the rosdistro index (ROSDISTRO_INDEX_URL); None: rosdep's built-in default.",
          f.http_url, {"nullable": True}),
+        ("rosdep_data_from_controller", True, bool,
+         "The controller downloads rosdep's sources list, the rule files it lists and the rosdistro "
+         "index (with the host's distro) once, keeps them in rosdep_cache_dir and copies them to "
+         "each host; false: every host downloads them itself (rosdep init, rosdep update)."),
+        ("rosdep_cache_dir", "~/.cache/roslab/rosdep", str,
+         "Where the controller keeps rosdep's data (on the machine running pyinfra).",
+         f.controller_path()),
         ("rosdep_update_max_age", 7 * SECONDS_PER_DAY, int,
          "Seconds before the login user's rosdep cache counts as stale and is updated again.",
          f.int_range(0, 365 * SECONDS_PER_DAY, " s")),
@@ -211,6 +245,19 @@ SCHEMA: list[Setting] = [
         ("manage_hostname", True, bool, "Set the hostname to the host's name in the roster."),
         ("manage_etc_hosts", True, bool,
          "List every classroom host in /etc/hosts (a marked block) so names resolve without DNS."),
+    ),
+    *_concern(
+        "ssh_hardening",
+        _enabled("ssh_hardening",
+                 "Make sshd key-only with no root login (a managed drop-in that sorts before cloud-init's), "
+                 "applied only after a key login worked in the same run and `sshd -t` accepts it; "
+                 "false: sshd's configuration is left as it is."),
+        ("ssh_password_login", False, bool,
+         "Keep SSH password (and keyboard-interactive) login, e.g. for students logging in from lab "
+         "PCs; false: keys only."),
+        ("ssh_permit_root_login", "no", str,
+         "sshd's PermitRootLogin: no, or prohibit-password (root with a key only).",
+         f.choice("no", "prohibit-password")),
     ),
     *_concern(
         "network",
@@ -248,6 +295,9 @@ SCHEMA: list[Setting] = [
          "restores its previous configuration by itself.", f.int_range(10, 3600, " s")),
         ("network_disable_cloud_init", True, bool,
          "Stop cloud-init from rewriting the network at boot (its 50-cloud-init.yaml is kept as a backup)."),
+        ("network_backups_keep", 5, int,
+         "How many backups of replaced network files each host keeps under /var/backups/roslab/network "
+         "(one per change; the oldest are removed).", f.int_range(1, 100)),
     ),
     *_concern(
         "workspace",

@@ -120,6 +120,9 @@ def test_host_data_holds_identity_connection_and_every_setting_with_its_default(
         "roslab_roster_path": str(FIXTURES / "two_teams.yaml"),
         "ssh_hostname": "127.0.0.21",
         "ssh_user": "ubuntu",
+        # strict host key checking against the classroom's known_hosts (roslab.identity)
+        "ssh_known_hosts_file": str(FIXTURES / ".roslab-state" / "known_hosts"),
+        "ssh_strict_host_key_checking": "yes",
         "_sudo": True,
         "ubuntu_release": "22.04",
         "ros_domain_id": 12,
@@ -167,6 +170,7 @@ def test_every_deploy_setting_is_accepted_with_its_default(tmp_path):
     }))
     data = load_roster(path).hosts[0].data
     settings["ros_apt_source_cache_dir"] = str(Path(settings["ros_apt_source_cache_dir"]).expanduser())
+    settings["rosdep_cache_dir"] = str(Path(settings["rosdep_cache_dir"]).expanduser())  # set: a path here
     assert {key: data[key] for key in settings} == settings
 
 
@@ -211,8 +215,16 @@ def test_connection_paths_are_resolved_beside_the_roster(tmp_path):
 
 
 def test_root_user_is_not_given_sudo(tmp_path):
-    path = one_team(tmp_path, "ssh_user: root\nlogin_user: student\n")
+    path = one_team(tmp_path, "ssh_user: root\nlogin_user: student\nssh_permit_root_login: prohibit-password\n")
     assert "_sudo" not in load_roster(path).hosts[0].data
+
+
+def test_root_as_the_ssh_user_is_refused_while_hardening_would_lock_it_out(tmp_path):
+    assert one_error(one_team(tmp_path, "ssh_user: root\nlogin_user: student\n")) == (
+        "lab.yaml:10: team 'team1', host 'team1-main', field 'ssh_user': roslab logs in as root, and ssh "
+        "hardening (PermitRootLogin no) would lock it out: log in as the lab user, or set "
+        "ssh_permit_root_login: prohibit-password")
+    load_roster(one_team(tmp_path, "ssh_user: root\nlogin_user: student\nssh_hardening_enabled: false\n"))
 
 
 def test_root_as_the_login_user_is_refused(tmp_path):
@@ -535,8 +547,8 @@ def test_secret_is_resolved_masked_and_sudo_password_given_to_pyinfra(tmp_path):
     assert data["wifi_password"].unmask() == SECRET_VALUE
     assert SECRET_VALUE not in repr(data) and SECRET_VALUE not in str(data["wifi_password"])
     assert data["wifi_password_secret"] == "lab_wifi"
-    # pyinfra wraps _sudo_password itself and needs the plain string.
-    assert data["_sudo_password"] == "s3cret-sudo"
+    # The sudo password stays masked too: roslab.sudo unmasks it only into the host's askpass file.
+    assert data["_sudo_password"].unmask() == "s3cret-sudo" and "s3cret" not in repr(data)
 
 
 def test_reference_to_a_missing_secret(tmp_path):
