@@ -367,13 +367,28 @@ def wait_for_ssh(address: str, timeout: float = 60.0) -> float:
 # -- lxcfs (per-host /proc/uptime) -------------------------------------------------------
 
 def lxcfs_running() -> bool:
-    return (LXCFS_DIR / "proc/uptime").exists()
+    """True if lxcfs answers; a mount left by a killed lxcfs raises ENOTCONN and is not running."""
+    try:
+        return (LXCFS_DIR / "proc/uptime").exists()
+    except OSError:
+        return False
+
+
+def _unmount_stale_lxcfs() -> None:
+    """Drop a FUSE mount whose lxcfs died (a killed run), so a new lxcfs can serve the directory."""
+    try:
+        mounted = LXCFS_DIR.is_mount()
+    except OSError:
+        mounted = True  # stat on a dead FUSE mount fails with ENOTCONN
+    if mounted:
+        run("umount", "--lazy", LXCFS_DIR, check=False)
 
 
 def start_lxcfs(pid_file: Path, log_file: Path) -> bool:
     """Start lxcfs unless something already serves it; return True if we started it."""
     if lxcfs_running() or not shutil.which("lxcfs"):
         return False
+    _unmount_stale_lxcfs()
     LXCFS_DIR.mkdir(parents=True, exist_ok=True)
     with open(log_file, "ab") as handle:
         subprocess.Popen(["lxcfs", "--foreground", "--pidfile", str(pid_file), str(LXCFS_DIR)],
@@ -397,7 +412,6 @@ def stop_lxcfs(pid_file: Path, log_file: Path) -> None:
         comm = ""
     if comm == "lxcfs":
         terminate(pid)
-    if LXCFS_DIR.is_mount():
-        run("umount", "--lazy", LXCFS_DIR, check=False)
+    _unmount_stale_lxcfs()
     pid_file.unlink(missing_ok=True)
     log_file.unlink(missing_ok=True)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -119,18 +120,33 @@ def test_pyinfra_stops_on_a_bad_roster_before_connecting(tmp_path):
     assert "[t-main]" not in result.stderr
 
 
-def test_limit_groups_resolve_in_pyinfra(monkeypatch):
-    # What `--limit` selects from: pyinfra's own inventory built from inventories/lab.py.
-    from pyinfra.api import State
-    from pyinfra.context import ctx_state
-    from pyinfra_cli.inventory import make_inventory_from_files
+# Run in a child: importing pyinfra_cli monkey-patches the whole process with gevent
+# (subprocess, threads), which would then leak into every later test of this session.
+_LIMIT_GROUPS_SCRIPT = """
+import json, sys
+from pyinfra.api import State
+from pyinfra.context import ctx_state
+from pyinfra_cli.inventory import make_inventory_from_files
 
-    monkeypatch.setenv("ROSLAB_ROSTER", str(FIXTURE))
-    with ctx_state.use(State()):
-        inventory = make_inventory_from_files(str(REPO / "inventories" / "lab.py"))
-    members = {group: sorted(host.name for host in inventory.get_group(group))
-               for group in ("main", "robot", "team1", "team_2", "jazzy", "humble")}
-    assert members == {
+with ctx_state.use(State()):
+    inventory = make_inventory_from_files(sys.argv[1])
+members = {group: sorted(host.name for host in inventory.get_group(group))
+           for group in ("main", "robot", "team1", "team_2", "jazzy", "humble")}
+print(json.dumps({"members": members,
+                  "robot_hostname": inventory.get_host("team1-robot").data.ssh_hostname}))
+"""
+
+
+def test_limit_groups_resolve_in_pyinfra():
+    # What `--limit` selects from: pyinfra's own inventory built from inventories/lab.py.
+    result = subprocess.run(
+        [sys.executable, "-c", _LIMIT_GROUPS_SCRIPT, str(REPO / "inventories" / "lab.py")],
+        cwd=REPO, env={**os.environ, "ROSLAB_ROSTER": str(FIXTURE)},
+        capture_output=True, text=True, timeout=120,
+    )
+    assert result.returncode == 0, result.stderr
+    found = json.loads(result.stdout.splitlines()[-1])
+    assert found["members"] == {
         "main": ["team1-main", "team2-main"],
         "robot": ["team1-robot"],
         "team1": ["team1-main", "team1-robot"],
@@ -138,4 +154,4 @@ def test_limit_groups_resolve_in_pyinfra(monkeypatch):
         "jazzy": ["team1-main", "team1-robot"],
         "humble": ["team2-main"],
     }
-    assert inventory.get_host("team1-robot").data.ssh_hostname == "127.0.0.12"
+    assert found["robot_hostname"] == "127.0.0.12"

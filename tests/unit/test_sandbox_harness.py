@@ -4,6 +4,7 @@ the Ubuntu emulation files, and the upstream's rosdep/rosdistro data and stand-i
 
 from __future__ import annotations
 
+import errno
 import ipaddress
 import subprocess
 import textwrap
@@ -485,3 +486,23 @@ def test_a_kept_seed_is_root_only(tmp_path, monkeypatch):
     assert copy.stat().st_mode & 0o777 == 0o700
     assert {path.stat().st_mode & 0o777 for path in copy.iterdir()} == {0o600}
     assert hosts.keep_seed(instance, host, copy) == copy  # booting from the kept copy again
+
+
+def test_an_lxcfs_mount_left_by_a_killed_run_is_not_taken_for_a_running_lxcfs(monkeypatch):
+    # A killed lxcfs leaves its FUSE mount: every stat under it fails with ENOTCONN.
+    class DeadMount:
+        def __truediv__(self, other):
+            return self
+
+        def exists(self):
+            raise OSError(errno.ENOTCONN, "Transport endpoint is not connected")
+
+        def is_mount(self):
+            raise OSError(errno.ENOTCONN, "Transport endpoint is not connected")
+
+    unmounted = []
+    monkeypatch.setattr(hosts, "LXCFS_DIR", DeadMount())
+    monkeypatch.setattr(hosts, "run", lambda *argv, **kwargs: unmounted.append(argv))
+    assert hosts.lxcfs_running() is False
+    hosts._unmount_stale_lxcfs()
+    assert unmounted and unmounted[0][:2] == ("umount", "--lazy")
