@@ -7,7 +7,7 @@ At the end (also with --dry) roslab.summary prints one line per host: ok, change
 failed with the step and the reason.
 """
 
-from deploy.apt_cache import apt_cache_client, apt_cache_server
+from deploy.apt_cache import apt_cache_client, apt_cache_filled, apt_cache_server
 from deploy.apt_ready import apt_lists, apt_ready
 from deploy.common import supported_host
 from deploy.locale import system_locale
@@ -32,6 +32,7 @@ if supported_host():
     apt_ready()
     ros_apt_source()
     apt_lists()  # one apt-get update, after every source above is written
+    apt_cache_filled()  # one host per release downloads for the class before anyone installs
     system_locale()
     ros_install()
     rosdep()

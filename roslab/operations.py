@@ -17,6 +17,7 @@ from pyinfra import host, logger, state
 from pyinfra.api import FileUploadCommand, QuoteString, StringCommand, operation
 from pyinfra.api.util import format_text
 from pyinfra.context import ctx_host
+from pyinfra.facts.deb import DebPackages
 from pyinfra.facts.files import File, FileContents, Link
 from pyinfra.facts.server import Locales, Which
 from pyinfra.operations.util.files import chmod, chown, generate_color_diff
@@ -482,6 +483,37 @@ def command_installed(command: str, package: str, lock_timeout: int):
     yield StringCommand(
         apt_get(f"{DPKG_KEEP_CONFFILES} install --", lock_timeout), QuoteString(apt_arguments([package])[0])
     )
+
+
+@operation()
+def packages_downloaded(packages: list[str], installed_here: list[str], lock_timeout: int):
+    """
+    Ensure apt has downloaded `packages` and their dependencies (through its proxy), without
+    installing them: how one host fills the classroom's apt cache before the class installs.
+
+    + packages: the packages to download (the ones already installed are skipped by apt)
+    + installed_here: the packages this host installs itself; once all of them are installed,
+      the run that installed them went through the cache, so nothing is downloaded again
+    + lock_timeout: seconds apt waits for the dpkg lock
+    """
+    installed = host.get_fact(DebPackages) or {}
+    if all(_package_name(name) in installed for name in installed_here):
+        host.noop("the packages are installed here: the run that installed them filled the cache")
+        return
+    yield StringCommand(
+        apt_get("install --download-only --", lock_timeout),
+        *(QuoteString(name) for name in apt_arguments(packages)),
+    )
+
+
+def _package_name(spec: str) -> str:
+    """`name` of an apt spec `name`, `name=version` or `name/suite`."""
+    return re.split(r"[=/]", spec, maxsplit=1)[0]
+
+
+def packages_downloaded_reads() -> list:
+    """What `packages_downloaded` reads (roslab.probe)."""
+    return [read(DebPackages)]
 
 
 def command_installed_reads(command: str) -> list:

@@ -23,6 +23,7 @@ from deploy.apt_cache import (
     PROXY_CONFIG,
     SERVER_CONFIG,
     apt_cache_client,
+    apt_cache_filled,
     apt_cache_server,
     proxy_url,
 )
@@ -122,6 +123,63 @@ def test_offline_and_a_mirrors_port_reach_the_cache_configuration(tmp_path):
     data = host_data(tmp_path, role="main", offline=True, apt_cache_upstream_ports=[80, 8080], **CACHE)
     config = plan(apt_cache_server, FakeUbuntu().facts(), data).uploads()[SERVER_CONFIG]
     assert "\nAllowUserPorts: 80 8080\n" in config and "\nOfflinemode: 1\n" in config
+
+
+def class_of(tmp_path, **settings) -> dict[str, dict]:
+    """A class on one cache: team1 and team2 on Ubuntu 24.04, team3-main on 22.04."""
+    hosts = {}
+    for team, role, codename in (("team1", "main", "noble"), ("team1", "robot", "noble"),
+                                 ("team2", "main", "noble"), ("team3", "main", "jammy")):
+        data = host_data(tmp_path, codename=codename, role=role, **CACHE, **settings)
+        data.update(roslab_team=team, roslab_hostname=f"{team}-{role}")
+        hosts[f"{team}-{role}"] = data
+    return hosts
+
+
+def fill_plan(tmp_path, name: str, host: FakeUbuntu | None = None, **settings):
+    """apt_cache_filled planned on `name`, the whole class in the run, in roster order."""
+    hosts = class_of(tmp_path, **settings)
+    names = list(hosts)
+    at = names.index(name)
+    before = tuple((other, hosts[other]) for other in names[:at])
+    after = tuple((other, hosts[other]) for other in names[at + 1:])
+    host = host or FakeUbuntu(codename="jammy" if name.startswith("team3") else "noble")
+    return plan(apt_cache_filled, host.facts(), hosts[name], host_name=name, other_hosts=before,
+                hosts_after=after)
+
+
+def test_the_first_host_of_each_release_fills_the_cache_for_its_release_one_at_a_time(tmp_path):
+    first = fill_plan(tmp_path, "team1-main")
+    (download,) = first.operations
+    assert download.arguments["_serial"] is True  # the releases share arch:all .debs
+    (command,) = download.text()
+    assert "apt-get -y" in command and "install --download-only -- " in command
+    # Every role's packages of the release: the robots' ros-base too, not only its own desktop.
+    assert command.endswith("-- locales openssh-server ros-dev-tools ros-jazzy-desktop ros-jazzy-ros-base")
+    assert fill_plan(tmp_path, "team1-robot").operations == []
+    assert fill_plan(tmp_path, "team2-main").operations == []
+    # The first (only) 22.04 host fills for its release, with its distro's packages.
+    (jammy,) = fill_plan(tmp_path, "team3-main").operations
+    assert jammy.text()[0].endswith("-- locales openssh-server ros-dev-tools ros-humble-desktop")
+
+
+def test_a_filled_host_downloads_nothing_again_and_says_why(tmp_path):
+    host = FakeUbuntu()
+    host.packages.update({name: ["1"] for name in
+                          ("locales", "openssh-server", "ros-dev-tools", "ros-jazzy-desktop")})
+    result = fill_plan(tmp_path, "team1-main", host)
+    assert result.changing() == {}
+    assert result.noops == ["the packages are installed here: the run that installed them filled the cache"]
+
+
+def test_nothing_is_filled_without_a_cache_or_while_the_cache_host_is_not_in_the_run(tmp_path):
+    no_cache = host_data(tmp_path, role="main")
+    assert plan(apt_cache_filled, FakeUbuntu().facts(), no_cache).operations == []
+    # Only team1-robot is in this run (e.g. --limit): its cache host is not converged first.
+    robot = class_of(tmp_path)["team1-robot"]
+    assert plan(apt_cache_filled, FakeUbuntu().facts(), robot, host_name="team1-robot").operations == []
+    switched_off = fill_plan(tmp_path, "team1-main", apt_cache_enabled=False)
+    assert switched_off.operations == []
 
 
 def test_a_cache_host_that_is_not_in_the_roster_is_refused_before_any_host_is_touched(tmp_path):
