@@ -14,8 +14,9 @@ from pyinfra import host
 from pyinfra.api import deploy
 
 from deploy.common import should_run, stop_host, where
+from roslab import probe
 from roslab import settings as schema
-from roslab.network.operation import network_in_effect
+from roslab.network.operation import network_in_effect, network_in_effect_reads
 from roslab.network.settings import NetworkSettingError, network_settings
 
 DEFAULTS = schema.defaults("network")
@@ -53,3 +54,15 @@ def network():
         current_address=current_address(),
         roster_path=host.data.get("roslab_roster_path"),
     )
+
+
+@probe.reader
+def network_reads() -> list:
+    """What the network step reads on a host whose network is in place (roslab.probe)."""
+    if not should_run("network_enabled"):
+        return []
+    try:
+        settings = network_settings(host.data)
+    except NetworkSettingError:
+        return []  # the step stops this host, reading nothing
+    return network_in_effect_reads(settings) if settings is not None else []

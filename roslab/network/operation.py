@@ -28,13 +28,18 @@ from roslab.network import apply
 from roslab.network.apply import APPLY_UNIT, BACKUP_ROOT, NETPLAN_DIR, RUN_DIR, STAGING_DIR, Plan
 from roslab.network.confirm import confirm_network_change
 from roslab.network.render import (
+    CLOUD_INIT_DISABLE_FILE,
+    CLOUD_INIT_FILE,
+    NETPLAN_FILE,
     SED_MASK_SECRETS,
     RendererFacts,
     choose_layout,
     desired_files,
+    keyfile_path,
     mask_secrets,
 )
 from roslab.network.settings import NetworkSettings
+from roslab.probe import read
 
 APPLY_SCRIPT = Path(apply.__file__)
 # Where the script and the plan go on the host.
@@ -235,3 +240,17 @@ def network_in_effect(
             "roster_path": roster_path,
         },
     )
+
+
+def network_in_effect_reads(settings: NetworkSettings) -> list:
+    """What `network_in_effect` reads on a host whose network is already in place (roslab.probe).
+
+    The files it compares depend on the layout the host is found to use, so the reads cover
+    every layout's files: one probe section each, instead of a command each on every run.
+    """
+    wanted = [NETPLAN_FILE, keyfile_path(settings), CLOUD_INIT_DISABLE_FILE]
+    reads = [read(NetworkRenderer), read(NetplanFilesConfiguring, interface=settings.interface)]
+    for path in wanted:
+        reads += [read(Sha256File, path=path), read(File, path=path)]
+    reads.append(read(File, path=CLOUD_INIT_FILE))
+    return reads

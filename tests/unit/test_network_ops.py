@@ -18,6 +18,7 @@ from roslab.network import state as network_state
 from roslab.network.apply import NETPLAN_NM, NM_KEYFILE, Plan
 from roslab.network.operation import MaskedFileContents, NetplanFilesConfiguring, NetworkRenderer
 from roslab.network.render import RendererFacts
+from roslab import settings as schema
 from roslab.secrets import Secret
 from fixtures.fake_host import plan
 
@@ -128,6 +129,26 @@ def test_second_run_changes_nothing():
     result = run_network(files=in_place)
     assert [op.name for op in result.operations if op.commands] == []
     assert any("network configuration already in place" in noop for noop in result.noops)
+
+
+@pytest.mark.parametrize("renderer", [SERVER_2404, DESKTOP_2204], ids=["netplan", "keyfile"])
+def test_a_network_in_place_is_read_by_the_probe_alone(renderer):
+    # Issue 11: on a no-op run the step's reads come from the host's one probe command;
+    # a fact read on its own would be one more remote command per host on every run.
+    from deploy.network import network_reads
+    from roslab.probe import read_ahead
+
+    first = run_network(renderer=renderer, files={CLOUD_INIT: "x"}).uploads()
+    in_place = {path[len(STAGED):]: content for path, content in first.items() if path.startswith(STAGED)}
+
+    def probed_then_network():
+        read_ahead(network_reads())
+        network()
+
+    result = plan(probed_then_network, facts(renderer=renderer, files=in_place),
+                  data={**schema.defaults("network"), **HOST_DATA})
+    assert [op.name for op in result.operations if op.commands] == []
+    assert result.facts_asked == ["HostProbe"]
 
 
 def test_leftover_cloud_init_file_alone_triggers_a_change():
