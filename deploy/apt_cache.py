@@ -247,7 +247,7 @@ def release_peers() -> list:
     ]
 
 
-def _fills_the_cache() -> bool:
+def fills_the_class_cache() -> bool:
     """True on the one host per release that fills the class cache (the first in the roster)."""
     if not should_run("apt_cache_enabled") or not host.data.apt_cache_host:
         return False
@@ -276,7 +276,7 @@ def apt_cache_filled():
     ros_variant, ros_variant_main, ros_variant_robot, ros_dev_tools, ros_extra_packages,
     roslab_role, ssh_identity_enabled.
     """
-    if not _fills_the_cache():
+    if not fills_the_class_cache():
         return
     codename = host_codename()
     packages = sorted({name for peer in release_peers()
@@ -296,7 +296,7 @@ def apt_cache_filled():
 @probe.reader
 def apt_cache_filled_reads() -> list:
     """What apt_cache_filled's operation reads on a host that needs no change (roslab.probe)."""
-    return packages_downloaded_reads() if _fills_the_cache() else []
+    return packages_downloaded_reads() if fills_the_class_cache() else []
 
 
 @probe.reader

@@ -15,6 +15,7 @@ from deploy.common import (
     stop_host,
     where,
 )
+from deploy.apt_cache import fills_the_class_cache
 from deploy.ros_apt_source import OLD_METHOD_FILES, old_method_moved_aside
 from roslab import probe, settings
 from roslab.facts import AptProblem
@@ -91,21 +92,35 @@ def apt_lists():
     """Update the apt lists once: when an earlier step changed a source (apt_ready's, the
     ROS 2 source), or when they are older than apt_cache_max_age.
 
-    Runs after every step that writes apt sources (deploy.py) and before any install.
+    Runs after every step that writes apt sources (deploy.py) and before any install. With
+    a class apt cache, the first host of each release (deploy.apt_cache.fills_the_class_cache)
+    updates before the others, one release at a time.
     Reads host.data: apt_ready_enabled, apt_lock_timeout, apt_cache_max_age,
-    ros_apt_source_enabled (without apt_ready, the lists are updated only after the ROS 2
+    apt_cache_enabled, apt_cache_host, ubuntu_release, ros_apt_source_enabled (without apt_ready, the lists are updated only after the ROS 2
     source changed).
     """
     ready = bool(host.data.apt_ready_enabled)
     if not host_is_active() or not (ready or host.data.ros_apt_source_enabled):
         return
-    sources = apt_sources_written()
+    arguments = dict(
+        lock_timeout=host.data.apt_lock_timeout,
+        max_age=host.data.apt_cache_max_age if ready else None,
+        sources=apt_sources_written(),
+    )
+    if fills_the_class_cache():
+        # With a class apt cache, the first host of each release updates first, alone: the
+        # cache then holds fresh index files and answers the class's updates from them.
+        # Twelve hosts asking it for the same new index at once made it fail some of them.
+        apt_lists_updated(
+            name="Ensure the apt lists are fresh, updated through the class cache before the other hosts",
+            _serial=True,
+            **arguments,
+        )
+        return
     apt_lists_updated(
         name=("Ensure the apt lists are fresh: updated after a source changed"
               + (", and younger than apt_cache_max_age" if ready else "")),
-        lock_timeout=host.data.apt_lock_timeout,
-        max_age=host.data.apt_cache_max_age if ready else None,
-        sources=sources,
+        **arguments,
     )
 
 

@@ -396,20 +396,31 @@ def ubuntu_apt_sources_reads() -> list:
     return [read(FileContents, path=path) for path, _ in UBUNTU_SOURCE_FILES]
 
 
+# An update that runs longer than this after the lock wait is stuck, not slow: apt can wait
+# forever on a proxy that dropped a pipelined request. Killed, it fails the host, and the
+# next run updates again.
+APT_UPDATE_MAX_SECONDS = 1200
+
+
 def apt_update_command(lock_timeout: int) -> str:
     """`apt-get update` that fails on any failed download and marks the lists fresh only then.
 
     The stamp goes first: a failed or interrupted update leaves the lists stale, so the
     next run updates again instead of trusting lists that lack a source for a day. On a
-    failure apt's E:/W: lines are reported as one line, not its whole progress output.
+    failure apt's E:/W: lines are reported as one line, not its whole progress output; an
+    update still running `APT_UPDATE_MAX_SECONDS` after the lock wait is stopped and said so.
     """
     stamp = shlex.quote(APT_UPDATE_STAMP)
+    limit = int(lock_timeout) + APT_UPDATE_MAX_SECONDS
     update = apt_get(f"{APT_UPDATE_FAIL_ON_ANY_ERROR} update", lock_timeout)
     return (
-        f"rm -f {stamp} && if out=$({update} 2>&1); "
+        f"rm -f {stamp} && if out=$(timeout -k 30 {limit} env {update} 2>&1); "
         f"then mkdir -p /var/lib/apt/periodic && touch {stamp}; "
-        "else status=$?; echo \"roslab: apt-get update failed, the lists stay stale until one succeeds: "
-        "$(printf '%s\\n' \"$out\" | grep -E '^(E|W):' | tr -s '\\n ' '  ')\" >&2; exit $status; fi"
+        "else status=$?; if [ $status -eq 124 ] || [ $status -eq 137 ]; then "
+        f"echo \"roslab: apt-get update was stopped after {limit} s without finishing (a stuck download); "
+        "the lists stay stale and the next run updates again\" >&2; "
+        "else echo \"roslab: apt-get update failed, the lists stay stale until one succeeds: "
+        "$(printf '%s\\n' \"$out\" | grep -E '^(E|W):' | tr -s '\\n ' '  ')\" >&2; fi; exit $status; fi"
     )
 
 

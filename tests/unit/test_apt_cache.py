@@ -27,6 +27,7 @@ from deploy.apt_cache import (
     apt_cache_server,
     proxy_url,
 )
+from deploy.apt_ready import apt_lists
 from deploy.rosdep import ARCHIVE, rosdep
 from roslab import downloads, rosdep_data
 from roslab.roster import RosterError, load_roster
@@ -136,7 +137,7 @@ def class_of(tmp_path, **settings) -> dict[str, dict]:
     return hosts
 
 
-def fill_plan(tmp_path, name: str, host: FakeUbuntu | None = None, **settings):
+def fill_plan(tmp_path, name: str, host: FakeUbuntu | None = None, deploy=apt_cache_filled, **settings):
     """apt_cache_filled planned on `name`, the whole class in the run, in roster order."""
     hosts = class_of(tmp_path, **settings)
     names = list(hosts)
@@ -144,7 +145,7 @@ def fill_plan(tmp_path, name: str, host: FakeUbuntu | None = None, **settings):
     before = tuple((other, hosts[other]) for other in names[:at])
     after = tuple((other, hosts[other]) for other in names[at + 1:])
     host = host or FakeUbuntu(codename="jammy" if name.startswith("team3") else "noble")
-    return plan(apt_cache_filled, host.facts(), hosts[name], host_name=name, other_hosts=before,
+    return plan(deploy, host.facts(), hosts[name], host_name=name, other_hosts=before,
                 hosts_after=after)
 
 
@@ -161,6 +162,16 @@ def test_the_first_host_of_each_release_fills_the_cache_for_its_release_one_at_a
     # The first (only) 22.04 host fills for its release, with its distro's packages.
     (jammy,) = fill_plan(tmp_path, "team3-main").operations
     assert jammy.text()[0].endswith("-- locales openssh-server ros-dev-tools ros-humble-desktop")
+
+
+def test_the_first_host_of_each_release_updates_its_lists_before_the_class(tmp_path):
+    # Twelve hosts refreshing the same new index through apt-cacher-ng at once made it fail
+    # some of them; updated first, the cache answers the others from fresh copies.
+    (first,) = fill_plan(tmp_path, "team1-main", deploy=apt_lists).operations
+    assert "before the other hosts" in first.name and first.arguments["_serial"] is True
+    (robot,) = fill_plan(tmp_path, "team1-robot", deploy=apt_lists).operations
+    assert "before the other hosts" not in robot.name and not robot.arguments.get("_serial")
+    assert first.text() == robot.text()  # the same update, only its turn differs
 
 
 def test_a_filled_host_downloads_nothing_again_and_says_why(tmp_path):

@@ -293,7 +293,7 @@ def test_stale_or_missing_apt_lists_are_updated_with_a_bounded_lock_wait(age):
     assert "-o DPkg::Lock::Timeout=30 -o APT::Update::Error-Mode=any update" in UPDATE
 
 
-def run_update(tmp_path, apt_get_script: str):
+def run_update(tmp_path, apt_get_script: str, update: str = UPDATE):
     """The update command in a shell, with a stand-in apt-get and the stamp under tmp_path."""
     stamp = tmp_path / "periodic" / "update-success-stamp"
     stamp.parent.mkdir(exist_ok=True)
@@ -302,7 +302,7 @@ def run_update(tmp_path, apt_get_script: str):
     fake_bin.mkdir(exist_ok=True)
     (fake_bin / "apt-get").write_text("#!/bin/sh\n" + apt_get_script)
     (fake_bin / "apt-get").chmod(0o755)
-    command = UPDATE.replace(STAMP, str(stamp)).replace("/var/lib/apt/periodic", str(stamp.parent))
+    command = update.replace(STAMP, str(stamp)).replace("/var/lib/apt/periodic", str(stamp.parent))
     done = subprocess.run(["sh", "-c", command], env={**os.environ, "PATH": f"{fake_bin}:{os.environ['PATH']}"},
                           capture_output=True, text=True)
     return done, stamp
@@ -330,6 +330,17 @@ def test_an_update_with_a_failed_download_fails_in_one_line_and_leaves_the_lists
     (line,) = done.stderr.splitlines()
     assert line.startswith("roslab: apt-get update failed, the lists stay stale until one succeeds: "
                            "E: Failed to fetch http://10.11.0.1/ros2/ubuntu/dists/noble/InRelease")
+
+
+def test_a_stuck_update_is_stopped_and_said_so_in_one_line(tmp_path, monkeypatch):
+    """apt waiting forever on a proxy that dropped a request must not hang the class's run."""
+    monkeypatch.setattr(operations, "APT_UPDATE_MAX_SECONDS", 1)
+    done, stamp = run_update(tmp_path, "exec sleep 60\n", update=operations.apt_update_command(0))
+    assert done.returncode == 124
+    assert not stamp.exists()
+    (line,) = done.stderr.splitlines()
+    assert line == ("roslab: apt-get update was stopped after 1 s without finishing (a stuck download); "
+                    "the lists stay stale and the next run updates again")
 
 
 def test_a_successful_update_marks_the_lists_fresh(tmp_path):
