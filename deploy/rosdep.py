@@ -70,12 +70,7 @@ def rosdep():
             stop_host(f"{where()}: rosdep_sources_list_url: {error}; nothing was changed on it")
             return
 
-    command_installed(
-        name="Ensure rosdep is installed",
-        command="rosdep",
-        package=host.data.rosdep_package,
-        lock_timeout=host.data.apt_lock_timeout,
-    )
+    _rosdep_installed()
     if sources_list is not None:
         sources = files.put(
             name=f"Ensure rosdep's sources list comes from {sources_list_url}",
@@ -102,6 +97,16 @@ def rosdep():
     )
 
 
+def _rosdep_installed() -> None:
+    """Both ways of getting rosdep's data install it the same way, once their data is in hand."""
+    command_installed(
+        name="Ensure rosdep is installed",
+        command="rosdep",
+        package=host.data.rosdep_package,
+        lock_timeout=host.data.apt_lock_timeout,
+    )
+
+
 ARCHIVE = f"{rosdep_data.HOST_DIR}.tar"
 UNPACK = (f"set -e; rm -rf {rosdep_data.HOST_DIR}.new; mkdir -p {rosdep_data.HOST_DIR}.new; "
           f"tar -xf {ARCHIVE} --no-same-owner -C {rosdep_data.HOST_DIR}.new; "
@@ -119,12 +124,7 @@ def _rosdep_from_controller(user: str, home: str) -> None:
         stop_host(f"{where()}: rosdep's data: {error}; nothing was changed on it")
         return
 
-    command_installed(
-        name="Ensure rosdep is installed",
-        command="rosdep",
-        package=host.data.rosdep_package,
-        lock_timeout=host.data.apt_lock_timeout,
-    )
+    _rosdep_installed()
     archive = files.put(
         name="Ensure rosdep's data (downloaded once by the controller) is on the host",
         src=BytesIO(data.archive),
