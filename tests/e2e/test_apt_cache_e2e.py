@@ -6,9 +6,9 @@ apt's proxy. The sandbox upstream logs every request (path, status, bytes), so t
 counts what the class fetched:
 
 - the first run of all 12 hosts converges, every .deb (real Debian packages and stand-in
-  ROS packages alike) is fetched from upstream by the cache host only, exactly once (without
-  the cache: once per host), and no host fetches rosdep's data (the controller did, once per
-  file);
+  ROS packages alike) is fetched from upstream by the cache host only (without the cache:
+  once per host), apt-cacher-ng downloads each .deb exactly once (its own transfer log), and
+  no host fetches rosdep's data (the controller did, once per file);
 - with `offline: true` a freshly imaged host converges from the cache and the controller's
   kept copies, and nothing at all is fetched from upstream;
 - a second run of the cache host and a client changes nothing;
@@ -26,6 +26,7 @@ import os
 import signal
 import time
 from collections import Counter
+from urllib.parse import unquote
 
 import pytest
 import yaml
@@ -39,6 +40,10 @@ pytestmark = pytest.mark.e2e
 INSTANCE = os.environ.get("ROSLAB_CACHE_E2E_SANDBOX", "cache-e2e")
 SUBNET = os.environ.get("ROSLAB_CACHE_E2E_SUBNET", "10.213.42.0/24")
 HOSTS = 12
+# An upstream repeat of one .deb within this many seconds is apt-cacher-ng's retry of a
+# transfer it abandoned (see the first test); measured 2 ms to 0.5 s apart.
+RETRY_WINDOW = 30
+ACNG_LOG = "/var/log/apt-cacher-ng/apt-cacher.log"
 CACHE_HOST = "team1-main"
 # Freshly imaged for the cache-down run: one per release.
 DIRECT_HOSTS = ("team2-robot", "team3-robot")
@@ -66,6 +71,18 @@ def requests_since(classroom, start: int) -> list[upstream.Request]:
     return upstream.read_requests(request_log(classroom))[start:]
 
 
+def cache_downloads(classroom) -> list[str]:
+    """The .debs apt-cacher-ng downloaded, from its transfer log: `time|I|bytes|client|host/path`
+    per download it stored (`O` records are what it served). Paths as the upstream saw them, unquoted."""
+    log = classroom.sudo(CACHE_HOST, f"cat {ACNG_LOG}", check=True).stdout
+    paths = []
+    for line in log.splitlines():
+        fields = line.split("|")
+        if len(fields) == 5 and fields[1] == "I" and fields[4].endswith(".deb"):
+            paths.append("/" + fields[4].split("/", 1)[1])
+    return paths
+
+
 def test_a_class_with_the_cache_downloads_each_deb_once(classroom):
     start = len(upstream.read_requests(request_log(classroom)))
     began = time.monotonic()
@@ -90,10 +107,21 @@ def test_a_class_with_the_cache_downloads_each_deb_once(classroom):
     print(f"\n{HOSTS} hosts with the cache: first run {seconds:.0f} s, {len(fetched)} upstream requests, "
           f"{sum(r.bytes for r in fetched)} bytes; {len(debs)} .deb fetches for {len(per_path)} distinct .debs "
           f"(most fetched: {per_path.most_common(3)})")
-    # Exactly once: apt-cacher-ng fetches a file that several hosts miss in the same instant
-    # once per host, so the first host of each release fills the cache first (one release
-    # after the other), and the other hosts' installs are all cache hits.
-    assert per_path.most_common(1)[0][1] == 1, [(path, n) for path, n in per_path.most_common(10) if n > 1]
+    # Each .deb downloaded once by the cache: apt-cacher-ng's own transfer log has exactly one
+    # download ("I" record) per .deb, and none that the upstream did not serve.
+    downloads = Counter(cache_downloads(classroom))
+    assert set(downloads) == {unquote(path) for path in per_path}
+    assert downloads.most_common(1)[0][1] == 1, [(path, n) for path, n in downloads.most_common(10) if n > 1]
+    # The upstream may see a .deb asked for again at once: apt-cacher-ng sometimes closes a
+    # client's connection right after an answer, without `Connection: close`, while apt's next
+    # request is already on it; it then drops the transfer it had started for that request
+    # and fetches the file again when apt asks anew. This happens with any web server (seen
+    # with nginx too), so it is no stand-in artefact; the abandoned transfer is never stored.
+    # A repeat is only ever that retry, seconds apart, never a second miss later in the run.
+    for path, count in per_path.items():
+        if count > 1:
+            times = [request.time for request in debs if request.path == path]
+            assert max(times) - min(times) < RETRY_WINDOW, (path, times)
 
     # rosdep's data: the controller's requests only (no host asks for it).
     rosdep = [request for request in fetched if request.path.startswith(("/rosdep/", "/rosdistro/"))]
