@@ -72,6 +72,38 @@ PARAMETERS = {
 }
 
 
+# What a teacher may write for a parameter, by the type of its default: `publish_rate_hz: 2`
+# means 2.0, and `publishes_per_state: 3.0` means 3. ROS itself would refuse both (a
+# parameter's type is its default's), killing the node with InvalidParameterTypeException.
+TYPE_NAMES = {bool: 'true or false', int: 'a whole number', float: 'a number', str: 'text'}
+
+
+def parameter_value(node_name, name, value):
+    """
+    Return parameter `name` of `node_name` as its default's type, or raise ValueError.
+
+    An integer stands for a float and a whole float for an integer; anything else of
+    another type (text for a number, a number for text, true/false for a number) is an
+    error naming the node, the parameter, what it wants and what it got.
+    """
+    wanted = type(PARAMETERS[node_name][name].default)
+    is_bool = isinstance(value, bool)
+    if wanted is bool and is_bool:
+        return value
+    if wanted is float and isinstance(value, (int, float)) and not is_bool:
+        return float(value)
+    if wanted is int and not is_bool:
+        if isinstance(value, int):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+    if wanted is str and isinstance(value, str):
+        return value
+    raise ValueError(
+        f'parameter {node_name}.{name} must be {TYPE_NAMES[wanted]}, '
+        f'got {value!r} ({type(value).__name__})')
+
+
 def require_positive(parameter, value):
     """Raise ValueError naming the parameter unless its value is above 0."""
     if value <= 0:
