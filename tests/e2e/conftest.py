@@ -100,6 +100,18 @@ class SandboxClassroom:
     def roster_path(self) -> Path:
         return self.instance.roster_path
 
+    @property
+    def ros_served(self) -> dict[str, str]:
+        """distro -> "stand-in" or "real (...)": what the instance's ROS archive serves
+        (ROSLAB_SANDBOX_ROS_RUNTIME when it came up; docs/sandbox.md)."""
+        return lifecycle.ros_served(self.instance)
+
+    @property
+    def real_ros(self) -> bool:
+        """Every distro of the sandbox is real ROS 2 (else the tests that run nodes skip)."""
+        served = self.ros_served
+        return bool(served) and all(what.startswith("real") for what in served.values())
+
     def host(self, name: str) -> SandboxHost:
         return next(host for host in self.hosts if host.name == name)
 

@@ -281,3 +281,18 @@ def test_parameter_value_takes_a_number_in_either_form(node, name, value, expect
 def test_parameter_value_refuses_the_wrong_kind_naming_node_and_parameter(node, name, value, message):
     with pytest.raises(ValueError, match=re.escape(message)):
         logic.parameter_value(node, name, value)
+
+
+def test_the_first_interrupt_ends_the_node_and_a_second_one_is_ignored():
+    import os
+    import signal
+
+    before = signal.getsignal(signal.SIGINT)
+    try:
+        logic.end_on_first_interrupt()
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+        assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+        os.kill(os.getpid(), signal.SIGINT)  # ros2 launch's forwarded SIGINT: nothing happens
+    finally:
+        signal.signal(signal.SIGINT, before)

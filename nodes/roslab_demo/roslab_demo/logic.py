@@ -22,6 +22,7 @@ the node modules only wire these functions to topics and timers.
 import math
 import random
 import re
+import signal
 from typing import NamedTuple, Optional
 
 
@@ -102,6 +103,22 @@ def parameter_value(node_name, name, value):
     raise ValueError(
         f'parameter {node_name}.{name} must be {TYPE_NAMES[wanted]}, '
         f'got {value!r} ({type(value).__name__})')
+
+
+def end_on_first_interrupt():
+    """
+    Make the first SIGINT end the node (KeyboardInterrupt) and ignore any further one.
+
+    Ctrl-C reaches every process of a launch, and ros2 launch then forwards its own
+    SIGINT to each node: without this, the second one lands in the node's clean-up and
+    ends it with a KeyboardInterrupt traceback. Call it before rclpy.init, whose own
+    handler then passes the signal on to this one.
+    """
+    def interrupted(signum, frame):
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, interrupted)
 
 
 def require_positive(parameter, value):
