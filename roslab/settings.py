@@ -313,7 +313,7 @@ SCHEMA: list[Setting] = [
         ("workspace_rosdep_install", True, bool,
          "Run `rosdep install --from-paths src --ignore-src -y` when a package.xml changed."),
         ("nodes_service_enabled", True, bool,
-         "Run the role's launch as the systemd service roslab-nodes, restarted on failure."),
+         "Run the role's launch as the systemd service roslab-nodes, restarted whenever one of its nodes ends."),
         ("nodes_launch_main", "roslab_bringup main.launch.py", str,
          "What the service runs on main hosts: `ros2 launch <package> <launch file>`.", f.launch,
          {"allowed": "<package> <file>.launch.py"}),

@@ -525,7 +525,7 @@ def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = 
                           {"text": "no main host", "class": "name", "x": MAIN_X + 12, "y": main_y + 22}]})
 
     result = TeamResult(team, main=main.name if main else None, robots=sorted(r.name for r in robots),
-                        topic=topic)
+                        topic=topic, services={host.name: host.service for host in hosts})
     if main is not None:
         result.heard = main.heard
         if not main.reachable:

@@ -10,7 +10,8 @@ with `--no-daemon` so no ros2 daemon is left behind (and one the check started a
 stopped). Every ros2 call runs under `timeout --kill-after`, and the whole check under one
 more bound: a node that ignores SIGTERM cannot hang the check.
 
-A team passes only when the message itself is a robot's greeting (`Hello from <robot> #<n>`,
+A team passes only when every one of its hosts' roslab-nodes.service is active (running) and the
+message itself is a robot's greeting (`Hello from <robot> #<n>`,
 the demo talker's `chatter_text`) naming one of the team's robots: a greeting from another
 team's robot (domain IDs crossed) or any other text is not a pass. A host without a ROS 2
 runtime (no `ros2` command, as in the sandbox's stand-in ROS) is reported as such.
@@ -44,6 +45,9 @@ from roslab.workspace import NODES_SERVICE, NodesUnitState
 CHATTER_PATTERN = re.compile(r"Hello from (?P<robot_name>.+) #(?P<count>[0-9]+)", re.DOTALL)
 # The message type the talker publishes on the verify topic.
 CHATTER_TYPE = "std_msgs/msg/String"
+
+# What service_state says of a nodes service that runs; any other state fails the team.
+SERVICE_RUNNING = "active (running)"
 
 # Bounds, in seconds. Each ros2 call gets SIGTERM at its bound and SIGKILL KILL_AFTER later.
 KILL_AFTER = 5
@@ -184,11 +188,22 @@ class TeamResult:
     heard: dict | None = None  # NodesHeard of the main host
     error: str | None = None
 
+    def services_down(self) -> list[tuple[str, str]]:
+        """(host, state) of the team's hosts whose nodes service is not active (running).
+
+        A message heard beside a stopped, failed or restarting service is not a pass: right
+        after a reboot the main may hear a robot whose service is still starting, or has
+        just failed; the classroom is verified only once every service really runs.
+        """
+        hosts = ([self.main] if self.main else []) + list(self.robots)
+        return [(host, self.services.get(host, "?")) for host in hosts
+                if self.services.get(host) != SERVICE_RUNNING]
+
     @property
     def passed(self) -> bool:
         return bool(
             not self.error and self.heard and self.heard["ros"] and self.heard["robot"]
-            and self.heard["robot"] in self.robots
+            and self.heard["robot"] in self.robots and not self.services_down()
         )
 
     def verdict(self) -> str:
@@ -203,6 +218,9 @@ class TeamResult:
             return f"no ROS runtime on {self.main}: not verified"
         if not self.robots:
             return "no robot in the team: nothing to hear"
+        down = self.services_down()
+        if down:
+            return "; ".join(f"{NODES_SERVICE} on {host} is {state}" for host, state in down)
         if heard["robot"] is not None:
             if heard["robot"] in self.robots:
                 return f"heard {heard['robot']}"

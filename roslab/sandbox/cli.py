@@ -57,6 +57,8 @@ def register(subparsers) -> argparse.ArgumentParser:
 def print_status(report: dict) -> None:
     print(f"sandbox {report['name']}: subnet {report['subnet']}, upstream {report['upstream']}")
     print(f"roster: {report['roster']}")
+    for distro, what in sorted(report.get("ros", {}).items()):
+        print(f"ROS 2 {distro}: {what}")
     for host in report["hosts"]:
         state = "ssh ok" if host["ssh"] else ("booting" if host["running"] else "STOPPED")
         kind = "Desktop" if host["flavour"] == "desktop" else "Server"

@@ -135,6 +135,20 @@ def up(count: int | None = None, instance: Instance | None = None, desktop: list
             raise
 
 
+def _record_ros(instance: Instance, ros: dict[str, str]) -> None:
+    """Keep (in sandbox.json) and say which ROS each distro's archive serves: real or stand-ins."""
+    state = json.loads(_state_file(instance).read_text())
+    state["ros"] = ros
+    write_file(_state_file(instance), json.dumps(state) + "\n")
+    log.warning("sandbox %r serves ROS 2 %s", instance.name,
+                ", ".join(f"{distro}: {what}" for distro, what in sorted(ros.items())))
+
+
+def ros_served(instance: Instance) -> dict[str, str]:
+    """distro -> "stand-in" or "real (...)": what the running instance's ROS archive serves."""
+    return json.loads(_state_file(instance).read_text()).get("ros", {})
+
+
 def _healthy(classroom: Classroom) -> bool:
     return all(hosts.is_running(classroom.instance, host.name) for host in classroom.hosts)
 
@@ -152,6 +166,7 @@ def _up_locked(instance: Instance, planned: list[SandboxHost]) -> Classroom:
         "-f", instance.key_path)
     hosts.ensure_bridge(instance)
     published = upstream.build(instance.state_dir / "upstream", instance.upstream_url, rootfs)
+    _record_ros(instance, published.ros)
     upstream.start_server(instance.state_dir / "upstream", instance.bridge_address, UPSTREAM_PORT,
                           instance.state_dir / "upstream.pid", instance.state_dir / "upstream.log")
     keyring = upstream.ubuntu_key().keyring.read_bytes()
@@ -280,7 +295,7 @@ def status(instance: Instance | None = None) -> dict:
     classroom = load(instance)
     report = {"name": classroom.instance.name, "subnet": str(classroom.instance.subnet),
               "upstream": classroom.instance.upstream_url, "roster": str(classroom.instance.roster_path),
-              "hosts": []}
+              "ros": ros_served(classroom.instance), "hosts": []}
     for host in classroom.hosts:
         running = hosts.is_running(classroom.instance, host.name)
         try:

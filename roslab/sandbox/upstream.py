@@ -10,6 +10,9 @@ Served over HTTP on the instance's bridge address (hosts reach nothing else):
                     sandbox "ROS" key, holding STAND-IN ROS packages: they install
                     /opt/ros/<distro>/setup.bash and depend on the real rosdep and
                     colcon, but carry no ROS code (`import rclpy` fails honestly).
+                    With ROSLAB_SANDBOX_ROS_RUNTIME (roslab.sandbox.ros_runtime),
+                    ros-<distro>-ros-core is REAL ROS 2 instead, and the stand-ins
+                    depend on it.
   /ros-apt-source/  stand-ins for ros2-apt-source's .deb (key + deb822 source).
   /rosdep/          rosdep's sources list and rules for the keys the demo nodes use.
   /rosdistro/       a rosdistro index listing the stand-in ROS packages.
@@ -36,11 +39,11 @@ from pathlib import Path
 
 import yaml
 
-from . import image
+from . import image, ros_runtime
 from .system import SandboxError, file_lock, log, pid_alive, run, terminate, write_file
 
 # Bump when the archives' layout or the stand-ins change: part of the cache keys.
-ARCHIVE_VERSION = 4
+ARCHIVE_VERSION = 5
 
 ROS_APT_SOURCE_VERSION = "1.2.0"
 
@@ -265,8 +268,9 @@ def _cached_build(kind: str, key: str, build) -> Path:
 
 # -- the Ubuntu-layout archive of real Debian packages -----------------------------------
 
-def universe_packages(system_keys: dict[str, str]) -> list[str]:
-    return sorted(set(ROS_DEV_TOOLS_DEPENDS) | set(system_keys.values()) | set(EXTRA_UNIVERSE_PACKAGES))
+def universe_packages(system_keys: dict[str, str], runtime_packages=()) -> list[str]:
+    return sorted(set(ROS_DEV_TOOLS_DEPENDS) | set(system_keys.values()) | set(EXTRA_UNIVERSE_PACKAGES)
+                  | set(runtime_packages))
 
 
 def _download_closure(rootfs: Path, packages: list[str], workdir: Path, debs: Path) -> None:
@@ -298,9 +302,12 @@ def _download_closure(rootfs: Path, packages: list[str], workdir: Path, debs: Pa
     shutil.rmtree(apt)
 
 
-def ubuntu_archive(rootfs: Path, system_keys: dict[str, str]) -> Path:
-    """The cached Ubuntu-layout archive (real Debian packages in universe)."""
-    packages = universe_packages(system_keys)
+def ubuntu_archive(rootfs: Path, system_keys: dict[str, str], runtime_packages=()) -> Path:
+    """The cached Ubuntu-layout archive (real Debian packages in universe).
+
+    `runtime_packages`: the Debian libraries and tools a real ROS runtime needs (ros_runtime).
+    """
+    packages = universe_packages(system_keys, runtime_packages)
     key = ubuntu_key()
 
     def build(out: Path) -> None:
@@ -376,10 +383,14 @@ def ros_keys_for(extra_keys: set[str]) -> list[str]:
     return sorted(keys)
 
 
-def ros_archive(extra_keys: set[str]) -> Path:
-    """The cached ROS archive (stand-ins for jazzy on noble, humble on jammy, ros-dev-tools on both)."""
+def ros_archive(extra_keys: set[str], runtime: ros_runtime.Runtime | None = None) -> Path:
+    """The cached ROS archive (stand-ins for jazzy on noble, humble on jammy, ros-dev-tools on both).
+
+    A distro `runtime` holds a real tree for gets the real ros-core instead (ros_runtime).
+    """
     keys = ros_keys_for(extra_keys)
     signer = ros_key()
+    runtime = runtime or ros_runtime.Runtime({})
 
     def build(out: Path) -> None:
         work = out / "work"
@@ -388,7 +399,12 @@ def ros_archive(extra_keys: set[str]) -> Path:
                    "rosdep, colcon and vcstool)", depends=list(ROS_DEV_TOOLS_DEPENDS), out_dir=common)
         for codename, distro in ROS_DISTROS.items():
             pool = out / "pool/main" / codename
-            for key in keys:
+            if runtime.is_real(distro):
+                _real_ros_packages(work, codename, distro, keys, runtime, pool)
+                keys_to_stand_in = []
+            else:
+                keys_to_stand_in = keys
+            for key in keys_to_stand_in:
                 package = debian_name(distro, key)
                 files, depends = {}, [debian_name(distro, dep) for dep in VARIANT_DEPENDS.get(key, [])]
                 if key == ROS_WORKSPACE_KEY:
@@ -411,7 +427,27 @@ def ros_archive(extra_keys: set[str]) -> Path:
         shutil.rmtree(common)
 
     return _cached_build("ros-archive", _cache_key(ARCHIVE_VERSION, keys, ROS_DEV_TOOLS_DEPENDS,
-                                                   signer.fingerprint), build)
+                                                   signer.fingerprint, runtime.cache_key()), build)
+
+
+def _real_ros_packages(work: Path, codename: str, distro: str, keys: list[str],
+                       runtime: ros_runtime.Runtime, pool: Path) -> None:
+    """A distro on real ROS: the real ros-core from its tree, ros-base on it, stand-ins on them."""
+    version = f"0.0.0-1{codename}"
+    core = debian_name(distro, "ros_core")
+    ros_runtime.build_core_deb(work, runtime.trees[distro], distro, core, version, runtime.sums[distro], pool)
+    for key in keys:
+        package = debian_name(distro, key)
+        if key == "ros_core":
+            continue
+        if key == "ros_base":
+            _build_deb(work, package, version, f"{ros_runtime.REAL_NOTE} {distro} ros-base: a metapackage on "
+                       "ros-core, whose real tree holds ros-base's packages", depends=[core], out_dir=pool)
+            continue
+        depends = [debian_name(distro, dep) for dep in VARIANT_DEPENDS.get(key, [])] or [core]
+        depends += ros_runtime.LINTER_DEPENDS.get(key, ())
+        _build_deb(work, package, version, f"{STANDIN_NOTE}: {key} for ROS 2 {distro} (no files of its own; "
+                   "the real code, where the runtime has it, is in ros-core)", depends=depends, out_dir=pool)
 
 
 # -- per-instance content ----------------------------------------------------------------
@@ -490,6 +526,8 @@ class Upstream:
 
     url: str
     ros_apt_source_sha256: dict[str, str]
+    # distro -> "stand-in", or "real (<tarball>, sha256 <12 hex>)" (ros_runtime.Runtime.describe)
+    ros: dict[str, str] | None = None
 
     def roster_settings(self) -> dict:
         return {
@@ -508,12 +546,17 @@ class Upstream:
         return {"ros_apt_mirror_url": f"{self.url}/ros2/ubuntu", "ros_apt_mirror_key_file": str(key_file)}
 
 
-def build(serve_dir: Path, url: str, rootfs: Path, nodes_dir: Path | None = None) -> Upstream:
-    """Assemble the served tree for one instance (archives from the cache, the rest fresh)."""
+def build(serve_dir: Path, url: str, rootfs: Path, nodes_dir: Path | None = None,
+          runtime: ros_runtime.Runtime | None = None) -> Upstream:
+    """Assemble the served tree for one instance (archives from the cache, the rest fresh).
+
+    `runtime`: the real ROS trees to serve (default: those ROSLAB_SANDBOX_ROS_RUNTIME names).
+    """
+    runtime = runtime if runtime is not None else ros_runtime.Runtime.from_env(ROS_DISTROS.values())
     ros_keys, system_keys = node_dependencies(nodes_dir or default_nodes_dir())
     system_keys = {**SYSTEM_ROSDEP_KEYS, **system_keys}
-    ubuntu = ubuntu_archive(rootfs, system_keys)
-    ros = ros_archive(ros_keys)
+    ubuntu = ubuntu_archive(rootfs, system_keys, runtime.debian_packages())
+    ros = ros_archive(ros_keys, runtime)
     shutil.rmtree(serve_dir, ignore_errors=True)
     (serve_dir / "ros2").mkdir(parents=True)
     (serve_dir / "ubuntu").symlink_to(ubuntu)
@@ -523,7 +566,8 @@ def build(serve_dir: Path, url: str, rootfs: Path, nodes_dir: Path | None = None
         write_file(serve_dir / path, content)
     write_file(serve_dir / "keys/ros.asc", ros_key().armored.read_bytes())
     write_file(serve_dir / "keys/ubuntu.asc", ubuntu_key().armored.read_bytes())
-    return Upstream(url=url, ros_apt_source_sha256=sums)
+    ros = {distro: "stand-in" for distro in ROS_DISTROS.values()} | runtime.describe()
+    return Upstream(url=url, ros_apt_source_sha256=sums, ros=ros)
 
 
 # -- the HTTP server ------------------------------------------------------------------------

@@ -100,6 +100,21 @@ class SandboxClassroom:
     def roster_path(self) -> Path:
         return self.instance.roster_path
 
+    @property
+    def ros_served(self) -> dict[str, str]:
+        """distro -> "stand-in" or "real (...)": what the instance's ROS archive serves
+        (ROSLAB_SANDBOX_ROS_RUNTIME when it came up; docs/sandbox.md)."""
+        return lifecycle.ros_served(self.instance)
+
+    @property
+    def real_ros(self) -> bool:
+        """Every distro this classroom's hosts run is real ROS 2 (else the tests that run nodes skip)."""
+        from roslab.distro import DEFAULT_DISTRO, UBUNTU_CODENAMES
+
+        served = self.ros_served
+        distros = {DEFAULT_DISTRO[UBUNTU_CODENAMES[host.release]] for host in self.hosts}
+        return all(served.get(distro, "").startswith("real") for distro in distros)
+
     def host(self, name: str) -> SandboxHost:
         return next(host for host in self.hosts if host.name == name)
 

@@ -1,6 +1,7 @@
 """The demo nodes' logic (nodes/roslab_demo/roslab_demo/logic.py), tested without ROS."""
 
 import random
+import re
 import sys
 from pathlib import Path
 
@@ -249,3 +250,49 @@ def test_logic_module_does_not_need_ros():
         for line in source.splitlines()
         if line.startswith(("import ", "from "))
     }
+
+
+@pytest.mark.parametrize(
+    ('node', 'name', 'value', 'expected'),
+    [
+        ('talker', 'publish_rate_hz', 2, 2.0),  # a teacher's `publish_rate_hz: 2`
+        ('talker', 'publish_rate_hz', 0.5, 0.5),
+        ('status_publisher', 'publishes_per_state', 3.0, 3),
+        ('status_publisher', 'publishes_per_state', 4, 4),
+        ('temperature_monitor', 'warn_above_celsius', 65, 65.0),
+        ('talker', 'robot_name', 'r2', 'r2'),
+    ],
+)
+def test_parameter_value_takes_a_number_in_either_form(node, name, value, expected):
+    coerced = logic.parameter_value(node, name, value)
+    assert coerced == expected and type(coerced) is type(expected)
+
+
+@pytest.mark.parametrize(
+    ('node', 'name', 'value', 'message'),
+    [
+        ('talker', 'publish_rate_hz', 'fast', "talker.publish_rate_hz must be a number, got 'fast' (str)"),
+        ('talker', 'publish_rate_hz', True, 'talker.publish_rate_hz must be a number, got True (bool)'),
+        ('status_publisher', 'publishes_per_state', 2.5,
+         'status_publisher.publishes_per_state must be a whole number, got 2.5 (float)'),
+        ('talker', 'robot_name', 7, 'talker.robot_name must be text, got 7 (int)'),
+    ],
+)
+def test_parameter_value_refuses_the_wrong_kind_naming_node_and_parameter(node, name, value, message):
+    with pytest.raises(ValueError, match=re.escape(message)):
+        logic.parameter_value(node, name, value)
+
+
+def test_the_first_interrupt_ends_the_node_and_a_second_one_is_ignored():
+    import os
+    import signal
+
+    before = signal.getsignal(signal.SIGINT)
+    try:
+        logic.end_on_first_interrupt()
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+        assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+        os.kill(os.getpid(), signal.SIGINT)  # ros2 launch's forwarded SIGINT: nothing happens
+    finally:
+        signal.signal(signal.SIGINT, before)

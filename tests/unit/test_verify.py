@@ -309,3 +309,17 @@ def test_a_ros2_that_cannot_even_answer_help_is_no_ros_runtime(tmp_path):
     # Like the sandbox's stand-in ros2: every command but `launch` exits 127.
     heard = run_check(tmp_path, 'echo "stand-in: no ROS runtime" >&2\nexit 127\n')
     assert heard["ros"] is False
+
+
+@pytest.mark.parametrize("host", ["team1-robot", "team1-main"])
+@pytest.mark.parametrize("state", ["inactive (dead)", "activating (auto-restart)", "failed (start-limit-hit)",
+                                   "not installed", "?"])
+def test_a_message_heard_beside_a_service_that_does_not_run_is_no_pass(host, state):
+    # Right after a reboot the main can hear the robot while a service is still starting
+    # (or has just failed): verified only once every service of the team really runs.
+    team = result("team1", heard=heard("team1-robot"))
+    team.services[host] = state
+    assert not team.passed
+    assert team.verdict() == f"roslab-nodes.service on {host} is {state}"
+    row = verify.format_table([team]).splitlines()[2]
+    assert f"FAIL roslab-nodes.service on {host} is {state}" in row and "PASS" not in row

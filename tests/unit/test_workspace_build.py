@@ -422,7 +422,7 @@ def test_unit_runs_the_roles_launch_as_the_user_after_the_network():
     assert unit["Unit"]["Wants"] == "network-online.target"
     assert unit["Unit"]["Description"] == "roslab robot nodes (ros2 launch roslab_bringup robot.launch.py)"
     assert unit["Service"]["User"] == "ubuntu"
-    assert unit["Service"]["Restart"] == "on-failure"
+    assert unit["Service"]["Restart"] == "always"
     assert unit["Install"]["WantedBy"] == "multi-user.target"
     assert systemd_exec_argv(unit["Service"]["ExecStart"]) == [
         "/bin/bash", "-c",

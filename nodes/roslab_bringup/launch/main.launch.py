@@ -22,10 +22,16 @@ The main host hears its robot through ROS discovery (same ROS_DOMAIN_ID).
 """
 
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument
+from launch.actions import DeclareLaunchArgument, Shutdown
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
+
+# A node that ends, whether it crashed, was killed or returned, ends the whole launch: the
+# roslab-nodes service (Restart=always) then starts every node again, and a node that keeps
+# failing at start-up stops the service in systemd's start limit where `roslab verify` and
+# `systemctl status` show it, instead of the rest running on without it.
+NODE_ENDED = 'a node ended: the launch stops so that all its nodes start again together'
 
 
 def generate_launch_description():
@@ -38,9 +44,12 @@ def generate_launch_description():
             description='YAML file with the parameters of the demo nodes.',
         ),
         Node(package='roslab_demo', executable='listener', name='listener',
-             parameters=[params_file], output='screen'),
+             parameters=[params_file], output='screen',
+             on_exit=Shutdown(reason=NODE_ENDED)),
         Node(package='roslab_demo', executable='status_monitor', name='status_monitor',
-             parameters=[params_file], output='screen'),
+             parameters=[params_file], output='screen',
+             on_exit=Shutdown(reason=NODE_ENDED)),
         Node(package='roslab_demo', executable='temperature_monitor',
-             name='temperature_monitor', parameters=[params_file], output='screen'),
+             name='temperature_monitor', parameters=[params_file], output='screen',
+             on_exit=Shutdown(reason=NODE_ENDED)),
     ])

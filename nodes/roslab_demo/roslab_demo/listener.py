@@ -14,9 +14,12 @@
 
 """Log every greeting heard on the chatter topic."""
 
+import signal
+
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from roslab_demo.logic import end_on_first_interrupt
 from roslab_demo.parameters import declare_parameters
 from std_msgs.msg import String
 
@@ -35,6 +38,7 @@ class Listener(Node):
 
 
 def main(args=None):
+    end_on_first_interrupt()
     rclpy.init(args=args)
     node = Listener()
     try:
@@ -42,6 +46,9 @@ def main(args=None):
     except (KeyboardInterrupt, ExternalShutdownException):
         pass  # Ctrl-C or `ros2 launch` stopping us is a normal end, not an error
     finally:
+        # Ctrl-C reaches every process of a launch, and ros2 launch then sends SIGINT
+        # again: a second one must not cut the clean-up short with a traceback.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         node.destroy_node()
         rclpy.try_shutdown()
 

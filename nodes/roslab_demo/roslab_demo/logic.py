@@ -22,6 +22,7 @@ the node modules only wire these functions to topics and timers.
 import math
 import random
 import re
+import signal
 from typing import NamedTuple, Optional
 
 
@@ -70,6 +71,54 @@ PARAMETERS = {
         'error_above_celsius': Parameter(70.0, 'Readings above this log an error.'),
     },
 }
+
+
+# What a teacher may write for a parameter, by the type of its default: `publish_rate_hz: 2`
+# means 2.0, and `publishes_per_state: 3.0` means 3. ROS itself would refuse both (a
+# parameter's type is its default's), killing the node with InvalidParameterTypeException.
+TYPE_NAMES = {bool: 'true or false', int: 'a whole number', float: 'a number', str: 'text'}
+
+
+def parameter_value(node_name, name, value):
+    """
+    Return parameter `name` of `node_name` as its default's type, or raise ValueError.
+
+    An integer stands for a float and a whole float for an integer; anything else of
+    another type (text for a number, a number for text, true/false for a number) is an
+    error naming the node, the parameter, what it wants and what it got.
+    """
+    wanted = type(PARAMETERS[node_name][name].default)
+    is_bool = isinstance(value, bool)
+    if wanted is bool and is_bool:
+        return value
+    if wanted is float and isinstance(value, (int, float)) and not is_bool:
+        return float(value)
+    if wanted is int and not is_bool:
+        if isinstance(value, int):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+    if wanted is str and isinstance(value, str):
+        return value
+    raise ValueError(
+        f'parameter {node_name}.{name} must be {TYPE_NAMES[wanted]}, '
+        f'got {value!r} ({type(value).__name__})')
+
+
+def end_on_first_interrupt():
+    """
+    Make the first SIGINT end the node (KeyboardInterrupt) and ignore any further one.
+
+    Ctrl-C reaches every process of a launch, and ros2 launch then forwards its own
+    SIGINT to each node: without this, the second one lands in the node's clean-up and
+    ends it with a KeyboardInterrupt traceback. Call it before rclpy.init, whose own
+    handler then passes the signal on to this one.
+    """
+    def interrupted(signum, frame):
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, interrupted)
 
 
 def require_positive(parameter, value):

@@ -15,7 +15,7 @@
 """Declare a node's ROS parameters from the table in roslab_demo.logic."""
 
 from rcl_interfaces.msg import ParameterDescriptor
-from roslab_demo.logic import PARAMETERS
+from roslab_demo.logic import parameter_value, PARAMETERS
 
 
 def declare_parameters(node, node_name):
@@ -25,10 +25,17 @@ def declare_parameters(node, node_name):
     Values from a parameters file or the command line override the defaults.
     The nodes read their parameters once at start-up, so the parameters are
     read-only: `ros2 param set` then says so instead of silently doing nothing.
+
+    Declared with dynamic typing, so that `publish_rate_hz: 2` (an integer where the
+    default is a float) reaches logic.parameter_value, which takes it as 2.0, instead
+    of rclpy killing the node with InvalidParameterTypeException; a value of the wrong
+    kind (text for a number) is refused there, naming the parameter.
     """
     table = PARAMETERS[node_name]
     node.declare_parameters('', [
-        (name, spec.default, ParameterDescriptor(description=spec.description, read_only=True))
+        (name, spec.default, ParameterDescriptor(
+            description=spec.description, read_only=True, dynamic_typing=True))
         for name, spec in table.items()
     ])
-    return {name: node.get_parameter(name).value for name in table}
+    return {name: parameter_value(node_name, name, node.get_parameter(name).value)
+            for name in table}

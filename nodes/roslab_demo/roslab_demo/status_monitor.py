@@ -14,11 +14,14 @@
 
 """Log each robot status at its own severity, and notice a silent robot."""
 
+import signal
+
 from diagnostic_msgs.msg import DiagnosticStatus
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from roslab_demo.logic import level_code, log_at_level, SilenceWatch, status_line
+from roslab_demo.logic import (
+    end_on_first_interrupt, level_code, log_at_level, SilenceWatch, status_line)
 from roslab_demo.parameters import declare_parameters
 
 
@@ -52,6 +55,7 @@ class StatusMonitor(Node):
 
 
 def main(args=None):
+    end_on_first_interrupt()
     rclpy.init(args=args)
     node = StatusMonitor()
     try:
@@ -59,6 +63,9 @@ def main(args=None):
     except (KeyboardInterrupt, ExternalShutdownException):
         pass  # Ctrl-C or `ros2 launch` stopping us is a normal end, not an error
     finally:
+        # Ctrl-C reaches every process of a launch, and ros2 launch then sends SIGINT
+        # again: a second one must not cut the clean-up short with a traceback.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         node.destroy_node()
         rclpy.try_shutdown()
 

@@ -14,6 +14,7 @@
 
 """Publish the simulated robot's status as diagnostic_msgs/DiagnosticStatus."""
 
+import signal
 import socket
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
@@ -21,7 +22,8 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from roslab_demo.logic import (
-    require_positive, robot_name_or_host, robot_state_at, timer_period)
+    end_on_first_interrupt, require_positive, robot_name_or_host, robot_state_at,
+    timer_period)
 from roslab_demo.parameters import declare_parameters
 
 
@@ -54,6 +56,7 @@ class StatusPublisher(Node):
 
 
 def main(args=None):
+    end_on_first_interrupt()
     rclpy.init(args=args)
     node = StatusPublisher()
     try:
@@ -61,6 +64,9 @@ def main(args=None):
     except (KeyboardInterrupt, ExternalShutdownException):
         pass  # Ctrl-C or `ros2 launch` stopping us is a normal end, not an error
     finally:
+        # Ctrl-C reaches every process of a launch, and ros2 launch then sends SIGINT
+        # again: a second one must not cut the clean-up short with a traceback.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         node.destroy_node()
         rclpy.try_shutdown()
 

@@ -14,12 +14,14 @@
 
 """Publish a numbered greeting from the robot on the chatter topic."""
 
+import signal
 import socket
 
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from roslab_demo.logic import chatter_text, robot_name_or_host, timer_period
+from roslab_demo.logic import (
+    chatter_text, end_on_first_interrupt, robot_name_or_host, timer_period)
 from roslab_demo.parameters import declare_parameters
 from std_msgs.msg import String
 
@@ -44,6 +46,7 @@ class Talker(Node):
 
 
 def main(args=None):
+    end_on_first_interrupt()
     rclpy.init(args=args)
     node = Talker()
     try:
@@ -51,6 +54,9 @@ def main(args=None):
     except (KeyboardInterrupt, ExternalShutdownException):
         pass  # Ctrl-C or `ros2 launch` stopping us is a normal end, not an error
     finally:
+        # Ctrl-C reaches every process of a launch, and ros2 launch then sends SIGINT
+        # again: a second one must not cut the clean-up short with a traceback.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         node.destroy_node()
         rclpy.try_shutdown()
 

@@ -14,10 +14,14 @@
 
 """Log temperature readings, warning above one threshold and erring above another."""
 
+import signal
+
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from roslab_demo.logic import check_thresholds, log_at_level, temperature_level, temperature_line
+from roslab_demo.logic import (
+    check_thresholds, end_on_first_interrupt, log_at_level, temperature_level,
+    temperature_line)
 from roslab_demo.parameters import declare_parameters
 from sensor_msgs.msg import Temperature
 
@@ -41,6 +45,7 @@ class TemperatureMonitor(Node):
 
 
 def main(args=None):
+    end_on_first_interrupt()
     rclpy.init(args=args)
     node = TemperatureMonitor()
     try:
@@ -48,6 +53,9 @@ def main(args=None):
     except (KeyboardInterrupt, ExternalShutdownException):
         pass  # Ctrl-C or `ros2 launch` stopping us is a normal end, not an error
     finally:
+        # Ctrl-C reaches every process of a launch, and ros2 launch then sends SIGINT
+        # again: a second one must not cut the clean-up short with a traceback.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         node.destroy_node()
         rclpy.try_shutdown()
 

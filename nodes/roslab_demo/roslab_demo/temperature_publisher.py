@@ -14,10 +14,13 @@
 
 """Publish a simulated temperature as sensor_msgs/Temperature."""
 
+import signal
+
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from roslab_demo.logic import require_positive, simulated_temperature, timer_period
+from roslab_demo.logic import (
+    end_on_first_interrupt, require_positive, simulated_temperature, timer_period)
 from roslab_demo.parameters import declare_parameters
 from sensor_msgs.msg import Temperature
 
@@ -51,6 +54,7 @@ class TemperaturePublisher(Node):
 
 
 def main(args=None):
+    end_on_first_interrupt()
     rclpy.init(args=args)
     node = TemperaturePublisher()
     try:
@@ -58,6 +62,9 @@ def main(args=None):
     except (KeyboardInterrupt, ExternalShutdownException):
         pass  # Ctrl-C or `ros2 launch` stopping us is a normal end, not an error
     finally:
+        # Ctrl-C reaches every process of a launch, and ros2 launch then sends SIGINT
+        # again: a second one must not cut the clean-up short with a traceback.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         node.destroy_node()
         rclpy.try_shutdown()
 
