@@ -407,6 +407,11 @@ def power_on(host_name: str, instance: Instance | None = None, wait_at: str | No
     merged = classroom.instance.host_dir(host) / "merged"
     if not hosts.mounts_under(merged.parent) or not (merged / "etc").is_dir():
         raise SandboxError(f"host {host_name!r} has no disk to boot from: `roslab sandbox reset` it")
+    # A Pi's network card starts empty after a power cut; the host's netns outlives its
+    # processes here, so its addresses and routes go as the power would take them.
+    netns = classroom.instance.netns(host)
+    run("ip", "-n", netns, "address", "flush", "dev", "eth0", check=False)
+    run("ip", "-n", netns, "route", "flush", "dev", "eth0", check=False)
     seed = _host_states(classroom.instance).get(host.name, {}).get("seed")
     hosts.start(classroom.instance, host, merged, Path(seed) if seed else None)
     hosts.wait_for_ssh(wait_at or host.address, timeout=timeout)
