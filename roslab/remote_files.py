@@ -24,8 +24,9 @@ python3. That script
   file gets 0644 less the umask, as `cp` gives), and renames it over the destination:
   a rename replaces a name, it never follows a link, and nobody ever sees half a file.
 
-`PrivateFileUpload` is a FileUploadCommand for secrets: the file is 0600 root from its
-first byte to its last (roslab.network.operation's WiFi files).
+`OwnedFileUpload` is a FileUploadCommand that also gives the file its owner and mode
+before it takes the destination's name (roslab.operations' managed files: ~/.bashrc, ...),
+so no chown or chmod follows the upload (they would follow a link put there in between).
 """
 
 from __future__ import annotations
@@ -42,7 +43,8 @@ from pyinfra.api.util import get_file_io
 # Exit status of WRITE_SCRIPT when it refuses the destination (its message is on stderr).
 REFUSED = 3
 
-# Runs on the host with its python3 (3.6+), as root for a sudo operation. argv: DEST [MODE].
+# Runs on the host with its python3 (3.6+), as root for a sudo operation.
+# argv: DEST [MODE|-] [USER:GROUP] (either side may be empty).
 WRITE_SCRIPT = r'''
 import base64, os, stat, sys, tempfile
 def refuse(message):
@@ -50,7 +52,18 @@ def refuse(message):
     sys.exit(3)
 data = base64.b64decode(sys.stdin.buffer.read())
 dest = sys.argv[1]
-mode = int(sys.argv[2], 8) if len(sys.argv) > 2 else None
+mode = int(sys.argv[2], 8) if len(sys.argv) > 2 and sys.argv[2] != "-" else None
+owner = sys.argv[3].split(":", 1) if len(sys.argv) > 3 else ["", ""]
+uid = gid = -1
+try:
+    if owner[0]:
+        import pwd
+        uid = pwd.getpwnam(owner[0]).pw_uid
+    if len(owner) > 1 and owner[1]:
+        import grp
+        gid = grp.getgrnam(owner[1]).gr_gid
+except KeyError as missing:
+    refuse("cannot give %s to %s: no such user or group" % (dest, missing))
 if not dest.startswith("/") or "/../" in dest + "/" or dest.endswith("/"):
     refuse("%s is not an absolute file path" % dest)
 directory, name = os.path.split(dest)
@@ -86,8 +99,9 @@ try:
         out.write(data)
         out.flush()
         os.fsync(out.fileno())
-        if old is not None and writer == 0:
-            os.fchown(out.fileno(), old.st_uid, old.st_gid)
+        if writer == 0 and (old is not None or uid != -1 or gid != -1):
+            os.fchown(out.fileno(), uid if uid != -1 else (old.st_uid if old else -1),
+                      gid if gid != -1 else (old.st_gid if old else -1))
         if mode is None:
             mode = stat.S_IMODE(old.st_mode) if old is not None else 0o666 & ~umask
         os.fchmod(out.fileno(), mode)
@@ -101,11 +115,14 @@ except BaseException:
 '''
 
 
-def write_command(dest: str, mode: int | None = None) -> StringCommand:
+def write_command(dest: str, mode: int | None = None, user: str | None = None,
+                  group: str | None = None) -> StringCommand:
     """The command that writes its stdin (base64) to `dest` (see WRITE_SCRIPT)."""
     bits = ["python3", "-c", QuoteString(WRITE_SCRIPT), QuoteString(dest)]
-    if mode is not None:
-        bits.append(f"{mode:o}")
+    if mode is not None or user or group:
+        bits.append(f"{mode:o}" if mode is not None else "-")
+    if user or group:
+        bits.append(QuoteString(f"{user or ''}:{group or ''}"))
     return StringCommand(*bits)
 
 
@@ -122,7 +139,7 @@ def encoded(filename_or_io) -> str:
 
 def put_file(self, filename_or_io, remote_filename, remote_temp_filename=None,
              print_output: bool = False, print_input: bool = False, mode: int | None = None,
-             **arguments) -> bool:
+             user: str | None = None, group: str | None = None, **arguments) -> bool:
     """The SSH connector's `put_file`, through `write_command` (`remote_temp_filename` unused:
     nothing is put in a temporary file as the login user)."""
     arguments.pop("_chdir", None)
@@ -130,7 +147,7 @@ def put_file(self, filename_or_io, remote_filename, remote_temp_filename=None,
     content = encoded(filename_or_io)
     try:
         ok, output = self.run_shell_command(
-            write_command(str(remote_filename), mode),
+            write_command(str(remote_filename), mode, user, group),
             print_output=print_output, print_input=print_input, _stdin=content, **arguments,
         )
     except ConnectError as exc:  # a PyinfraError would stop every host; this is one host's
@@ -148,14 +165,21 @@ def put_file(self, filename_or_io, remote_filename, remote_temp_filename=None,
     return True
 
 
-class PrivateFileUpload(FileUploadCommand):
-    """An upload that is root's and 0600 from its first byte (a secret)."""
+class OwnedFileUpload(FileUploadCommand):
+    """An upload that has its owner and mode before it takes the destination's name, so no
+    chown/chmod has to follow it (they would follow a link put there in between)."""
+
+    def __init__(self, src, dest, user: str | None = None, group: str | None = None,
+                 mode: int | str | None = None, **kwargs):
+        super().__init__(src, dest, **kwargs)
+        self.user, self.group = user, group
+        self.mode = int(str(mode), 8) if mode is not None else None
 
     def execute(self, state, host, connector_arguments):
         connector_arguments.update(self.connector_arguments)
         return host.put_file(
             self.src, self.dest, print_output=state.print_output, print_input=state.print_input,
-            mode=0o600, **connector_arguments,
+            mode=self.mode, user=self.user, group=self.group, **connector_arguments,
         )
 
 

@@ -174,3 +174,17 @@ def test_put_file_takes_pyinfra_s_full_connector_arguments():
     assert remote_files.put_file(connector, StringIO("x"), "/etc/x", _stdin=None, _chdir=None, _sudo=True)
     [(command, arguments)] = connector.calls
     assert arguments["_stdin"] == base64.b64encode(b"x").decode() and "_chdir" not in arguments
+
+
+@needs_root
+def test_an_owned_upload_has_its_owner_and_mode_before_it_takes_the_name(tmp_path):
+    bashrc = tmp_path / ".bashrc"
+    result = subprocess.run([sys.executable, "-c", remote_files.WRITE_SCRIPT, str(bashrc), "640", "daemon:daemon"],
+                            input=base64.b64encode(b"x\n"), capture_output=True)
+    assert result.returncode == 0, result.stderr
+    import grp
+    import pwd
+
+    info = bashrc.stat()
+    assert (pwd.getpwuid(info.st_uid).pw_name, grp.getgrgid(info.st_gid).gr_name) == ("daemon", "daemon")
+    assert stat.S_IMODE(info.st_mode) == 0o640
