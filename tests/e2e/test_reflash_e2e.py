@@ -176,6 +176,7 @@ def test_a_host_reflashed_with_its_seed_boots_as_flashed_and_the_deploy_converge
     ran_for = finished - float(started)
     assert len(waited) <= 1 and all(re.search(rf"\[{SEEDED}\] roslab: .*waited \d+ s for cloud-init", line)
                                     for line in waited), waited
+    print(f"cloud-init's first boot ended {ran_for:.0f} s after the deploy began; waited: {waited}")
     if ran_for > 15:  # still running long after the probe: the deploy must have waited
         assert waited, (ran_for, on_host("ls /run/cloud-init"), output[-3000:])
     # The deploy began while the dpkg lock was held, so its apt steps waited for the release.
