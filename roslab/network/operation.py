@@ -212,8 +212,10 @@ def network_in_effect(
     if recovered:
         # The host restarted during an earlier change's confirmation window: the boot unit
         # put the previous configuration back, so it answers where it did before.
+        # The record is the host's: printable characters only reach the teacher's terminal.
+        said = "".join(char for char in str(recovered.get("reason") or "") if char.isprintable())[:300]
         host.log_styled(
-            f"network: found at {current_address}: {recovered.get('reason') or 'an unconfirmed change was undone at boot'}",
+            f"roslab: network: found at {current_address}: {said or 'an unconfirmed change was undone at boot'}",
             fg="yellow", log_func=logger.warning,
         )
         yield StringCommand("rm", "-f", RECOVERED_PATH)  # reported once

@@ -379,3 +379,15 @@ def test_host_that_gives_up_by_itself_is_reported_without_a_confirmation(quick, 
     assert not any(text.startswith("printf") for _, text in host.commands)
     assert connector.data["ssh_hostname"] == "10.0.0.200"
     assert "rolled back: gateway 10.0.0.254 does not answer on eth0" in host.messages[-1]
+
+
+def test_a_change_undone_at_boot_is_reported_once_in_one_printable_line(caplog):
+    record = {"token": "t", "reason": "the host restarted before the network change of X was confirmed\x1b[2J"}
+    renderer = {**SERVER_2404, "recovered": record}
+    with caplog.at_level(logging.WARNING):
+        result = run_network(renderer=renderer, files={CLOUD_INIT: "x"})
+    (line,) = {r.getMessage() for r in caplog.records if "found at" in r.getMessage()}
+    assert "roslab: network: found at 10.0.0.200: the host restarted before the network change of X" in line
+    assert "\x1b[2J" not in line
+    commands = text(the_operation(result))
+    assert commands[0] == "rm -f /var/lib/roslab/network/recovered.json"
