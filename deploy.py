@@ -19,10 +19,11 @@ from deploy.shell_env import shell_env
 from deploy.ssh_hardening import ssh_hardening
 from deploy.ssh_identity import ssh_identity
 from deploy.workspace import workspace
-from roslab import sudo, summary
+from roslab import remote_files, sudo, summary
 
 summary.install()  # once per run, although pyinfra runs this file once per host
 sudo.install()  # for any inventory: the sudo password goes to an askpass file, never a command line
+remote_files.install()  # every upload: one command, never through a link (roslab.remote_files)
 
 if supported_host():
     # The cache host first: pyinfra runs each operation on every host before the next, so

@@ -38,6 +38,9 @@ DEFAULTS = settings.defaults("apt_ready")
 def apt_ready():
     """Wait for apt, finish an interrupted install, enable universe and the extra suites.
 
+    First it waits for cloud-init to finish a freshly seeded Pi's first boot (bounded by
+    apt_lock_timeout, in the same probe command: free on a host where cloud-init is done).
+
     Reads host.data: apt_ready_enabled, apt_lock_timeout, apt_enable_universe,
     apt_extra_suites, ros_apt_source_enabled (the old ROS 2 source files are moved aside
     here, before the update they would fail). The update itself is `apt_lists`, after
@@ -48,6 +51,24 @@ def apt_ready():
     lock_timeout = host.data.apt_lock_timeout
 
     problem = host.get_fact(AptProblem, lock_timeout=lock_timeout)
+    cloud_init = (problem or {}).get("cloud_init")
+    if cloud_init:
+        problem = {key: value for key, value in problem.items() if key != "cloud_init"}
+        if not problem.get("message") and not problem.get("interrupted") and not problem.get("waited"):
+            problem = None
+        said = f": {cloud_init['output']}" if cloud_init["output"] else ""
+        if cloud_init["status"] == 124:
+            stop_host(f"{where()}: cloud-init's first boot is still running after {lock_timeout} s "
+                      f"(apt_lock_timeout){said}; run again once it is done (cloud-init status)")
+            return
+        if cloud_init["status"] == 0 and cloud_init["seconds"] > 0:
+            logger.warning(f"{host.print_prefix}roslab: {where()}: waited {cloud_init['seconds']} s for "
+                           f"cloud-init to finish its first boot (cloud-init status --wait){said}")
+        elif cloud_init["status"] not in (0, 124):
+            # Its own errors are the seed's business; apt can still be used.
+            logger.warning(f"{host.print_prefix}roslab: {where()}: cloud-init finished its first boot "
+                           f"with errors (exit status {cloud_init['status']}, see cloud-init status "
+                           f"--long){said}; carrying on")
     if problem and problem.get("waited"):
         # Not silent: a first-boot unattended-upgrades can hold the lock for minutes.
         logger.warning(f"{host.print_prefix}roslab: {where()}: waited for the dpkg lock "

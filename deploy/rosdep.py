@@ -14,7 +14,7 @@ from __future__ import annotations
 from io import BytesIO
 from pathlib import Path
 
-from pyinfra import host
+from pyinfra import host, logger
 from pyinfra.api import deploy
 from pyinfra.operations import files, server
 from pyinfra.operations.util import any_changed
@@ -119,10 +119,14 @@ def _rosdep_from_controller(user: str, home: str) -> None:
         data = rosdep_data.for_distro(
             host.data.rosdep_sources_list_url, host.data.rosdistro_index_url, host_distro(),
             Path(host.data.rosdep_cache_dir).expanduser(), offline=bool(host.data.get("offline")),
+            max_age=host.data.rosdep_update_max_age,
         )
     except rosdep_data.RosdepDataError as error:
         stop_host(f"{where()}: rosdep's data: {error}; nothing was changed on it")
         return
+    for line in data.stale:
+        # Upstream is down: the kept copy stands in, and a host that needs nothing new carries on.
+        logger.warning(f"{host.print_prefix}roslab: {where()}: rosdep's data: {line}")
 
     _rosdep_installed()
     archive = files.put(

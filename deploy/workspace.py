@@ -23,7 +23,7 @@ from pathlib import Path
 from pyinfra import host, logger
 from pyinfra.api import OperationError, deploy
 from pyinfra.facts.files import File
-from pyinfra.operations import files, systemd
+from pyinfra.operations import files, server, systemd
 
 from deploy.common import (
     as_login_user,
@@ -182,6 +182,17 @@ def workspace():
             )
         return
 
+    unit_state = host.get_fact(ws_ops.NodesUnitState, service=NODES_SERVICE)
+    if unit_state.get("LoadState") == "masked":
+        # Someone on the host masked it (`systemctl mask`: a link to /dev/null, which no
+        # upload writes through). The roster says the nodes run, so the deploy heals it,
+        # saying so; `nodes_service_enabled: false` is how a teacher turns them off.
+        host.log(f"workspace: {NODES_SERVICE} was masked on this host (systemctl mask): unmasking it, "
+                 "as the roster runs the nodes (nodes_service_enabled)", logger.warning)
+        server.shell(
+            name=f"Ensure {NODES_SERVICE} is not masked",
+            commands=[f"systemctl unmask -- {NODES_SERVICE}"],
+        )
     unit = files.put(
         name=f"Ensure {NODES_SERVICE} runs the {role}'s launch as {user}",
         src=StringIO(unit_file),
@@ -191,7 +202,7 @@ def workspace():
         mode="644",
     )
     # Read when planning: a unit that gave up (or was stopped) is started again below.
-    stopped = ws_ops.stopped_reason(host.get_fact(ws_ops.NodesUnitState, service=NODES_SERVICE))
+    stopped = ws_ops.stopped_reason(unit_state)
     if stopped:
         host.log(f"workspace: {NODES_SERVICE} is {stopped}: starting it again", logger.warning)
     systemd.daemon_reload(name="Ensure systemd has read the changed unit", _if=unit.did_change)

@@ -10,6 +10,7 @@ Groups: `main`, `robot`, one per team (`-` in a team name becomes `_`), one per 
 import sys as _sys
 from pathlib import Path as _Path
 
+from roslab import remote_files as _remote_files
 from roslab import sudo as _sudo
 from roslab.roster import RosterError as _RosterError
 from roslab.roster import default_roster_path as _default_roster_path
@@ -28,4 +29,5 @@ for _warning in _classroom.warnings:
     print(f"roslab: warning: {_warning}", file=_sys.stderr)
 
 _sudo.install()  # before pyinfra's first command: no sudo password on a host's command line
+_remote_files.install()  # every upload: never through a link, never via SFTP or a temp file
 globals().update(_inventory_groups(_classroom))

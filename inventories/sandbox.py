@@ -12,6 +12,7 @@ import os as _os
 import sys as _sys
 from pathlib import Path as _Path
 
+from roslab import remote_files as _remote_files
 from roslab import sudo as _sudo
 from roslab.roster import RosterError as _RosterError
 from roslab.roster import inventory_groups as _inventory_groups
@@ -30,4 +31,5 @@ except _RosterError as _error:
     _sys.exit(2)
 
 _sudo.install()  # before pyinfra's first command: no sudo password on a host's command line
+_remote_files.install()  # every upload: never through a link, never via SFTP or a temp file
 globals().update(_inventory_groups(_classroom))

@@ -12,11 +12,14 @@ returned are the bytes whose sha256 was just checked, whatever else shares the c
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import tempfile
 import threading
+import time
 import urllib.error
 import urllib.request
+from dataclasses import dataclass
 from pathlib import Path
 
 TIMEOUT = 60  # seconds, per download
@@ -111,26 +114,130 @@ def _write_atomically(path: Path, data: bytes) -> None:
     os.replace(part.name, path)
 
 
-def kept(url: str, cache_dir: Path, offline: bool = False) -> bytes:
-    """The bytes at `url`: fetched once per run and kept in `cache_dir`, or, offline, the kept copy.
+@dataclass(frozen=True)
+class Kept:
+    """A file kept on the controller: its bytes, and how they were had this run."""
 
-    For files that change upstream (rosdep's data): online, the download is the truth and
-    replaces the kept copy; offline, the copy from the last online run is used, and a
-    file never kept is a DownloadError.
-    """
-    path = Path(cache_dir).expanduser() / hashlib.sha256(url.encode()).hexdigest()[:16] / (
+    data: bytes
+    # None: fresh (downloaded, confirmed unchanged, or younger than the max age). Else one
+    # line saying the download failed and which kept copy stands in for it.
+    stale: str | None = None
+
+
+def _kept_path(url: str, cache_dir: Path) -> Path:
+    return Path(cache_dir).expanduser() / hashlib.sha256(url.encode()).hexdigest()[:16] / (
         os.path.basename(url.rstrip("/")) or "index")
-    if offline:
+
+
+def _validators(meta: Path) -> dict[str, str]:
+    try:
+        found = json.loads(meta.read_text())
+    except (OSError, ValueError):
+        return {}
+    return {key: value for key, value in found.items() if key in ("etag", "last_modified")
+            and isinstance(value, str) and "\n" not in value and "\r" not in value}
+
+
+def _conditional_fetch(url: str, validators: dict[str, str], timeout: float = TIMEOUT):
+    """(bytes, or None when the server says the kept copy is current; its validators).
+
+    Once per run per URL, like fetch(); a failure is remembered and raised as DownloadError.
+    """
+    with _lock:
+        known = _fetched.get(url)
+        if isinstance(known, DownloadError):
+            raise known
+        if known is not None:
+            return known, {}
+        request = urllib.request.Request(url)
+        if validators.get("etag"):
+            request.add_header("If-None-Match", validators["etag"])
+        if validators.get("last_modified"):
+            request.add_header("If-Modified-Since", validators["last_modified"])
         try:
-            return path.read_bytes()
-        except OSError:
+            with urllib.request.urlopen(request, timeout=timeout) as response:
+                data = response.read()
+                headers = response.headers
+        except urllib.error.HTTPError as error:
+            if error.code == 304 and validators:
+                return None, validators
+            failure = DownloadError(f"cannot download {url}: {_reason(error)}")
+            _fetched[url] = failure
+            raise failure from None
+        except (OSError, ValueError) as error:  # URLError, timeouts, a bad URL
+            failure = DownloadError(f"cannot download {url}: {_reason(error)}")
+            _fetched[url] = failure
+            raise failure from None
+        _fetched[url] = data
+        found = {"etag": headers.get("ETag"), "last_modified": headers.get("Last-Modified")}
+        return data, {key: value for key, value in found.items() if value}
+
+
+def _age_text(seconds: float) -> str:
+    if seconds < 2 * 3600:
+        return f"{max(0, int(seconds // 60))} min"
+    if seconds < 2 * 86400:
+        return f"{int(seconds // 3600)} h"
+    return f"{int(seconds // 86400)} days"
+
+
+def kept(url: str, cache_dir: Path, offline: bool = False, max_age: float | None = None) -> Kept:
+    """The bytes at `url`, kept in `cache_dir` for the next runs.
+
+    For files that change upstream (rosdep's data). A kept copy younger than `max_age`
+    seconds (by the time it was last downloaded or confirmed) is used without asking
+    upstream at all. An older one is checked with a conditional request (If-None-Match /
+    If-Modified-Since: a 304 costs no body) and replaced when it changed. When upstream
+    cannot be reached, a kept copy is used all the same, and `Kept.stale` says so; without
+    one, DownloadError. `offline`: never ask, the kept copy or DownloadError.
+    """
+    key = (url, str(cache_dir), offline, max_age)
+    with _lock:
+        if key in _kept_this_run:
+            return _kept_this_run[key]
+    result = _kept(url, cache_dir, offline, max_age)
+    with _lock:
+        _kept_this_run[key] = result
+    return result
+
+
+_kept_this_run: dict[tuple, Kept] = {}
+
+
+def _kept(url: str, cache_dir: Path, offline: bool, max_age: float | None) -> Kept:
+    path = _kept_path(url, cache_dir)
+    meta = path.with_name(path.name + ".roslab-meta.json")
+    try:
+        copy = path.read_bytes()
+        age = time.time() - path.stat().st_mtime
+    except OSError:
+        copy, age = None, None
+    if offline:
+        if copy is None:
             raise DownloadError(f"offline, and {url} is not in the controller's cache ({path}): "
-                                "run once online first") from None
-    data = fetch(url)
+                                "run once online first")
+        return Kept(copy)
+    if copy is not None and max_age is not None and 0 <= age < max_age:
+        return Kept(copy)
+    try:
+        data, validators = _conditional_fetch(url, _validators(meta) if copy is not None else {})
+    except DownloadError as error:
+        if copy is None:
+            raise
+        return Kept(copy, stale=f"{error}; using the controller's copy from {_age_text(age)} ago ({path})")
     with _lock:
         try:
-            if not path.exists() or path.read_bytes() != data:
+            if data is None:  # 304: the kept copy is current
+                os.utime(path)
+                return Kept(copy)
+            if copy != data:
                 _write_atomically(path, data)
+            else:
+                os.utime(path)
+            if validators:
+                _write_atomically(meta, json.dumps(validators).encode())
+            else:
+                meta.unlink(missing_ok=True)
         except OSError:
-            pass  # an unwritable cache costs the offline mode this file, nothing else
-    return data
+            pass  # an unwritable cache costs the next run a download, nothing else
+    return Kept(data)

@@ -14,6 +14,12 @@ _LOCK_HELD = ("Could not get lock", "Unable to acquire the dpkg frontend lock", 
 _UPDATE_PREFIX = "roslab-dpkg-update: "
 _AUDIT_PREFIX = "roslab-dpkg-audit: "
 _EXIT_PREFIX = "roslab-apt-exit="
+_CLOUD_INIT_PREFIX = "roslab-cloud-init="
+# cloud-init's systemd generator decided it runs this boot (else it is disabled, and
+# `cloud-init status --wait` could wait for a stage that never starts) ...
+CLOUD_INIT_RUNS = "/run/cloud-init/enabled"
+# ... and its final stage has not written its result yet.
+CLOUD_INIT_DONE = "/run/cloud-init/result.json"
 
 
 class AptProblem(FactBase):
@@ -35,14 +41,30 @@ class AptProblem(FactBase):
       minutes at first boot.
 
     While another process holds the lock its half-done work is normal, not interrupted.
+
+    First, on a freshly seeded Pi, it waits (bounded by ``lock_timeout`` too) for cloud-init
+    to finish its first boot (``cloud-init status --wait``): cloud-init's own package step
+    fails when a deploy takes the dpkg lock from under it. Only where cloud-init exists and
+    has not finished this boot: on a settled host the wait costs a few ``test -e``. Then
+    the result has ``"cloud_init": {"status": exit status (124: still running at the
+    timeout), "seconds": waited, "output": its last words}`` (else no such key).
     """
 
     @override
     def command(self, lock_timeout: int) -> StringCommand:
         from roslab.operations import apt_lock_options  # operations imports this module
 
+        wait_for_cloud_init = (
+            f"if [ -e {CLOUD_INIT_RUNS} ] && [ ! -e {CLOUD_INIT_DONE} ] && command -v cloud-init >/dev/null 2>&1; then "
+            "started=$(date +%s); "
+            f"said=$(timeout {int(lock_timeout) or 1} cloud-init status --wait 2>&1 </dev/null); rc=$?; "
+            f'echo "{_CLOUD_INIT_PREFIX}$rc $(( $(date +%s) - started )) '
+            '$(printf %s "$said" | tr -s \'.\\n\' \' \' | tail -c 200)"; '
+            "fi;"
+        )
         # `; echo` keeps the fact's exit status 0 so the failure reaches process().
         return StringCommand(
+            wait_for_cloud_init,
             f"apt-get -qq {apt_lock_options(lock_timeout)} check 2>&1;",
             f'echo "{_EXIT_PREFIX}$?";',
             f"ls -A /var/lib/dpkg/updates 2>/dev/null | sed 's/^/{_UPDATE_PREFIX}/';",
@@ -51,6 +73,20 @@ class AptProblem(FactBase):
 
     @override
     def process(self, output):
+        cloud_init = None
+        for line in output:
+            if line.startswith(_CLOUD_INIT_PREFIX):
+                status, seconds, *said = line[len(_CLOUD_INIT_PREFIX):].split(" ", 2)
+                cloud_init = {"status": int(status) if status.isdigit() else -1,
+                              "seconds": int(seconds) if seconds.isdigit() else 0,
+                              "output": (said[0] if said else "").strip()}
+        apt = self._apt(line for line in output if not line.startswith(_CLOUD_INIT_PREFIX))
+        if cloud_init is None:
+            return apt
+        return {**(apt or {"interrupted": False, "message": None}), "cloud_init": cloud_init}
+
+    @staticmethod
+    def _apt(output):
         check, updates, audit, status, waited = [], [], [], "", ""
         for line in output:
             if line.startswith(_EXIT_PREFIX):

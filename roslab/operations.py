@@ -14,17 +14,18 @@ import weakref
 from io import StringIO
 
 from pyinfra import host, logger, state
-from pyinfra.api import FileUploadCommand, QuoteString, StringCommand, operation
+from pyinfra.api import QuoteString, StringCommand, operation
 from pyinfra.api.util import format_text
 from pyinfra.context import ctx_host
 from pyinfra.facts.deb import DebPackages
 from pyinfra.facts.files import File, FileContents, Link
 from pyinfra.facts.server import Locales, Which
-from pyinfra.operations.util.files import chmod, chown, generate_color_diff
+from pyinfra.operations.util.files import generate_color_diff
 
 from roslab.facts import FileAge
 from roslab.probe import read
 from roslab.quoting import apt_arguments, deb822_value, sources_list_word
+from roslab.remote_files import OwnedFileUpload
 
 # Ubuntu touches this after every successful `apt-get update`; Debian does not, so we do.
 APT_UPDATE_STAMP = "/var/lib/apt/periodic/update-success-stamp"
@@ -86,16 +87,11 @@ def _log_diff(path: str, current_lines: list[str] | None, desired_lines: list[st
 
 
 def _upload_text(path: str, lines: list[str], user=None, group=None, mode=None):
-    """Commands that replace `path` with `lines`, then restore its owner and mode."""
-    yield FileUploadCommand(
-        StringIO("".join(line + "\n" for line in lines)),
-        path,
-        remote_temp_filename=host.get_temp_filename(path),
+    """The upload that replaces `path` with `lines`, with its owner and mode from its first
+    byte (roslab.remote_files: a chown/chmod after it would follow a link put there)."""
+    yield OwnedFileUpload(
+        StringIO("".join(line + "\n" for line in lines)), path, user=user, group=group, mode=mode,
     )
-    if user or group:
-        yield chown(path, user, group)
-    if mode:
-        yield chmod(path, mode)
 
 
 # --- marked blocks ---------------------------------------------------------------

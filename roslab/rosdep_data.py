@@ -2,7 +2,9 @@
 
 `rosdep init` and `rosdep update` on every Pi download the same files from GitHub (which
 rate-limits a classroom behind one address, ros/rosdistro#48409). Instead the controller
-downloads, once per run (and keeps, for the offline mode):
+downloads, once per run, and keeps (for the offline mode, for runs within
+`rosdep_update_max_age`, which ask upstream nothing, and for a run when upstream is down,
+which uses the kept copy and says so):
 
 - rosdep's sources list (20-default.list) and every rule file it lists (`yaml` and
   `gbpdistro` lines, tags kept);
@@ -50,6 +52,8 @@ class RosdepData:
     sources_list: bytes  # the host's 20-default.list, pointing into HOST_DIR
     index_url: str  # ROSDISTRO_INDEX_URL on the host
     files: tuple[str, ...]  # paths inside the archive
+    # None, or one line per file whose download failed and whose kept copy stands in for it
+    stale: tuple[str, ...] = ()
 
 
 def _local_name(number: int, url: str) -> str:
@@ -122,20 +126,29 @@ def _tar(files: dict[str, bytes]) -> bytes:
 
 
 def for_distro(sources_list_url: str | None, index_url: str | None, distro: str, cache_dir: Path,
-               offline: bool = False) -> RosdepData:
-    """rosdep's data for hosts of `distro`, built once per run (RosdepDataError naming the URL)."""
+               offline: bool = False, max_age: float | None = None) -> RosdepData:
+    """rosdep's data for hosts of `distro`, built once per run (RosdepDataError naming the URL).
+
+    Each file comes from the controller's kept copy while it is younger than `max_age`
+    seconds (no request at all), else from a conditional download; when upstream cannot
+    be reached the kept copy is used and `stale` says so (downloads.kept).
+    """
     sources_list_url = sources_list_url or OFFICIAL_SOURCES_LIST_URL
     index_url = index_url or OFFICIAL_INDEX_URL
-    key = (sources_list_url, index_url, distro, str(cache_dir), offline)
+    key = (sources_list_url, index_url, distro, str(cache_dir), offline, max_age)
     with _lock:
         if key in _built:
             return _built[key]
+    stale: list[str] = []
 
     def get(url: str) -> bytes:
         try:
-            return downloads.kept(url, cache_dir, offline=offline)
+            got = downloads.kept(url, cache_dir, offline=offline, max_age=max_age)
         except downloads.DownloadError as error:
             raise RosdepDataError(str(error)) from None
+        if got.stale:
+            stale.append(got.stale)
+        return got.data
 
     sources_text, wanted = local_sources_list(get(sources_list_url).decode("utf-8", "replace"),
                                               sources_list_url)
@@ -144,7 +157,8 @@ def for_distro(sources_list_url: str | None, index_url: str | None, distro: str,
     files = {local: get(url) for local, url in wanted.items()}
     files["rosdistro/index.yaml"] = index_text.encode()
     data = RosdepData(archive=_tar(files), sources_list=sources_text.encode(),
-                      index_url=f"file://{HOST_DIR}/rosdistro/index.yaml", files=tuple(sorted(files)))
+                      index_url=f"file://{HOST_DIR}/rosdistro/index.yaml", files=tuple(sorted(files)),
+                      stale=tuple(stale))
     with _lock:
         _built[key] = data
     return data

@@ -218,7 +218,8 @@ SCHEMA: list[Setting] = [
          "Where the controller keeps rosdep's data (on the machine running pyinfra).",
          f.controller_path()),
         ("rosdep_update_max_age", 7 * SECONDS_PER_DAY, int,
-         "Seconds before the login user's rosdep cache counts as stale and is updated again.",
+         "Seconds before the login user's rosdep cache counts as stale and is updated again; "
+         "within it the controller uses its kept copy of rosdep's data without asking upstream.",
          f.int_range(0, 365 * SECONDS_PER_DAY, " s")),
     ),
     *_concern(

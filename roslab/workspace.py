@@ -532,17 +532,18 @@ def dependencies(
         return
     state_dir = posixpath.join(workspace_dir, STATE_DIR_NAME)
     rosdep_stamp = posixpath.join(state_dir, "rosdep.sha256")
+    # rosdep runs as root (apt); the stamp, like the rest of the workspace, is the user's and
+    # is written as the user: root writing by path in the user's directory would follow a
+    # link the user put there (and `chown` would give the link's target away).
+    as_user = f"runuser -u {shlex.quote(user)} --"
     yield StringCommand(
-        f"mkdir -p {shlex.quote(state_dir)}",
-        f"&& chown {shlex.quote(user)}: {shlex.quote(state_dir)}",
+        f"{as_user} mkdir -p {shlex.quote(state_dir)}",
         f"&& cd {shlex.quote(workspace_dir)}",
         f"&& ROS_HOME={shlex.quote(ros_home)} rosdep install --from-paths",
         *(shlex.quote(f"src/{name}") for name in packages),
         "--ignore-src -y",
         f"--rosdistro {shlex.quote(distro)}",
-        f"&& {_write_stamp(rosdep_stamp, stamp)}",
-        # rosdep runs as root; the stamp, like the rest of the workspace, is the user's.
-        f"&& chown {shlex.quote(user)}: {shlex.quote(rosdep_stamp)}",
+        f"&& {as_user} sh -c {shlex.quote(_write_stamp(rosdep_stamp, stamp))}",
     )
 
 

@@ -10,8 +10,13 @@ modules (roslab.network.render, .operation, .confirm) import them from here.
 The controller (roslab.network.operation) stages the new files and a plan (JSON)
 under the run directory, then:
 
-    python3 network_apply.py validate PLAN   # over SSH: check staged files, change nothing
-    systemd-run --unit=roslab-network-apply python3 network_apply.py apply PLAN
+    python3 network_apply.py start PLAN < FILES  # over SSH: stage, validate, launch:
+        systemd-run --unit=roslab-network-apply python3 network_apply.py apply PLAN
+
+`start` reads the new files (they may hold a WiFi password) as JSON on its stdin and
+writes them root's and 0600 from their first byte; nothing of them ever sits in a
+temporary file of the login user's. Staged files are removed whatever happens: when
+validation fails, when the launch fails, and when `apply` ends.
 
 `apply` runs detached from the SSH session (a dropped connection cannot kill it):
 it backs up the files it replaces (keeping only the plan's `backups_keep` newest
@@ -21,6 +26,15 @@ token into the confirmation file over a *new* connection at the new address.
 Without that, within the plan's timeout, it restores the backup and applies the
 old configuration again. Its progress is in the status file (JSON), which the
 controller reads to report what happened.
+
+A change survives a power cut: before installing anything, `apply` records the change
+in `STATE_DIR/pending.json` (persistent, beside the backup it restores from) and makes
+sure the boot unit `roslab-network-rollback.service` exists and is enabled. If the host
+restarts before the change is confirmed, that unit runs `network_apply.py recover` early
+at boot (before any network daemon starts): it restores the previous files, regenerates
+netplan's output, and leaves `STATE_DIR/recovered.json`, which the next run reports.
+The pending record is removed before the change counts as confirmed, so a confirmed
+change is never undone by a later restart.
 """
 
 from __future__ import annotations
@@ -49,6 +63,14 @@ BACKUP_ROOT = "/var/backups/roslab/network"
 # Its directories: `<time stamp>-<token prefix>` (backup()), so their names sort oldest first.
 BACKUP_NAME = re.compile(r"[0-9]{8}T[0-9]{6}-[0-9A-Za-z_-]{1,8}")
 NETPLAN_DIR = "/etc/netplan"
+# Persistent: what the boot unit needs after a power cut (a change not yet confirmed).
+STATE_DIR = "/var/lib/roslab/network"
+PENDING_FILE = "pending.json"  # the plan and backup of a change applied but not confirmed
+RECOVERED_FILE = "recovered.json"  # what the boot unit restored, until the next run reports it
+# The script's persistent copy (the boot unit runs it; /run is gone after a restart).
+SCRIPT_INSTALL_PATH = "/usr/local/lib/roslab/network_apply.py"
+BOOT_UNIT = "roslab-network-rollback"
+SYSTEMD_DIR = "/etc/systemd/system"
 # Inside the run directory: the new files (by their target path), the status, the confirmation.
 STAGING_DIR = "staging"
 STATUS_FILE = "status.json"
@@ -100,6 +122,9 @@ class Plan:
     run_dir: str = RUN_DIR
     backup_root: str = BACKUP_ROOT
     netplan_dir: str = NETPLAN_DIR
+    state_dir: str = STATE_DIR
+    systemd_dir: str = SYSTEMD_DIR
+    script_path: str = SCRIPT_INSTALL_PATH
 
     def __post_init__(self):
         object.__setattr__(self, "files", tuple(self.files))
@@ -111,7 +136,8 @@ class Plan:
             problems.append(f"layout {self.layout!r} is not one of {', '.join(LAYOUTS)}")
         if not isinstance(self.interface, str) or not INTERFACE_NAME.fullmatch(self.interface):
             problems.append(f"interface {self.interface!r} is not an interface name")
-        for path in (*self.files, *self.superseded, self.run_dir, self.backup_root, self.netplan_dir):
+        for path in (*self.files, *self.superseded, self.run_dir, self.backup_root, self.netplan_dir,
+                     self.state_dir, self.systemd_dir, self.script_path):
             if not _absolute_path(path):
                 problems.append(f"{path!r} is not an absolute path")
         if isinstance(self.confirm_timeout, bool) or not isinstance(self.confirm_timeout, (int, float)) \
@@ -198,6 +224,185 @@ def _copy_private(source: Path, destination: Path, mode: int = 0o600) -> None:
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
         raise
+
+
+def _write_private(path: Path, data: bytes, mode: int = 0o600) -> None:
+    """Write `path` as a new file that is `mode` (0600: nobody else's) from its first byte.
+
+    The file is created beside `path` with O_EXCL (never someone's link or file) and
+    renamed over it: a rename replaces a name and never follows a link there.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=".roslab-")
+    try:
+        with os.fdopen(fd, "wb") as out:
+            out.write(data)
+            out.flush()
+            os.fsync(out.fileno())
+            os.fchmod(out.fileno(), mode)
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+
+
+def remove_staging(plan: Plan) -> None:
+    """Remove the staged files (they may hold a WiFi password) and the validation copy."""
+    for name in (STAGING_DIR, "validate"):
+        shutil.rmtree(Path(plan.run_dir) / name, ignore_errors=True)
+
+
+def stage(plan: Plan, files: dict) -> None:
+    """Write each planned file's new content into the staging directory, 0600 from its first byte."""
+    unknown = set(files) - set(plan.files)
+    missing = set(plan.files) - set(files)
+    if unknown or missing:
+        raise ValueError(f"the staged files are not the plan's: unknown {sorted(unknown)}, missing {sorted(missing)}")
+    remove_staging(plan)
+    umask = os.umask(0o077)  # every directory made here too: nobody else's way in
+    try:
+        Path(plan.run_dir).mkdir(parents=True, exist_ok=True, mode=0o700)
+        os.chmod(plan.run_dir, 0o700)
+        for target in plan.files:
+            content = files[target]
+            if not isinstance(content, str):
+                raise ValueError(f"the new content of {target} is not text")
+            _write_private(staged_path(plan, target), content.encode())
+    finally:
+        os.umask(umask)
+
+
+def launch_command(plan: Plan, plan_path: str) -> list[str]:
+    return [
+        "systemd-run", f"--unit={APPLY_UNIT}", "--collect", "--quiet",
+        "--description=roslab: apply the network change, roll back unless confirmed",
+        "python3", plan.script_path, "apply", plan_path,
+    ]
+
+
+def start(plan: Plan, plan_path: str, stdin) -> int:
+    """Stage the files read from `stdin` (JSON: target path -> content), validate, launch `apply`.
+
+    Whatever fails, no staged file is left behind.
+    """
+    try:
+        files = json.loads(stdin.read())
+        if not isinstance(files, dict):
+            raise ValueError("not a JSON object")
+    except ValueError as exc:
+        print(f"roslab: the new network files did not arrive whole ({exc}); nothing changed", file=sys.stderr)
+        return 65
+    try:
+        stage(plan, files)
+        problems = validate(plan)
+        if problems:
+            for problem in problems:
+                print(problem, file=sys.stderr)
+            remove_staging(plan)
+            return 1
+        run(["systemctl", "reset-failed", f"{APPLY_UNIT}.service"])
+        result = run(launch_command(plan, plan_path))
+        if result.returncode != 0:
+            remove_staging(plan)
+            print(f"roslab: could not start the network change: {(result.stderr or result.stdout).strip()}",
+                  file=sys.stderr)
+            return 1
+    except BaseException:
+        remove_staging(plan)
+        raise
+    return 0
+
+
+# Surviving a restart before the confirmation
+
+
+BOOT_UNIT_TEXT = """\
+# managed by roslab: restores the network configuration of a change that was never
+# confirmed when the host restarted (a power cut) before the controller could confirm it.
+[Unit]
+Description=roslab: restore the network configuration of an unconfirmed change
+DefaultDependencies=no
+After=local-fs.target
+Before=sysinit.target network-pre.target systemd-networkd.service NetworkManager.service
+Wants=network-pre.target
+ConditionPathExists={pending}
+
+[Service]
+Type=oneshot
+ExecStart=/usr/bin/python3 {script} recover {state_dir}
+RemainAfterExit=yes
+
+[Install]
+WantedBy=sysinit.target
+"""
+
+
+def boot_unit_text(plan: Plan) -> str:
+    return BOOT_UNIT_TEXT.format(pending=str(Path(plan.state_dir) / PENDING_FILE),
+                                 script=plan.script_path, state_dir=plan.state_dir)
+
+
+def arm_boot_rollback(plan: Plan, backup_dir: Path) -> None:
+    """Record the change as pending (persistently) and make sure the boot unit would undo it."""
+    unit = Path(plan.systemd_dir) / f"{BOOT_UNIT}.service"
+    text = boot_unit_text(plan)
+    if not unit.is_file() or unit.is_symlink() or unit.read_text() != text:
+        _write_private(unit, text.encode(), mode=0o644)
+    wants = Path(plan.systemd_dir) / "sysinit.target.wants" / unit.name
+    if not (wants.is_symlink() and os.readlink(wants) == str(unit)):
+        wants.parent.mkdir(parents=True, exist_ok=True, mode=0o755)
+        if wants.is_symlink() or wants.exists():
+            wants.unlink()
+        wants.symlink_to(unit)
+    if not Path(plan.script_path).is_file():
+        raise ApplyError(f"the boot-time rollback needs {plan.script_path}, which is missing")
+    record = {"plan": json.loads(plan.to_json()), "backup": str(backup_dir), "applied_at": _now()}
+    _write_private(Path(plan.state_dir) / PENDING_FILE, json.dumps(record, indent=2).encode())
+    os.chmod(plan.state_dir, 0o700)
+
+
+def disarm_boot_rollback(plan: Plan) -> None:
+    pending = Path(plan.state_dir) / PENDING_FILE
+    pending.unlink(missing_ok=True)
+    fd = os.open(plan.state_dir, os.O_RDONLY)  # the removal itself must survive a power cut
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%S%z")
+
+
+def recover(state_dir: str) -> int:
+    """At boot: undo a change that was never confirmed, and leave a record for the next run."""
+    pending = Path(state_dir) / PENDING_FILE
+    try:
+        record = json.loads(pending.read_text())
+        plan = Plan(**record["plan"])
+        backup_dir = Path(record["backup"])
+    except FileNotFoundError:
+        return 0
+    except (ValueError, TypeError, KeyError) as exc:
+        print(f"roslab: {pending} is unreadable ({exc}); left for a person to look at", file=sys.stderr)
+        return 1
+    reason = (f"the host restarted before the network change of {record.get('applied_at', '?')} "
+              "was confirmed; its previous configuration was restored at boot")
+    restore(plan, backup_dir)
+    if plan.layout != NM_KEYFILE:
+        # netplan's generator ran before this unit, from the new files: generate again
+        # from the restored ones, before the renderer starts.
+        result = run(["netplan", "generate"])
+        if result.returncode != 0:
+            reason += f" (netplan generate: {(result.stderr or result.stdout).strip()})"
+    recovered = {"token": plan.token, "restored_at": _now(), "backup": str(backup_dir), "reason": reason}
+    _write_private(Path(state_dir) / RECOVERED_FILE, json.dumps(recovered).encode(), mode=0o644)
+    Path(plan.run_dir).mkdir(parents=True, exist_ok=True, mode=0o700)
+    write_status(plan, STATE_ROLLED_BACK, reason, backup=str(backup_dir))  # for a controller still waiting
+    disarm_boot_rollback(plan)
+    print(f"roslab: {reason}", file=sys.stderr)
+    return 0
 
 
 # Validation
@@ -433,7 +638,9 @@ def apply(plan: Plan) -> int:
     except OSError:
         pass  # an old backup that cannot go is no reason to stop the change
     try:
+        arm_boot_rollback(plan, backup_dir)
         install(plan)
+        remove_staging(plan)  # installed: the staged copies (a WiFi password) go at once
         apply_files(plan)
         check_running(plan, wait=min(30.0, plan.confirm_timeout / 2))
         write_status(plan, STATE_WAITING, backup=str(backup_dir))
@@ -444,25 +651,31 @@ def apply(plan: Plan) -> int:
             )
     except Exception as exc:  # any failure, even our own bug, must end in a rollback
         reason = str(exc) or type(exc).__name__
+        remove_staging(plan)
         try:
             restore(plan, backup_dir)
             apply_files(plan)
         except Exception as rollback_exc:
+            # The pending record stays: the boot unit restores the files at the next start.
             write_status(
                 plan, STATE_ROLLBACK_FAILED, f"{reason}; rollback failed too: {rollback_exc}",
                 backup=str(backup_dir),
             )
             return 2
+        disarm_boot_rollback(plan)
         write_status(plan, STATE_ROLLED_BACK, reason, backup=str(backup_dir))
         return 1
+    remove_staging(plan)
+    disarm_boot_rollback(plan)  # before "confirmed": the controller records the address only then
     write_status(plan, STATE_CONFIRMED, backup=str(backup_dir))
-    shutil.rmtree(Path(plan.run_dir) / STAGING_DIR, ignore_errors=True)
     return 0
 
 
 def main(argv: list[str]) -> int:
-    if len(argv) != 3 or argv[1] not in ("validate", "apply"):
-        print(f"usage: {argv[0]} validate|apply PLAN", file=sys.stderr)
+    if len(argv) in (2, 3) and argv[1:2] == ["recover"]:
+        return recover(argv[2] if len(argv) == 3 else STATE_DIR)
+    if len(argv) != 3 or argv[1] not in ("validate", "apply", "start"):
+        print(f"usage: {argv[0]} validate|apply|start PLAN, or recover [STATE_DIR]", file=sys.stderr)
         return 64
     try:
         plan = load_plan(argv[2])
@@ -474,6 +687,8 @@ def main(argv: list[str]) -> int:
         for problem in problems:
             print(problem, file=sys.stderr)
         return 1 if problems else 0
+    if argv[1] == "start":
+        return start(plan, argv[2], sys.stdin)
     return apply(plan)
 
 

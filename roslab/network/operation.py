@@ -1,9 +1,11 @@
 """The pyinfra operation that moves a host's network without locking anyone out, and its facts.
 
 `network_in_effect` compares the files a host should have with what it has. If
-they differ it stages the new files (0600, in a 0700 directory), validates them
-on the host, then starts `network_apply.py apply` (roslab.network.apply) with
-systemd-run, detached from the SSH session, and finally (on the controller, at
+they differ it sends the new files on the stdin of one command, `network_apply.py start`
+(roslab.network.apply), which stages them (root's, 0600 from their first byte, in a 0700
+directory; never in a file of the login user's, never on a command line), validates
+them, and starts `network_apply.py apply` with systemd-run, detached from the SSH
+session; whatever fails, the staged files are removed. Finally (on the controller, at
 execution time) `roslab.network.confirm.confirm_network_change` connects to the
 host's new address, confirms, and moves pyinfra's connection there so the rest
 of the deploy runs at the new address. Without a confirmation the host restores
@@ -13,19 +15,28 @@ its old files itself; the controller reports that and fails the host.
 from __future__ import annotations
 
 import hashlib
+import json
 import shlex
 from io import StringIO
 from pathlib import Path
 from uuid import uuid4
 
 from pyinfra import host, logger, state
-from pyinfra.api import FactBase, FunctionCommand, OperationError, QuoteString, StringCommand, operation
+from pyinfra.api import FactBase, FunctionCommand, OperationError, StringCommand, operation
 from pyinfra.api.command import FileUploadCommand
 from pyinfra.facts.files import File, Sha256File
 from pyinfra.operations.util.files import generate_color_diff
 
 from roslab.network import apply
-from roslab.network.apply import APPLY_UNIT, BACKUP_ROOT, NETPLAN_DIR, RUN_DIR, STAGING_DIR, Plan
+from roslab.network.apply import (
+    BACKUP_ROOT,
+    NETPLAN_DIR,
+    RECOVERED_FILE,
+    RUN_DIR,
+    SCRIPT_INSTALL_PATH,
+    STATE_DIR,
+    Plan,
+)
 from roslab.network.confirm import confirm_network_change
 from roslab.network.render import (
     CLOUD_INIT_DISABLE_FILE,
@@ -42,9 +53,25 @@ from roslab.network.settings import NetworkSettings
 from roslab.probe import read
 
 APPLY_SCRIPT = Path(apply.__file__)
-# Where the script and the plan go on the host.
-SCRIPT_PATH = f"{RUN_DIR}/network_apply.py"
+# Where the script and the plan go on the host (the script where the boot unit finds it).
+SCRIPT_PATH = SCRIPT_INSTALL_PATH
 PLAN_PATH = f"{RUN_DIR}/plan.json"
+RECOVERED_PATH = f"{STATE_DIR}/{RECOVERED_FILE}"
+
+
+class SecretStdin:
+    """A command's stdin that holds a secret: pyinfra reads it with readlines(); shown, it is masked."""
+
+    def __init__(self, text: str):
+        self._text = text
+
+    def readlines(self) -> list[str]:
+        return [self._text]
+
+    def __repr__(self) -> str:
+        return "SecretStdin(***)"
+
+    __str__ = __repr__
 
 
 class NetworkRenderer(FactBase):
@@ -62,6 +89,7 @@ class NetworkRenderer(FactBase):
             "then echo nm_renderer=yes; fi; "
             f"if ls {NETPLAN_DIR}/90-NM-*.yaml >/dev/null 2>&1; then echo nm_profiles=yes; fi; "
             f"if [ -d /etc/cloud ] || [ -e {NETPLAN_DIR}/50-cloud-init.yaml ]; then echo cloud_init=yes; fi; "
+            f"if [ -f {RECOVERED_PATH} ]; then echo recovered=$(head -c 2000 {RECOVERED_PATH} | tr -d '\\n'); fi; "
             "(. /etc/os-release && echo version=$VERSION_ID)"
         )
 
@@ -75,7 +103,12 @@ class NetworkRenderer(FactBase):
             netplan_nm_profiles=values.get("nm_profiles") == "yes",
             ubuntu_version=values.get("version") or None,
         )
-        return {"renderer": renderer, "cloud_init": values.get("cloud_init") == "yes"}
+        try:
+            recovered = json.loads(values["recovered"]) if values.get("recovered") else None
+        except ValueError:
+            recovered = {"reason": "its network configuration was restored at boot (record unreadable)"}
+        return {"renderer": renderer, "cloud_init": values.get("cloud_init") == "yes",
+                "recovered": recovered if isinstance(recovered, dict) else None}
 
 
 class NetplanFilesConfiguring(FactBase):
@@ -175,6 +208,18 @@ def network_in_effect(
     configuring = host.get_fact(NetplanFilesConfiguring, interface=settings.interface) if layout.uses_netplan else []
     wanted = desired_files(settings, layout, found["cloud_init"], tuple(configuring))
 
+    recovered = found.get("recovered")
+    if recovered:
+        # The host restarted during an earlier change's confirmation window: the boot unit
+        # put the previous configuration back, so it answers where it did before.
+        # The record is the host's: printable characters only reach the teacher's terminal.
+        said = "".join(char for char in str(recovered.get("reason") or "") if char.isprintable())[:300]
+        host.log_styled(
+            f"roslab: network: found at {current_address}: {said or 'an unconfirmed change was undone at boot'}",
+            fg="yellow", log_func=logger.warning,
+        )
+        yield StringCommand("rm", "-f", RECOVERED_PATH)  # reported once
+
     changed = [path for path, content in wanted.files.items()
                if host.get_fact(Sha256File, path=path) != sha256(content)]
     leftover = [path for path in wanted.superseded if host.get_fact(File, path=path)]
@@ -183,7 +228,7 @@ def network_in_effect(
         for path in loose:
             # Same content, wrong owner or mode: fix in place, nothing to apply.
             yield StringCommand("chown", "root:root", path, "&&", "chmod", "0600", path)
-        if not loose:
+        if not loose and not recovered:
             host.noop(f"network configuration already in place ({layout.reason})")
         return
 
@@ -206,29 +251,15 @@ def network_in_effect(
         backups_keep=settings.backups_keep,
     )
 
-    staged_dirs = sorted({str(apply.staged_path(plan, path).parent) for path in wanted.files})
-    yield StringCommand("rm", "-rf", f"{RUN_DIR}/{STAGING_DIR}", "&&", "install", "-d", "-m", "0700",
-                        RUN_DIR, f"{RUN_DIR}/{STAGING_DIR}", *staged_dirs)
-    # With sudo, pyinfra uploads as the SSH user first and then copies into place:
-    # give those temporary copies a directory only that user can read.
-    upload_dir = f"/tmp/roslab-network-{plan.token}"
-    yield StringCommand("mkdir", "-m", "0700", upload_dir, _sudo=False)
-    uploads = [(StringIO(content), apply.staged_path(plan, path)) for path, content in wanted.files.items()]
-    uploads.append((StringIO(plan.to_json()), PLAN_PATH))
-    uploads.append((str(APPLY_SCRIPT), SCRIPT_PATH))
-    for number, (source, destination) in enumerate(uploads):
-        yield FileUploadCommand(source, str(destination), remote_temp_filename=f"{upload_dir}/{number}")
-    yield StringCommand("rm", "-rf", upload_dir, _sudo=False)
-    yield StringCommand("chmod", "-R", "go-rwx", RUN_DIR)
-
-    # Validation failure: pyinfra shows the validator's message and stops here, untouched.
-    yield StringCommand("python3", SCRIPT_PATH, "validate", PLAN_PATH)
-    yield StringCommand(
-        "systemctl", "reset-failed", f"{APPLY_UNIT}.service", "2>/dev/null", ";",
-        "systemd-run", f"--unit={APPLY_UNIT}", "--collect", "--quiet",
-        QuoteString("--description=roslab: apply the network change, roll back unless confirmed"),
-        "python3", SCRIPT_PATH, "apply", PLAN_PATH,
-    )
+    yield StringCommand("install", "-d", "-m", "0700", RUN_DIR, "&&",
+                        "install", "-d", "-m", "0755", str(Path(SCRIPT_PATH).parent))
+    yield FileUploadCommand(StringIO(plan.to_json()), PLAN_PATH)
+    yield FileUploadCommand(str(APPLY_SCRIPT), SCRIPT_PATH)
+    # The new files (a WiFi password among them) go on the stdin of the command that stages,
+    # validates and launches: 0600 root's from their first byte, and removed whatever fails.
+    # A validation failure shows the validator's message and stops here, nothing changed.
+    yield StringCommand("python3", SCRIPT_PATH, "start", PLAN_PATH,
+                        _stdin=SecretStdin(json.dumps(wanted.files)))
     yield FunctionCommand(
         confirm_network_change,
         (),

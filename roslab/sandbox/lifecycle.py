@@ -402,6 +402,37 @@ def reboot(host_name: str, instance: Instance | None = None, timeout: float = 60
     return time.monotonic() - started
 
 
+def power_cut(host_name: str, instance: Instance | None = None) -> None:
+    """Cut a host's power: every process in it killed at once, no shutdown. Its disk stays
+    as it was (what was written survives, as on a Pi's SD card); `power_on` boots it again."""
+    classroom = load(instance)
+    host = classroom.host(host_name)
+    hosts.stop(classroom.instance, host.name)
+
+
+def power_on(host_name: str, instance: Instance | None = None, wait_at: str | None = None,
+             timeout: float = 120.0) -> float:
+    """Boot a host whose power was cut, from its disk as it was; wait until sshd answers at
+    `wait_at` (default: its roster address); return the seconds taken."""
+    started = time.monotonic()
+    classroom = load(instance)
+    host = classroom.host(host_name)
+    if hosts.is_running(classroom.instance, host.name):
+        raise SandboxError(f"host {host_name!r} of sandbox {classroom.instance.name!r} is running")
+    merged = classroom.instance.host_dir(host) / "merged"
+    if not hosts.mounts_under(merged.parent) or not (merged / "etc").is_dir():
+        raise SandboxError(f"host {host_name!r} has no disk to boot from: `roslab sandbox reset` it")
+    # A Pi's network card starts empty after a power cut; the host's netns outlives its
+    # processes here, so its addresses and routes go as the power would take them.
+    netns = classroom.instance.netns(host)
+    run("ip", "-n", netns, "address", "flush", "dev", "eth0", check=False)
+    run("ip", "-n", netns, "route", "flush", "dev", "eth0", check=False)
+    seed = _host_states(classroom.instance).get(host.name, {}).get("seed")
+    hosts.start(classroom.instance, host, merged, Path(seed) if seed else None)
+    hosts.wait_for_ssh(wait_at or host.address, timeout=timeout)
+    return time.monotonic() - started
+
+
 def ssh(host_name: str, command: list[str], instance: Instance | None = None) -> None:
     """Replace this process with ssh to the host (interactive when no command)."""
     classroom = load(instance)

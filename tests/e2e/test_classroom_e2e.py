@@ -11,6 +11,7 @@ killed mid-install, the mirror gone during `apt-get update`, a deleted ~/.bashrc
 
 from __future__ import annotations
 
+import os
 import re
 import shlex
 import threading
@@ -19,6 +20,9 @@ from collections import Counter
 
 import pytest
 import yaml
+
+from roslab.sandbox import upstream
+from roslab.sandbox.instance import UPSTREAM_PORT
 
 pytestmark = pytest.mark.e2e
 
@@ -397,3 +401,105 @@ def test_a_deleted_bashrc_end_marker_is_repaired_keeping_the_students_lines(sand
     again = sandbox.pyinfra()
     assert again.returncode == 0 and changes(again) == {}, again.changed
     assert sandbox.ssh(host, "cat ~/.bashrc", check=True).stdout.splitlines() == after
+
+
+# Issue 18: a student's masked unit, someone's link where a deploy writes, upstream down.
+
+NODES_UNIT = "/etc/systemd/system/roslab-nodes.service"
+PRECIOUS = "/etc/roslab-e2e-precious"
+
+
+def summary_line(run, host: str) -> str:
+    """roslab's summary line for `host` (printed last, on stderr)."""
+    lines = run.stderr[run.stderr.rindex("roslab summary"):].splitlines()
+    (line,) = [line.strip() for line in lines if line.strip().startswith(f"{host} ")]
+    return " ".join(line.split())
+
+
+def test_a_masked_unit_is_healed_and_a_foreign_link_stops_only_its_host(sandbox, first_run):
+    masked, linked = "team1-main", "team2-robot"
+    # `systemctl mask` refuses while the unit file is in /etc, so a student removes it first.
+    sandbox.sudo(masked, f"systemctl stop roslab-nodes.service && rm {NODES_UNIT} && "
+                         "systemctl mask roslab-nodes.service", check=True)
+    assert sandbox.sudo(masked, f"readlink {NODES_UNIT}").stdout.strip() == "/dev/null"
+    # Someone's link where the deploy writes the unit, to a file root keeps private.
+    sandbox.sudo(linked, f"printf 'precious\\n' > {PRECIOUS} && chmod 600 {PRECIOUS} && "
+                         f"rm -f {NODES_UNIT} && ln -s {PRECIOUS} {NODES_UNIT}", check=True)
+
+    run = sandbox.pyinfra()
+
+    assert run.returncode == 1, run.stderr[-6000:]
+    assert run.failed_hosts == [linked], run.failed_hosts
+    reason = (f"roslab: will not write {NODES_UNIT}: it is a symbolic link (to {PRECIOUS}) "
+              "that roslab did not make")
+    line = summary_line(run, linked)
+    step = "Ensure roslab-nodes.service runs the robot's launch"
+    assert line.startswith(f"{linked} failed in \"") and step in line and line.endswith(reason), line
+    assert sandbox.sudo(linked, f"stat -c '%a %s' {PRECIOUS} && cat {PRECIOUS}").stdout == "600 9\nprecious\n"
+    for host in set(EXPECTED) - {linked}:
+        assert not [line for line in host_lines(run, host) if "Error" in line], host_lines(run, host)
+        # /dev/null is still the device on every host (the mask's link was never written through)
+        assert sandbox.ssh(host, "stat -c %F /dev/null").stdout.strip() == "character special file"
+    (report,) = [line for line in host_lines(run, masked) if "masked" in line]
+    assert "roslab-nodes.service was masked on this host (systemctl mask): unmasking it" in report
+    assert sandbox.sudo(masked, "systemctl is-active roslab-nodes.service").stdout.strip() == "active"
+    assert sandbox.sudo(masked, f"test -f {NODES_UNIT} && test ! -L {NODES_UNIT}").returncode == 0
+
+    sandbox.sudo(linked, f"rm -f {NODES_UNIT} {PRECIOUS}", check=True)  # the teacher removes the link
+    healed = sandbox.pyinfra()
+    assert healed.returncode == 0, healed.stderr[-6000:]
+    assert changed_hosts(healed) == {linked}, healed.changed
+    assert sandbox.sudo(linked, "systemctl is-active roslab-nodes.service").stdout.strip() == "active"
+
+
+def controller_requests(sandbox, since: int) -> list:
+    """Requests the controller (this machine, at the bridge address) made to the upstream."""
+    log = sandbox.instance.state_dir / upstream.REQUEST_LOG
+    return [request for request in upstream.read_requests(log)[since:]
+            if request.client == sandbox.instance.bridge_address]
+
+
+def request_count(sandbox) -> int:
+    return len(upstream.read_requests(sandbox.instance.state_dir / upstream.REQUEST_LOG))
+
+
+def test_a_noop_run_asks_upstream_nothing_and_upstream_down_uses_the_kept_rosdep_data(sandbox, first_run, tmp_path):
+    cache = tmp_path / "rosdep-cache"
+
+    def edit(data):
+        data["classroom"]["rosdep_cache_dir"] = str(cache)
+
+    roster = changed_roster(sandbox, tmp_path, edit)
+    filled = deploy_with_roster(sandbox, roster)  # a new kept copy, the same data: nothing changes
+    assert filled.returncode == 0 and changes(filled) == {}, filled.stderr[-6000:]
+
+    before = request_count(sandbox)
+    quiet = deploy_with_roster(sandbox, roster)
+    assert quiet.returncode == 0 and changes(quiet) == {}, quiet.stderr[-6000:]
+    assert controller_requests(sandbox, before) == []  # within rosdep_update_max_age: not one request
+
+    # The kept copy is older than rosdep_update_max_age, and upstream is down.
+    old = time.time() - 8 * 86400
+    for path in cache.rglob("*"):
+        if path.is_file():
+            os.utime(path, (old, old))
+    state = sandbox.instance.state_dir
+    upstream.stop_server(state / "upstream.pid")
+    try:
+        down = deploy_with_roster(sandbox, roster)
+    finally:
+        upstream.start_server(state / "upstream", sandbox.instance.bridge_address, UPSTREAM_PORT,
+                              state / "upstream.pid", state / "upstream.log")
+    assert down.returncode == 0, down.stderr[-6000:]
+    assert changes(down) == {}, down.changed
+    for host in EXPECTED:
+        reports = [line for line in roslab_lines(down, host) if "rosdep's data" in line]
+        assert reports and all("cannot download http://" in line and "using the controller's copy from 8 days ago"
+                               in line for line in reports), roslab_lines(down, host)
+        assert summary_line(down, host) == f"{host} ok"
+
+    before = request_count(sandbox)
+    back = deploy_with_roster(sandbox, roster)  # upstream is back: the copy is checked, then fresh again
+    assert back.returncode == 0 and changes(back) == {}, back.stderr[-6000:]
+    assert controller_requests(sandbox, before), "the stale copy was never checked upstream"
+    assert not [line for host in EXPECTED for line in roslab_lines(back, host) if "rosdep's data" in line]

@@ -391,3 +391,170 @@ def test_awkward_ssid_lands_in_a_networkmanager_keyfile_exactly_as_written(class
         assert read_by_nm["wifi-security.psk"] == AWKWARD_PASSWORD
     finally:
         on_host(host, address, f"rm -rf {CHECK_DIR}")
+
+
+# Issue 18: a power cut during the confirmation window, and where a WiFi password may be.
+
+def host_root(host) -> Path:
+    """The host's / as this machine sees it (through its PID 1), /run included."""
+    from roslab.sandbox import hosts as sandbox_hosts
+    from roslab.sandbox.instance import Instance
+
+    pid = sandbox_hosts.container_init_pid(Instance(INSTANCE, SUBNET), host.name)
+    assert pid is not None, f"{host.name} is not running"
+    return Path(f"/proc/{pid}/root")
+
+
+def apply_status(host) -> dict:
+    try:
+        return json.loads((host_root(host) / "run/roslab/network/status.json").read_text())
+    except (OSError, ValueError, AssertionError):
+        return {}
+
+
+def wait_for(predicate, seconds: float, what: str) -> None:
+    deadline = time.monotonic() + seconds
+    while not predicate():
+        assert time.monotonic() < deadline, f"gave up waiting for {what}"
+        time.sleep(0.2)
+
+
+def start_deploy(roster: Path, host: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [str(BIN / "pyinfra"), "-y", "inventories/lab.py", TEST_DEPLOY, "--limit", host],
+        cwd=REPO, env={**ENV, "ROSLAB_ROSTER": str(roster)}, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+def test_a_power_cut_during_the_confirmation_window_comes_back_on_the_old_address(classroom):
+    from roslab.sandbox import lifecycle
+    from roslab.sandbox.instance import Instance
+
+    host = pick(classroom, 1)  # back at its old address after its rolled-back change
+    new = str(SUBNET.network_address + 81)
+    roster = write_roster({host.name: static(new, network_confirm_timeout=90)})
+    instance = Instance(INSTANCE, SUBNET)
+    # The controller cannot confirm (as if the switch did not carry the new address yet),
+    # so the host sits in its confirmation window when the power goes.
+    subprocess.run(["ip", "route", "add", "blackhole", f"{new}/32"], check=True)
+    try:
+        deploy = start_deploy(roster, host.name)
+        wait_for(lambda: apply_status(host).get("state") == "waiting-for-confirmation", 120,
+                 "the host to wait for its confirmation")
+        assert on_host_file(host, "var/lib/roslab/network/pending.json")
+        lifecycle.power_cut(host.name, instance)
+        time.sleep(1)
+        lifecycle.power_on(host.name, instance, wait_at=host.address)  # at the OLD address
+        output, _ = deploy.communicate(timeout=300)
+    finally:
+        subprocess.run(["ip", "route", "del", "blackhole", f"{new}/32"], check=True)
+
+    assert deploy.returncode == 1, output[-4000:]
+    assert "Network change rolled back: the host restarted before the network change of" in output, output[-4000:]
+    assert f"reachable again at {host.address}" in output
+    assert on_host(host, host.address, "ls /etc/netplan").split() == ["50-cloud-init.yaml"]
+    assert on_host(host, host.address, "ip -4 -o address show dev eth0").split()[3] == f"{host.address}/{SUBNET.prefixlen}"
+    assert on_host(host, host.address, "ls /var/lib/roslab/network").split() == ["recovered.json"]
+    assert network_state.last_known_address(roster, host.name) is None
+
+    # The next run finds the host where it is, says so, and makes the change.
+    proc, results = run_deploy(roster, host.name)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    (found,) = [line for line in proc.stderr.splitlines() if "network: found at" in line]
+    assert f"network: found at {host.address}: the host restarted before the network change of" in found
+    assert on_host(host, new, "cat /tmp/roslab-e2e-reached-at").split()[2] == new
+    assert on_host(host, new, "ls /var/lib/roslab/network").split() == []
+    proc, results = run_deploy(roster, host.name)
+    assert proc.returncode == 0 and network_op(results)["no_change"] == [host.name], proc.stderr[-4000:]
+
+
+def on_host_file(host, relative: str) -> bool:
+    return (host_root(host) / relative).is_file()
+
+
+class SecretWatcher:
+    """Polls every file the host changed (its overlay's upper dir, and /run through its PID 1)
+    for `secret`, noting each sighting's path, owner and mode."""
+
+    def __init__(self, host, secret: str):
+        from roslab.sandbox.instance import Instance
+
+        self.host, self.secret = host, secret.encode()
+        self.upper = Instance(INSTANCE, SUBNET).host_dir(host) / "upper"
+        self.sightings: set[tuple[str, int, int]] = set()
+        self.stop = False
+
+    def roots(self) -> list[Path]:
+        roots = [self.upper]
+        try:
+            roots.append(host_root(self.host) / "run")
+        except AssertionError:
+            pass  # powered off
+        return roots
+
+    def scan(self) -> set[tuple[str, int, int]]:
+        found = set()
+        for root in self.roots():
+            for directory, _, names in os.walk(root):
+                if "/journal" in directory or "/proc" in directory:
+                    continue
+                for name in names:
+                    path = Path(directory, name)
+                    try:
+                        info = path.lstat()
+                        if not path.is_file() or path.is_symlink() or info.st_size > 256 * 1024:
+                            continue
+                        if self.secret in path.read_bytes():
+                            found.add((str(path.relative_to(root)), info.st_uid, info.st_mode & 0o777))
+                    except OSError:
+                        continue
+        return found
+
+    def run(self) -> None:
+        while not self.stop:
+            self.sightings |= self.scan()
+            time.sleep(0.005)
+
+
+def test_a_wifi_password_is_never_readable_by_others_nor_left_after_a_run_interrupted_or_not(classroom):
+    import signal
+    import threading
+
+    host = pick(classroom, 2)  # back at its old address after its rolled-back change
+    password = f"e2e-watch-{uuid4().hex}"
+    # The sandbox has no WiFi: the change is staged, validated, installed, and rolled back.
+    roster = write_roster({host.name: static(str(SUBNET.network_address + 82), network_kind="wifi",
+                                             wifi_ssid="roslab-e2e", wifi_password_secret="e2e_wifi")},
+                          secrets={"e2e_wifi": password})
+    watcher = SecretWatcher(host, password)
+    thread = threading.Thread(target=watcher.run, daemon=True)
+    thread.start()
+    try:
+        proc, results = run_deploy(roster, host.name)
+        assert proc.returncode == 1, proc.stderr[-4000:]
+        assert password not in proc.stdout + proc.stderr
+        seen_in_run = set(watcher.sightings)
+
+        # Interrupted: Ctrl-C to pyinfra once the host has its staged files or its change.
+        interrupted = start_deploy(roster, host.name)
+        wait_for(lambda: any(path.startswith(("roslab/network/staging", "etc/netplan/60-roslab"))
+                             for path, _, _ in watcher.sightings - seen_in_run) or interrupted.poll() is not None,
+                 120, "the change to reach the host")
+        interrupted.send_signal(signal.SIGINT)
+        output, _ = interrupted.communicate(timeout=120)
+        assert password not in output
+        # The host rolls the change back on its own (nobody confirms it).
+        wait_for(lambda: apply_status(host).get("state") in ("rolled-back", "confirmed"), 120,
+                 "the host to end the change")
+    finally:
+        watcher.stop = True
+        thread.join()
+    time.sleep(0.5)
+    assert watcher.sightings, "the watcher never saw the password: it cannot have watched the change"
+    for path, uid, mode in sorted(watcher.sightings):
+        assert uid == 0 and mode == 0o600, f"{path} held the WiFi password as uid {uid}, mode {mode:o}"
+        assert not path.startswith(("tmp/", "var/tmp/", "home/")), f"{path} held the WiFi password"
+    left = watcher.scan()
+    assert left == set(), f"the WiFi password was left in {sorted(left)}"
+    assert answers_ssh(host.address, seconds=10)

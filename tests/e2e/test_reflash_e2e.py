@@ -20,6 +20,7 @@ import atexit
 import ipaddress
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -164,6 +165,20 @@ def test_a_host_reflashed_with_its_seed_boots_as_flashed_and_the_deploy_converge
     output = first.stdout + first.stderr
     assert first.returncode == 0, output[-6000:]
     assert changed, "a freshly flashed host needs provisioning"
+    # Issue 18: apt_ready waits for cloud-init's first boot, so cloud-init's own package step
+    # never loses the dpkg lock to the deploy; when it had to wait, it said so in one line.
+    # (cloud-init's final stage finishes within seconds of the deploy's start here, so
+    # whether the probe still found it running depends on the machine's load.)
+    status = json.loads(on_host("cloud-init status --format json"))
+    assert status["status"] == "done" and status["errors"] == [], status
+    waited = [line for line in output.splitlines() if "for cloud-init to finish its first boot" in line]
+    finished = float(on_host("stat -c %Y /run/cloud-init/result.json"))
+    ran_for = finished - float(started)
+    assert len(waited) <= 1 and all(re.search(rf"\[{SEEDED}\] roslab: .*waited \d+ s for cloud-init", line)
+                                    for line in waited), waited
+    print(f"cloud-init's first boot ended {ran_for:.0f} s after the deploy began; waited: {waited}")
+    if ran_for > 15:  # still running long after the probe: the deploy must have waited
+        assert waited, (ran_for, on_host("ls /run/cloud-init"), output[-3000:])
     # The deploy began while the dpkg lock was held, so its apt steps waited for the release.
     released = on_host(f"date -r {seeding.FIRST_BOOT_DONE} +%s.%N")
     assert float(started) < float(released)

@@ -134,3 +134,48 @@ def test_a_lock_wait_that_ended_well_is_reported_in_one_line_and_the_run_goes_on
     (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert "host pi (team team1): waited for the dpkg lock (up to 300 s, apt_lock_timeout)" in warning
     assert "unattended-upgr" in warning
+
+
+# cloud-init's first boot on a freshly seeded Pi: waited for, bounded, inside the probe.
+
+def test_the_probe_waits_for_cloud_init_only_while_it_runs_this_boot():
+    from roslab.facts import AptProblem
+
+    command = AptProblem().command(lock_timeout=42).get_raw_value()
+    wait = command[: command.index("apt-get")]
+    assert wait.startswith("if [ -e /run/cloud-init/enabled ] && [ ! -e /run/cloud-init/result.json ]")
+    assert "timeout 42 cloud-init status --wait" in wait
+
+
+@pytest.mark.parametrize("line, expected", [
+    ("roslab-cloud-init=0 37 status: done", {"status": 0, "seconds": 37, "output": "status: done"}),
+    ("roslab-cloud-init=124 600 ", {"status": 124, "seconds": 600, "output": ""}),
+])
+def test_what_the_cloud_init_wait_said_is_kept_beside_apts_verdict(line, expected):
+    from roslab.facts import AptProblem
+
+    assert AptProblem().process([line, "roslab-apt-exit=0"]) == {
+        "interrupted": False, "message": None, "cloud_init": expected}
+
+
+def test_a_wait_for_cloud_init_is_one_warning_line_and_apt_carries_on(tmp_path, caplog):
+    host = FakeUbuntu()
+    host.apt_problem = {"interrupted": False, "message": None,
+                        "cloud_init": {"status": 0, "seconds": 37, "output": "status: done"}}
+    with caplog.at_level("WARNING"):
+        result = plan(run_apt_ready, host.facts(), host_data(tmp_path))
+    assert not result.failed, result.errors
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert "host pi (team team1): waited 37 s for cloud-init to finish its first boot" in warning
+    assert "\n" not in warning
+    assert any("universe" in op.name for op in result.operations)
+
+
+def test_cloud_init_still_running_at_the_timeout_stops_this_host(tmp_path):
+    host = FakeUbuntu()
+    host.apt_problem = {"interrupted": False, "message": None,
+                        "cloud_init": {"status": 124, "seconds": 5, "output": "status: running"}}
+    result = plan(run_apt_ready, host.facts(), host_data(tmp_path, apt_lock_timeout=5))
+    assert result.failed and result.operations == []
+    (error,) = result.errors
+    assert "cloud-init's first boot is still running after 5 s (apt_lock_timeout): status: running" in error

@@ -47,7 +47,12 @@ def host(tmp_path):
         confirm_timeout=1,
         backup_root=str(tmp_path / "var/backups/roslab/network"),
         run_dir=str(run_dir),
+        state_dir=str(tmp_path / "var/lib/roslab/network"),
+        systemd_dir=str(tmp_path / "etc/systemd/system"),
+        script_path=str(tmp_path / "usr/local/lib/roslab/network_apply.py"),
     )
+    Path(plan.script_path).parent.mkdir(parents=True)
+    Path(plan.script_path).write_text("# the script's persistent copy\n")
     for target, content in ((new_file, "new: static\n"), (disable_file, "network: {config: disabled}\n")):
         staged = network_apply.staged_path(plan, target)
         staged.parent.mkdir(parents=True, exist_ok=True)

@@ -74,6 +74,19 @@ def run_network(data=None, **fact_args):
     return plan(network, facts(**fact_args), data={**HOST_DATA, **(data or {})})
 
 
+def reaching_host(result) -> dict[str, str]:
+    """What reaches the host: uploaded files, and the staged files (by their staging path)
+    that the `start` command gets on its stdin."""
+    out = result.uploads()
+    for op in result.operations:
+        for command in op.commands:
+            stdin = getattr(command, "connector_arguments", {}).get("_stdin")
+            if stdin is not None:
+                [line] = stdin.readlines()
+                out.update({STAGED + path: content for path, content in json.loads(line).items()})
+    return out
+
+
 def text(operation):
     """The operation's commands as text; the controller-side callback by name."""
     return [
@@ -94,22 +107,26 @@ def test_first_run_stages_validates_and_launches_detached_apply():
     operation = the_operation(result)
     assert operation.name.endswith("| Ensure the host's ethernet network is configured and it answers at 10.0.0.11")
     commands = text(operation)
-    assert commands[0].startswith("rm -rf /run/roslab/network/staging && install -d -m 0700")
-    uploads = result.uploads()
-    assert set(uploads) == {
-        STAGED + NETPLAN, STAGED + DISABLE,
-        "/run/roslab/network/plan.json", "/run/roslab/network/network_apply.py",
+    assert commands[0] == "install -d -m 0700 /run/roslab/network && install -d -m 0755 /usr/local/lib/roslab"
+    # The new files (they may hold a WiFi password) are never uploaded: they reach the
+    # host on the stdin of the command that stages them 0600, validates and launches.
+    assert set(operation_uploads := result.uploads()) == {
+        "/run/roslab/network/plan.json", "/usr/local/lib/roslab/network_apply.py",
     }
-    assert yaml.safe_load(uploads[STAGED + NETPLAN])["network"]["ethernets"]["eth0"]["addresses"] == ["10.0.0.11/24"]
+    start = "python3 /usr/local/lib/roslab/network_apply.py start /run/roslab/network/plan.json"
+    assert start in commands
+    [start_command] = [c for c in operation.commands if isinstance(c, StringCommand) and c.get_raw_value() == start]
+    assert "***" in repr(start_command.connector_arguments["_stdin"])
+    staged = reaching_host(result)
+    assert set(staged) - set(operation_uploads) == {STAGED + NETPLAN, STAGED + DISABLE}
+    assert yaml.safe_load(staged[STAGED + NETPLAN])["network"]["ethernets"]["eth0"]["addresses"] == ["10.0.0.11/24"]
     # The plan is one the on-host script accepts (Plan.from_json checks every field).
-    plan_file = Plan.from_json(uploads["/run/roslab/network/plan.json"])
+    plan_file = Plan.from_json(staged["/run/roslab/network/plan.json"])
     assert plan_file.files == (NETPLAN, DISABLE)
     assert plan_file.superseded == (CLOUD_INIT,)
     assert plan_file.expect_address == "10.0.0.11/24" and plan_file.gateway == "10.0.0.1"
-    # Validation comes before the change, and the change runs outside the SSH session.
-    validate = commands.index("python3 /run/roslab/network/network_apply.py validate /run/roslab/network/plan.json")
-    launch = next(i for i, c in enumerate(commands) if "systemd-run --unit=roslab-network-apply" in c)
-    assert validate < launch
+    # The change runs outside the SSH session, after everything is staged.
+    assert commands.index(start) == len(commands) - 2
     confirm = operation.commands[-1]
     assert isinstance(confirm, FunctionCommand)
     assert confirm.kwargs["new_address"] == "10.0.0.11"
@@ -119,12 +136,12 @@ def test_first_run_stages_validates_and_launches_detached_apply():
 
 @pytest.mark.parametrize("data, kept", [({}, 5), ({"network_backups_keep": 2}, 2)])
 def test_the_roster_says_how_many_backups_the_host_keeps(data, kept):
-    uploads = run_network(data=data, files={CLOUD_INIT: "x"}).uploads()
+    uploads = reaching_host(run_network(data=data, files={CLOUD_INIT: "x"}))
     assert Plan.from_json(uploads["/run/roslab/network/plan.json"]).backups_keep == kept
 
 
 def test_second_run_changes_nothing():
-    first = run_network(files={CLOUD_INIT: "x"}).uploads()
+    first = reaching_host(run_network(files={CLOUD_INIT: "x"}))
     in_place = {NETPLAN: first[STAGED + NETPLAN], DISABLE: first[STAGED + DISABLE]}
     result = run_network(files=in_place)
     assert [op.name for op in result.operations if op.commands] == []
@@ -138,7 +155,7 @@ def test_a_network_in_place_is_read_by_the_probe_alone(renderer):
     from deploy.network import network_reads
     from roslab.probe import read_ahead
 
-    first = run_network(renderer=renderer, files={CLOUD_INIT: "x"}).uploads()
+    first = reaching_host(run_network(renderer=renderer, files={CLOUD_INIT: "x"}))
     in_place = {path[len(STAGED):]: content for path, content in first.items() if path.startswith(STAGED)}
 
     def probed_then_network():
@@ -152,9 +169,9 @@ def test_a_network_in_place_is_read_by_the_probe_alone(renderer):
 
 
 def test_leftover_cloud_init_file_alone_triggers_a_change():
-    first = run_network(files={CLOUD_INIT: "x"}).uploads()
+    first = reaching_host(run_network(files={CLOUD_INIT: "x"}))
     files = {NETPLAN: first[STAGED + NETPLAN], DISABLE: first[STAGED + DISABLE], CLOUD_INIT: "x"}
-    assert Plan.from_json(run_network(files=files).uploads()["/run/roslab/network/plan.json"]).superseded == (CLOUD_INIT,)
+    assert Plan.from_json(reaching_host(run_network(files=files))["/run/roslab/network/plan.json"]).superseded == (CLOUD_INIT,)
 
 
 def test_other_netplan_files_for_the_interface_are_superseded_not_merged():
@@ -172,14 +189,14 @@ def test_other_netplan_files_for_the_interface_are_superseded_not_merged():
         "/etc/netplan/90-NM-1234.yaml": "network:\n  ethernets:\n    eth0:\n      addresses: [10.0.0.200/24]\n",
     }
     plan_file = Plan.from_json(
-        run_network(renderer=desktop_2404, files=files).uploads()["/run/roslab/network/plan.json"]
+        reaching_host(run_network(renderer=desktop_2404, files=files))["/run/roslab/network/plan.json"]
     )
     assert plan_file.layout == NETPLAN_NM
     assert plan_file.superseded == ("/etc/netplan/90-NM-1234.yaml",)
 
 
 def test_same_content_wrong_mode_is_fixed_without_applying():
-    first = run_network(files={CLOUD_INIT: "x"}).uploads()
+    first = reaching_host(run_network(files={CLOUD_INIT: "x"}))
     files = {NETPLAN: first[STAGED + NETPLAN], DISABLE: first[STAGED + DISABLE]}
     result = run_network(files=files, modes={NETPLAN: 644})
     assert text(the_operation(result)) == [f"chown root:root {NETPLAN} && chmod 0600 {NETPLAN}"]
@@ -187,7 +204,7 @@ def test_same_content_wrong_mode_is_fixed_without_applying():
 
 def test_desktop_2204_gets_a_networkmanager_keyfile():
     result = run_network(renderer=DESKTOP_2204)
-    uploads = result.uploads()
+    uploads = reaching_host(result)
     assert STAGED + KEYFILE in uploads and STAGED + NETPLAN not in uploads
     assert "address1=10.0.0.11/24,10.0.0.1" in uploads[STAGED + KEYFILE]
     assert Plan.from_json(uploads["/run/roslab/network/plan.json"]).layout == NM_KEYFILE
@@ -224,7 +241,7 @@ WIFI = {
 def test_wifi_password_only_in_the_staged_file_never_in_commands_or_plan():
     result = run_network(data=WIFI)
     operation = the_operation(result)
-    uploads = result.uploads()
+    uploads = reaching_host(result)
     assert PASSWORD in uploads[STAGED + NETPLAN]
     assert PASSWORD not in uploads["/run/roslab/network/plan.json"]
     for command in operation.commands:
@@ -362,3 +379,15 @@ def test_host_that_gives_up_by_itself_is_reported_without_a_confirmation(quick, 
     assert not any(text.startswith("printf") for _, text in host.commands)
     assert connector.data["ssh_hostname"] == "10.0.0.200"
     assert "rolled back: gateway 10.0.0.254 does not answer on eth0" in host.messages[-1]
+
+
+def test_a_change_undone_at_boot_is_reported_once_in_one_printable_line(caplog):
+    record = {"token": "t", "reason": "the host restarted before the network change of X was confirmed\x1b[2J"}
+    renderer = {**SERVER_2404, "recovered": record}
+    with caplog.at_level(logging.WARNING):
+        result = run_network(renderer=renderer, files={CLOUD_INIT: "x"})
+    (line,) = {r.getMessage() for r in caplog.records if "found at" in r.getMessage()}
+    assert "roslab: network: found at 10.0.0.200: the host restarted before the network change of X" in line
+    assert "\x1b[2J" not in line
+    commands = text(the_operation(result))
+    assert commands[0] == "rm -f /var/lib/roslab/network/recovered.json"

@@ -42,11 +42,9 @@ def test_managed_block_is_appended_after_the_users_lines_keeping_owner_and_mode(
     assert result.uploads()["/home/student/.bashrc"] == "\n".join(
         [*BASHRC, "", BLOCK_BEGIN, "export ROS_DOMAIN_ID=11", BLOCK_END]
     ) + "\n"
-    commands = result.changing()["operations.managed_block"]
-    assert commands[1:] == [
-        "chown student:student /home/student/.bashrc",
-        "chmod 640 /home/student/.bashrc",  # the user's own mode, not the default for new files
-    ]
+    # Owner and mode travel with the upload: no chown/chmod after it that could follow a link.
+    assert result.changing()["operations.managed_block"] == ["upload /home/student/.bashrc"]
+    assert owner_and_mode(result) == ("student", "student", 0o640)  # the user's own mode
 
 
 def test_managed_block_replaces_only_its_own_lines():
@@ -66,10 +64,14 @@ def test_managed_block_is_a_noop_when_the_block_is_current():
 
 def test_managed_block_creates_a_missing_file_with_the_given_owner():
     result = block(files({}))
-    assert result.changing()["operations.managed_block"][1:] == [
-        "chown student:student /home/student/.bashrc",
-        "chmod 644 /home/student/.bashrc",
-    ]
+    assert result.changing()["operations.managed_block"] == ["upload /home/student/.bashrc"]
+    assert owner_and_mode(result) == ("student", "student", 0o644)
+
+
+def owner_and_mode(result):
+    [upload] = [command for op in result.operations for command in op.commands
+                if getattr(command, "dest", None) == "/home/student/.bashrc"]
+    return upload.user, upload.group, upload.mode
 
 
 def test_managed_block_prints_a_unified_diff_under_diff(caplog):
@@ -492,7 +494,7 @@ def test_apt_problem_fact_sees_unconfigured_packages_that_apt_check_lets_pass():
 
 def test_apt_problem_fact_waits_with_the_one_lock_option():
     command = AptProblem().command(lock_timeout=42).get_raw_value()
-    assert command.startswith("apt-get -qq -o DPkg::Lock::Timeout=42 check 2>&1;")
+    assert "fi; apt-get -qq -o DPkg::Lock::Timeout=42 check 2>&1;" in command  # after cloud-init's wait
     assert "ls -A /var/lib/dpkg/updates" in command and "dpkg --audit" in command
 
 

@@ -188,8 +188,10 @@ def test_rosdep_runs_as_root_with_the_users_cache_when_package_xml_changed():
         " --ignore-src -y" in command
     )
     assert "--rosdistro jazzy" in command
+    # The stamp is written as the user (never by root through a link in the user's directory).
+    assert command.startswith(f"runuser -u ubuntu -- mkdir -p {WS}/.roslab && ")
     assert command.endswith(
-        f"printf '%s\\n' p1:jazzy > {WS}/.roslab/rosdep.sha256 && chown ubuntu: {WS}/.roslab/rosdep.sha256"
+        f"&& runuser -u ubuntu -- sh -c 'printf '\"'\"'%s\\n'\"'\"' p1:jazzy > {WS}/.roslab/rosdep.sha256'"
     )
 
 
