@@ -18,13 +18,22 @@ from pathlib import Path
 from roslab import distro as distros
 from roslab import formats, secrets, settings
 from roslab.roster.checks import unknown_key_message
-from roslab.roster.loading import Mapping, line_of, load_yaml, nested_mappings, without
+from roslab.roster.loading import (
+    Ambiguous,
+    Mapping,
+    ambiguous_inside,
+    line_of,
+    load_yaml,
+    name_problem,
+    nested_mappings,
+    without,
+)
 from roslab.roster.model import Classroom, Host, Team
 from roslab.roster.problems import Report, display_path
 
 TOP_LEVEL_KEYS = ("classroom", "teams")
 DEFAULT_SECRETS_FILE = "secrets.yaml"
-_TEAM_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,62}")
+_TEAM_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,62}", re.ASCII)
 # Connection keys pyinfra reads from host data under the same name.
 CONNECTION_KEYS = tuple(s.key for s in settings.SCHEMA if s.concern == "connection")
 
@@ -39,11 +48,35 @@ def _is_controller_path(setting: settings.Setting) -> bool:
     return getattr(setting.check, "controller_path", False)
 
 
+def settled_yaml_value(setting: settings.Setting, value):
+    """The value the teacher meant, or a problem when YAML's reading of it is ambiguous.
+
+    A switch (a boolean setting) written yes/no/on/off means true/false; a text setting
+    whose allowed values include the word written (ssh_strict_host_key_checking: no)
+    means that word. Anything else YAML 1.1 and 1.2 read differently (010, 08, 1:30,
+    0x10, 1_000, yes as text) is refused with what YAML would make of it.
+    """
+    if isinstance(value, Ambiguous):
+        if setting.kind is bool and isinstance(value.yaml11, bool):
+            return value.yaml11, None
+        if setting.kind is str and str(value) in (getattr(setting.check, "choices", None) or ()):
+            return str(value), None
+        wanted = "number" if setting.kind is int or setting.item is int else "text"
+        return value, value.hint(wanted)
+    if setting.kind is str and isinstance(value, bool) and setting.key == "ssh_strict_host_key_checking":
+        return ("yes" if value else "no"), None  # true/false for the policy's yes/no
+    inner = ambiguous_inside(value)
+    if inner is not None:
+        wanted = "number" if setting.item is int else "text"
+        return value, f"holds {str(inner)!r}: {inner.hint(wanted)}"
+    return value, None
+
+
 class RosterReader:
     def __init__(self, path: Path):
         self.path = Path(path)
         self.report = Report(path)
-        self.context = formats.Context(self.path.parent)
+        self.context = formats.Context(self.path.parent, self.path)
         self.defaults = settings.defaults()
         self.secrets_file: Path | None = None
         self.secrets_line: int | None = None
@@ -61,8 +94,9 @@ class RosterReader:
         valid = {}
         for key, value in mapping.items():
             line = line_of(mapping, key)
-            if not isinstance(key, str):
-                self.report.error(f"key {key!r} is not a name", line=line, **where)
+            problem = name_problem(key)
+            if problem:
+                self.report.error(problem, line=line, **where)
                 continue
             if key == "hosts" and level == "team":
                 continue
@@ -70,9 +104,9 @@ class RosterReader:
             if setting is None:
                 self.report.error(unknown_key_message(key, level), line=line, field=key, **where)
                 continue
-            if key == "ssh_strict_host_key_checking" and isinstance(value, bool):
-                value = "yes" if value else "no"  # YAML 1.1 reads yes/no/off as booleans
-            problem = settings.check_value(setting, value, self.context)
+            value, problem = settled_yaml_value(setting, value)
+            if problem is None:
+                problem = settings.check_value(setting, value, self.context)
             if problem is None and secrets.is_secret_reference(key) and value is not None:
                 problem = self.secret_problem(value)
             if problem:
@@ -161,7 +195,9 @@ class RosterReader:
         for key, line, first in getattr(roster, "duplicates", []):
             self.report.error(f"{key!r} appears twice (also at line {first})", line=line)
         for key in roster:
-            if key not in TOP_LEVEL_KEYS:
+            if name_problem(key):
+                self.report.error(name_problem(key), line=line_of(roster, key))
+            elif key not in TOP_LEVEL_KEYS:
                 close = difflib.get_close_matches(str(key), TOP_LEVEL_KEYS, n=1)
                 hint = f" (did you mean {close[0]!r}?)" if close else ""
                 self.report.error(f"unknown top-level key {key!r}{hint}",
@@ -188,8 +224,14 @@ class RosterReader:
             self.report.error(f"the team appears twice (also at line {first}); "
                               "YAML would silently keep the last", line=line, team=str(key))
 
-        teams = [self.read_team(str(name), team_map, classroom, line_of(teams_map, name))
-                 for name, team_map in teams_map.items()]
+        teams = []
+        for name, team_map in teams_map.items():
+            problem = name_problem(name)
+            if problem:
+                self.report.error(f"a team's {problem[0].lower()}{problem[1:]}", team=str(name),
+                                  line=line_of(teams_map, name))
+                continue
+            teams.append(self.read_team(name, team_map, classroom, line_of(teams_map, name)))
         name = classroom.get("name")
         return Classroom(name.value if name else None, self.path, [t for t in teams if t])
 
@@ -234,7 +276,8 @@ class RosterReader:
 
     def read_host(self, name, host_map, team: Team, outer: list[dict], line) -> Host | None:
         where = {"team": team.name, "host": str(name)}
-        problem = formats.host_label(name)
+        ambiguous = isinstance(name, (Ambiguous, bool)) or name is None
+        problem = (name_problem(name) if ambiguous else None) or formats.host_label(name)
         if problem:
             self.report.error(problem, line=line, **where)
             return None
