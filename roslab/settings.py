@@ -366,6 +366,10 @@ def keys_at(level: str) -> dict[str, Setting]:
     return {s.key: s for s in SCHEMA if level in s.levels}
 
 
+# No list or mapping setting needs more entries than this (a classroom's extra packages,
+# static peers, keys); a longer one is a mistake, refused before it is checked item by item.
+MAX_ITEMS = 256
+
 _TYPE_NAMES = {str: "a string", int: "an integer", bool: "true or false", list: "a list",
                dict: "a mapping"}
 
@@ -400,6 +404,8 @@ def check_value(setting: Setting, value, context: f.Context | None = None) -> st
     problem = type_problem(value, setting.kind)
     if problem:
         return problem
+    if setting.kind in (list, dict) and len(value) > MAX_ITEMS:
+        return f"has {len(value)} entries; at most {MAX_ITEMS} are allowed"
     try:
         if setting.item is not None:
             for index, element in enumerate(value):

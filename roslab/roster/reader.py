@@ -17,6 +17,8 @@ from pathlib import Path
 
 from roslab import distro as distros
 from roslab import formats, secrets, settings
+from roslab.controller_files import MAX_SMALL_FILE_BYTES, UnreadableFile, read_regular_file
+from roslab.roster import overrides
 from roslab.roster.checks import unknown_key_message
 from roslab.roster.loading import (
     Ambiguous,
@@ -72,16 +74,24 @@ def settled_yaml_value(setting: settings.Setting, value):
     return value, None
 
 
+COMMAND_LINE = "pyinfra's command line"
+
+
 class RosterReader:
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, command_line: list | None = None):
         self.path = Path(path)
         self.report = Report(path)
+        # pyinfra's --data/--user/--port/--key values: (option, key, text, value), checked
+        # as the level that wins over every other (roslab.roster.overrides).
+        self.command_line_data = list(command_line or [])
+        self.command_line: dict[str, Value] = {}
         self.context = formats.Context(self.path.parent, self.path)
         self.defaults = settings.defaults()
         self.secrets_file: Path | None = None
         self.secrets_line: int | None = None
         self._secrets: dict | None = None
         self._secrets_read = False
+        self.secrets_refused = False
         self._key_files: dict[str, list[str]] = {}  # teacher_ssh_keys entry -> its key lines
 
     # --- one level ---
@@ -149,6 +159,14 @@ class RosterReader:
         path = self.secrets_file
         shown = display_path(path)
         where = {"field": "secrets_file", "line": self.secrets_line}
+        if self.secrets_refused:
+            return None  # read_level reported why; a path outside its place is never read
+        if not path.is_file() and os.path.lexists(path):
+            try:
+                read_regular_file(path)
+            except UnreadableFile as exc:
+                self.report.error(f"secrets file {shown}: {exc}", **where)
+                return None
         if not path.is_file():
             example = display_path(
                 path.with_name(Path(DEFAULT_SECRETS_FILE).stem + secrets.EXAMPLE_SUFFIX))
@@ -163,7 +181,7 @@ class RosterReader:
             return None
         # The secrets file's own problems name that file and the entry, never a value.
         own = Report(path)
-        content = load_yaml(path, own, secret=True)
+        content = load_yaml(path, own, secret=True, limit=MAX_SMALL_FILE_BYTES)
         if not isinstance(content, dict):
             if not own.errors:
                 own.error("must be a mapping of secret name -> value")
@@ -212,8 +230,12 @@ class RosterReader:
         if not isinstance(secrets_name, str) or formats.single_line(secrets_name):
             secrets_name = DEFAULT_SECRETS_FILE  # read_level reports it
         self.secrets_file = self.context.controller_path(secrets_name)
+        self.secrets_refused = "secrets_file" in classroom_map and bool(
+            settings.check_value(settings.SETTINGS["secrets_file"], classroom_map["secrets_file"],
+                                 self.context))
         self.secrets_line = getattr(classroom_map, "key_lines", {}).get("secrets_file")
         classroom = self.read_level(classroom_map, "classroom")
+        self.command_line = self.read_command_line()
 
         teams_map = roster.get("teams")
         if not isinstance(teams_map, dict) or not teams_map:
@@ -254,7 +276,8 @@ class RosterReader:
                               field="hosts", line=getattr(team_map, "key_lines", {}).get("hosts", line))
             hosts_map = {}
 
-        domain = team_settings.get("ros_domain_id") or classroom.get("ros_domain_id")
+        domain = (self.command_line.get("ros_domain_id") or team_settings.get("ros_domain_id")
+                  or classroom.get("ros_domain_id"))
         team = Team(name, name.replace("-", "_"),
                     domain.value if domain else self.defaults["ros_domain_id"], [],
                     domain_set=domain is not None, line=line,
@@ -294,7 +317,7 @@ class RosterReader:
             return None
 
         resolved: dict[str, Value] = {}
-        for level in (*outer, own):
+        for level in (*outer, own, self.command_line):
             resolved.update(level)
         role = own["role"].value
         address = own["address"].value if own.get("address") and own["address"].value else name
@@ -336,6 +359,43 @@ class RosterReader:
         return Host(name, team.name, role, address, release, expected, variant,
                     team.ros_domain_id, data, line, lines)
 
+    # --- pyinfra's command line ---
+
+    def read_command_line(self) -> dict[str, Value]:
+        """Check pyinfra's --data (and --user, --port, --key) values like roster values."""
+        report = Report(COMMAND_LINE)
+        valid: dict[str, Value] = {}
+        for option, key, text, value in self.command_line_data:
+            shown = f"{option} {key}={text}" if option == "--data" else f"{option} {text}"
+            problem = overrides.key_problem(key)
+            setting = settings.SETTINGS.get(key)
+            if problem is None and setting is not None:
+                problem = overrides.text_problem(setting, text, value) or settings.check_value(
+                    setting, value, self.context)
+            if problem:
+                report.error(f"{shown}: {problem}", field=key)
+            elif setting is not None:
+                valid[key] = Value(value, None)
+        self.report.extend(report)
+        self._command_line_shown = {key: (option, text) for option, key, text, _ in self.command_line_data}
+        return valid
+
+    def check_command_line(self, classroom: Classroom) -> None:
+        """pyinfra puts each command-line value back on top of the host data as it was given:
+        refuse a value roslab's host data holds differently (a path relative to the roster,
+        a .pub file read into key lines), so what runs is what was checked."""
+        report = Report(COMMAND_LINE)
+        for key, item in self.command_line.items():
+            for host in classroom.hosts:
+                if host.data.get(key) != item.value:
+                    option, text = self._command_line_shown[key]
+                    shown = f"{option} {key}={text}" if option == "--data" else f"{option} {text}"
+                    report.error(f"{shown}: roslab reads it as {host.data.get(key)!r} for the hosts, and pyinfra "
+                                 "would hand them the text as given: set it in the roster (or give an "
+                                 "absolute path, key lines)", field=key)
+                    break
+        self.report.extend(report)
+
     def teacher_keys(self, entries: list[str]) -> list[str]:
         """Key lines of `teacher_ssh_keys`: lines as they are, .pub files read (checked already)."""
         keys: list[str] = []
@@ -346,8 +406,8 @@ class RosterReader:
                 continue
             if entry not in self._key_files:  # a classroom-wide file: read once, not per host
                 try:
-                    text = self.context.controller_path(entry).read_text(encoding="utf-8")
-                except (OSError, UnicodeDecodeError):
+                    text = read_regular_file(self.context.controller_path(entry)).decode("utf-8")
+                except (UnreadableFile, UnicodeDecodeError):
                     text = ""  # reported by the value check
                 self._key_files[entry] = formats.public_key_lines(text) or []
             keys.extend(self._key_files[entry])
