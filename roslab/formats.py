@@ -63,6 +63,8 @@ def single_line(value: str, _context: Context | None = None) -> str | None:
         if _breaks_lines(char):
             return (f"must be a single line of text without control characters "
                     f"(it holds {char!r})")
+        if unicodedata.category(char) == "Cs":  # a "\ud800" escape: no file can hold it as UTF-8
+            return f"holds a lone surrogate (U+{ord(char):04X}), which is not a character"
     return None
 
 

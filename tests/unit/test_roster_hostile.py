@@ -545,3 +545,60 @@ def test_command_line_values_are_read_as_pyinfra_reads_them():
         capture_output=True, text=True, check=True).stdout
     ours = [overrides.command_line_data(["pyinfra", "--data", f"k={text}"])[0][3] for text in CLI_TEXTS]
     assert json.loads(theirs) == ours
+
+
+# --- roslab seed: any value the roster takes makes a seed, any other is one line ------------------
+
+@pytest.mark.parametrize("key, raw", [
+    ("name", '"\\ud800"'), ("wifi_ssid", '"lab\\udfff"'), ("teacher_ssh_keys", f'["{KEY_LINE} \\ud800"]'),
+    ("timezone", '"Europe/Berlin\\ud800"'),
+])
+def test_a_lone_surrogate_is_refused_as_not_text(key, raw, classroom_dir, monkeypatch, capsys):
+    level = level_of(key)
+    err = refused(classroom_dir, roster_text(level, key, raw, raw=True), monkeypatch, capsys)
+    assert_refusal(err, level, key)
+
+
+def test_roslab_seed_writes_unicode_where_the_roster_allows_it(classroom_dir, monkeypatch, capsys, no_connections):
+    """Text that may hold any letter (a classroom's name, an SSID, a key's comment) makes a valid
+    seed: the documents are built, encoded and dumped without a traceback."""
+    import yaml
+
+    from roslab.seed.documents import host_seed
+
+    (classroom_dir / "secrets.yaml").write_text("lab_wifi: 'pässwörd-ok'\n".replace("ä", "a").replace("ö", "o"))
+    text = ROSTER.format(
+        classroom=f'\n  name: "Klasse {DOTLESS_I} {KELVIN} ✓"\n  teacher_ssh_keys: ["{KEY_LINE} {LONG_S}✓"]'
+                  '\n  timezone: Europe/Istanbul\n  locale: tr_TR.UTF-8',
+        team="", host='\n        network_kind: wifi\n        wifi_ssid: "Café ıſ ✓"\n'
+                      '        wifi_password_secret: lab_wifi\n        network_address: 10.0.0.5/24')
+    classroom = loads(classroom_dir, text, monkeypatch)
+    files = host_seed(classroom.hosts[0], classroom_dir / "lab.yaml")
+    user = yaml.safe_load(files["user-data"].content.decode("utf-8"))
+    assert user["hostname"] == "team1-main" and user["timezone"] == "Europe/Istanbul"
+    assert f"{KEY_LINE} {LONG_S}✓" in str(user)
+    assert "Café ıſ ✓" in files["network-config"].content.decode("utf-8")
+
+
+@pytest.mark.parametrize("listed", ["file:///etc/passwd", "../outside.yaml", "file://{root}/../outside.yaml",
+                                    "ftp://mirror/base.yaml"])
+def test_rosdep_data_never_fetches_a_controller_file_outside_the_given_folder(listed, tmp_path, no_connections):
+    """A sources list may list files too: what it lists is copied to every Pi, so a file:// URL
+    stays inside the folder of the file:// URL the roster gave."""
+    from roslab import downloads, rosdep_data
+
+    root = tmp_path / "offline"
+    root.mkdir()
+    (tmp_path / "outside.yaml").write_text(f"secret: {WIFI_PASSWORD}\n")
+    (root / "20-default.list").write_text(f"yaml {listed.replace('{root}', str(root))}\n")
+    (root / "index.yaml").write_text("type: index\nversion: 4\ndistributions: {jazzy: {distribution: []}}\n")
+    downloads._fetched.clear()
+    rosdep_data._built.clear()
+    try:
+        with pytest.raises(rosdep_data.RosdepDataError) as raised:
+            rosdep_data.for_distro(f"file://{root}/20-default.list", f"file://{root}/index.yaml", "jazzy",
+                                   tmp_path / "cache")
+    finally:
+        downloads._fetched.clear()
+        rosdep_data._built.clear()
+    assert "rosdep's data lists" in str(raised.value) and WIFI_PASSWORD not in str(raised.value)
