@@ -33,6 +33,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from roslab import formats
+from roslab.controller_files import UnreadableFile, read_regular_file
 from roslab.network.state import STATE_DIR
 
 KNOWN_HOSTS_FILE = "known_hosts"
@@ -219,13 +220,13 @@ def known_hosts_of(roster_path: str | os.PathLike, data: Mapping | None = None) 
 
 def read_known_hosts(roster_path: str | os.PathLike, known_hosts: Path | None = None) -> list[KnownHost]:
     """Every line of the classroom's known_hosts, or of `known_hosts` (none if it does not exist)."""
-    path = known_hosts or known_hosts_path(roster_path)
-    if str(path) == os.devnull:
+    path = Path(known_hosts or known_hosts_path(roster_path))
+    if str(path) == os.devnull or not os.path.lexists(path):
         return []
     try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        return []
+        text = read_regular_file(path, formats.MAX_KNOWN_HOSTS_BYTES).decode("utf-8")
+    except (UnreadableFile, UnicodeDecodeError) as error:
+        raise IdentityError(f"{path}: {error}") from None
     return [_parse_line(line) for line in text.splitlines()
             if line.rstrip("\n") not in HEADER.splitlines()]
 

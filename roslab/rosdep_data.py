@@ -55,7 +55,7 @@ class RosdepData:
 
 def _local_name(number: int, url: str) -> str:
     base = url.rstrip("/").rsplit("/", 1)[-1] or "file"
-    safe = "".join(char if char.isalnum() or char in "._-" else "_" for char in base)
+    safe = "".join(char if (char.isascii() and char.isalnum()) or char in "._-" else "_" for char in base)
     return f"{number:02d}-{safe}"
 
 

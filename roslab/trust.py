@@ -18,6 +18,7 @@ import sys
 from pathlib import Path
 
 import paramiko
+import yaml
 
 from roslab import identity
 from roslab.network.state import last_known_addresses
@@ -82,7 +83,12 @@ def run_trust(args: argparse.Namespace) -> int:
                   file=sys.stderr)
             return 2
         hosts = [by_name[name] for name in dict.fromkeys(args.host)]
-    moved = last_known_addresses(path)
+    try:
+        moved = last_known_addresses(path)
+    except (OSError, ValueError, yaml.YAMLError) as error:
+        print(f"roslab trust: cannot read where moved hosts are: {getattr(error, 'strerror', None) or error}",
+              file=sys.stderr)
+        return 1
     failed = 0
     for host in hosts:
         # The file the run checks this host against (the roster's ssh_known_hosts_file, or the
@@ -106,7 +112,7 @@ def run_trust(args: argparse.Namespace) -> int:
         names = identity.host_names(host.name, addresses, port)
         try:
             entries = identity.read_known_hosts(path, known_hosts_file)
-        except (OSError, UnicodeDecodeError) as error:
+        except (OSError, UnicodeDecodeError, identity.IdentityError) as error:
             print(f"{host.name}: cannot read {known_hosts}: {getattr(error, 'strerror', None) or error}",
                   file=sys.stderr)
             failed += 1

@@ -33,8 +33,8 @@ DEFAULT_INTERFACES = {"ethernet": "eth0", "wifi": "wlan0"}
 
 # WPA-PSK: a passphrase of 8 to 63 printable ASCII characters, or 64 hex digits.
 # (fullmatch: with `match`, `$` would also accept a trailing newline.)
-WPA_PASSPHRASE = re.compile(r"[\x20-\x7e]{8,63}")
-WPA_HEX_KEY = re.compile(r"[0-9A-Fa-f]{64}")
+WPA_PASSPHRASE = re.compile(r"[\x20-\x7e]{8,63}", re.ASCII)
+WPA_HEX_KEY = re.compile(r"[0-9A-Fa-f]{64}", re.ASCII)
 SSID_MAX_BYTES = 32
 # Unicode categories an SSID may not contain: control characters (C0, DEL, C1),
 # surrogates (not UTF-8), and the line and paragraph separators (YAML line breaks).

@@ -19,9 +19,9 @@ from roslab.roster.problems import Report
 
 # Far above any classroom (a 5,000-host roster is about 100,000 nodes), far below a hang.
 MAX_EXPANDED_NODES = 1_000_000
-# A 5,000-host roster is about 400 KiB; parsing 2 MiB takes about a second, so a bigger
-# file (a log pasted in, a file of comments) is refused by its size before parsing.
-MAX_FILE_BYTES = 2 * 1024 * 1024
+# A 5,000-host roster is about 400 KiB; parsing 1 MiB takes about half a second, so a
+# bigger file (a log pasted in, a file of comments) is refused by its size before parsing.
+MAX_FILE_BYTES = 1024 * 1024
 
 
 class Mapping(dict):

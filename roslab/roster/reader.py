@@ -197,7 +197,8 @@ class RosterReader:
             elif formats.single_line(value):
                 own.error(f"secret {key!r}: the value must be one line of text", line=line_of(content, key))
         self.report.extend(own)
-        return None if own.errors else dict(content)
+        # Plain text from here on (an ambiguous-looking secret is the text written, like any other).
+        return None if own.errors else {str(key): str(value) for key, value in content.items()}
 
     # --- the whole roster ---
 

@@ -89,7 +89,12 @@ def run_seed(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 1
 
-    moved = last_known_addresses(path)
+    try:
+        moved = last_known_addresses(path)
+    except (OSError, ValueError) as error:
+        print(f"roslab seed: cannot read where moved hosts are: {getattr(error, 'strerror', None) or error}; "
+              "nothing was written", file=sys.stderr)
+        return 1
     recorded_in: set[str] = set()
     for host in hosts:
         files = seeds[host.name]
@@ -111,9 +116,15 @@ def run_seed(args: argparse.Namespace) -> int:
         known_hosts = identity.known_hosts_of(path, host.data)
         recorded = None
         if str(known_hosts) != os.devnull:
-            recorded = identity.known_key(path, host.name, known_hosts=known_hosts)
-            identity.trust(path, host.name, known_addresses(host, moved.get(host.name)), public,
-                           port=host.data.get("ssh_port") or 22, known_hosts=known_hosts)
+            try:
+                recorded = identity.known_key(path, host.name, known_hosts=known_hosts)
+                identity.trust(path, host.name, known_addresses(host, moved.get(host.name)), public,
+                               port=host.data.get("ssh_port") or 22, known_hosts=known_hosts)
+            except (OSError, identity.IdentityError) as error:
+                print(f"roslab seed: {host.name}: its seed is written, but its key could not be recorded "
+                      f"in {display_path(known_hosts)}: {getattr(error, 'strerror', None) or error}",
+                      file=sys.stderr)
+                return 1
             recorded_in.add(display_path(known_hosts))
         key = f"host key {identity.fingerprint(public)}"
         if changed:

@@ -400,7 +400,7 @@ def test_an_address_no_host_or_router_can_have_is_refused(key, value, words, cla
 
 @pytest.mark.parametrize("kind, words", [("fifo", "is a FIFO"), ("device", "is a character device"),
                                          ("directory", "is a directory"), ("loop", "symlink loop"),
-                                         ("huge", "larger than 2 MiB")])
+                                         ("huge", "larger than 1 MiB")])
 def test_a_roster_that_is_not_a_regular_file_is_one_line_at_once(kind, words, classroom_dir, monkeypatch, capsys):
     path = classroom_dir / "lab.yaml"
     if kind == "fifo":
