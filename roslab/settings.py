@@ -419,5 +419,7 @@ def check_value(setting: Setting, value, context: f.Context | None = None) -> st
             if not all(isinstance(key, str) for key in value):
                 return "keys must be strings"
         return setting.check(value, context) if setting.check else None
+    except OSError as error:  # a path this machine cannot even look up (too long, no permission)
+        return f"cannot be checked on this machine: {error.strerror or type(error).__name__}"
     except (RecursionError, ValueError, TypeError) as error:  # a check must not end the run
         return f"cannot be checked: {type(error).__name__}"

@@ -602,3 +602,39 @@ def test_rosdep_data_never_fetches_a_controller_file_outside_the_given_folder(li
         downloads._fetched.clear()
         rosdep_data._built.clear()
     assert "rosdep's data lists" in str(raised.value) and WIFI_PASSWORD not in str(raised.value)
+
+
+HOSTILE_TEXT = [f"team1-ma{DOTLESS_I}n", f"x{KELVIN}", "\ud800", "a\u2028b", "\u202eevil", "caf\u00e9 \u2713",
+                "\ufeffBOM", "x" * 300]
+
+
+@pytest.mark.parametrize("setting", [s for s in settings.SCHEMA if s.kind is str or s.item is str],
+                         ids=lambda s: s.key)
+def test_roslab_seed_never_raises_on_any_text_value(setting, classroom_dir, capsys, no_connections):
+    """Every text setting, with look-alikes, a surrogate, a line separator, bidi controls:
+    either the roster refuses it in one line, or the seed's documents are built and dumped."""
+    from roslab.seed.documents import SeedError, authorized_keys, host_seed, network_config
+
+    level = level_of(setting.key)
+    for value in HOSTILE_TEXT:
+        path = classroom_dir / "lab.yaml"
+        written = [value] if setting.item is str else value
+        # JSON's \\u escapes are YAML's too: a surrogate reaches the loader as the escape a file can hold.
+        text = roster_text(level, setting.key, json.dumps(written), raw=True) if setting.key != "role" else \
+            ROSTER.format(classroom="", team="", host="").replace("role: main", f"role: {json.dumps(value)}")
+        text = text.replace("ssh_user: ubuntu", f"ssh_user: ubuntu\n  teacher_ssh_keys: [{json.dumps(KEY_LINE)}]", 1) \
+            if setting.key != "teacher_ssh_keys" else text
+        path.write_text(text, encoding="utf-8")
+        try:
+            classroom = load_roster(path)
+        except RosterError as error:
+            assert all(str(problem).startswith("lab.yaml") for problem in error.problems)
+            continue
+        for host in classroom.hosts:
+            try:
+                authorized_keys(host)
+                network_config(host)
+            except SeedError:
+                continue
+            files = host_seed(host, path)
+            assert files["user-data"].content.decode("utf-8").startswith("#cloud-config")
