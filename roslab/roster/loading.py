@@ -89,6 +89,31 @@ class StrictLoader(yaml.SafeLoader):
     dates stay text."""
 
 
+# Tags a roster may carry: none, or !!str (another way to quote). `!!int 011` would be
+# octal again, `!!binary`, `!!set`, `!!timestamp` or a custom tag make values no setting takes.
+_ALLOWED_TAGS = (None, "!", "tag:yaml.org,2002:str", "tag:yaml.org,2002:map", "tag:yaml.org,2002:seq")
+
+
+def _refuse_explicit_tag(loader: "StrictLoader") -> None:
+    event = loader.peek_event()
+    tag = getattr(event, "tag", None)
+    if tag not in _ALLOWED_TAGS:
+        shown = tag.replace("tag:yaml.org,2002:", "!!")
+        raise yaml.constructor.ConstructorError(
+            None, None, f"the tag {shown} has no place in a roster: write the value plainly "
+            "(quote it for text)", event.start_mark)
+
+
+def _checked(compose):
+    def compose_checked(self, anchor):
+        _refuse_explicit_tag(self)
+        return compose(self, anchor)
+    return compose_checked
+
+
+for _name in ("compose_scalar_node", "compose_sequence_node", "compose_mapping_node"):
+    setattr(StrictLoader, _name, _checked(getattr(yaml.SafeLoader, _name)))
+
 StrictLoader.yaml_implicit_resolvers = {}
 for _tag, _regexp, _first in (
     (_AMBIGUOUS, _AMBIGUOUS_FORMS, list("yYnNoO-+0123456789")),

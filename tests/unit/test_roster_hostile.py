@@ -638,3 +638,15 @@ def test_roslab_seed_never_raises_on_any_text_value(setting, classroom_dir, caps
                 continue
             files = host_seed(host, path)
             assert files["user-data"].content.decode("utf-8").startswith("#cloud-config")
+
+
+@pytest.mark.parametrize("raw", ["!!int 011", "!!float 1", "!!bool yes", "!!binary aGk=", "!!timestamp 2024-01-01",
+                                 "!!set {a, b}", "!custom x", "!!python/name:os.system"])
+def test_an_explicit_yaml_tag_is_refused(raw, classroom_dir, monkeypatch, capsys):
+    err = refused(classroom_dir, roster_text("team", "ros_domain_id", raw, raw=True), monkeypatch, capsys)
+    assert f"lab.yaml:{DOMAIN_LINE}: not valid YAML: the tag " in err and "has no place in a roster" in err
+
+
+def test_a_str_tag_is_another_way_to_quote(classroom_dir, monkeypatch):
+    host = loads(classroom_dir, roster_text("host", "wifi_ssid", "!!str yes", raw=True), monkeypatch).hosts[0]
+    assert host.data["wifi_ssid"] == "yes"
