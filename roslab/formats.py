@@ -181,8 +181,15 @@ def ip_address(value: str, context: Context | None = None) -> str | None:
 
 
 def address(value: str, context: Context | None = None) -> str | None:
-    """Where SSH reaches a host: an IP address or a host name."""
-    if ip_address(value) is None or hostname(value) is None:
+    """Where SSH reaches a host: an IP address (one a host can have: loopback is fine, the
+    unspecified, multicast, broadcast or reserved addresses are not) or a host name."""
+    if ip_address(value) is None:
+        ip = ipaddress.ip_address(value)
+        if ip.is_unspecified or ip.is_multicast or ip.is_reserved or (
+                ip.version == 4 and ip == ipaddress.IPv4Address("255.255.255.255")):
+            return f"{value!r} is not an address a host can have (unspecified, multicast, broadcast or reserved)"
+        return None
+    if hostname(value) is None:
         return None
     return f"{value!r} is neither an IP address nor a valid host name"
 
@@ -280,6 +287,8 @@ def known_timezones() -> frozenset[str]:
             names |= zoneinfo.available_timezones()
         except Exception:  # no tzdata on this controller: the shipped list decides
             pass
+        names -= {"localtime", "posixrules"}  # links to "whatever this machine uses", not zones
+
         _timezones = frozenset(names)
     return _timezones
 

@@ -80,7 +80,9 @@ SCHEMA: list[Setting] = [
          f.secrets_file, {"levels": ("classroom",)}),
         ("role", None, str, "main (runs the desktop variant and the main launch) or robot.",
          f.choice("main", "robot"), {"levels": ("host",), "required": True}),
-        ("address", None, str, "Where SSH reaches the host now (IP or DNS name); default: the host name.",
+        ("address", None, str,
+         "Where SSH reaches the host now (IP or DNS name; not an unspecified, multicast, broadcast or "
+         "reserved address); default: the host name.",
          f.address, {"levels": ("host",), "nullable": True}),
     ),
     *_concern(

@@ -382,6 +382,10 @@ ADDRESS_CASES = [
     ("network_address", "10.0.0.255/24", "broadcast address"),
     ("network_nameservers", ["0.0.0.0"], "not an IP address"),
     ("network_nameservers", ["224.0.0.251"], "not an IP address"),
+    ("address", "0.0.0.0", "not an address a host can have"),
+    ("address", "255.255.255.255", "not an address a host can have"),
+    ("address", "ff02::1", "not an address a host can have"),
+    ("ros_static_peers", ["224.0.0.1"], "not an address a host can have"),
 ]
 
 
@@ -461,6 +465,8 @@ def test_a_list_longer_than_any_classroom_needs_is_refused(classroom_dir, monkey
     ("timezone", "Mars/Olympus_Mons", "not a time zone in the tz database"),
     ("timezone", "Europe/Berlim", "did you mean 'Europe/Berlin'"),
     ("timezone", "Europe/Atlantis", "not a time zone"),
+    ("timezone", "localtime", "not a time zone"),
+    ("timezone", "Etc/GMT+14", "not a time zone"),
 ])
 def test_a_locale_or_time_zone_that_does_not_exist_is_refused(key, value, words, classroom_dir, monkeypatch,
                                                               capsys, no_connections):
