@@ -76,7 +76,8 @@ SCHEMA: list[Setting] = [
          {"nullable": True, "levels": ("classroom",)}),
         ("secrets_file", "secrets.yaml", str,
          "Where secrets are read from, relative to the roster (mode 0600, never committed): a .yaml "
-         "file in the roster's folder or a folder below it (not .roslab-state).",
+         "file in the roster's folder or a folder below it (not .roslab-state), where it really is "
+         "(symlinks followed; the default too).",
          f.secrets_file, {"levels": ("classroom",)}),
         ("role", None, str, "main (runs the desktop variant and the main launch) or robot.",
          f.choice("main", "robot"), {"levels": ("host",), "required": True}),

@@ -92,6 +92,7 @@ class RosterReader:
         self._secrets: dict | None = None
         self._secrets_read = False
         self.secrets_refused = False
+        self.secrets_default_problem: str | None = None
         self._key_files: dict[str, list[str]] = {}  # teacher_ssh_keys entry -> its key lines
 
     # --- one level ---
@@ -160,7 +161,9 @@ class RosterReader:
         shown = display_path(path)
         where = {"field": "secrets_file", "line": self.secrets_line}
         if self.secrets_refused:
-            return None  # read_level reported why; a path outside its place is never read
+            if self.secrets_default_problem:
+                self.report.error(f"the default secrets file: {self.secrets_default_problem}", **where)
+            return None  # a path outside its place is never read (read_level reported a named one)
         if not path.is_file() and os.path.lexists(path):
             try:
                 read_regular_file(path)
@@ -231,9 +234,11 @@ class RosterReader:
         if not isinstance(secrets_name, str) or formats.single_line(secrets_name):
             secrets_name = DEFAULT_SECRETS_FILE  # read_level reports it
         self.secrets_file = self.context.controller_path(secrets_name)
-        self.secrets_refused = "secrets_file" in classroom_map and bool(
-            settings.check_value(settings.SETTINGS["secrets_file"], classroom_map["secrets_file"],
-                                 self.context))
+        # The default secrets.yaml keeps to the same place as a named one (a symlink out of
+        # the roster's folder is refused too); read_level reports a named one's problem.
+        problem = settings.check_value(settings.SETTINGS["secrets_file"], secrets_name, self.context)
+        self.secrets_refused = bool(problem)
+        self.secrets_default_problem = problem if "secrets_file" not in classroom_map else None
         self.secrets_line = getattr(classroom_map, "key_lines", {}).get("secrets_file")
         classroom = self.read_level(classroom_map, "classroom")
         self.command_line = self.read_command_line()

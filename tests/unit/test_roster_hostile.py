@@ -656,3 +656,14 @@ def test_an_explicit_yaml_tag_is_refused(raw, classroom_dir, monkeypatch, capsys
 def test_a_str_tag_is_another_way_to_quote(classroom_dir, monkeypatch):
     host = loads(classroom_dir, roster_text("host", "wifi_ssid", "!!str yes", raw=True), monkeypatch).hosts[0]
     assert host.data["wifi_ssid"] == "yes"
+
+
+def test_the_default_secrets_file_keeps_to_the_rosters_folder_too(classroom_dir, monkeypatch, capsys, tmp_path_factory):
+    elsewhere = tmp_path_factory.mktemp("elsewhere") / "secrets.yaml"
+    elsewhere.write_text(f"lab_wifi: {WIFI_PASSWORD}\n")
+    elsewhere.chmod(0o600)
+    (classroom_dir / "secrets.yaml").unlink()
+    (classroom_dir / "secrets.yaml").symlink_to(elsewhere)
+    err = refused(classroom_dir, roster_text("host", "wifi_password_secret", "lab_wifi"), monkeypatch, capsys)
+    assert "field 'secrets_file': the default secrets file: 'secrets.yaml' leads outside the roster's folder" in err
+    assert WIFI_PASSWORD not in err
