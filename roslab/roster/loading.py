@@ -145,18 +145,18 @@ def _construct_ambiguous(loader: StrictLoader, node: yaml.ScalarNode) -> Ambiguo
 StrictLoader.add_constructor(_AMBIGUOUS, _construct_ambiguous)
 
 
-def name_problem(key) -> str | None:
-    """Why a mapping key cannot be a name (a team, host, setting or secret), or None."""
+def name_problem(key, what: str = "name") -> str | None:
+    """Why a mapping key cannot be a name (`what`: a team name, a host name, a key), or None."""
     if isinstance(key, Ambiguous):
-        return f"the name {str(key)!r} is ambiguous: {key.hint()}"
+        return f"the {what} {str(key)!r} is ambiguous: {key.hint()}"
     if isinstance(key, bool):
-        return f"YAML reads this name as {str(key).lower()}: quote it to use it as a name"
+        return f"YAML reads this {what} as {str(key).lower()}: quote it to use it as a name"
     if key is None:
-        return "YAML reads this name (null, ~ or nothing) as no value: quote it, or give a name"
+        return f"YAML reads this {what} (null, ~ or nothing) as no value: quote it, or give a name"
     if isinstance(key, (int, float)):
-        return f'YAML reads {key!r} as a number: quote it, "{key}", to use it as a name'
+        return f'YAML reads the {what} {key!r} as a number: quote it, "{key}", to use it as a name'
     if not isinstance(key, str):
-        return f"key {key!r} is not a name"
+        return f"the {what} {key!r} is not a name"
     return None
 
 

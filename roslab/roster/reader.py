@@ -105,7 +105,7 @@ class RosterReader:
         valid = {}
         for key, value in mapping.items():
             line = line_of(mapping, key)
-            problem = name_problem(key)
+            problem = name_problem(key, "key")
             if problem:
                 self.report.error(problem, line=line, **where)
                 continue
@@ -217,8 +217,8 @@ class RosterReader:
         for key, line, first in getattr(roster, "duplicates", []):
             self.report.error(f"{key!r} appears twice (also at line {first})", line=line)
         for key in roster:
-            if name_problem(key):
-                self.report.error(name_problem(key), line=line_of(roster, key))
+            if name_problem(key, "key"):
+                self.report.error(name_problem(key, "key"), line=line_of(roster, key))
             elif key not in TOP_LEVEL_KEYS:
                 close = difflib.get_close_matches(str(key), TOP_LEVEL_KEYS, n=1)
                 hint = f" (did you mean {close[0]!r}?)" if close else ""
@@ -254,10 +254,9 @@ class RosterReader:
 
         teams = []
         for name, team_map in teams_map.items():
-            problem = name_problem(name)
+            problem = name_problem(name, "team name")
             if problem:
-                self.report.error(f"a team's {problem[0].lower()}{problem[1:]}", team=str(name),
-                                  line=line_of(teams_map, name))
+                self.report.error(problem, team=str(name), line=line_of(teams_map, name))
                 continue
             teams.append(self.read_team(name, team_map, classroom, line_of(teams_map, name)))
         name = classroom.get("name")
@@ -306,7 +305,7 @@ class RosterReader:
     def read_host(self, name, host_map, team: Team, outer: list[dict], line) -> Host | None:
         where = {"team": team.name, "host": str(name)}
         ambiguous = isinstance(name, (Ambiguous, bool)) or name is None
-        problem = (name_problem(name) if ambiguous else None) or formats.host_label(name)
+        problem = (name_problem(name, "host name") if ambiguous else None) or formats.host_label(name)
         if problem:
             self.report.error(problem, line=line, **where)
             return None

@@ -341,7 +341,7 @@ def test_a_team_or_host_named_like_a_yaml_value_must_be_quoted(where, name, clas
 
 def test_a_setting_key_yaml_reads_as_a_value_is_refused(classroom_dir, monkeypatch, capsys):
     err = refused(classroom_dir, roster_text("classroom", "on", "x"), monkeypatch, capsys)
-    assert "lab.yaml:3: the name 'on' is ambiguous" in err and 'quote it, "on"' in err
+    assert "lab.yaml:3: the key 'on' is ambiguous" in err and 'quote it, "on"' in err
 
 
 @pytest.mark.parametrize("level, key, raw, meant", [
