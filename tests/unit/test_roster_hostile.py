@@ -108,7 +108,7 @@ def refused(directory: Path, text: str, monkeypatch, capsys, argv: list[str] | N
     started = time.monotonic()
     with pytest.raises(SystemExit) as exited:
         runpy.run_path(str(LAB_INVENTORY))
-    assert time.monotonic() - started < 5  # a FIFO, a device or a huge file never hangs the loader
+    assert time.monotonic() - started < 5  # a guard: a FIFO, a device or a huge file never hangs the loader
     assert exited.value.code == 2
     err = capsys.readouterr().err
     assert "no host was touched" in err
@@ -425,7 +425,7 @@ def test_a_roster_that_is_not_a_regular_file_is_one_line_at_once(kind, words, cl
         started = time.monotonic()
         with pytest.raises(SystemExit):
             runpy.run_path(str(LAB_INVENTORY))
-        assert time.monotonic() - started < 1
+        assert time.monotonic() - started < 5  # a guard against a hang, not a benchmark
         err = capsys.readouterr().err
     problems = [line for line in err.splitlines() if "lab.yaml" in line]
     assert len(problems) == 1 and words in problems[0], err
