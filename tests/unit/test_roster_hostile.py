@@ -667,3 +667,20 @@ def test_the_default_secrets_file_keeps_to_the_rosters_folder_too(classroom_dir,
     err = refused(classroom_dir, roster_text("host", "wifi_password_secret", "lab_wifi"), monkeypatch, capsys)
     assert "field 'secrets_file': the default secrets file: 'secrets.yaml' leads outside the roster's folder" in err
     assert WIFI_PASSWORD not in err
+
+
+def test_pyinfras_own_command_line_is_checked_before_it_connects(tmp_path):
+    """The real pyinfra CLI (a child process: importing pyinfra_cli patches this one with gevent):
+    `--data ros_domain_id=999` stops at the inventory with exit 2, naming the option; the host
+    (loopback, a port nothing listens on) is never reached."""
+    import subprocess
+
+    roster = tmp_path / "lab.yaml"
+    roster.write_text(ROSTER.format(classroom="", team="", host="\n        address: 127.0.0.1\n        ssh_port: 9"))
+    run = subprocess.run([str(Path(sys.executable).parent / "pyinfra"), "inventories/lab.py", "deploy.py", "--dry",
+                          "--data", "ros_domain_id=999"], cwd=REPO, env={**os.environ, "ROSLAB_ROSTER": str(roster)},
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2, run.stdout + run.stderr
+    assert ("pyinfra's command line: field 'ros_domain_id': --data ros_domain_id=999: "
+            "ROS_DOMAIN_ID 999 is outside") in run.stderr
+    assert "Connecting" not in run.stdout + run.stderr and "--> Preparing" not in run.stdout + run.stderr
