@@ -140,7 +140,8 @@ def assert_refusal(err: str, level: str, key: str, *words: str) -> None:
 
 # --- text that means ASCII -----------------------------------------------------------------
 
-DOTLESS_I, LONG_S, KELVIN, ARABIC_ONE, FULLWIDTH_A, CYRILLIC_E = "\u0131", "\u017f", "\u212a", "\u0661", "\uff41", "\u0435"
+DOTLESS_I, LONG_S, KELVIN = "\u0131", "\u017f", "\u212a"
+ARABIC_ONE, FULLWIDTH_A, CYRILLIC_E = "\u0661", "\uff41", "\u0435"
 NOT_ASCII = {
     "ssh_user": [f"ubuntu{LONG_S}", f"{KELVIN}ate"],
     "login_user": [f"student{DOTLESS_I}"],
@@ -321,7 +322,7 @@ YAML_VALUES = [
 
 @pytest.mark.parametrize("level, key, raw, words", YAML_VALUES, ids=lambda item: str(item))
 def test_a_value_yaml_reads_two_ways_is_refused_with_what_to_write(level, key, raw, words, classroom_dir,
-                                                                  monkeypatch, capsys, no_connections):
+                                                                   monkeypatch, capsys, no_connections):
     err = refused(classroom_dir, roster_text(level, key, raw, raw=True), monkeypatch, capsys)
     assert_refusal(err, level, key, words)
     assert "remove the quotes" not in err
@@ -504,7 +505,7 @@ def test_real_locales_and_time_zones_are_taken(key, value, classroom_dir, monkey
     (["--password", "x"], "ssh_password", "--ssh-password-prompt"),
 ])
 def test_a_pyinfra_data_override_is_checked_like_the_roster(argv, key, words, classroom_dir, monkeypatch, capsys,
-                                                           no_connections):
+                                                            no_connections):
     err = refused(classroom_dir, ROSTER.format(classroom="", team="", host=""), monkeypatch, capsys, argv=argv)
     lines = [line for line in err.splitlines() if line.startswith(f"pyinfra's command line: field '{key}': ")]
     assert len(lines) == 1 and words in lines[0], err
