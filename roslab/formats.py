@@ -12,7 +12,9 @@ controller-side paths resolve them against the roster's directory.
 from __future__ import annotations
 
 import ipaddress
+import os
 import re
+import tempfile
 import unicodedata
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -20,8 +22,13 @@ from pathlib import Path
 from urllib.parse import urlsplit
 
 from roslab import distro as distros
+from roslab.controller_files import MAX_SMALL_FILE_BYTES, UnreadableFile, read_regular_file
 
 Check = Callable[[object, "Context"], "str | None"]
+
+
+# The classroom's own state beside the roster (roslab.identity, roslab.network.state).
+STATE_DIR = ".roslab-state"
 
 
 @dataclass(frozen=True)
@@ -29,10 +36,15 @@ class Context:
     """What a check may know besides the value: where the roster is."""
 
     roster_dir: Path = Path(".")
+    roster_file: Path | None = None
 
     def controller_path(self, value: str) -> Path:
         """A controller-side path: `~` expanded, relative to the roster's directory."""
         return self.roster_dir / Path(value).expanduser()
+
+    @property
+    def state_dir(self) -> Path:
+        return self.roster_dir / STATE_DIR
 
 
 # --- building blocks ------------------------------------------------------------------
@@ -51,15 +63,31 @@ def single_line(value: str, _context: Context | None = None) -> str | None:
         if _breaks_lines(char):
             return (f"must be a single line of text without control characters "
                     f"(it holds {char!r})")
+        if unicodedata.category(char) == "Cs":  # a "\ud800" escape: no file can hold it as UTF-8
+            return f"holds a lone surrogate (U+{ord(char):04X}), which is not a character"
+    return None
+
+
+def ascii_text(value: str, _context: Context | None = None) -> str | None:
+    """Only ASCII characters: a format that means ASCII says so.
+
+    Python's regular expressions match Unicode by default: with IGNORECASE, `[a-z]`
+    also matches the dotless ı, the long s ſ and the Kelvin sign K, and `\\d`/`\\w`
+    match every script's digits and letters. Each ASCII format checks this first.
+    """
+    for char in value:
+        if not char.isascii():
+            return (f"{value!r} holds {char!r} (U+{ord(char):04X}), which is not an ASCII "
+                    "character: type it with plain ASCII letters and digits")
     return None
 
 
 def pattern(regex: str, description: str) -> Check:
-    """A check that the whole value matches `regex`."""
-    compiled = re.compile(regex)
+    """A check that the whole value is ASCII and matches `regex` (compiled with re.ASCII)."""
+    compiled = re.compile(regex, re.ASCII)
 
     def check(value: str, context: Context | None = None) -> str | None:
-        problem = single_line(value)
+        problem = single_line(value) or ascii_text(value)
         if problem:
             return problem
         if not compiled.fullmatch(value):
@@ -102,8 +130,6 @@ apt_suite_suffix = pattern(r"[a-z0-9]+", "a suite suffix of lower-case letters a
 linux_user = pattern(r"[a-z_][a-z0-9_-]{0,31}", "a Linux user name (like ubuntu)")
 # A secret's name in the secrets file.
 secret_name = pattern(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}", "a secret name (letters, digits, _ . -)")
-# glibc locale names roslab accepts: language[_TERRITORY][@modifier].UTF-8
-utf8_locale = pattern(r"[a-z]{2,3}(_[A-Z]{2})?(@[a-z]+)?\.UTF-8", "a UTF-8 locale name like en_US.UTF-8")
 # REP 144 package names; launch files by file name only (no path).
 ros_package = pattern(r"[a-z][a-z0-9_]*", "a ROS package name")
 launch_file_name = pattern(r"[A-Za-z0-9_][A-Za-z0-9_.-]*\.launch\.(py|xml|yaml)",
@@ -116,24 +142,31 @@ interface_name = pattern(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,14}", "a network interfa
 # A colcon argument: option or value, no shell or line syntax needed.
 colcon_argument = pattern(r"[A-Za-z0-9_@%+=:,./-]+", "a colcon argument (letters, digits, _ @ % + = : , . / -)")
 
-_HOST_LABEL = re.compile(r"[a-z0-9]([a-z0-9-]{0,61}[a-z0-9])?", re.IGNORECASE)
+# ASCII only: with re.IGNORECASE alone, `[a-z]` would match ı, ſ and the Kelvin sign.
+_HOST_LABEL = re.compile(r"[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?", re.ASCII)
+
+
+def _all_ascii_digits(text: str) -> bool:
+    return text.isascii() and text.isdigit()
 
 
 def hostname(value: str, context: Context | None = None) -> str | None:
     """An RFC 1123 host name; all-numeric names are malformed addresses, not names."""
-    problem = single_line(value)
+    problem = single_line(value) or ascii_text(value)
     if problem:
         return problem
     labels = value[:-1].split(".") if value.endswith(".") else value.split(".")
     if (len(value) > 253 or not all(_HOST_LABEL.fullmatch(label) for label in labels)
-            or all(label.isdigit() for label in labels)):
+            or all(_all_ascii_digits(label) for label in labels)):
         return f"{value!r} is not a valid host name"
     return None
 
 
 def host_label(value: str, context: Context | None = None) -> str | None:
     """One DNS label: what a Pi's own hostname is."""
-    if not isinstance(value, str) or not _HOST_LABEL.fullmatch(value) or value.isdigit():
+    if isinstance(value, str) and value and ascii_text(value):
+        return f"{ascii_text(value)} (it becomes the Pi's hostname)"
+    if not isinstance(value, str) or not _HOST_LABEL.fullmatch(value) or _all_ascii_digits(value):
         return (f"{value!r} is not a valid hostname: letters, digits and inner '-', "
                 "at most 63 characters, not all digits (it becomes the Pi's hostname)")
     return None
@@ -148,8 +181,15 @@ def ip_address(value: str, context: Context | None = None) -> str | None:
 
 
 def address(value: str, context: Context | None = None) -> str | None:
-    """Where SSH reaches a host: an IP address or a host name."""
-    if ip_address(value) is None or hostname(value) is None:
+    """Where SSH reaches a host: an IP address (one a host can have: loopback is fine, the
+    unspecified, multicast, broadcast or reserved addresses are not) or a host name."""
+    if ip_address(value) is None:
+        ip = ipaddress.ip_address(value)
+        if ip.is_unspecified or ip.is_multicast or ip.is_reserved or (
+                ip.version == 4 and ip == ipaddress.IPv4Address("255.255.255.255")):
+            return f"{value!r} is not an address a host can have (unspecified, multicast, broadcast or reserved)"
+        return None
+    if hostname(value) is None:
         return None
     return f"{value!r} is neither an IP address nor a valid host name"
 
@@ -193,15 +233,101 @@ def domain_id(value: int, context: Context | None = None) -> str | None:
 domain_id.allowed = "0 to 101, 215 to 232"
 
 
+# --- names from a database: locales and time zones ---------------------------------------
+
+_DATA = Path(__file__).resolve().parent / "data"
+
+
+def _data_names(file_name: str) -> frozenset[str]:
+    text = (_DATA / file_name).read_text(encoding="ascii")
+    return frozenset(line.strip() for line in text.splitlines() if line.strip() and not line.startswith("#"))
+
+
+_LOCALE_FORM = pattern(r"[A-Za-z]{1,8}(_[A-Z]{2,3})?\.UTF-8(@[a-z]{1,16})?",
+                       "a UTF-8 locale name like en_US.UTF-8")
+_locales: frozenset[str] | None = None
+
+
+def utf8_locale(value: str, context: Context | None = None) -> str | None:
+    """A UTF-8 locale glibc supports (language[_TERRITORY].UTF-8[@modifier]).
+
+    Checked against glibc's list of supported locales (roslab/data/locales-utf8.txt,
+    Debian 12's /usr/share/i18n/SUPPORTED), shipped with roslab so the check is the same
+    on any controller: a name `locale-gen` does not know would pass here and fail on
+    every Pi, or set a LANG nothing provides.
+    """
+    global _locales
+    problem = _LOCALE_FORM(value)
+    if problem:
+        return problem
+    if _locales is None:
+        _locales = _data_names("locales-utf8.txt")
+    if value not in _locales:
+        import difflib
+
+        close = difflib.get_close_matches(value, sorted(_locales), n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        return f"{value!r} is not a UTF-8 locale glibc supports{hint}"
+    return None
+
+
+_TIMEZONE_FORM = pattern(r"[A-Za-z][A-Za-z0-9_+-]*(/[A-Za-z0-9_+-]+){0,2}",
+                         "a time zone name (like Europe/Berlin or Etc/UTC)")
+_timezones: frozenset[str] | None = None
+
+
+def known_timezones() -> frozenset[str]:
+    """IANA zone names: roslab's shipped list and whatever this machine's tzdata adds."""
+    global _timezones
+    if _timezones is None:
+        names = set(_data_names("timezones.txt"))
+        try:
+            import zoneinfo
+
+            names |= zoneinfo.available_timezones()
+        except Exception:  # no tzdata on this controller: the shipped list decides
+            pass
+        names -= {"localtime", "posixrules"}  # links to "whatever this machine uses", not zones
+
+        _timezones = frozenset(names)
+    return _timezones
+
+
+def timezone(value: str, context: Context | None = None) -> str | None:
+    """An IANA time zone that exists (tzdata), like Europe/Berlin or Etc/UTC.
+
+    Checked against roslab/data/timezones.txt (tzdata 2025b) plus the controller's own
+    zoneinfo database, never by opening a file named by the value.
+    """
+    problem = _TIMEZONE_FORM(value)
+    if problem:
+        return problem
+    if value not in known_timezones():
+        import difflib
+
+        close = difflib.get_close_matches(value, sorted(known_timezones()), n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        return f"{value!r} is not a time zone in the tz database{hint}"
+    return None
+
+
+utf8_locale.allowed = "a UTF-8 locale glibc supports, like en_US.UTF-8"
+timezone.allowed = "a tz database zone, like Europe/Berlin"
+
+
 # --- URLs and paths ---------------------------------------------------------------------
 
 # RFC 3986's characters, without space, quotes, backslash or anything a deb822 field,
 # a shell or a YAML scalar would read as syntax on its own.
-_URL_CHARACTERS = re.compile(r"[A-Za-z0-9._~:/?#\[\]@!$&'()*+,;=%-]+")
+_URL_CHARACTERS = re.compile(r"[A-Za-z0-9._~:/?#\[\]@!$&'()*+,;=%-]+", re.ASCII)
 
 
-def url(schemes: tuple[str, ...], placeholders: tuple[str, ...] = ()) -> Check:
-    """A URL of one of `schemes`; `{name}` placeholders are allowed and filled in first."""
+def url(schemes: tuple[str, ...], placeholders: tuple[str, ...] = (), file_suffix: str | None = None) -> Check:
+    """A URL of one of `schemes`; `{name}` placeholders are allowed and filled in first.
+
+    A `file://` URL (the controller reads it and copies what it holds to every Pi) must
+    name a file inside the roster's folder ending in `file_suffix`, with no `..`.
+    """
 
     def check(value: str, context: Context | None = None) -> str | None:
         problem = single_line(value)
@@ -218,16 +344,36 @@ def url(schemes: tuple[str, ...], placeholders: tuple[str, ...] = ()) -> Check:
             return f"{value!r} is not a {' or '.join(schemes)} URL"
         if parts.scheme != "file" and not parts.netloc:
             return f"{value!r} has no host"
+        if parts.scheme == "file":
+            return _file_url_problem(value, parts, context or Context(), file_suffix)
         return None
 
     check.allowed = " or ".join(f"{scheme}://" for scheme in schemes) + " URL"
+    if "file" in schemes:
+        check.allowed += f" (file:// a {file_suffix or ''} file in the roster's folder)".replace("a  ", "a ")
     return check
+
+
+def _file_url_problem(value: str, parts, context: Context, file_suffix: str | None) -> str | None:
+    from urllib.parse import unquote
+
+    if parts.netloc not in ("", "localhost") or parts.query or parts.fragment:
+        return f"{value!r}: a file:// URL names a file on this machine only (file:///path)"
+    path = Path(unquote(parts.path))
+    if not path.is_absolute() or ".." in path.parts:
+        return f"{value!r}: a file:// URL needs an absolute path without '..'"
+    if file_suffix and not path.name.endswith(file_suffix):
+        return f"{value!r}: a file:// URL here names a {file_suffix} file"
+    if not _within(path, context.roster_dir) or _within(path, context.state_dir, strictly=False):
+        return (f"{value!r} leads outside the roster's folder ({_real(context.roster_dir)}): a file:// "
+                "URL may name only a file kept beside the roster (it is copied to every Pi)")
+    return None
 
 
 http_url = url(("http", "https"))
 
 # One path component inside the home directory: no `..`, no hidden tricks.
-_PATH_COMPONENT = re.compile(r"[A-Za-z0-9_+][A-Za-z0-9_.+-]*")
+_PATH_COMPONENT = re.compile(r"[A-Za-z0-9_+][A-Za-z0-9_.+-]*", re.ASCII)
 
 
 def home_path(value: str, context: Context | None = None) -> str | None:
@@ -247,8 +393,33 @@ def home_path(value: str, context: Context | None = None) -> str | None:
     return None
 
 
+# Controller paths: each has a purpose and a place. A path is compared by where it
+# really leads (symlinks resolved), and a file is read only as what it must be: a
+# regular file of bounded size, opened without waiting (roslab.controller_files).
+
+def _real(path: Path) -> Path:
+    return Path(os.path.realpath(path))  # never raises, even on a symlink loop
+
+
+def _within(path: Path, folder: Path, strictly: bool = True) -> bool:
+    """Whether `path` leads inside `folder` (both resolved); `strictly`: not the folder itself."""
+    path, folder = _real(path), _real(folder)
+    return (path != folder or not strictly) and (path == folder or folder in path.parents)
+
+
+def _controller(check, allowed: str):
+    """Mark `check` as a controller-path check: the loader makes its value absolute."""
+    check.controller_path = True
+    check.allowed = allowed
+    return check
+
+
 def controller_path(kind: str = "any") -> Check:
-    """A path on the machine running pyinfra; `kind` "file"/"dir" must exist as such."""
+    """A path on the machine running pyinfra; `kind` "file"/"dir" must exist as such.
+
+    Only for paths with no purpose of their own; every roster setting has a specific
+    check below that says where its path may lead and what it must hold.
+    """
 
     def check(value: str, context: Context | None = None) -> str | None:
         problem = single_line(value)
@@ -263,10 +434,170 @@ def controller_path(kind: str = "any") -> Check:
             return f"{value!r}: no such directory on this machine ({path})"
         return None
 
-    check.controller_path = True  # the loader makes it absolute in host data
-    check.allowed = {"any": "a path on this machine", "file": "an existing file on this machine",
-                     "dir": "an existing directory on this machine"}[kind]
-    return check
+    return _controller(check, {"any": "a path on this machine", "file": "an existing file on this machine",
+                               "dir": "an existing directory on this machine"}[kind])
+
+
+def _read_controller_file(value: str, path: Path, limit: int = MAX_SMALL_FILE_BYTES) -> tuple[bytes | None, str | None]:
+    try:
+        return read_regular_file(path, limit), None
+    except UnreadableFile as exc:
+        return None, f"{value!r} ({path}) {exc}" if str(exc).startswith("is ") else f"{value!r} ({path}): {exc}"
+
+
+def secrets_file(value: str, context: Context | None = None) -> str | None:
+    """A .yaml file inside the roster's folder (not the roster itself, not .roslab-state)."""
+    context = context or Context()
+    problem = single_line(value)
+    if problem:
+        return problem
+    path = context.controller_path(value)
+    if path.suffix not in (".yaml", ".yml"):
+        return f"{value!r} is not a .yaml file: the secrets file is YAML, like secrets.yaml"
+    if not _within(path, context.roster_dir) or _within(path, context.state_dir, strictly=False):
+        return (f"{value!r} leads outside the roster's folder ({_real(context.roster_dir)}): "
+                "keep the secrets file beside the roster (or in a folder below it)")
+    if context.roster_file is not None and _real(path) == _real(context.roster_file):
+        return f"{value!r} is the roster itself"
+    return None
+
+
+# known_hosts lines: [marker] host patterns, key type, base64 key (blobs start with AAAA), comment.
+_KNOWN_HOSTS_LINE = re.compile(
+    r"(@(cert-authority|revoked) +)?[^\s#@][^\s]* +"
+    r"(ssh-(ed25519|rsa|dss)|ecdsa-sha2-nistp(256|384|521)|sk-ssh-ed25519@openssh\.com"
+    r"|sk-ecdsa-sha2-nistp256@openssh\.com|[a-z0-9-]+-cert-v01@openssh\.com) +AAAA[A-Za-z0-9+/]*={0,3}( .*)?",
+    re.ASCII)
+MAX_KNOWN_HOSTS_BYTES = 4 * 1024 * 1024
+
+
+def known_hosts_file(value: str, context: Context | None = None) -> str | None:
+    """/dev/null, or a file named *known_hosts holding only known_hosts lines (or not there yet).
+
+    pyinfra reads it, prints lines it cannot parse, and appends new keys to it: pointed
+    at the secrets file it printed a WiFi password, pointed at any other file it wrote
+    into it. So it must be named like one and hold nothing else.
+    """
+    context = context or Context()
+    problem = single_line(value)
+    if problem:
+        return problem
+    if value == os.devnull:
+        return None
+    path = context.controller_path(value)
+    if not path.name.endswith("known_hosts"):
+        return (f"{value!r} is not a known_hosts file: its name must end in known_hosts "
+                "(like .roslab-state/known_hosts or ~/.ssh/known_hosts), or be /dev/null")
+    if not os.path.lexists(path):
+        return None  # pyinfra (or roslab trust) creates it
+    data, problem = _read_controller_file(value, path, MAX_KNOWN_HOSTS_BYTES)
+    if problem:
+        return problem
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
+        return f"{value!r} ({path}) is not a known_hosts file (not text)"
+    for number, line in enumerate(text.splitlines(), 1):
+        line = line.strip()
+        if line and not line.startswith("#") and not _KNOWN_HOSTS_LINE.fullmatch(line):
+            return f"{value!r} ({path}) is not a known_hosts file: line {number} is not a host key line"
+    return None
+
+
+_PRIVATE_KEY_HEADER = re.compile(rb"-----BEGIN (OPENSSH |RSA |EC |DSA |ENCRYPTED )?PRIVATE KEY-----", re.ASCII)
+
+
+def private_key_file(value: str, context: Context | None = None) -> str | None:
+    """An existing SSH private key file (PEM or OpenSSH format) on this machine."""
+    context = context or Context()
+    problem = single_line(value)
+    if problem:
+        return problem
+    path = context.controller_path(value)
+    data, problem = _read_controller_file(value, path)
+    if problem:
+        return problem
+    if not _PRIVATE_KEY_HEADER.fullmatch(data.lstrip().split(b"\n", 1)[0].strip()):
+        return f"{value!r} ({path}) is not an SSH private key (no -----BEGIN ... PRIVATE KEY----- line)"
+    return None
+
+
+_ARMORED_KEY = b"-----BEGIN PGP PUBLIC KEY BLOCK-----"
+MAX_SIGNING_KEY_BYTES = 1024 * 1024
+
+
+def openpgp_key_file(value: str, context: Context | None = None) -> str | None:
+    """An OpenPGP public key file (ASCII-armored or binary) on this machine: it is copied to every Pi."""
+    context = context or Context()
+    problem = single_line(value)
+    if problem:
+        return problem
+    path = context.controller_path(value)
+    data, problem = _read_controller_file(value, path, MAX_SIGNING_KEY_BYTES)
+    if problem:
+        return problem
+    # Binary: the first packet is a public key (tag 6), old (0x98-0x9b) or new (0xc6) format.
+    if not (data.lstrip().startswith(_ARMORED_KEY) or (data[:1] and (data[0] in range(0x98, 0x9c) or data[0] == 0xC6))):
+        return (f"{value!r} ({path}) is not an OpenPGP public key (neither "
+                "'-----BEGIN PGP PUBLIC KEY BLOCK-----' nor a binary key)")
+    return None
+
+
+def _home() -> Path:
+    return Path(os.path.expanduser("~"))
+
+
+def cache_dir(value: str, context: Context | None = None) -> str | None:
+    """A folder of its own for the controller's downloads: inside the home directory, the
+    roster's folder or the temporary directory (not one of them itself), never in ~/.ssh
+    or the classroom's .roslab-state."""
+    context = context or Context()
+    problem = single_line(value)
+    if problem:
+        return problem
+    path = context.controller_path(value)
+    places = (_home(), context.roster_dir, Path(tempfile.gettempdir()))
+    if not any(_within(path, place) for place in places):
+        return (f"{value!r} ({_real(path)}) is not a folder of its own inside your home directory, "
+                "the roster's folder or the temporary directory")
+    for private in (_home() / ".ssh", context.state_dir):
+        if _within(path, private, strictly=False):
+            return f"{value!r} is inside {private}, which is not a cache"
+    return None
+
+
+def nodes_dir(value: str, context: Context | None = None) -> str | None:
+    """An existing folder of ROS packages (top-level folders with a package.xml), never
+    the filesystem root, the home directory or a folder holding the roster."""
+    context = context or Context()
+    problem = single_line(value)
+    if problem:
+        return problem
+    path = context.controller_path(value)
+    if not path.is_dir():
+        return f"{value!r}: no such directory on this machine ({path})"
+    real = _real(path)
+    if real == Path(real.anchor) or real == _real(_home()):
+        return f"{value!r} is {real}: name the folder that holds your ROS packages"
+    if _within(context.roster_dir, real, strictly=False):
+        return (f"{value!r} ({real}) holds the roster's folder (its secrets and .roslab-state): "
+                "name the folder that holds only your ROS packages")
+    try:
+        has_package = any((entry / "package.xml").is_file() and not entry.is_symlink()
+                          for entry in path.iterdir())
+    except OSError as exc:
+        return f"{value!r}: cannot list {path}: {exc.strerror or exc}"
+    if not has_package:
+        return f"{value!r} ({path}) holds no ROS package (a folder with a package.xml)"
+    return None
+
+
+_controller(secrets_file, "a .yaml file in the roster's folder")
+_controller(known_hosts_file, "a *known_hosts file, or /dev/null")
+_controller(private_key_file, "an SSH private key file")
+_controller(openpgp_key_file, "an OpenPGP public key file")
+_controller(cache_dir, "a folder in ~, the roster's folder or the temp dir")
+_controller(nodes_dir, "a folder of ROS packages")
 
 
 # --- composite values ---------------------------------------------------------------------
@@ -286,7 +617,7 @@ def launch(value: str, context: Context | None = None) -> str | None:
 # Public key lines authorized_keys takes (type, base64 body, optional comment).
 PUBLIC_KEY = re.compile(
     r"(ssh-(ed25519|rsa|dss)|ecdsa-sha2-nistp(256|384|521)|sk-ssh-ed25519@openssh\.com"
-    r"|sk-ecdsa-sha2-nistp256@openssh\.com) [A-Za-z0-9+/]+={0,3}( [^\x00-\x1f\x7f]*)?")
+    r"|sk-ecdsa-sha2-nistp256@openssh\.com) [A-Za-z0-9+/]+={0,3}( [^\x00-\x1f\x7f]*)?", re.ASCII)
 
 
 def public_key_lines(text: str) -> list[str] | None:
@@ -310,9 +641,14 @@ def teacher_key(value: str, context: Context | None = None) -> str | None:
     if PUBLIC_KEY.fullmatch(value.strip()):
         return None
     path = (context or Context()).controller_path(value)
+    if path.suffix != ".pub":
+        return f"{value!r} is neither a public key line nor a readable .pub file (its name ends in .pub)"
+    data, problem = _read_controller_file(value, path)
+    if problem:
+        return problem
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError):
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
         return f"{value!r} is neither a public key line nor a readable .pub file on this machine"
     if public_key_lines(text) is None:
         return f"{value!r}: {path} holds a line that is not a public key"

@@ -26,12 +26,14 @@ import hmac
 import logging
 import os
 import re
+import stat
 import tempfile
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 from roslab import formats
+from roslab.controller_files import UnreadableFile, read_regular_file
 from roslab.network.state import STATE_DIR
 
 KNOWN_HOSTS_FILE = "known_hosts"
@@ -209,25 +211,46 @@ def _parse_line(text: str) -> KnownHost:
                      raw=None if owner else text)
 
 
-def read_known_hosts(roster_path: str | os.PathLike) -> list[KnownHost]:
-    """Every line of the classroom's known_hosts (none if it does not exist)."""
-    try:
-        text = known_hosts_path(roster_path).read_text(encoding="utf-8")
-    except FileNotFoundError:
+def known_hosts_of(roster_path: str | os.PathLike, data: Mapping | None = None) -> Path:
+    """The known_hosts file a run checks a host against: the roster's `ssh_known_hosts_file`
+    for it (absolute in its host data), else the classroom's own beside the roster."""
+    chosen = (data or {}).get("ssh_known_hosts_file")
+    return Path(chosen) if chosen else known_hosts_path(roster_path)
+
+
+def read_known_hosts(roster_path: str | os.PathLike, known_hosts: Path | None = None) -> list[KnownHost]:
+    """Every line of the classroom's known_hosts, or of `known_hosts` (none if it does not exist)."""
+    path = Path(known_hosts or known_hosts_path(roster_path))
+    if str(path) == os.devnull or not os.path.lexists(path):
         return []
+    try:
+        text = read_regular_file(path, formats.MAX_KNOWN_HOSTS_BYTES).decode("utf-8")
+    except (UnreadableFile, UnicodeDecodeError) as error:
+        raise IdentityError(f"{path}: {error}") from None
     return [_parse_line(line) for line in text.splitlines()
             if line.rstrip("\n") not in HEADER.splitlines()]
 
 
-def _write_known_hosts(roster_path, entries: list[KnownHost]) -> None:
-    path = known_hosts_path(roster_path)
-    _private_dir(path.parent)
+def _write_known_hosts(roster_path, entries: list[KnownHost], known_hosts: Path | None = None) -> None:
+    """Replace the known_hosts file at once. The classroom's own gets roslab's header and
+    a private folder; a file the roster names (ssh_known_hosts_file) keeps its mode and
+    folder, and gets no header: roslab only edits its own lines and names in it."""
+    own = known_hosts is None or Path(known_hosts) == known_hosts_path(roster_path)
+    path = known_hosts_path(roster_path) if own else Path(known_hosts)
+    if str(path) == os.devnull:
+        raise IdentityError("ssh_known_hosts_file is /dev/null: no host key can be recorded there")
+    if own:
+        _private_dir(path.parent)
+    try:
+        mode = 0o644 if own else stat.S_IMODE(os.stat(path).st_mode)
+    except FileNotFoundError:
+        mode = 0o644
     body = "".join(entry.line() + "\n" for entry in entries)
     fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=".known_hosts-")
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as out:
-            out.write(HEADER + body)
-        os.chmod(temporary, 0o644)  # public keys: ssh refuses nothing for being readable
+            out.write((HEADER if own else "") + body)
+        os.chmod(temporary, mode)  # public keys: ssh refuses nothing for being readable
         os.replace(temporary, path)
     except BaseException:
         if os.path.exists(temporary):
@@ -281,7 +304,7 @@ def _without_names(entries: list[KnownHost], names: list[str]) -> list[KnownHost
 
 
 def trust(roster_path: str | os.PathLike, host_name: str, addresses: Iterable[str],
-          public_line: str, port: int = 22) -> bool:
+          public_line: str, port: int = 22, known_hosts: Path | None = None) -> bool:
     """Record `public_line` as the host's key under its name and every address.
 
     Replaces the host's own line and takes those names out of any other line. Returns
@@ -292,13 +315,13 @@ def trust(roster_path: str | os.PathLike, host_name: str, addresses: Iterable[st
         raise IdentityError(problem)
     key_type, key = parse_public_line(public_line)
     names = host_names(host_name, addresses, port)
-    entries = read_known_hosts(roster_path)
+    entries = read_known_hosts(roster_path, known_hosts)
     wanted = KnownHost(names, key_type, key, owner=host_name)
     others = [entry for entry in entries if entry.owner != host_name]
     new = _sorted(_without_names(others, names) + [wanted])
     if [entry.line() for entry in new] == [entry.line() for entry in entries]:
         return False
-    _write_known_hosts(roster_path, new)
+    _write_known_hosts(roster_path, new, known_hosts)
     return True
 
 
@@ -309,28 +332,38 @@ def _sorted(entries: list[KnownHost]) -> list[KnownHost]:
     return foreign + own
 
 
-def forget(roster_path: str | os.PathLike, *hosts_or_addresses: str) -> list[str]:
+def forget(roster_path: str | os.PathLike, *hosts_or_addresses: str,
+           known_hosts: Path | None = None) -> list[str]:
     """Remove the keys of hosts (by roslab host name) or of addresses; the names removed.
 
     A host name removes that host's whole line; any name also leaves every other line.
     """
-    entries = read_known_hosts(roster_path)
+    entries = read_known_hosts(roster_path, known_hosts)
     wanted = [str(name).strip() for name in hosts_or_addresses if str(name).strip()]
     kept = _without_names([entry for entry in entries if entry.owner not in wanted], wanted)
     removed = [name for entry in entries for name in entry.names
                if not any(name in other.names for other in kept)]
     if removed:
-        _write_known_hosts(roster_path, kept)
+        _write_known_hosts(roster_path, kept, known_hosts)
     return removed
 
 
 def known_key(roster_path: str | os.PathLike, host_name: str,
-              entries: list[KnownHost] | None = None) -> KnownHost | None:
+              entries: list[KnownHost] | None = None, known_hosts: Path | None = None) -> KnownHost | None:
     """The host's own known_hosts line, or None."""
-    for entry in read_known_hosts(roster_path) if entries is None else entries:
+    for entry in read_known_hosts(roster_path, known_hosts) if entries is None else entries:
         if entry.owner == host_name:
             return entry
     return None
+
+
+def other_keys(entries: list[KnownHost], names: Iterable[str], public_line: str) -> list[KnownHost]:
+    """Lines that list one of `names` (plain or hashed) with a key other than `public_line`'s."""
+    key_type, key = parse_public_line(public_line)
+    wanted = list(names)
+    return [entry for entry in entries
+            if entry.names and not entry.marker and (entry.key_type, entry.key) != (key_type, key)
+            and any(_name_matches(name, one) for name in entry.names for one in wanted)]
 
 
 def fingerprint(public_line: str) -> str:

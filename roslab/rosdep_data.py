@@ -20,11 +20,12 @@ its files. rosdep reads `file://` URLs as it reads Debian's own 10-debian.list.
 from __future__ import annotations
 
 import io
+import os
 import tarfile
 import threading
 from dataclasses import dataclass
 from pathlib import Path
-from urllib.parse import urljoin
+from urllib.parse import unquote, urljoin, urlsplit
 
 import yaml
 
@@ -58,7 +59,7 @@ class RosdepData:
 
 def _local_name(number: int, url: str) -> str:
     base = url.rstrip("/").rsplit("/", 1)[-1] or "file"
-    safe = "".join(char if char.isalnum() or char in "._-" else "_" for char in base)
+    safe = "".join(char if (char.isascii() and char.isalnum()) or char in "._-" else "_" for char in base)
     return f"{number:02d}-{safe}"
 
 
@@ -112,6 +113,30 @@ def local_index(text: str, index_url: str, distro: str) -> tuple[str, dict[str, 
     return header + yaml.safe_dump(result, sort_keys=True), wanted
 
 
+def listed_url_problem(url: str, given: tuple[str, ...]) -> str | None:
+    """Why a URL a sources list or index lists must not be fetched, or None.
+
+    What the controller fetches is copied to every Pi. A listed file:// URL could name any
+    file on the controller (an SSH key, the secrets file), so it must stay inside the folder
+    of a file:// URL the roster gave (checked to be inside the roster's folder); anything
+    else must be http(s).
+    """
+    parts = urlsplit(url)
+    if parts.scheme in ("http", "https"):
+        return None
+    if parts.scheme != "file":
+        return f"rosdep's data lists {url}: only http://, https:// (or file:// beside the roster) are fetched"
+    path = os.path.realpath(unquote(parts.path))
+    for base in given:
+        base_parts = urlsplit(base)
+        if base_parts.scheme == "file":
+            folder = os.path.realpath(os.path.dirname(unquote(base_parts.path)))
+            if os.path.commonpath([folder, path]) == folder:
+                return None
+    return (f"rosdep's data lists {url}, a file outside the folder of the file:// URL the roster "
+            "gave: it would be copied to every Pi, so it is not read")
+
+
 def _tar(files: dict[str, bytes]) -> bytes:
     """A tar of `files` that depends on their content only (no times, owners or order)."""
     buffer = io.BytesIO()
@@ -154,6 +179,10 @@ def for_distro(sources_list_url: str | None, index_url: str | None, distro: str,
                                               sources_list_url)
     index_text, index_wanted = local_index(get(index_url).decode("utf-8", "replace"), index_url, distro)
     wanted.update(index_wanted)
+    for url in wanted.values():
+        problem = listed_url_problem(url, (sources_list_url, index_url))
+        if problem:
+            raise RosdepDataError(problem)
     files = {local: get(url) for local, url in wanted.items()}
     files["rosdistro/index.yaml"] = index_text.encode()
     data = RosdepData(archive=_tar(files), sources_list=sources_text.encode(),

@@ -75,11 +75,15 @@ SCHEMA: list[Setting] = [
         ("name", None, str, "The classroom's name (shown by roslab check).", f.single_line,
          {"nullable": True, "levels": ("classroom",)}),
         ("secrets_file", "secrets.yaml", str,
-         "Where secrets are read from, relative to the roster (mode 0600, never committed).",
-         f.controller_path(), {"levels": ("classroom",)}),
+         "Where secrets are read from, relative to the roster (mode 0600, never committed): a .yaml "
+         "file in the roster's folder or a folder below it (not .roslab-state), where it really is "
+         "(symlinks followed; the default too).",
+         f.secrets_file, {"levels": ("classroom",)}),
         ("role", None, str, "main (runs the desktop variant and the main launch) or robot.",
          f.choice("main", "robot"), {"levels": ("host",), "required": True}),
-        ("address", None, str, "Where SSH reaches the host now (IP or DNS name); default: the host name.",
+        ("address", None, str,
+         "Where SSH reaches the host now (IP or DNS name; not an unspecified, multicast, broadcast or "
+         "reserved address); default: the host name.",
          f.address, {"levels": ("host",), "nullable": True}),
     ),
     *_concern(
@@ -87,12 +91,16 @@ SCHEMA: list[Setting] = [
         ("ssh_user", "ubuntu", str, "SSH login user, also the user who gets the ROS environment.",
          f.linux_user),
         ("ssh_port", 22, int, "SSH port.", f.int_range(1, 65535)),
-        ("ssh_key", None, str, "Private key file on this machine (relative to the roster).",
-         f.controller_path("file"), {"nullable": True}),
+        ("ssh_key", None, str,
+         "Private key file on this machine (relative to the roster): an SSH private key "
+         "(-----BEGIN ... PRIVATE KEY-----), a regular file of at most 64 KiB.",
+         f.private_key_file, {"nullable": True}),
         ("ssh_known_hosts_file", None, str,
          "known_hosts file pyinfra checks host keys against; None: the classroom's own, "
-         "`.roslab-state/known_hosts` beside the roster (`roslab seed`, `roslab trust`, `roslab forget`).",
-         f.controller_path(), {"nullable": True}),
+         "`.roslab-state/known_hosts` beside the roster (`roslab seed`, `roslab trust`, `roslab forget` "
+         "use the same file). Its name must end in known_hosts and it may hold only host key lines "
+         "(pyinfra appends to it); /dev/null records nothing.",
+         f.known_hosts_file, {"nullable": True}),
         ("ssh_strict_host_key_checking", None, str,
          "pyinfra's host key policy; None: yes (a host whose key is not recorded, or changed, is refused "
          "with the roslab command to run).",
@@ -145,12 +153,14 @@ SCHEMA: list[Setting] = [
     *_concern(
         "locale",
         _enabled("locale", "Generate the locale and set it system-wide."),
-        ("locale", "en_US.UTF-8", str, "The system-wide locale (LANG); must be a UTF-8 locale.",
+        ("locale", "en_US.UTF-8", str,
+         "The system-wide locale (LANG): a UTF-8 locale from glibc's supported list "
+         "(roslab/data/locales-utf8.txt), like de_DE.UTF-8 or ca_ES.UTF-8@valencia.",
          f.utf8_locale),
         ("timezone", "Etc/UTC", str,
-         "The time zone a Pi gets at first boot from its seed (`roslab seed`), like Europe/Berlin.",
-         f.pattern(r"[A-Za-z][A-Za-z0-9_+-]*(/[A-Za-z0-9_+-]+){0,2}",
-                   "a time zone name (like Europe/Berlin or Etc/UTC)")),
+         "The time zone a Pi gets at first boot from its seed (`roslab seed`), like Europe/Berlin: "
+         "a zone of the tz database (roslab/data/timezones.txt or the controller's own).",
+         f.timezone),
     ),
     *_concern(
         "ros_apt_source",
@@ -170,16 +180,19 @@ SCHEMA: list[Setting] = [
         ("ros_apt_source_url",
          "https://github.com/ros-infrastructure/ros-apt-source/releases/download/"
          "{version}/ros2-apt-source_{version}.{codename}_all.deb", str,
-         "Where the controller downloads the .deb; {version} and {codename} are filled in.",
-         f.url(("http", "https", "file"), ("version", "codename"))),
+         "Where the controller downloads the .deb; {version} and {codename} are filled in. A "
+         "file:// URL must name a .deb inside the roster's folder.",
+         f.url(("http", "https", "file"), ("version", "codename"), file_suffix=".deb")),
         ("ros_apt_source_cache_dir", "~/.cache/roslab/ros-apt-source", str,
-         "Download cache on the machine running pyinfra (not on the hosts).", f.controller_path()),
+         "Download cache on the machine running pyinfra (not on the hosts): a folder of its own "
+         "inside the home directory, the roster's folder or the temporary directory.", f.cache_dir),
         ("ros_apt_mirror_url", None, str,
          "Mirror mode: the mirror's URL (serving the ROS 2 archive's dists/ and pool/).", f.http_url,
          {"nullable": True}),
         ("ros_apt_mirror_key_file", None, str,
          "Mirror mode: path, on the machine running pyinfra, to the mirror's signing key "
-         "(ASCII-armored or binary).", f.controller_path("file"), {"nullable": True}),
+         "(an OpenPGP public key, ASCII-armored or binary, at most 1 MiB; it is copied to every Pi).",
+         f.openpgp_key_file, {"nullable": True}),
     ),
     *_concern(
         "ros_install",
@@ -206,7 +219,8 @@ SCHEMA: list[Setting] = [
          "Package that provides rosdep when ros-dev-tools did not (ros_dev_tools: false).", f.debian_package),
         ("rosdep_sources_list_url", None, str,
          "URL of rosdep's sources list (20-default.list), fetched by the controller; None: "
-         "the official one.", f.url(("http", "https", "file")), {"nullable": True}),
+         "the official one. A file:// URL must name a .list file inside the roster's folder.",
+         f.url(("http", "https", "file"), file_suffix=".list"), {"nullable": True}),
         ("rosdistro_index_url", None, str,
          "URL of the rosdistro index (ROSDISTRO_INDEX_URL); None: rosdep's built-in default.",
          f.http_url, {"nullable": True}),
@@ -215,8 +229,9 @@ SCHEMA: list[Setting] = [
          "index (with the host's distro) once, keeps them in rosdep_cache_dir and copies them to "
          "each host; false: every host downloads them itself (rosdep init, rosdep update)."),
         ("rosdep_cache_dir", "~/.cache/roslab/rosdep", str,
-         "Where the controller keeps rosdep's data (on the machine running pyinfra).",
-         f.controller_path()),
+         "Where the controller keeps rosdep's data (on the machine running pyinfra): a folder of its "
+         "own inside the home directory, the roster's folder or the temporary directory.",
+         f.cache_dir),
         ("rosdep_update_max_age", 7 * SECONDS_PER_DAY, int,
          "Seconds before the login user's rosdep cache counts as stale and is updated again; "
          "within it the controller uses its kept copy of rosdep's data without asking upstream.",
@@ -241,7 +256,8 @@ SCHEMA: list[Setting] = [
         _enabled("ssh_identity", "Install and run sshd, authorise the teacher's keys, set hostname and /etc/hosts."),
         ("teacher_ssh_keys", [], list,
          "The teacher's public keys for the login user's authorized_keys: key lines "
-         '("ssh-ed25519 AAAA... teacher") or paths to .pub files on the machine running pyinfra.',
+         '("ssh-ed25519 AAAA... teacher") or paths to .pub files on the machine running pyinfra '
+         "(regular files of at most 64 KiB holding only key lines).",
          f.teacher_key, {"item": str, "allowed": "key lines or .pub files"}),
         ("manage_hostname", True, bool, "Set the hostname to the host's name in the roster."),
         ("manage_etc_hosts", True, bool,
@@ -307,7 +323,9 @@ SCHEMA: list[Setting] = [
          f.home_path, {"allowed": "~/ and a path inside the home"}),
         ("workspace_nodes_dir", None, str,
          "Controller directory whose ROS packages are copied into the workspace's src/; None: "
-         "this checkout's nodes/.", f.controller_path("dir"), {"nullable": True}),
+         "this checkout's nodes/. It must hold a ROS package (a top-level folder with a package.xml) "
+         "and may not be /, the home directory or a folder holding the roster.",
+         f.nodes_dir, {"nullable": True}),
         ("workspace_colcon_args", ["--executor", "sequential"], list,
          "Arguments after `colcon build`; a sequential build is what colcon advises on a Pi.",
          f.colcon_argument, {"item": str}),
@@ -352,6 +370,10 @@ def keys_at(level: str) -> dict[str, Setting]:
     return {s.key: s for s in SCHEMA if level in s.levels}
 
 
+# No list or mapping setting needs more entries than this (a classroom's extra packages,
+# static peers, keys); a longer one is a mistake, refused before it is checked item by item.
+MAX_ITEMS = 256
+
 _TYPE_NAMES = {str: "a string", int: "an integer", bool: "true or false", list: "a list",
                dict: "a mapping"}
 
@@ -370,8 +392,11 @@ def type_problem(value, kind) -> str | None:
         hint = " (YAML reads yes/no/on/off/true/false as true or false: quote it)"
     elif kind is str and isinstance(value, (int, float)):
         hint = f' (YAML reads {value} as a number: quote it, "{value}")'
-    elif kind is int and isinstance(value, str) and value.strip().lstrip("-").isdigit():
-        hint = " (remove the quotes)"
+    elif kind is int and isinstance(value, str) and value.strip().lstrip("-").isdigit() \
+            and value.strip().isascii():
+        digits = value.strip()
+        plain = str(int(digits, 10))
+        hint = " (remove the quotes)" if plain == digits else f" (write {plain}, without quotes)"
     return f"must be {_TYPE_NAMES[kind]}, not {shown}{hint}"
 
 
@@ -383,6 +408,8 @@ def check_value(setting: Setting, value, context: f.Context | None = None) -> st
     problem = type_problem(value, setting.kind)
     if problem:
         return problem
+    if setting.kind in (list, dict) and len(value) > MAX_ITEMS:
+        return f"has {len(value)} entries; at most {MAX_ITEMS} are allowed"
     try:
         if setting.item is not None:
             for index, element in enumerate(value):
@@ -396,5 +423,7 @@ def check_value(setting: Setting, value, context: f.Context | None = None) -> st
             if not all(isinstance(key, str) for key in value):
                 return "keys must be strings"
         return setting.check(value, context) if setting.check else None
+    except OSError as error:  # a path this machine cannot even look up (too long, no permission)
+        return f"cannot be checked on this machine: {error.strerror or type(error).__name__}"
     except (RecursionError, ValueError, TypeError) as error:  # a check must not end the run
         return f"cannot be checked: {type(error).__name__}"

@@ -61,7 +61,7 @@ LAYOUTS = (NETPLAN_NETWORKD, NETPLAN_NM, NM_KEYFILE)
 RUN_DIR = "/run/roslab/network"
 BACKUP_ROOT = "/var/backups/roslab/network"
 # Its directories: `<time stamp>-<token prefix>` (backup()), so their names sort oldest first.
-BACKUP_NAME = re.compile(r"[0-9]{8}T[0-9]{6}-[0-9A-Za-z_-]{1,8}")
+BACKUP_NAME = re.compile(r"[0-9]{8}T[0-9]{6}-[0-9A-Za-z_-]{1,8}", re.ASCII)
 NETPLAN_DIR = "/etc/netplan"
 # Persistent: what the boot unit needs after a power cut (a change not yet confirmed).
 STATE_DIR = "/var/lib/roslab/network"
@@ -81,7 +81,7 @@ APPLY_UNIT = "roslab-network-apply"
 # Linux interface names (dev_valid_name): 1 to 15 characters, no "/", ":" or whitespace.
 # Stricter here: no leading "-" or "." (an interface name is an argument to ip, nmcli
 # and networkctl, and "." and ".." are refused by the kernel).
-INTERFACE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,14}")
+INTERFACE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,14}", re.ASCII)
 
 # Status states, in the order a run goes through them.
 STATE_APPLYING = "applying"

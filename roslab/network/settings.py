@@ -33,8 +33,8 @@ DEFAULT_INTERFACES = {"ethernet": "eth0", "wifi": "wlan0"}
 
 # WPA-PSK: a passphrase of 8 to 63 printable ASCII characters, or 64 hex digits.
 # (fullmatch: with `match`, `$` would also accept a trailing newline.)
-WPA_PASSPHRASE = re.compile(r"[\x20-\x7e]{8,63}")
-WPA_HEX_KEY = re.compile(r"[0-9A-Fa-f]{64}")
+WPA_PASSPHRASE = re.compile(r"[\x20-\x7e]{8,63}", re.ASCII)
+WPA_HEX_KEY = re.compile(r"[0-9A-Fa-f]{64}", re.ASCII)
 SSID_MAX_BYTES = 32
 # Unicode categories an SSID may not contain: control characters (C0, DEL, C1),
 # surrogates (not UTF-8), and the line and paragraph separators (YAML line breaks).
@@ -117,6 +117,9 @@ def _address(data: Mapping) -> IPv4Interface:
         raise NetworkSettingError(field_name, f"{raw!r} is not an IPv4 address with prefix ({exc})") from None
 
     network = address.network
+    special = _not_a_unicast_address(address.ip)
+    if special:
+        raise NetworkSettingError("network_address", f"{address.ip} is {special}, not a host address")
     if network.prefixlen < 8:
         raise NetworkSettingError("network_address", f"prefix /{network.prefixlen} is too short")
     if network.prefixlen <= 30 and address.ip in (network.network_address, network.broadcast_address):
@@ -127,6 +130,18 @@ def _address(data: Mapping) -> IPv4Interface:
     return address
 
 
+def _not_a_unicast_address(ip) -> str | None:
+    """What an address is when no host or router can have it (loopback, multicast...), or None."""
+    for test, what in (("is_unspecified", "the unspecified address"), ("is_loopback", "a loopback address"),
+                       ("is_multicast", "a multicast address"), ("is_reserved", "a reserved address"),
+                       ("is_link_local", "a link-local address")):
+        if getattr(ip, test, False):
+            return what
+    if ip == IPv4Address("255.255.255.255"):
+        return "the limited broadcast address"
+    return None
+
+
 def _gateway(data: Mapping, address: IPv4Interface | None) -> IPv4Address | None:
     raw = data.get("network_gateway")
     if raw in (None, ""):
@@ -135,7 +150,17 @@ def _gateway(data: Mapping, address: IPv4Interface | None) -> IPv4Address | None
         gateway = IPv4Address(str(raw).strip())
     except ValueError:
         raise NetworkSettingError("network_gateway", f"{raw!r} is not an IPv4 address") from None
+    special = _not_a_unicast_address(gateway)
+    if special:
+        raise NetworkSettingError("network_gateway", f"{gateway} is {special}, not a router's address")
     if address is not None:
+        network = address.network
+        if network.prefixlen <= 30 and gateway in (network.network_address, network.broadcast_address):
+            which = "network" if gateway == network.network_address else "broadcast"
+            raise NetworkSettingError(
+                "network_gateway",
+                f"{gateway} is the {which} address of {network}, not a router's address",
+            )
         if gateway not in address.network:
             raise NetworkSettingError(
                 "network_gateway", f"{gateway} is outside the subnet {address.network} of {address}"
@@ -160,7 +185,11 @@ def _nameservers(data: Mapping) -> tuple[str, ...]:
             # No scope suffix (fe80::1%eth0): it could hold anything, and no file here needs it.
             if text is None or "%" in text:
                 raise ValueError(text)
-            servers.append(str(ip_address(text)))
+            server_ip = ip_address(text)
+            if server_ip.is_unspecified or server_ip.is_multicast or (
+                    server_ip.version == 4 and server_ip == IPv4Address("255.255.255.255")):
+                raise ValueError(text)
+            servers.append(str(server_ip))
         except ValueError:
             raise NetworkSettingError(
                 "network_nameservers", f"{server!r} is not an IP address"

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import yaml
 
+from roslab.controller_files import UnreadableFile, read_regular_file
+
 STATE_DIR = ".roslab-state"
 ADDRESSES_FILE = "addresses.yaml"
 
@@ -25,10 +27,13 @@ def addresses_path(roster_path: str | os.PathLike) -> Path:
 
 
 def _load(path: Path) -> dict[str, str]:
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except FileNotFoundError:
+    if not os.path.lexists(path):
         return {}
+    try:
+        # Bounded and never waiting (a FIFO or a device here must not hang the inventory).
+        data = yaml.safe_load(read_regular_file(path, 1024 * 1024).decode("utf-8")) or {}
+    except (UnreadableFile, UnicodeDecodeError) as error:
+        raise ValueError(f"{path}: {error}") from None
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a mapping of host name to address")
     return {str(name): str(address) for name, address in data.items()}

@@ -25,11 +25,17 @@ from roslab.roster.reader import RosterReader
 VALIDATORS: list[Validator] = [_validate_network]
 
 
-def load_roster(path: Path | str, validators: list[Validator] | None = None) -> Classroom:
-    """Load and check a roster; raise RosterError listing every problem."""
-    reader = RosterReader(Path(path))
+def load_roster(path: Path | str, validators: list[Validator] | None = None,
+                command_line: list | None = None) -> Classroom:
+    """Load and check a roster; raise RosterError listing every problem.
+
+    `command_line`: pyinfra's --data/--user/--port/--key values
+    (`roslab.roster.overrides.command_line_data`), checked as the level that wins.
+    """
+    reader = RosterReader(Path(path), command_line)
     classroom = reader.read()
     if classroom is not None:
+        reader.check_command_line(classroom)
         check_classroom(classroom, reader.report)
         add_host_lists(classroom)
         for validator in VALIDATORS if validators is None else validators:

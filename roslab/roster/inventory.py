@@ -54,7 +54,9 @@ def inventory_groups(classroom: Classroom) -> dict[str, list[tuple[str, dict]]]:
         moved = last_known_addresses(classroom.path)
     except (OSError, ValueError, yaml.YAMLError) as error:
         state_file = display_path(addresses_path(classroom.path))
-        reason = getattr(error, "strerror", None) or "not a mapping of host name to address"
+        reason = getattr(error, "strerror", None) or (
+            str(error).split(": ", 1)[-1] if isinstance(error, ValueError) and str(error) else
+            "not a mapping of host name to address")
         raise RosterError([Problem(state_file, f"cannot read where moved hosts are: {reason}; "
                                    "fix or delete the file")]) from None
     groups: dict[str, list[tuple[str, dict]]] = {role: [] for role in ROLES}

@@ -17,14 +17,25 @@ from pathlib import Path
 
 from roslab import distro as distros
 from roslab import formats, secrets, settings
+from roslab.controller_files import MAX_SMALL_FILE_BYTES, UnreadableFile, read_regular_file
+from roslab.roster import overrides
 from roslab.roster.checks import unknown_key_message
-from roslab.roster.loading import Mapping, line_of, load_yaml, nested_mappings, without
+from roslab.roster.loading import (
+    Ambiguous,
+    Mapping,
+    ambiguous_inside,
+    line_of,
+    load_yaml,
+    name_problem,
+    nested_mappings,
+    without,
+)
 from roslab.roster.model import Classroom, Host, Team
 from roslab.roster.problems import Report, display_path
 
 TOP_LEVEL_KEYS = ("classroom", "teams")
 DEFAULT_SECRETS_FILE = "secrets.yaml"
-_TEAM_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,62}")
+_TEAM_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,62}", re.ASCII)
 # Connection keys pyinfra reads from host data under the same name.
 CONNECTION_KEYS = tuple(s.key for s in settings.SCHEMA if s.concern == "connection")
 
@@ -39,16 +50,49 @@ def _is_controller_path(setting: settings.Setting) -> bool:
     return getattr(setting.check, "controller_path", False)
 
 
+def settled_yaml_value(setting: settings.Setting, value):
+    """The value the teacher meant, or a problem when YAML's reading of it is ambiguous.
+
+    A switch (a boolean setting) written yes/no/on/off means true/false; a text setting
+    whose allowed values include the word written (ssh_strict_host_key_checking: no)
+    means that word. Anything else YAML 1.1 and 1.2 read differently (010, 08, 1:30,
+    0x10, 1_000, yes as text) is refused with what YAML would make of it.
+    """
+    if isinstance(value, Ambiguous):
+        if setting.kind is bool and isinstance(value.yaml11, bool):
+            return value.yaml11, None
+        if setting.kind is str and str(value) in (getattr(setting.check, "choices", None) or ()):
+            return str(value), None
+        wanted = "number" if setting.kind is int or setting.item is int else "text"
+        return value, value.hint(wanted)
+    if setting.kind is str and isinstance(value, bool) and setting.key == "ssh_strict_host_key_checking":
+        return ("yes" if value else "no"), None  # true/false for the policy's yes/no
+    inner = ambiguous_inside(value)
+    if inner is not None:
+        wanted = "number" if setting.item is int else "text"
+        return value, f"holds {str(inner)!r}: {inner.hint(wanted)}"
+    return value, None
+
+
+COMMAND_LINE = "pyinfra's command line"
+
+
 class RosterReader:
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, command_line: list | None = None):
         self.path = Path(path)
         self.report = Report(path)
-        self.context = formats.Context(self.path.parent)
+        # pyinfra's --data/--user/--port/--key values: (option, key, text, value), checked
+        # as the level that wins over every other (roslab.roster.overrides).
+        self.command_line_data = list(command_line or [])
+        self.command_line: dict[str, Value] = {}
+        self.context = formats.Context(self.path.parent, self.path)
         self.defaults = settings.defaults()
         self.secrets_file: Path | None = None
         self.secrets_line: int | None = None
         self._secrets: dict | None = None
         self._secrets_read = False
+        self.secrets_refused = False
+        self.secrets_default_problem: str | None = None
         self._key_files: dict[str, list[str]] = {}  # teacher_ssh_keys entry -> its key lines
 
     # --- one level ---
@@ -61,8 +105,9 @@ class RosterReader:
         valid = {}
         for key, value in mapping.items():
             line = line_of(mapping, key)
-            if not isinstance(key, str):
-                self.report.error(f"key {key!r} is not a name", line=line, **where)
+            problem = name_problem(key, "key")
+            if problem:
+                self.report.error(problem, line=line, **where)
                 continue
             if key == "hosts" and level == "team":
                 continue
@@ -70,9 +115,9 @@ class RosterReader:
             if setting is None:
                 self.report.error(unknown_key_message(key, level), line=line, field=key, **where)
                 continue
-            if key == "ssh_strict_host_key_checking" and isinstance(value, bool):
-                value = "yes" if value else "no"  # YAML 1.1 reads yes/no/off as booleans
-            problem = settings.check_value(setting, value, self.context)
+            value, problem = settled_yaml_value(setting, value)
+            if problem is None:
+                problem = settings.check_value(setting, value, self.context)
             if problem is None and secrets.is_secret_reference(key) and value is not None:
                 problem = self.secret_problem(value)
             if problem:
@@ -115,6 +160,16 @@ class RosterReader:
         path = self.secrets_file
         shown = display_path(path)
         where = {"field": "secrets_file", "line": self.secrets_line}
+        if self.secrets_refused:
+            if self.secrets_default_problem:
+                self.report.error(f"the default secrets file: {self.secrets_default_problem}", **where)
+            return None  # a path outside its place is never read (read_level reported a named one)
+        if not path.is_file() and os.path.lexists(path):
+            try:
+                read_regular_file(path)
+            except UnreadableFile as exc:
+                self.report.error(f"secrets file {shown}: {exc}", **where)
+                return None
         if not path.is_file():
             example = display_path(
                 path.with_name(Path(DEFAULT_SECRETS_FILE).stem + secrets.EXAMPLE_SUFFIX))
@@ -129,7 +184,7 @@ class RosterReader:
             return None
         # The secrets file's own problems name that file and the entry, never a value.
         own = Report(path)
-        content = load_yaml(path, own, secret=True)
+        content = load_yaml(path, own, secret=True, limit=MAX_SMALL_FILE_BYTES)
         if not isinstance(content, dict):
             if not own.errors:
                 own.error("must be a mapping of secret name -> value")
@@ -145,7 +200,8 @@ class RosterReader:
             elif formats.single_line(value):
                 own.error(f"secret {key!r}: the value must be one line of text", line=line_of(content, key))
         self.report.extend(own)
-        return None if own.errors else dict(content)
+        # Plain text from here on (an ambiguous-looking secret is the text written, like any other).
+        return None if own.errors else {str(key): str(value) for key, value in content.items()}
 
     # --- the whole roster ---
 
@@ -161,7 +217,9 @@ class RosterReader:
         for key, line, first in getattr(roster, "duplicates", []):
             self.report.error(f"{key!r} appears twice (also at line {first})", line=line)
         for key in roster:
-            if key not in TOP_LEVEL_KEYS:
+            if name_problem(key, "key"):
+                self.report.error(name_problem(key, "key"), line=line_of(roster, key))
+            elif key not in TOP_LEVEL_KEYS:
                 close = difflib.get_close_matches(str(key), TOP_LEVEL_KEYS, n=1)
                 hint = f" (did you mean {close[0]!r}?)" if close else ""
                 self.report.error(f"unknown top-level key {key!r}{hint}",
@@ -176,8 +234,14 @@ class RosterReader:
         if not isinstance(secrets_name, str) or formats.single_line(secrets_name):
             secrets_name = DEFAULT_SECRETS_FILE  # read_level reports it
         self.secrets_file = self.context.controller_path(secrets_name)
+        # The default secrets.yaml keeps to the same place as a named one (a symlink out of
+        # the roster's folder is refused too); read_level reports a named one's problem.
+        problem = settings.check_value(settings.SETTINGS["secrets_file"], secrets_name, self.context)
+        self.secrets_refused = bool(problem)
+        self.secrets_default_problem = problem if "secrets_file" not in classroom_map else None
         self.secrets_line = getattr(classroom_map, "key_lines", {}).get("secrets_file")
         classroom = self.read_level(classroom_map, "classroom")
+        self.command_line = self.read_command_line()
 
         teams_map = roster.get("teams")
         if not isinstance(teams_map, dict) or not teams_map:
@@ -188,8 +252,13 @@ class RosterReader:
             self.report.error(f"the team appears twice (also at line {first}); "
                               "YAML would silently keep the last", line=line, team=str(key))
 
-        teams = [self.read_team(str(name), team_map, classroom, line_of(teams_map, name))
-                 for name, team_map in teams_map.items()]
+        teams = []
+        for name, team_map in teams_map.items():
+            problem = name_problem(name, "team name")
+            if problem:
+                self.report.error(problem, team=str(name), line=line_of(teams_map, name))
+                continue
+            teams.append(self.read_team(name, team_map, classroom, line_of(teams_map, name)))
         name = classroom.get("name")
         return Classroom(name.value if name else None, self.path, [t for t in teams if t])
 
@@ -212,7 +281,8 @@ class RosterReader:
                               field="hosts", line=getattr(team_map, "key_lines", {}).get("hosts", line))
             hosts_map = {}
 
-        domain = team_settings.get("ros_domain_id") or classroom.get("ros_domain_id")
+        domain = (self.command_line.get("ros_domain_id") or team_settings.get("ros_domain_id")
+                  or classroom.get("ros_domain_id"))
         team = Team(name, name.replace("-", "_"),
                     domain.value if domain else self.defaults["ros_domain_id"], [],
                     domain_set=domain is not None, line=line,
@@ -234,7 +304,8 @@ class RosterReader:
 
     def read_host(self, name, host_map, team: Team, outer: list[dict], line) -> Host | None:
         where = {"team": team.name, "host": str(name)}
-        problem = formats.host_label(name)
+        ambiguous = isinstance(name, (Ambiguous, bool)) or name is None
+        problem = (name_problem(name, "host name") if ambiguous else None) or formats.host_label(name)
         if problem:
             self.report.error(problem, line=line, **where)
             return None
@@ -251,7 +322,7 @@ class RosterReader:
             return None
 
         resolved: dict[str, Value] = {}
-        for level in (*outer, own):
+        for level in (*outer, own, self.command_line):
             resolved.update(level)
         role = own["role"].value
         address = own["address"].value if own.get("address") and own["address"].value else name
@@ -293,6 +364,43 @@ class RosterReader:
         return Host(name, team.name, role, address, release, expected, variant,
                     team.ros_domain_id, data, line, lines)
 
+    # --- pyinfra's command line ---
+
+    def read_command_line(self) -> dict[str, Value]:
+        """Check pyinfra's --data (and --user, --port, --key) values like roster values."""
+        report = Report(COMMAND_LINE)
+        valid: dict[str, Value] = {}
+        for option, key, text, value in self.command_line_data:
+            shown = f"{option} {key}={text}" if option == "--data" else f"{option} {text}"
+            problem = overrides.key_problem(key)
+            setting = settings.SETTINGS.get(key)
+            if problem is None and setting is not None:
+                problem = overrides.text_problem(setting, text, value) or settings.check_value(
+                    setting, value, self.context)
+            if problem:
+                report.error(f"{shown}: {problem}", field=key)
+            elif setting is not None:
+                valid[key] = Value(value, None)
+        self.report.extend(report)
+        self._command_line_shown = {key: (option, text) for option, key, text, _ in self.command_line_data}
+        return valid
+
+    def check_command_line(self, classroom: Classroom) -> None:
+        """pyinfra puts each command-line value back on top of the host data as it was given:
+        refuse a value roslab's host data holds differently (a path relative to the roster,
+        a .pub file read into key lines), so what runs is what was checked."""
+        report = Report(COMMAND_LINE)
+        for key, item in self.command_line.items():
+            for host in classroom.hosts:
+                if host.data.get(key) != item.value:
+                    option, text = self._command_line_shown[key]
+                    shown = f"{option} {key}={text}" if option == "--data" else f"{option} {text}"
+                    report.error(f"{shown}: roslab reads it as {host.data.get(key)!r} for the hosts, and pyinfra "
+                                 "would hand them the text as given: set it in the roster (or give an "
+                                 "absolute path, key lines)", field=key)
+                    break
+        self.report.extend(report)
+
     def teacher_keys(self, entries: list[str]) -> list[str]:
         """Key lines of `teacher_ssh_keys`: lines as they are, .pub files read (checked already)."""
         keys: list[str] = []
@@ -303,8 +411,8 @@ class RosterReader:
                 continue
             if entry not in self._key_files:  # a classroom-wide file: read once, not per host
                 try:
-                    text = self.context.controller_path(entry).read_text(encoding="utf-8")
-                except (OSError, UnicodeDecodeError):
+                    text = read_regular_file(self.context.controller_path(entry)).decode("utf-8")
+                except (UnreadableFile, UnicodeDecodeError):
                     text = ""  # reported by the value check
                 self._key_files[entry] = formats.public_key_lines(text) or []
             keys.extend(self._key_files[entry])

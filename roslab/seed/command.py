@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -88,7 +89,13 @@ def run_seed(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 1
 
-    moved = last_known_addresses(path)
+    try:
+        moved = last_known_addresses(path)
+    except (OSError, ValueError) as error:
+        print(f"roslab seed: cannot read where moved hosts are: {getattr(error, 'strerror', None) or error}; "
+              "nothing was written", file=sys.stderr)
+        return 1
+    recorded_in: set[str] = set()
     for host in hosts:
         files = seeds[host.name]
         try:
@@ -105,9 +112,20 @@ def run_seed(args: argparse.Namespace) -> int:
             print(f"roslab seed: {host.name}: {error}", file=sys.stderr)
             return 1
         public = identity.host_keys(path, host.name).public_line()
-        recorded = identity.known_key(path, host.name)
-        identity.trust(path, host.name, known_addresses(host, moved.get(host.name)), public,
-                       port=host.data.get("ssh_port") or 22)
+        # The file the run checks this host against (ssh_known_hosts_file, or the classroom's own).
+        known_hosts = identity.known_hosts_of(path, host.data)
+        recorded = None
+        if str(known_hosts) != os.devnull:
+            try:
+                recorded = identity.known_key(path, host.name, known_hosts=known_hosts)
+                identity.trust(path, host.name, known_addresses(host, moved.get(host.name)), public,
+                               port=host.data.get("ssh_port") or 22, known_hosts=known_hosts)
+            except (OSError, identity.IdentityError) as error:
+                print(f"roslab seed: {host.name}: its seed is written, but its key could not be recorded "
+                      f"in {display_path(known_hosts)}: {getattr(error, 'strerror', None) or error}",
+                      file=sys.stderr)
+                return 1
+            recorded_in.add(display_path(known_hosts))
         key = f"host key {identity.fingerprint(public)}"
         if changed:
             print(f"{host.name}: wrote {', '.join(changed)} in {where} ({key})")
@@ -116,8 +134,9 @@ def run_seed(args: argparse.Namespace) -> int:
         if recorded is not None and recorded.public_line() != " ".join(public.split()[:2]):
             print(f"{host.name}: its recorded host key is now the seeded one: until it boots from this "
                   "seed, pyinfra refuses it")
-    print(f"The keys are recorded in {display_path(identity.known_hosts_path(path))}; "
-          "pyinfra connects to these Pis with strict host key checking.")
+    if recorded_in:
+        print(f"The keys are recorded in {', '.join(sorted(recorded_in))}; "
+              "pyinfra connects to these Pis with strict host key checking.")
     return 0
 
 

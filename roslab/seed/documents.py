@@ -20,6 +20,7 @@ from pathlib import Path
 import yaml
 
 from roslab import formats, identity, settings
+from roslab.controller_files import UnreadableFile, read_regular_file
 from roslab.network.render import render_netplan
 from roslab.network.settings import NetworkSettingError, network_settings
 from roslab.roster.model import Host
@@ -75,8 +76,8 @@ def login_public_key(host: Host) -> list[str]:
         return []
     public = Path(f"{private}.pub")
     try:
-        lines = formats.public_key_lines(public.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError):
+        lines = formats.public_key_lines(read_regular_file(public).decode("utf-8"))
+    except (UnreadableFile, UnicodeDecodeError):
         lines = None
     if not lines:
         raise SeedError(host.name, "ssh_key",

@@ -209,3 +209,42 @@ def test_a_host_reflashed_without_a_seed_is_refused_until_forgotten_and_trusted(
     )
     assert reached.returncode == 0, (reached.stdout + reached.stderr)[-4000:]
     assert roslab("sandbox", "ssh", UNSEEDED, "hostname").stdout.strip() == UNSEEDED
+
+
+def test_trust_and_forget_keep_to_the_known_hosts_file_the_run_reads(sandbox, tmp_path):
+    """A roster that names its own known_hosts file: `roslab trust` records the key there (so the
+    strict run reaches the host), also when the host's last confirmed address is gone, and
+    `roslab forget` removes it there (so the run refuses the host again)."""
+    host = SEEDED
+    data = yaml.safe_load(INSTANCE.roster_path.read_text())
+    own = tmp_path / "lab_known_hosts"
+    data["classroom"]["ssh_known_hosts_file"] = str(own)
+    data["classroom"]["ssh_strict_host_key_checking"] = "yes"
+    roster = tmp_path / "roster.yaml"
+    roster.write_text(yaml.safe_dump(data, sort_keys=False))
+    address = data["teams"]["team1"]["hosts"][host]["address"]
+
+    def hostname() -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [str(BIN / "pyinfra"), "-y", "inventories/lab.py", "exec", "--limit", host, "--", "hostname"],
+            cwd=REPO, env={**ENV, "ROSLAB_ROSTER": str(roster)}, capture_output=True, text=True, timeout=300)
+
+    assert hostname().returncode != 0  # nothing recorded in the roster's file yet
+
+    # The last confirmed address answers no more (an unused address of the sandbox's subnet).
+    gone = str(INSTANCE.subnet.network_address + 250)
+    state = tmp_path / ".roslab-state"
+    state.mkdir()
+    (state / "addresses.yaml").write_text(yaml.safe_dump({host: gone}))
+    trusted = roslab("trust", str(roster), "--host", host)
+    assert f"{host} ({address}): ssh-ed25519 SHA256:" in trusted.stdout
+    assert f"recorded in {own}" in trusted.stdout
+    assert not identity.known_hosts_path(roster).exists()  # not the classroom's own file
+    (state / "addresses.yaml").unlink()
+
+    reached = hostname()
+    assert reached.returncode == 0, (reached.stdout + reached.stderr)[-4000:]
+
+    forgotten = roslab("forget", host, "--roster", str(roster))
+    assert f"removed from {own}" in forgotten.stdout
+    assert hostname().returncode != 0

@@ -207,7 +207,8 @@ def test_host_overrides_team_overrides_classroom(tmp_path):
 
 def test_connection_paths_are_resolved_beside_the_roster(tmp_path):
     (tmp_path / "keys").mkdir()
-    (tmp_path / "keys/id_ed25519").write_text("a private key\n")
+    (tmp_path / "keys/id_ed25519").write_text(
+        "-----BEGIN OPENSSH PRIVATE KEY-----\na stand-in private key\n-----END OPENSSH PRIVATE KEY-----\n")
     path = one_team(tmp_path, "ssh_key: keys/id_ed25519\nssh_port: 2222\n")
     data = load_roster(path).hosts[0].data
     assert data["ssh_key"] == str(tmp_path / "keys/id_ed25519")

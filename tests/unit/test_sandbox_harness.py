@@ -113,7 +113,7 @@ def test_written_roster_is_a_valid_roster(tmp_path):
     path.write_text(yaml.safe_dump(written))
     # The key exists once `up` made it; here a stand-in file passes the roster's check.
     key = tmp_path / "id_ed25519"
-    key.write_text("stand-in key\n")
+    key.write_text("-----BEGIN OPENSSH PRIVATE KEY-----\nstand-in key\n-----END OPENSSH PRIVATE KEY-----\n")
     loadable = tmp_path / "loadable.yaml"
     loadable.write_text(yaml.safe_dump({**written, "classroom": {**written["classroom"], "ssh_key": str(key)}}))
 

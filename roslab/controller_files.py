@@ -1,0 +1,73 @@
+"""Reading a file the roster names on the controller: a regular file, bounded, never a hang.
+
+A roster, a secrets file, a key file: each is opened without waiting (a FIFO would wait
+for a writer forever), must be a regular file (a device never ends, a directory is not
+text), and is read up to a size limit, so a hostile or mistaken path is one line of the
+report in well under a second.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import stat
+from pathlib import Path
+
+# A secrets file or a key file holds a few lines.
+MAX_SMALL_FILE_BYTES = 64 * 1024
+
+
+class UnreadableFile(Exception):
+    """A file the loader refuses to read; the message is one line for the report."""
+
+
+def _kind_of(mode: int) -> str:
+    for test, what in ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                       (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return what
+    return "not a regular file"
+
+
+def read_regular_file(path: Path | str, limit: int = MAX_SMALL_FILE_BYTES) -> bytes:
+    """The bytes of a regular file of at most `limit` bytes, or UnreadableFile.
+
+    Never blocks and never reads more than `limit` bytes: the file is opened without
+    waiting (a FIFO would wait for a writer forever), checked to be a regular file
+    (a device never ends, a directory is not text), and read up to the limit, so a file
+    that grows while being read is refused too. Symlinks are followed; a loop is an error.
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC | getattr(os, "O_NOCTTY", 0))
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise UnreadableFile("cannot read the file: it is a symlink loop") from None
+        raise UnreadableFile(f"cannot read the file: {exc.strerror or exc}") from None
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise UnreadableFile(f"is {_kind_of(info.st_mode)}, not a regular file")
+        if info.st_size > limit:
+            raise UnreadableFile(f"the file is larger than {_size_text(limit)}; refusing to read it")
+        chunks, total = [], 0
+        while True:
+            chunk = os.read(fd, min(1 << 20, limit + 1 - total))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            total += len(chunk)
+            if total > limit:
+                raise UnreadableFile(f"the file is larger than {_size_text(limit)}; refusing to read it")
+        return b"".join(chunks)
+    except OSError as exc:
+        raise UnreadableFile(f"cannot read the file: {exc.strerror or exc}") from None
+    finally:
+        os.close(fd)
+
+
+def _size_text(limit: int) -> str:
+    return f"{limit // (1024 * 1024)} MiB" if limit >= 1024 * 1024 else f"{limit // 1024} KiB"
+
+
+__all__ = ["MAX_SMALL_FILE_BYTES", "UnreadableFile", "read_regular_file"]
