@@ -17,7 +17,9 @@ command (`StatusProbe`, no sudo). A host that cannot be reached is a row that sa
 `--listen` adds `roslab verify`'s check on each main host (`roslab.verify.hear`: the topics
 it lists and whether its robot's message arrives), a second bounded command.
 
-Exit status: 0 when every host answered, 1 when one did not or the roster has errors.
+Exit status: 0 when every host answered and none failed its last recorded run; 1 when one
+did not answer, one's last run failed, or the roster has errors. A host
+whose last run failed is red on the page (its box, its row and the chips above).
 """
 
 from __future__ import annotations
@@ -52,6 +54,8 @@ STATUS_PAGE = "status.html"
 BACKGROUND_TOPICS = ("/rosout", "/parameter_events")
 MAX_TOPICS = 8  # topic lines in a team's picture
 UNREACHABLE = "unreachable"
+# The result in runs.yaml of a host whose last run did not finish it.
+FAILED_RESULTS = ("failed",)
 
 
 class StatusProbe(FactBase):
@@ -300,17 +304,17 @@ def host_cells(host: HostStatus, now: datetime) -> dict[str, Cell]:
         cells["LAST RUN"] = Cell("never", "muted")
     else:
         result = run.result or "?"
-        level = {"ok": "ok", "changed": "ok", "failed": "bad"}.get(result, "warn")
+        level = "bad" if result in FAILED_RESULTS else {"ok": "ok", "changed": "ok"}.get(result, "warn")
         cells["LAST RUN"] = Cell(f"{result} {when(run.last_run, now)}", level)
-        if result == "failed" and (run.step or run.reason):
-            notes.append(f"last run failed in \"{run.step or '?'}\": {run.reason or '?'}")
+        if result in FAILED_RESULTS and (run.step or run.reason):
+            notes.append(f"last run {result} in \"{run.step or '?'}\": {run.reason or '?'}")
     if run is None or run.last_success is None:
         cells["LAST SUCCESS"] = Cell("never", "warn" if run is not None and run.last_run else "muted")
     else:
         cells["LAST SUCCESS"] = Cell(when(run.last_success, now), "ok")
     if host.listen_error:
         notes.append(host.listen_error)
-    cells["NOTE"] = Cell("; ".join(notes), "bad" if not host.reachable else "plain")
+    cells["NOTE"] = Cell("; ".join(notes), "bad" if not host.reachable or last_run_failed(host) else "plain")
     return cells
 
 
@@ -481,8 +485,15 @@ def clip(text: str, limit: int = TEXT_LIMIT) -> str:
     return text if len(text) <= limit else text[: limit - 1] + "\u2026"
 
 
+def last_run_failed(host: HostStatus) -> bool:
+    """Whether the last deploy.py run recorded for the host failed."""
+    return host.run is not None and host.run.result in FAILED_RESULTS
+
+
 def box_level(host: HostStatus) -> str:
-    if not host.reachable:
+    """The colour of the host's box: red when it is unreachable or its last run failed (the
+    legend says red means failed), else its nodes' service state."""
+    if not host.reachable or last_run_failed(host):
         return "bad"
     return {"ok": "ok", "bad": "bad"}.get(service_level(host.service), "warn")
 
@@ -578,6 +589,10 @@ def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = 
         running = sum(host.service.startswith("active") for host in hosts)
         verdict = f"{running} of {len(hosts)} hosts run their nodes"
         verdict_level = "ok" if running == len(hosts) else "warn"
+    failed = sum(last_run_failed(host) for host in hosts)
+    if failed:
+        verdict = f"{failed} of {len(hosts)} hosts failed their last run; " + verdict
+        verdict_level = "bad"
     return {
         "name": team, "width": ROBOT_X + BOX_WIDTH + MARGIN, "height": height,
         "boxes": boxes, "arrows": arrows, "texts": texts,
@@ -597,6 +612,7 @@ def page_context(classroom_name: str | None, roster: str, hosts: list[HostStatus
     topics = topics or {}
     reachable = sum(host.reachable for host in hosts)
     running = sum(host.service.startswith("active") for host in hosts)
+    failed = sum(last_run_failed(host) for host in hosts)
     return {
         "title": f"roslab status: {classroom_name}" if classroom_name else "roslab status",
         "classroom": classroom_name or "Classroom",
@@ -606,6 +622,8 @@ def page_context(classroom_name: str | None, roster: str, hosts: list[HostStatus
             {"text": f"{len(teams)} teams, {len(hosts)} hosts", "level": "plain"},
             {"text": f"{reachable} reachable", "level": "ok" if reachable == len(hosts) else "bad"},
             {"text": f"{running} running their nodes", "level": "ok" if running == len(hosts) else "warn"},
+            {"text": f"{failed} failed in their last run" if failed else "no failed last run",
+             "level": "bad" if failed else "ok"},
         ],
         "listen": listen,
         "teams": [team_picture(name, members, listen, topics.get(name, "/chatter"))
@@ -719,13 +737,24 @@ def run(args: argparse.Namespace) -> int:
     except OSError as error:
         print(f"roslab status: cannot write {page}: {error.strerror or error}", file=sys.stderr)
         return 1
-    unreachable = [status.name for status in statuses if not status.reachable]
     print(f"\npage: {display_path(page)}")
+    problems = status_problems(statuses)
+    for problem in problems:
+        print(problem, file=sys.stderr)
+    return 1 if problems else 0
+
+
+def status_problems(statuses: list[HostStatus]) -> list[str]:
+    """One line per kind of trouble that makes `roslab status` exit 1: hosts unreachable,
+    hosts whose last recorded run failed."""
+    problems = []
+    unreachable = [status.name for status in statuses if not status.reachable]
     if unreachable:
-        print(f"{len(unreachable)} of {len(statuses)} hosts unreachable: {', '.join(unreachable)}",
-              file=sys.stderr)
-        return 1
-    return 0
+        problems.append(f"{len(unreachable)} of {len(statuses)} hosts unreachable: {', '.join(unreachable)}")
+    failed = [status.name for status in statuses if last_run_failed(status)]
+    if failed:
+        problems.append(f"{len(failed)} of {len(statuses)} hosts failed in their last run: {', '.join(failed)}")
+    return problems
 
 
 def main(argv: list[str] | None = None) -> int:
