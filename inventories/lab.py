@@ -11,6 +11,7 @@ import sys as _sys
 from pathlib import Path as _Path
 
 from roslab import sudo as _sudo
+from roslab import summary as _summary
 from roslab.roster import RosterError as _RosterError
 from roslab.roster import default_roster_path as _default_roster_path
 from roslab.roster import inventory_groups as _inventory_groups
@@ -27,5 +28,6 @@ except _RosterError as _error:
 for _warning in _classroom.warnings:
     print(f"roslab: warning: {_warning}", file=_sys.stderr)
 
+_summary.install()  # before pyinfra connects: a run where no host answers is summarised too
 _sudo.install()  # before pyinfra's first command: no sudo password on a host's command line
 globals().update(_inventory_groups(_classroom))

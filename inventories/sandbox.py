@@ -13,6 +13,7 @@ import sys as _sys
 from pathlib import Path as _Path
 
 from roslab import sudo as _sudo
+from roslab import summary as _summary
 from roslab.roster import RosterError as _RosterError
 from roslab.roster import inventory_groups as _inventory_groups
 from roslab.roster import load_roster as _load_roster
@@ -29,5 +30,6 @@ except _RosterError as _error:
     print(f"roslab: the sandbox roster {_roster_path} has errors:\n{_error}", file=_sys.stderr)
     _sys.exit(2)
 
+_summary.install()  # before pyinfra connects: a run where no host answers is summarised too
 _sudo.install()  # before pyinfra's first command: no sudo password on a host's command line
 globals().update(_inventory_groups(_classroom))

@@ -54,8 +54,8 @@ STATUS_PAGE = "status.html"
 BACKGROUND_TOPICS = ("/rosout", "/parameter_events")
 MAX_TOPICS = 8  # topic lines in a team's picture
 UNREACHABLE = "unreachable"
-# The result in runs.yaml of a host whose last run did not finish it.
-FAILED_RESULTS = ("failed",)
+# Results in runs.yaml of a host whose last run did not finish it.
+FAILED_RESULTS = ("failed", "interrupted")
 
 
 class StatusProbe(FactBase):
