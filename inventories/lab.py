@@ -2,13 +2,13 @@
 
     pyinfra inventories/lab.py deploy.py [--limit team1 | --limit robot | --limit jazzy]
 
-Reads $ROSLAB_ROSTER, else inventories/classroom.yaml if present, else the example
-inventories/lab.yaml. An invalid roster stops here, before pyinfra connects to any host.
+Reads $ROSLAB_ROSTER, else (in the current folder) classroom.yaml or
+inventories/classroom.yaml if present, else the example inventories/lab.yaml: the roster
+`roslab check` and every roslab command use (roslab.roster.default_roster_path). An invalid roster stops here, before pyinfra connects to any host.
 Groups: `main`, `robot`, one per team (`-` in a team name becomes `_`), one per distro.
 """
 
 import sys as _sys
-from pathlib import Path as _Path
 
 from roslab import sudo as _sudo
 from roslab import summary as _summary
@@ -18,7 +18,7 @@ from roslab.roster import inventory_groups as _inventory_groups
 from roslab.roster import load_roster as _load_roster
 
 # Names without a leading underscore would become pyinfra groups.
-_roster_path = _default_roster_path(base=_Path(__file__).resolve().parent.parent)
+_roster_path = _default_roster_path()  # found as every roslab command finds it
 try:
     _classroom = _load_roster(_roster_path)
 except _RosterError as _error:

@@ -36,9 +36,7 @@ from pathlib import Path
 import yaml
 from pyinfra.api import FactBase
 
-from roslab.roster import (
-    Classroom, RosterError, default_roster_path, display_path, inventory_groups, load_roster,
-)
+from roslab.roster import Classroom, RosterError, display_path, inventory_groups
 from roslab.runs import RunRecord, now_utc, read_runs, runs_path
 from roslab.verify import TeamResult, check_bound, hear, parse_check_output, service_state
 from roslab.workspace import NODES_SERVICE
@@ -348,24 +346,11 @@ def host_statuses(classroom: Classroom, groups: dict, limit: list[str] | None = 
     return statuses
 
 
-def make_inventory(groups: dict):
-    """pyinfra's inventory of the roster's groups, as inventories/lab.py makes it."""
-    from pyinfra.api import Inventory
-
-    everyone: dict[str, dict] = {}
-    for entries in groups.values():
-        for name, data in entries:
-            everyone[name] = data
-    return Inventory((list(everyone.items()), {}),
-                     **{group: (entries, {}) for group, entries in groups.items()})
-
-
 def limited_names(groups: dict, limit: list[str]) -> list[str]:
     """Host names `--limit` selects: pyinfra's own patterns (group or host names, globs)."""
-    from pyinfra_cli.cli import _apply_inventory_limit
+    from roslab.reach import roster_inventory, select_hosts
 
-    inventory = make_inventory(groups)
-    return [host.name for host in _apply_inventory_limit(inventory, limit)]
+    return [host.name for host in select_hosts(roster_inventory(groups), limit)]
 
 
 def probe(groups: dict, statuses: list[HostStatus], listen: bool = False,
@@ -376,20 +361,15 @@ def probe(groups: dict, statuses: list[HostStatus], listen: bool = False,
 
     monkey.patch_all()  # as pyinfra's CLI does: SSH to every host at once (a no-op when done)
     import gevent
-    from pyinfra.api import Config, State
     from pyinfra.api.state import MAX_PARALLEL
-    from pyinfra.context import ctx_config, ctx_inventory, ctx_state
 
-    inventory = make_inventory(groups)
-    state = State(check_for_changes=False)
-    state.cwd = os.getcwd()
+    from roslab.reach import roster_state
+
     # Every host at once (as many as open files allow), so each host's bound is the whole wait.
     parallel = max(1, min(len(statuses), MAX_PARALLEL))
-    config = Config(CONNECT_TIMEOUT=min(CONNECT_TIMEOUT, host_bound), PARALLEL=parallel)
-    ctx_state.set(state)
-    ctx_config.set(config)
-    ctx_inventory.set(inventory)
-    state.init(inventory, config)
+    state = roster_state(groups, [status.name for status in statuses],
+                         CONNECT_TIMEOUT=min(CONNECT_TIMEOUT, host_bound), PARALLEL=parallel)
+    inventory = state.inventory
     bound = host_bound
     if listen:
         bound += check_bound(listen_timeout) + 30
@@ -666,12 +646,10 @@ def default_page_path(roster_path: Path) -> Path:
 
 
 def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    from roslab.reach import add_roster_argument
+
     parser = parser or argparse.ArgumentParser(prog="roslab status", description=__doc__.splitlines()[0])
-    parser.add_argument("roster", nargs="?", metavar="ROSTER",
-                        help="roster file (default: $ROSLAB_ROSTER, else inventories/classroom.yaml "
-                        "if present, else inventories/lab.yaml)")
-    parser.add_argument("--limit", action="append", metavar="NAME",
-                        help="a team, role, distro or host name (pyinfra's --limit; repeatable)")
+    add_roster_argument(parser)
     parser.add_argument("--html", metavar="FILE",
                         help=f"where to write the page (default: .roslab-state/{STATUS_PAGE} beside the roster)")
     parser.add_argument("--timeout", type=int, default=HOST_BOUND, metavar="S",
@@ -684,12 +662,14 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
 
 
 def run(args: argparse.Namespace) -> int:
-    path = Path(args.roster) if args.roster else default_roster_path()
+    from roslab.reach import RosterProblem, load_classroom
+
     try:
-        classroom = load_roster(path)
-    except RosterError as error:
-        print(error, file=sys.stderr)
+        classroom = load_classroom(args.roster, "status")
+    except RosterProblem as problem:
+        print(problem, file=sys.stderr)
         return 1
+    path = classroom.path
     for option, value in (("--timeout", args.timeout), ("--listen-timeout", args.listen_timeout)):
         if not 1 <= value <= 600:
             print(f"roslab status: {option} must be 1 to 600 seconds", file=sys.stderr)

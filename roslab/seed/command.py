@@ -8,7 +8,8 @@ from pathlib import Path
 
 from roslab import identity
 from roslab.network.state import last_known_addresses
-from roslab.roster import RosterError, default_roster_path, display_path, load_roster
+from roslab.reach import RosterProblem, add_roster_argument, load_classroom
+from roslab.roster import display_path
 from roslab.roster.inventory import known_addresses
 from roslab.seed import targets, tools
 from roslab.seed.documents import SeedError, authorized_keys, host_seed, network_config
@@ -27,13 +28,12 @@ def _secrets_of(host, roster_path) -> list[str]:
 
 
 def run_seed(args: argparse.Namespace) -> int:
-    path = Path(args.roster) if args.roster else default_roster_path()
     try:
-        classroom = load_roster(path)
-    except RosterError as error:
-        print(error, file=sys.stderr)
-        print("roslab seed: the roster has errors; nothing was written", file=sys.stderr)
+        classroom = load_classroom(args.roster, "seed")
+    except RosterProblem as problem:
+        print(problem, file=sys.stderr)
         return 1
+    path = classroom.path
     hosts = classroom.hosts
     if args.host:
         by_name = {host.name: host for host in hosts}
@@ -130,8 +130,7 @@ def register(commands) -> None:
         "SSH host key (generated once, kept beside the roster), its network, locale, time zone and "
         "time sync. Checked with cloud-init's and netplan's own parsers before anything is written.",
     )
-    seed.add_argument("roster", nargs="?", metavar="ROSTER",
-                      help="roster file (default: as for roslab check)")
+    add_roster_argument(seed, limit=False)  # one host is named with --host (a card is one Pi)
     where = seed.add_mutually_exclusive_group(required=True)
     where.add_argument("--out", metavar="DIR", help="write DIR/<host>/{user-data,network-config,meta-data}")
     where.add_argument("--boot-partition", metavar="PATH",
