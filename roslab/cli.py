@@ -1,5 +1,6 @@
 """The `roslab` command.
 
+    roslab init DIR           make a classroom folder: roster, secrets file, pyinfra entry files
     roslab check [ROSTER]     validate a roster and print the classroom as a table
     roslab verify [ROSTER]    check that each team's main host hears its robot (roslab.verify)
     roslab seed [ROSTER] --out DIR | --boot-partition PATH | --image FILE
@@ -90,9 +91,11 @@ def build_parser() -> argparse.ArgumentParser:
     add_roster_argument(verify)
     verify.set_defaults(run=run_verify)
 
+    from roslab.init import register as register_init
     from roslab.seed.command import register as register_seed
     from roslab.trust import register as register_trust
 
+    register_init(commands)  # roslab init
     register_seed(commands)  # roslab seed
     register_trust(commands)  # roslab trust, roslab forget
 

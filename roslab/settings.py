@@ -306,7 +306,7 @@ SCHEMA: list[Setting] = [
          f.home_path, {"allowed": "~/ and a path inside the home"}),
         ("workspace_nodes_dir", None, str,
          "Controller directory whose ROS packages are copied into the workspace's src/; None: "
-         "this checkout's nodes/.", f.controller_path("dir"), {"nullable": True}),
+         "the demo nodes that come with roslab (nodes/ in a checkout).", f.controller_path("dir"), {"nullable": True}),
         ("workspace_colcon_args", ["--executor", "sequential"], list,
          "Arguments after `colcon build`; a sequential build is what colcon advises on a Pi.",
          f.colcon_argument, {"item": str}),

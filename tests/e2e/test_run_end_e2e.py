@@ -13,7 +13,8 @@ One converge of the freshly imaged class, then, in order:
   `interrupted` in the step it had not finished, recorded; `roslab status` exits 1;
 - apt-get killed on the host during ROS 2's install: the host's line gives the signal and
   exit status, the others carry on, exit 1;
-- the next run heals the host (dpkg's interrupted install finished), exit 0, and
+- an installed roslab (the wheel in a fresh venv, a `roslab init` folder) heals the host
+  (dpkg's interrupted install finished), exit 0, and
   `roslab status` exits 0 again.
 """
 
@@ -230,10 +231,46 @@ def test_a_killed_install_shows_the_signal_and_the_next_run_heals_it(converged, 
         assert rows[name] == f"{name} ok", rows[name]
     assert last == "exit code 1: 1 failed, 0 changed, 3 ok (4 hosts)"
 
-    healed = pyinfra(converged, "-y")
-    assert healed.returncode == 0, healed.stderr[-6000:]
-    _, rows, last = summary_block(healed.stderr)
+
+
+def test_an_installed_roslab_run_from_an_init_folder_heals_the_class(converged, tmp_path):
+    """The wheel, installed into a fresh venv outside the checkout; `roslab init` makes the
+    folder; the class (with the host whose install was killed) converges from there, with
+    the deploy and the demo nodes of the installed package."""
+    wheels = tmp_path / "wheels"
+    built = subprocess.run([str(BIN / "pip"), "wheel", "--no-deps", "-q", "-w", str(wheels), str(REPO)],
+                           capture_output=True, text=True, timeout=600)
+    assert built.returncode == 0, built.stderr[-3000:]
+    assert "project.license" not in built.stderr  # no setuptools warnings about it
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=120)
+    clean_env = {key: value for key, value in converged.env.items() if key not in ("PYTHONPATH", "ROSLAB_ROSTER")}
+    installed = subprocess.run([str(venv / "bin/pip"), "install", "-q", *map(str, wheels.glob("*.whl"))],
+                               cwd=tmp_path, env=clean_env, capture_output=True, text=True, timeout=900)
+    assert installed.returncode == 0, installed.stderr[-3000:]
+
+    folder = tmp_path / "class"
+    init = subprocess.run([str(venv / "bin/roslab"), "init", str(folder)], cwd=tmp_path, env=clean_env,
+                          capture_output=True, text=True, timeout=60)
+    assert init.returncode == 0, init.stderr
+    assert sorted(path.name for path in folder.iterdir()) == [
+        ".gitignore", "classroom.yaml", "deploy.py", "inventory.py", "secrets.yaml"]
+    assert (folder / "secrets.yaml").stat().st_mode & 0o777 == 0o600
+    # The teacher fills in the roster: here, the sandbox class's.
+    (folder / "classroom.yaml").write_text(converged.roster_path.read_text())
+
+    run = subprocess.run([str(venv / "bin/pyinfra"), "-y", "inventory.py", "deploy.py"], cwd=folder,
+                         env=clean_env, stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=900)
+
+    assert run.returncode == 0, run.stderr[-6000:]
+    assert str(REPO) not in run.stderr  # nothing of the checkout: the package's deploy and nodes
+    nodes = venv / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / "site-packages/roslab/data/nodes"
+    assert f"holds the packages of {nodes}" in run.stderr
+    _, rows, last = summary_block(run.stderr)
     assert rows[FRESH] == f"{FRESH} changed"
     assert last == "exit code 0: 0 failed, 1 changed, 3 ok (4 hosts)"
-    after = status(converged)
+    listed = converged.ssh(FRESH, "ls ~/ros2_ws/src; systemctl is-active roslab-nodes")
+    assert listed.stdout.split() == ["roslab_bringup", "roslab_demo", "active"], listed
+    after = subprocess.run([str(venv / "bin/roslab"), "status"], cwd=folder, env=clean_env,
+                           capture_output=True, text=True, timeout=120)
     assert after.returncode == 0, after.stdout + after.stderr
