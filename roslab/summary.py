@@ -348,6 +348,9 @@ class RunSummary(BaseStateCallback):
             else:
                 header += " (nothing was executed; with -y changes were not detected)"
         out = [header]
+        if _compact is not None and _compact.hidden_steps:
+            out.insert(0, f"--> {_compact.hidden_steps} steps changed nothing on any host and are not shown "
+                          "above (-v shows every step)\n")
         out += [f"    {mask(row.text(width, status_width), secrets)}" for row in rows]
         counts = {status: sum(row.status == status for row in rows) for status in (FAILED, CHANGED, OK)}
         tally = ", ".join(f"{number} {status}" for status, number in counts.items())
@@ -568,6 +571,9 @@ def install(state: State | None = None) -> RunSummary:
             _atexit_registered = True
             _handle_signals(summary)
             _guard_stdin(summary)
+            if cli_option("verbosity") == 0 and not cli_option("json_output") and not (
+                    cli_option("debug") or cli_option("debug_all")):
+                _attach_compact_output()
     return summary
 
 
@@ -729,6 +735,89 @@ class _LogCapture(logging.Handler):
 
 
 _log_capture: _LogCapture | None = None
+
+# --- compact output ------------------------------------------------------------------------
+
+LONG_STEP = 5.0  # seconds after which a step that has changed nothing yet is shown anyway
+_STARTING = re.compile(r"^--> Starting\b.*\boperation:")
+_QUIET_STATUSES = re.compile(r"^(?:No changes|Skipped)\b")
+
+
+class CompactOutput(logging.Filter):
+    """pyinfra's default output without the steps that changed nothing, so that a converged
+    class's run fits a screen and ends with the summary (`-v` shows pyinfra's full output).
+
+    A "--> Starting operation" line is held back until a host reports something about it
+    (a change, a warning, an error: then it is shown, with that line), or until the step
+    has run `LONG_STEP` seconds (then it is shown, so a long step is never silent); a
+    step every host reports "No changes" for is not shown at all. Warnings and errors always
+    pass, at once.
+    """
+
+    def __init__(self, logger: logging.Logger, long_step: float | None = LONG_STEP) -> None:
+        super().__init__("roslab-compact")
+        self.logger = logger
+        self.long_step = long_step
+        self.pending: logging.LogRecord | None = None
+        self.hidden_steps = 0
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if getattr(record, "roslab_shown", False):
+            return True
+        if record.levelno > logging.INFO:
+            self.show_pending()
+            return True
+        try:
+            text = _ANSI.sub("", record.getMessage()).strip()
+        except Exception:  # noqa: BLE001 - a line that cannot be read is shown as it is
+            return True
+        if _STARTING.match(text):
+            self.drop_pending()
+            self.pending = record
+            if self.long_step is not None:
+                self._later(record)
+            return False
+        prefixed = _PREFIXED.match(text)
+        if prefixed:
+            if _QUIET_STATUSES.match(prefixed.group(2)):
+                return False
+            self.show_pending()
+            return True
+        self.drop_pending()  # the run moved on (results, disconnecting)
+        return True
+
+    def show_pending(self) -> None:
+        record, self.pending = self.pending, None
+        if record is not None:
+            record.roslab_shown = True
+            self.logger.handle(record)
+
+    def drop_pending(self) -> None:
+        if self.pending is not None:
+            self.hidden_steps += 1
+        self.pending = None
+
+    def _later(self, record: logging.LogRecord) -> None:
+        try:
+            import gevent
+        except ImportError:  # pragma: no cover - pyinfra's CLI runs on gevent
+            return
+
+        def show_if_still_running() -> None:
+            if self.pending is record:
+                self.show_pending()
+
+        gevent.spawn_later(self.long_step, show_if_still_running)
+
+
+_compact: CompactOutput | None = None
+
+
+def _attach_compact_output() -> None:
+    global _compact
+    if _compact is None:
+        _compact = CompactOutput(pyinfra.logger)
+        pyinfra.logger.addFilter(_compact)
 
 
 def _attach_log_capture() -> None:

@@ -263,6 +263,10 @@ def test_an_installed_roslab_run_from_an_init_folder_heals_the_class(converged, 
                          env=clean_env, stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=900)
 
     assert run.returncode == 0, run.stderr[-6000:]
+    # Compact: only the steps that changed something, and the summary is the last screen.
+    assert "No changes" not in run.stderr
+    assert "steps changed nothing on any host and are not shown above (-v shows every step)" in run.stderr
+    assert run.stderr.rstrip().splitlines()[-1].strip().startswith("exit code 0: ")
     assert str(REPO) not in run.stderr  # nothing of the checkout: the package's deploy and nodes
     nodes = venv / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / "site-packages/roslab/data/nodes"
     assert f"holds the packages of {nodes}" in run.stderr

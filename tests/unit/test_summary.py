@@ -448,3 +448,66 @@ def test_dry_a_condition_that_cannot_be_known_counts_as_a_change():
     conditional(state, "team1-main", "op", "Restart", unknowable)
     summary.mark_planned(state.inventory.get_host("team1-main"))
     assert printed(state, handler)[2] == "    team1-main  changed"
+
+
+def test_compact_output_hides_steps_that_changed_nothing_and_shows_the_others_with_their_lines():
+    shown: list[str] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record):
+            shown.append(record.getMessage())
+
+    log = logging.getLogger("roslab-test-compact")
+    log.propagate = False
+    log.setLevel(logging.INFO)
+    log.handlers = [Collect()]
+    compact = summary.CompactOutput(log, long_step=None)
+    log.addFilter(compact)
+    try:
+        for line in ["    [team1-main] Connected", "--> Starting operation: Ensure the locale",
+                     "    [team1-main] No changes", "    [team1-robot] No changes",
+                     "--> Starting operation: Ensure ROS 2 jazzy", "    [team1-main] No changes",
+                     "    [team1-robot] Success",
+                     "--> Starting operation: Ensure the unit", "    [team1-main] No changes"]:
+            log.info(line)
+        log.warning("    [team1-main] roslab: a warning in that step")
+        log.info("--> Starting operation: Reload sshd")
+        log.error("    [team1-robot] Error: executed 0 commands")
+        log.info("--> Disconnecting from hosts...")
+    finally:
+        log.removeFilter(compact)
+
+    assert shown == ["    [team1-main] Connected",
+                     "--> Starting operation: Ensure ROS 2 jazzy", "    [team1-robot] Success",
+                     "--> Starting operation: Ensure the unit", "    [team1-main] roslab: a warning in that step",
+                     "--> Starting operation: Reload sshd", "    [team1-robot] Error: executed 0 commands",
+                     "--> Disconnecting from hosts..."]
+    assert compact.hidden_steps == 1
+
+
+def test_compact_output_shows_a_long_step_before_any_host_is_done():
+    import gevent
+
+    shown: list[str] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record):
+            shown.append(record.getMessage())
+
+    log = logging.getLogger("roslab-test-compact-long")
+    log.propagate = False
+    log.setLevel(logging.INFO)
+    log.handlers = [Collect()]
+    compact = summary.CompactOutput(log, long_step=0.05)
+    log.addFilter(compact)
+    try:
+        log.info("--> Starting operation: Ensure ROS 2 jazzy is installed")
+        assert shown == []
+        gevent.sleep(0.2)
+        assert shown == ["--> Starting operation: Ensure ROS 2 jazzy is installed"]
+        log.info("    [team1-main] No changes")
+        log.info("    [team1-robot] Success")
+    finally:
+        log.removeFilter(compact)
+    assert shown == ["--> Starting operation: Ensure ROS 2 jazzy is installed", "    [team1-robot] Success"]
+    assert compact.hidden_steps == 0
