@@ -46,6 +46,7 @@ import re
 import signal
 import sys
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Iterable, TextIO
@@ -739,6 +740,7 @@ _log_capture: _LogCapture | None = None
 # --- compact output ------------------------------------------------------------------------
 
 LONG_STEP = 5.0  # seconds after which a step that has changed nothing yet is shown anyway
+STILL_RUNNING_EVERY = 20.0  # seconds between "still running on ..." lines of a long step
 _STARTING = re.compile(r"^--> Starting\b.*\boperation:")
 _QUIET_STATUSES = re.compile(r"^(?:No changes|Skipped)\b")
 
@@ -750,40 +752,51 @@ class CompactOutput(logging.Filter):
     A "--> Starting operation" line is held back until a host reports something about it
     (a change, a warning, an error: then it is shown, with that line), or until the step
     has run `LONG_STEP` seconds (then it is shown, so a long step is never silent); a
-    step every host reports "No changes" for is not shown at all. Warnings and errors always
-    pass, at once.
+    step every host reports "No changes" for is not shown at all. While a long step runs,
+    every `STILL_RUNNING_EVERY` seconds one line says which hosts are still in it and for how
+    long. Warnings and errors always pass, at once.
     """
 
-    def __init__(self, logger: logging.Logger, long_step: float | None = LONG_STEP) -> None:
+    def __init__(self, logger: logging.Logger, long_step: float | None = LONG_STEP,
+                 hosts=None, every: float = STILL_RUNNING_EVERY) -> None:
         super().__init__("roslab-compact")
         self.logger = logger
         self.long_step = long_step
+        self.every = every
+        self.hosts = hosts or (lambda: [])  # the names of the hosts the run executes on
         self.pending: logging.LogRecord | None = None
+        self.step: logging.LogRecord | None = None  # the step running now
+        self.done: set[str] = set()  # hosts that finished it
         self.hidden_steps = 0
 
     def filter(self, record: logging.LogRecord) -> bool:
         if getattr(record, "roslab_shown", False):
             return True
-        if record.levelno > logging.INFO:
-            self.show_pending()
-            return True
         try:
             text = _ANSI.sub("", record.getMessage()).strip()
         except Exception:  # noqa: BLE001 - a line that cannot be read is shown as it is
             return True
+        prefixed = _PREFIXED.match(text)
+        if prefixed and (_QUIET_STATUSES.match(prefixed.group(2)) or prefixed.group(2).startswith(
+                ("Success", "Error"))):
+            self.done.add(prefixed.group(1))  # the host is through the step
+        if record.levelno > logging.INFO:
+            self.show_pending()
+            return True
         if _STARTING.match(text):
             self.drop_pending()
-            self.pending = record
+            self.pending = self.step = record
+            self.done = set()
             if self.long_step is not None:
                 self._later(record)
             return False
-        prefixed = _PREFIXED.match(text)
         if prefixed:
             if _QUIET_STATUSES.match(prefixed.group(2)):
                 return False
             self.show_pending()
             return True
         self.drop_pending()  # the run moved on (results, disconnecting)
+        self.step = None
         return True
 
     def show_pending(self) -> None:
@@ -803,11 +816,21 @@ class CompactOutput(logging.Filter):
         except ImportError:  # pragma: no cover - pyinfra's CLI runs on gevent
             return
 
-        def show_if_still_running() -> None:
-            if self.pending is record:
-                self.show_pending()
+        started = time.monotonic()
 
-        gevent.spawn_later(self.long_step, show_if_still_running)
+        def still_running(first: bool) -> None:
+            if self.step is not record:
+                return  # the step is over
+            if first:
+                self.show_pending()
+            else:
+                waiting = [name for name in self.hosts() if name not in self.done]
+                if waiting:
+                    self.logger.info(f"    still running on {', '.join(waiting)} "
+                                     f"({time.monotonic() - started:.0f} s)", extra={"roslab_shown": True})
+            gevent.spawn_later(self.every, still_running, False)
+
+        gevent.spawn_later(self.long_step, still_running, True)
 
 
 _compact: CompactOutput | None = None
@@ -816,8 +839,17 @@ _compact: CompactOutput | None = None
 def _attach_compact_output() -> None:
     global _compact
     if _compact is None:
-        _compact = CompactOutput(pyinfra.logger)
+        _compact = CompactOutput(pyinfra.logger, hosts=_executing_hosts)
         pyinfra.logger.addFilter(_compact)
+
+
+def _executing_hosts() -> list[str]:
+    state = _current[1] if _current is not None else None
+    state = state or ctx_state.get()
+    try:
+        return sorted(host.name for host in state.active_hosts)
+    except Exception:  # noqa: BLE001 - progress must never break the run
+        return []
 
 
 def _attach_log_capture() -> None:

@@ -511,3 +511,37 @@ def test_compact_output_shows_a_long_step_before_any_host_is_done():
         log.removeFilter(compact)
     assert shown == ["--> Starting operation: Ensure ROS 2 jazzy is installed", "    [team1-robot] Success"]
     assert compact.hidden_steps == 0
+
+
+def test_a_long_step_says_which_hosts_are_still_in_it():
+    import gevent
+
+    shown: list[str] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record):
+            shown.append(record.getMessage())
+
+    log = logging.getLogger("roslab-test-compact-still")
+    log.propagate = False
+    log.setLevel(logging.INFO)
+    log.handlers = [Collect()]
+    compact = summary.CompactOutput(log, long_step=0.05, every=0.1,
+                                    hosts=lambda: ["team1-main", "team1-robot", "team2-main"])
+    log.addFilter(compact)
+    try:
+        log.info("--> Starting operation: Ensure ROS 2 is installed")
+        log.info("    [team1-main] No changes")
+        gevent.sleep(0.1)
+        log.info("    [team2-main] Success")
+        gevent.sleep(0.15)
+        log.info("--> Starting operation: Ensure the locale")
+        still = [line for line in shown if line.startswith("    still running on ")]
+        gevent.sleep(0.3)  # the next step: its own lines, none about the last one
+    finally:
+        log.removeFilter(compact)
+    assert shown[0] == "--> Starting operation: Ensure ROS 2 is installed"
+    assert still and all(line.startswith("    still running on team1-robot (") for line in still), shown
+    after = shown[shown.index("--> Starting operation: Ensure the locale") + 1:]
+    assert after and all(line.startswith("    still running on team1-main, team1-robot, team2-main (")
+                         for line in after), shown
