@@ -4,11 +4,10 @@ from __future__ import annotations
 
 from pyinfra import host
 from pyinfra.api import deploy
-from pyinfra.operations import apt
 
 from deploy.common import host_distro, should_run
 from roslab import probe, settings
-from roslab.operations import apt_install_options
+from roslab.operations import packages_installed
 from roslab.quoting import apt_arguments
 
 DEFAULTS = settings.defaults("ros_install")
@@ -42,10 +41,10 @@ def ros_install():
         return
     distro = host_distro()
     packages = ros_packages(distro, host.data.get("roslab_role"), host.data.dict())
-    apt.packages(
+    packages_installed(
         name=f"Ensure ROS 2 {distro} is installed ({', '.join(packages)})",
         packages=packages,
-        extra_install_args=apt_install_options(host.data.apt_lock_timeout),
+        lock_timeout=host.data.apt_lock_timeout,
     )
 
 

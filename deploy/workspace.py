@@ -35,7 +35,7 @@ from deploy.common import (
     stop_host,
     where,
 )
-from roslab import probe, settings
+from roslab import packaged, probe, settings
 from roslab import workspace as ws_ops
 from roslab.quoting import shell_word, systemd_assignment, systemd_value, systemd_word
 from roslab.ros_env import ros_variables_of
@@ -43,6 +43,7 @@ from roslab.templating import render
 from roslab.workspace import NODES_SERVICE, NODES_UNIT_PATH
 
 REPO = Path(__file__).resolve().parent.parent
+
 
 DEFAULTS = settings.defaults("workspace")
 
@@ -55,7 +56,7 @@ RESTART_SEC = 5
 def nodes_dir() -> str:
     """The controller directory whose packages are copied (absolute: the roster made it so)."""
     value = host.data.workspace_nodes_dir
-    return str(Path(value) if value else REPO / "nodes")
+    return str(Path(value) if value else packaged.nodes_dir())  # the checkout's or the installed nodes/
 
 
 def exec_script(*, distro: str, workspace_dir: str, launch: str) -> str:

@@ -1,7 +1,8 @@
 """The `roslab` command.
 
+    roslab init DIR           make a classroom folder: roster, secrets file, pyinfra entry files
     roslab check [ROSTER]     validate a roster and print the classroom as a table
-    roslab verify [INVENTORY] check that each team's main host hears its robot (roslab.verify)
+    roslab verify [ROSTER]    check that each team's main host hears its robot (roslab.verify)
     roslab seed [ROSTER] --out DIR | --boot-partition PATH | --image FILE
                               first-boot seeds for freshly flashed Pis (roslab.seed)
     roslab trust [ROSTER]     record the host key of Pis flashed without a seed (roslab.trust)
@@ -16,16 +17,10 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 from roslab import __version__
-from roslab.roster import (
-    Classroom,
-    RosterError,
-    default_roster_path,
-    display_path,
-    load_roster,
-)
+from roslab.reach import RosterProblem, add_roster_argument, load_classroom
+from roslab.roster import Classroom, display_path
 
 TABLE_COLUMNS = ("TEAM", "HOST", "ROLE", "ADDRESS", "UBUNTU", "DISTRO", "VARIANT", "DOMAIN")
 
@@ -51,14 +46,12 @@ def classroom_table(classroom: Classroom) -> str:
 
 
 def run_check(args: argparse.Namespace) -> int:
-    path = Path(args.roster) if args.roster else default_roster_path()
     try:
-        classroom = load_roster(path)
-    except RosterError as error:
-        print(error, file=sys.stderr)
-        count = len(error.problems)
-        print(f"roslab: {count} error{'s' if count != 1 else ''} in the roster", file=sys.stderr)
+        classroom = load_classroom(args.roster, "check")
+    except RosterProblem as problem:
+        print(problem, file=sys.stderr)
         return 1
+    path = classroom.path
     for warning in classroom.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     title = f"Classroom {classroom.name!r}" if classroom.name else "Classroom"
@@ -68,9 +61,9 @@ def run_check(args: argparse.Namespace) -> int:
 
 
 def run_verify(args: argparse.Namespace) -> int:
-    from roslab.verify import main as verify_main  # connects to hosts: imported only when asked
+    from roslab.verify import run  # connects to hosts: imported only when asked
 
-    return verify_main(args.verify_args)
+    return run(args)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -86,13 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Validate a roster without touching any host; print the classroom as a "
         "table. Exits 1 if the roster has errors.",
     )
-    check.add_argument(
-        "roster",
-        nargs="?",
-        metavar="ROSTER",
-        help="roster file (default: $ROSLAB_ROSTER, else inventories/classroom.yaml "
-        "if present, else inventories/lab.yaml)",
-    )
+    add_roster_argument(check, limit=False)
     check.set_defaults(run=run_check)
 
     verify = commands.add_parser(
@@ -101,12 +88,14 @@ def build_parser() -> argparse.ArgumentParser:
         description="Read-only: on each team's main host, listen for the robot's messages with "
         "the team's domain ID and print a table per team. Exits 1 unless every team is heard.",
     )
-    verify.add_argument("verify_args", nargs=argparse.REMAINDER, metavar="[INVENTORY] [--limit NAME]")
+    add_roster_argument(verify)
     verify.set_defaults(run=run_verify)
 
+    from roslab.init import register as register_init
     from roslab.seed.command import register as register_seed
     from roslab.trust import register as register_trust
 
+    register_init(commands)  # roslab init
     register_seed(commands)  # roslab seed
     register_trust(commands)  # roslab trust, roslab forget
 

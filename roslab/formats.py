@@ -99,6 +99,35 @@ def pattern(regex: str, description: str) -> Check:
     return check
 
 
+# ISO 3166-1 alpha-2 country codes (as tzdata's iso3166.tab lists them), the codes a WiFi
+# regulatory domain is named by (wireless-regdb), plus "00", the world domain.
+COUNTRY_CODES = frozenset("""
+    AD AE AF AG AI AL AM AO AQ AR AS AT AU AW AX AZ BA BB BD BE BF BG BH BI BJ BL BM BN BO BQ
+    BR BS BT BV BW BY BZ CA CC CD CF CG CH CI CK CL CM CN CO CR CU CV CW CX CY CZ DE DJ DK DM
+    DO DZ EC EE EG EH ER ES ET FI FJ FK FM FO FR GA GB GD GE GF GG GH GI GL GM GN GP GQ GR GS
+    GT GU GW GY HK HM HN HR HT HU ID IE IL IM IN IO IQ IR IS IT JE JM JO JP KE KG KH KI KM KN
+    KP KR KW KY KZ LA LB LC LI LK LR LS LT LU LV LY MA MC MD ME MF MG MH MK ML MM MN MO MP MQ
+    MR MS MT MU MV MW MX MY MZ NA NC NE NF NG NI NL NO NP NR NU NZ OM PA PE PF PG PH PK PL PM
+    PN PR PS PT PW PY QA RE RO RS RU RW SA SB SC SD SE SG SH SI SJ SK SL SM SN SO SR SS ST SV
+    SX SY SZ TC TD TF TG TH TJ TK TL TM TN TO TR TT TV TW TZ UA UG UM US UY UZ VA VC VE VG VI
+    VN VU WF WS YE YT ZA ZM ZW
+""".split()) | {"00"}
+
+
+def country_code(value: str, context: Context | None = None) -> str | None:
+    """An ISO 3166-1 alpha-2 country code in capitals (like DE, GB, US), or 00 (the world)."""
+    problem = single_line(value)
+    if problem:
+        return problem
+    if value not in COUNTRY_CODES:
+        hint = f" (did you mean {value.upper()!r}?)" if value.isascii() and value.upper() in COUNTRY_CODES else ""
+        return f"{value!r} is not a country code like DE, GB or US{hint}"
+    return None
+
+
+country_code.allowed = "a two-letter country code in capitals (ISO 3166-1), like DE; 00: the world"
+
+
 def choice(*choices) -> Check:
     def check(value, context: Context | None = None) -> str | None:
         if value not in choices:

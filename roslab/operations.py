@@ -398,6 +398,16 @@ def ubuntu_apt_sources_reads() -> list:
 APT_UPDATE_MAX_SECONDS = 1200
 
 
+def reporting_a_signal(command: str, what: str) -> str:
+    """`command`, then a line on stderr when it was killed by a signal, with the signal and
+    the exit status: a killed command prints no error of its own, only whatever it printed
+    last (e.g. debconf's "delaying package configuration"), which is not the reason.
+    The command keeps its exit status."""
+    report = (f"echo \"roslab: {what} was killed by signal SIG$(kill -l \"$status\" 2>/dev/null "
+              f"|| echo \"$((status - 128))\") (exit status $status)\" >&2")
+    return f"{command}; status=$?; if [ \"$status\" -gt 128 ]; then {report}; fi; exit \"$status\""
+
+
 def apt_update_command(lock_timeout: int) -> str:
     """`apt-get update` that fails on any failed download and marks the lists fresh only then.
 
@@ -490,6 +500,34 @@ def command_installed(command: str, package: str, lock_timeout: int):
     yield StringCommand(
         apt_get(f"{DPKG_KEEP_CONFFILES} install --", lock_timeout), QuoteString(apt_arguments([package])[0])
     )
+
+
+@operation()
+def packages_installed(packages: list[str], lock_timeout: int):
+    """
+    Ensure the apt packages are installed (with their dependencies), installing only the
+    missing ones; a host's edited configuration files are kept.
+
+    + packages: package names (checked by the schema; `apt_arguments` refuses options)
+    + lock_timeout: seconds apt waits for the dpkg lock
+
+    If apt-get is killed (a student, the OOM killer), the failure says so with the signal
+    and exit status (`reporting_a_signal`).
+    """
+    installed = host.get_fact(DebPackages) or {}
+    names = apt_arguments(packages)
+    missing = [name for name in names if _package_name(name) not in installed]
+    if not missing:
+        host.noop(f"{', '.join(names)} {'is' if len(names) == 1 else 'are'} installed")
+        return
+    install = f"{apt_get(f'{DPKG_KEEP_CONFFILES} install --', lock_timeout)} " + " ".join(
+        shlex.quote(name) for name in missing)
+    yield StringCommand(reporting_a_signal(install, "apt-get install"))
+
+
+def packages_installed_reads() -> list:
+    """What `packages_installed` reads (roslab.probe)."""
+    return [read(DebPackages)]
 
 
 @operation()

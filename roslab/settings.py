@@ -107,6 +107,11 @@ SCHEMA: list[Setting] = [
          f.choice("yes", "no", "off", "ask", "accept-new"), {"nullable": True}),
         ("sudo_password_secret", None, str, "Name of a secret holding the sudo password.",
          f.secret_name, {"nullable": True}),
+        ("console_password_secret", None, str,
+         "Name of a secret holding a password for the lab user at the Pi's own console (keyboard "
+         "and screen), the way in when its network is wrong; None: no password at all. Put in the "
+         "seed hashed (SHA-512 crypt), never in plain text; SSH password login stays off.",
+         f.secret_name, {"nullable": True}),
     ),
     # --- deploy settings ---
     *_concern(
@@ -307,6 +312,10 @@ SCHEMA: list[Setting] = [
         ("wifi_password_secret", None, str,
          "Name of the WiFi password in the secrets file (never the password itself).", f.secret_name,
          {"nullable": True}),
+        ("wifi_regulatory_domain", None, str,
+         "The WiFi regulatory domain, the country the Pis are in (like DE or GB): without one a "
+         "Pi's WiFi keeps to the channels and power allowed everywhere. Written into the seed's "
+         "network-config (`roslab seed`).", f.country_code, {"nullable": True}),
         ("network_confirm_timeout", 60, int,
          "Seconds the host waits for the controller to reach it at its new address before it "
          "restores its previous configuration by itself.", f.int_range(10, 3600, " s")),

@@ -17,7 +17,9 @@ command (`StatusProbe`, no sudo). A host that cannot be reached is a row that sa
 `--listen` adds `roslab verify`'s check on each main host (`roslab.verify.hear`: the topics
 it lists and whether its robot's message arrives), a second bounded command.
 
-Exit status: 0 when every host answered, 1 when one did not or the roster has errors.
+Exit status: 0 when every host answered and none failed its last recorded run; 1 when one
+did not answer, one's last run failed, or the roster has errors. A host
+whose last run failed is red on the page (its box, its row and the chips above).
 """
 
 from __future__ import annotations
@@ -34,9 +36,7 @@ from pathlib import Path
 import yaml
 from pyinfra.api import FactBase
 
-from roslab.roster import (
-    Classroom, RosterError, default_roster_path, display_path, inventory_groups, load_roster,
-)
+from roslab.roster import Classroom, RosterError, display_path, inventory_groups
 from roslab.runs import RunRecord, now_utc, read_runs, runs_path
 from roslab.verify import TeamResult, check_bound, hear, parse_check_output, service_state
 from roslab.workspace import NODES_SERVICE
@@ -52,6 +52,8 @@ STATUS_PAGE = "status.html"
 BACKGROUND_TOPICS = ("/rosout", "/parameter_events")
 MAX_TOPICS = 8  # topic lines in a team's picture
 UNREACHABLE = "unreachable"
+# Results in runs.yaml of a host whose last run did not finish it.
+FAILED_RESULTS = ("failed", "interrupted")
 
 
 class StatusProbe(FactBase):
@@ -300,17 +302,17 @@ def host_cells(host: HostStatus, now: datetime) -> dict[str, Cell]:
         cells["LAST RUN"] = Cell("never", "muted")
     else:
         result = run.result or "?"
-        level = {"ok": "ok", "changed": "ok", "failed": "bad"}.get(result, "warn")
+        level = "bad" if result in FAILED_RESULTS else {"ok": "ok", "changed": "ok"}.get(result, "warn")
         cells["LAST RUN"] = Cell(f"{result} {when(run.last_run, now)}", level)
-        if result == "failed" and (run.step or run.reason):
-            notes.append(f"last run failed in \"{run.step or '?'}\": {run.reason or '?'}")
+        if result in FAILED_RESULTS and (run.step or run.reason):
+            notes.append(f"last run {result} in \"{run.step or '?'}\": {run.reason or '?'}")
     if run is None or run.last_success is None:
         cells["LAST SUCCESS"] = Cell("never", "warn" if run is not None and run.last_run else "muted")
     else:
         cells["LAST SUCCESS"] = Cell(when(run.last_success, now), "ok")
     if host.listen_error:
         notes.append(host.listen_error)
-    cells["NOTE"] = Cell("; ".join(notes), "bad" if not host.reachable else "plain")
+    cells["NOTE"] = Cell("; ".join(notes), "bad" if not host.reachable or last_run_failed(host) else "plain")
     return cells
 
 
@@ -344,24 +346,11 @@ def host_statuses(classroom: Classroom, groups: dict, limit: list[str] | None = 
     return statuses
 
 
-def make_inventory(groups: dict):
-    """pyinfra's inventory of the roster's groups, as inventories/lab.py makes it."""
-    from pyinfra.api import Inventory
-
-    everyone: dict[str, dict] = {}
-    for entries in groups.values():
-        for name, data in entries:
-            everyone[name] = data
-    return Inventory((list(everyone.items()), {}),
-                     **{group: (entries, {}) for group, entries in groups.items()})
-
-
 def limited_names(groups: dict, limit: list[str]) -> list[str]:
     """Host names `--limit` selects: pyinfra's own patterns (group or host names, globs)."""
-    from pyinfra_cli.cli import _apply_inventory_limit
+    from roslab.reach import roster_inventory, select_hosts
 
-    inventory = make_inventory(groups)
-    return [host.name for host in _apply_inventory_limit(inventory, limit)]
+    return [host.name for host in select_hosts(roster_inventory(groups), limit)]
 
 
 def probe(groups: dict, statuses: list[HostStatus], listen: bool = False,
@@ -372,20 +361,15 @@ def probe(groups: dict, statuses: list[HostStatus], listen: bool = False,
 
     monkey.patch_all()  # as pyinfra's CLI does: SSH to every host at once (a no-op when done)
     import gevent
-    from pyinfra.api import Config, State
     from pyinfra.api.state import MAX_PARALLEL
-    from pyinfra.context import ctx_config, ctx_inventory, ctx_state
 
-    inventory = make_inventory(groups)
-    state = State(check_for_changes=False)
-    state.cwd = os.getcwd()
+    from roslab.reach import roster_state
+
     # Every host at once (as many as open files allow), so each host's bound is the whole wait.
     parallel = max(1, min(len(statuses), MAX_PARALLEL))
-    config = Config(CONNECT_TIMEOUT=min(CONNECT_TIMEOUT, host_bound), PARALLEL=parallel)
-    ctx_state.set(state)
-    ctx_config.set(config)
-    ctx_inventory.set(inventory)
-    state.init(inventory, config)
+    state = roster_state(groups, [status.name for status in statuses],
+                         CONNECT_TIMEOUT=min(CONNECT_TIMEOUT, host_bound), PARALLEL=parallel)
+    inventory = state.inventory
     bound = host_bound
     if listen:
         bound += check_bound(listen_timeout) + 30
@@ -481,8 +465,15 @@ def clip(text: str, limit: int = TEXT_LIMIT) -> str:
     return text if len(text) <= limit else text[: limit - 1] + "\u2026"
 
 
+def last_run_failed(host: HostStatus) -> bool:
+    """Whether the last deploy.py run recorded for the host failed."""
+    return host.run is not None and host.run.result in FAILED_RESULTS
+
+
 def box_level(host: HostStatus) -> str:
-    if not host.reachable:
+    """The colour of the host's box: red when it is unreachable or its last run failed (the
+    legend says red means failed), else its nodes' service state."""
+    if not host.reachable or last_run_failed(host):
         return "bad"
     return {"ok": "ok", "bad": "bad"}.get(service_level(host.service), "warn")
 
@@ -578,6 +569,10 @@ def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = 
         running = sum(host.service.startswith("active") for host in hosts)
         verdict = f"{running} of {len(hosts)} hosts run their nodes"
         verdict_level = "ok" if running == len(hosts) else "warn"
+    failed = sum(last_run_failed(host) for host in hosts)
+    if failed:
+        verdict = f"{failed} of {len(hosts)} hosts failed their last run; " + verdict
+        verdict_level = "bad"
     return {
         "name": team, "width": ROBOT_X + BOX_WIDTH + MARGIN, "height": height,
         "boxes": boxes, "arrows": arrows, "texts": texts,
@@ -597,6 +592,7 @@ def page_context(classroom_name: str | None, roster: str, hosts: list[HostStatus
     topics = topics or {}
     reachable = sum(host.reachable for host in hosts)
     running = sum(host.service.startswith("active") for host in hosts)
+    failed = sum(last_run_failed(host) for host in hosts)
     return {
         "title": f"roslab status: {classroom_name}" if classroom_name else "roslab status",
         "classroom": classroom_name or "Classroom",
@@ -606,6 +602,8 @@ def page_context(classroom_name: str | None, roster: str, hosts: list[HostStatus
             {"text": f"{len(teams)} teams, {len(hosts)} hosts", "level": "plain"},
             {"text": f"{reachable} reachable", "level": "ok" if reachable == len(hosts) else "bad"},
             {"text": f"{running} running their nodes", "level": "ok" if running == len(hosts) else "warn"},
+            {"text": f"{failed} failed in their last run" if failed else "no failed last run",
+             "level": "bad" if failed else "ok"},
         ],
         "listen": listen,
         "teams": [team_picture(name, members, listen, topics.get(name, "/chatter"))
@@ -648,12 +646,10 @@ def default_page_path(roster_path: Path) -> Path:
 
 
 def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    from roslab.reach import add_roster_argument
+
     parser = parser or argparse.ArgumentParser(prog="roslab status", description=__doc__.splitlines()[0])
-    parser.add_argument("roster", nargs="?", metavar="ROSTER",
-                        help="roster file (default: $ROSLAB_ROSTER, else inventories/classroom.yaml "
-                        "if present, else inventories/lab.yaml)")
-    parser.add_argument("--limit", action="append", metavar="NAME",
-                        help="a team, role, distro or host name (pyinfra's --limit; repeatable)")
+    add_roster_argument(parser)
     parser.add_argument("--html", metavar="FILE",
                         help=f"where to write the page (default: .roslab-state/{STATUS_PAGE} beside the roster)")
     parser.add_argument("--timeout", type=int, default=HOST_BOUND, metavar="S",
@@ -666,12 +662,14 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
 
 
 def run(args: argparse.Namespace) -> int:
-    path = Path(args.roster) if args.roster else default_roster_path()
+    from roslab.reach import RosterProblem, load_classroom
+
     try:
-        classroom = load_roster(path)
-    except RosterError as error:
-        print(error, file=sys.stderr)
+        classroom = load_classroom(args.roster, "status")
+    except RosterProblem as problem:
+        print(problem, file=sys.stderr)
         return 1
+    path = classroom.path
     for option, value in (("--timeout", args.timeout), ("--listen-timeout", args.listen_timeout)):
         if not 1 <= value <= 600:
             print(f"roslab status: {option} must be 1 to 600 seconds", file=sys.stderr)
@@ -719,13 +717,24 @@ def run(args: argparse.Namespace) -> int:
     except OSError as error:
         print(f"roslab status: cannot write {page}: {error.strerror or error}", file=sys.stderr)
         return 1
-    unreachable = [status.name for status in statuses if not status.reachable]
     print(f"\npage: {display_path(page)}")
+    problems = status_problems(statuses)
+    for problem in problems:
+        print(problem, file=sys.stderr)
+    return 1 if problems else 0
+
+
+def status_problems(statuses: list[HostStatus]) -> list[str]:
+    """One line per kind of trouble that makes `roslab status` exit 1: hosts unreachable,
+    hosts whose last recorded run failed."""
+    problems = []
+    unreachable = [status.name for status in statuses if not status.reachable]
     if unreachable:
-        print(f"{len(unreachable)} of {len(statuses)} hosts unreachable: {', '.join(unreachable)}",
-              file=sys.stderr)
-        return 1
-    return 0
+        problems.append(f"{len(unreachable)} of {len(statuses)} hosts unreachable: {', '.join(unreachable)}")
+    failed = [status.name for status in statuses if last_run_failed(status)]
+    if failed:
+        problems.append(f"{len(failed)} of {len(statuses)} hosts failed in their last run: {', '.join(failed)}")
+    return problems
 
 
 def main(argv: list[str] | None = None) -> int:

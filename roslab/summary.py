@@ -41,8 +41,12 @@ from __future__ import annotations
 
 import atexit
 import logging
+import os
 import re
+import signal
 import sys
+import threading
+import time
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Iterable, TextIO
@@ -56,6 +60,18 @@ from roslab import identity
 from roslab.runs import HostRun, record_runs
 
 OK, CHANGED, FAILED, PLANNED, NOT_RUN = "ok", "changed", "failed", "planned", "not run"
+INTERRUPTED = "interrupted"  # the run was stopped (Ctrl-C, SIGTERM) before the host's last step
+# The exit codes of a run stopped by a signal, as a shell reports them (128 + the signal).
+SIGNAL_EXITS = {signal.SIGINT: 130, signal.SIGTERM: 143}
+SIGNAL_NAMES = {signal.SIGINT: "SIGINT (Ctrl-C)", signal.SIGTERM: "SIGTERM"}
+NO_STDIN = ("pyinfra asked a question (a confirmation, or a password) but standard input is closed "
+            "(cron, CI, no terminal): nothing more was executed; run with -y to apply without asking, "
+            "or --dry to preview")
+# sudo's own words when the password it was given is wrong (or it got none).
+_SUDO_PASSWORD = re.compile(
+    r"^(?:sudo: )?(?:\d+ incorrect password attempts?|Sorry, try again\.?|a password is required|"
+    r"no password was provided|no askpass program specified.*)$"
+)
 MASK = "***"
 MAX_REASON = 240  # characters of a reason kept on its one line
 MAX_LOG_LINES = 200  # warning/error lines kept per host (the latest)
@@ -140,9 +156,9 @@ class Row:
     step: str | None = None
     reason: str | None = None
 
-    def text(self, width: int) -> str:
-        line = f"{self.host:<{width}}  {self.status:<7}"
-        if self.status == FAILED:
+    def text(self, width: int, status_width: int = 7) -> str:
+        line = f"{self.host:<{width}}  {self.status:<{status_width}}"
+        if self.status in (FAILED, INTERRUPTED):
             line += f"  in \"{self.step}\": {self.reason}"
         return line.rstrip()
 
@@ -153,6 +169,17 @@ class RunSummary(BaseStateCallback):
     def __init__(self) -> None:
         self.events: dict[str, HostEvents] = {}
         self.planned: set[str] = set()  # hosts whose deploy.py ran to its end
+        # How the process ends when roslab ends it (a signal, no answer on stdin): its exit
+        # code and why, so that the summary's exit code is the process's.
+        self.exit_status: int | None = None
+        self.ended_by: str | None = None
+        self.signal_name: str | None = None
+        self._dry_changes: dict | None = None  # --dry: host name -> would change
+
+    def end(self, exit_status: int, why: str, signal_name: str | None = None) -> None:
+        """Note that the run is ended by roslab with `exit_status` (the first end counts)."""
+        if self.exit_status is None:
+            self.exit_status, self.ended_by, self.signal_name = exit_status, why, signal_name
 
     def host(self, name: str) -> HostEvents:
         return self.events.setdefault(name, HostEvents())
@@ -191,6 +218,10 @@ class RunSummary(BaseStateCallback):
         return False
 
     def exit_code(self, state: State) -> int:
+        """The process's exit code: the one roslab ends it with (a signal, no stdin), else
+        pyinfra's (1 when a host failed or pyinfra stopped with an error before the end)."""
+        if self.exit_status is not None:
+            return self.exit_status
         if state.failed_hosts or not self.run_finished(state):
             return 1
         return 0
@@ -204,6 +235,10 @@ class RunSummary(BaseStateCallback):
             if host_failed(state, host):
                 step, reason = self.failure(state, host)
                 rows.append(Row(host.name, FAILED, step, reason))
+            elif state.is_executing and self.signal_name and not self.all_ops_ran(state, host):
+                step = self.unfinished_op(state, host)
+                rows.append(Row(host.name, INTERRUPTED, step,
+                                f"the run was stopped by {self.signal_name} before this step finished here"))
             elif state.is_executing:
                 if self.did_change(state, host):
                     rows.append(Row(host.name, CHANGED))
@@ -211,12 +246,29 @@ class RunSummary(BaseStateCallback):
                     rows.append(Row(host.name, OK if finished or self.all_ops_ran(state, host) else NOT_RUN))
             elif not finished:
                 rows.append(Row(host.name, NOT_RUN))  # the run stopped while planning
+            elif self.exit_status is not None:
+                rows.append(Row(host.name, NOT_RUN))  # roslab ended the run before it executed
             elif not state.should_check_for_changes():
                 rows.append(Row(host.name, PLANNED))  # --dry with -y: changes were not detected
             else:
-                changes = state.get_meta_for_host(host).ops_change
-                rows.append(Row(host.name, CHANGED if changes else OK))
+                rows.append(Row(host.name, CHANGED if self.would_change(state, host) else OK))
         return rows
+
+    def would_change(self, state: State, host) -> bool:
+        """--dry: whether the host's plan would change it (`dry_run_changes`)."""
+        if self._dry_changes is None:
+            self._dry_changes = dry_run_changes(state)
+        return self._dry_changes.get(host.name, False)
+
+    @staticmethod
+    def unfinished_op(state: State, host) -> str:
+        """The name of the host's first operation that did not complete (pyinfra runs them in order)."""
+        ops = state.ops.get(host, {})
+        for op_data in ops_in_order(state, host):
+            if not op_data.operation_meta.is_complete():
+                op_hash = next(key for key, value in ops.items() if value is op_data)
+                return op_name(state, op_hash, host)
+        return "the end of the run"
 
     @staticmethod
     def all_ops_ran(state: State, host) -> bool:
@@ -231,7 +283,12 @@ class RunSummary(BaseStateCallback):
         return False
 
     def failure(self, state: State, host) -> tuple[str, str]:
-        """(step, reason) for a failed host, from the best source there is."""
+        """(step, reason) for a failed host, from the best source there is; sudo's words
+        about a wrong password become a line naming the roster setting."""
+        step, reason = self._failure(state, host)
+        return step, sudo_refusal(host, [reason]) or reason
+
+    def _failure(self, state: State, host) -> tuple[str, str]:
         events = self.host(host.name)
         if events.stop:
             step, message = events.stop
@@ -284,16 +341,23 @@ class RunSummary(BaseStateCallback):
         rows = self.rows(state)
         secrets = secrets_in(state)
         width = max([len(row.host) for row in rows] + [4])
+        status_width = max([len(row.status) for row in rows] + [7])
         header = "--> roslab summary"
-        if not state.is_executing and self.run_finished(state):
+        if not state.is_executing and self.run_finished(state) and self.exit_status is None:
             if state.should_check_for_changes():
                 header += " (nothing was executed: changed = would change)"
             else:
                 header += " (nothing was executed; with -y changes were not detected)"
         out = [header]
-        out += [f"    {mask(row.text(width), secrets)}" for row in rows]
+        if _compact is not None and _compact.hidden_steps:
+            out.insert(0, f"--> {_compact.hidden_steps} steps changed nothing on any host and are not shown "
+                          "above (-v shows every step)\n")
+        out += [f"    {mask(row.text(width, status_width), secrets)}" for row in rows]
         counts = {status: sum(row.status == status for row in rows) for status in (FAILED, CHANGED, OK)}
         tally = ", ".join(f"{number} {status}" for status, number in counts.items())
+        interrupted = sum(row.status == INTERRUPTED for row in rows)
+        if interrupted:
+            tally += f", {interrupted} interrupted"
         not_run = sum(row.status == NOT_RUN for row in rows)
         if not_run:
             tally += f", {not_run} not run"
@@ -301,7 +365,12 @@ class RunSummary(BaseStateCallback):
         if planned:
             tally += f", {planned} planned"
         code = self.exit_code(state)
-        stopped = "" if self.run_finished(state) else "pyinfra stopped before the end of the run (its error is above); "
+        if self.ended_by:
+            stopped = f"{self.ended_by}; "
+        elif not self.run_finished(state):
+            stopped = "pyinfra stopped before the end of the run (its error is above); "
+        else:
+            stopped = ""
         out.append(f"    exit code {code}: {stopped}{tally} ({len(rows)} host{'s' if len(rows) != 1 else ''})")
         return out
 
@@ -329,6 +398,71 @@ class RunSummary(BaseStateCallback):
                 mask(row.reason, secrets) if row.reason else None,
             ))
         return [record_runs(roster, runs, when) for roster, runs in by_roster.items()]
+
+
+def dry_run_changes(state: State) -> dict:
+    """--dry: for each host, whether its plan would change it, conditions included.
+
+    pyinfra's count of changes (`ops_change`) includes the conditional operations
+    (`_if=other_op.did_change`: a reload after a changed file), which change only when
+    their condition holds. The plan is walked in pyinfra's order, each operation completed
+    as it would end (its commands if pyinfra found any, none otherwise) and each condition
+    evaluated as pyinfra evaluates it when executing. Only after a dry run: the state is
+    done with, nothing executes after it. A condition that cannot be evaluated counts as a
+    change (as pyinfra's "Conditional Change" column does).
+    """
+    from pyinfra.api.command import StringCommand
+    from pyinfra.connectors.util import CommandOutput
+
+    changes: dict = {}
+    for host in state.inventory:
+        changed = False
+        for op_data in ops_in_order(state, host):
+            meta = op_data.operation_meta
+            if meta.is_complete():
+                continue
+            runs = bool(meta.will_change) and condition_holds(op_data.global_arguments.get("_if"))
+            changed = changed or runs
+            meta.set_complete(True, [StringCommand("true")] if runs else [], CommandOutput([]))
+        changes[host.name] = changed
+    return changes
+
+
+def ops_in_order(state: State, host) -> list:
+    """The host's planned operations (StateOperationHostData) in the order pyinfra runs them."""
+    ops = state.ops.get(host, {})
+    order = [op_hash for op_hash in state.get_op_order() if op_hash in ops]
+    order += [op_hash for op_hash in ops if op_hash not in order]
+    return [ops[op_hash] for op_hash in order]
+
+
+def condition_holds(conditions) -> bool:
+    """pyinfra's `_if`: one callable or a list of them, all true."""
+    if not conditions:
+        return True
+    if callable(conditions):
+        conditions = [conditions]
+    try:
+        return all(condition() for condition in conditions)
+    except Exception:  # noqa: BLE001 - a condition that cannot be known before running may hold
+        return True
+
+
+def sudo_refusal(host, lines: Iterable[str]) -> str | None:
+    """One line naming the roster setting when sudo's own words say the password was wrong
+    (or that it needed one and got none), else None. sudo says it in whatever step first
+    needs root, which says nothing about the cause."""
+    words = [one_line(line) for line in lines]
+    said = next((line for line in reversed(words) if _SUDO_PASSWORD.match(line)), None)
+    if said is None:
+        return None
+    data = getattr(host, "data", None)
+    secret = data.get("sudo_password_secret") if data is not None else None
+    if secret and data.get("_sudo_password"):
+        return (f"sudo refused the password from the roster's sudo_password_secret: the secret it names "
+                f"does not hold this host's sudo password (sudo: {said.removeprefix('sudo: ')})")
+    return (f"sudo asks for a password and the roster sets no sudo_password_secret for this host "
+            f"(sudo: {said.removeprefix('sudo: ')})")
 
 
 def host_failed(state: State, host) -> bool:
@@ -410,27 +544,129 @@ def summary_for(state: State | None) -> RunSummary | None:
 def install(state: State | None = None) -> RunSummary:
     """Register the run summary on the current pyinfra state, once per run.
 
-    deploy.py calls this for every host; only the first call registers. In the pyinfra
-    CLI the summary is printed to stderr at exit.
+    The inventories (inventories/lab.py, inventories/sandbox.py) call it before pyinfra
+    connects, so a run where no host can be reached still ends with the summary; deploy.py
+    calls it for every host (any inventory); only the first call registers. In the pyinfra
+    CLI, for a run of deploy files, the summary is printed to stderr at exit, and roslab
+    ends the run itself where pyinfra would end it with a wrong exit code or a traceback:
+    SIGINT (Ctrl-C) and SIGTERM exit 130 and 143 (pyinfra exits 0 on Ctrl-C), and a
+    confirmation pyinfra asks for on a closed standard input ends with one line, exit 1.
     """
     global _current, _atexit_registered
     state = state if isinstance(state, State) else ctx_state.get()
     summary = summary_for(state)
     if summary is None:
-        summary = RunSummary()
-        state.add_callback_handler(summary)
-        _current = (summary, state)
+        pending = _current[0] if _current is not None and _current[1] is None else None
+        summary = pending or RunSummary()
+        if getattr(state, "initialised", False):
+            state.add_callback_handler(summary)
+            _current = (summary, state)
+        else:
+            # An inventory file: pyinfra initialises the state after loading it. The
+            # callbacks are registered by the next call (deploy.py); until then the log
+            # lines (a host that cannot be reached) are kept and the summary still prints.
+            _current = (summary, None)
         _attach_log_capture()
-        if pyinfra.is_cli and not _atexit_registered:
+        if pyinfra.is_cli and not _atexit_registered and deploying_files():
             atexit.register(_print_at_exit)
             _atexit_registered = True
+            _handle_signals(summary)
+            _guard_stdin(summary)
+            if cli_option("verbosity") == 0 and not cli_option("json_output") and not (
+                    cli_option("debug") or cli_option("debug_all")):
+                _attach_compact_output()
     return summary
+
+
+def cli_option(name: str):
+    """A pyinfra command line option of this run (click's parameters), or None outside it."""
+    try:
+        import click
+    except ImportError:  # pragma: no cover - pyinfra's CLI always has click
+        return None
+    context = click.get_current_context(silent=True)
+    while context is not None:
+        if name in context.params:
+            return context.params[name]
+        context = context.parent
+    return None
+
+
+def deploying_files() -> bool:
+    """Whether this pyinfra run executes deploy files (`pyinfra INVENTORY deploy.py`), not
+    `exec`, `fact` or `debug-inventory` (those have no per-host result to summarise).
+
+    The command line is read where pyinfra's click context is visible (an inventory file,
+    loaded in the main greenlet); deploy.py runs in a greenlet per host, where it is not, and
+    is itself a deploy file."""
+    operations = cli_option("operations")
+    if operations is None:
+        return True
+    return bool(operations) and all(str(name).endswith(".py") for name in operations)
+
+
+def _handle_signals(summary: RunSummary) -> None:
+    """End the run on SIGINT/SIGTERM with the shell's exit code for the signal, noted for
+    the summary (pyinfra's own handler exits 0 on Ctrl-C; SIGTERM would skip the summary)."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+
+    def stop(signum, frame) -> None:
+        name = SIGNAL_NAMES.get(signum, f"signal {signum}")
+        summary.end(SIGNAL_EXITS.get(signum, 128 + signum), f"stopped by {name}", name)
+        sys.stderr.write(f"\n--> roslab: stopped by {name}; disconnecting\n")
+        raise SystemExit(summary.exit_status)
+
+    for signum in SIGNAL_EXITS:
+        signal.signal(signum, stop)
+
+
+class _ClosedStdinGuard:
+    """Standard input that ends the run with one line (exit 1) when pyinfra reads its end.
+
+    pyinfra asks for confirmation with `input()`; on a closed standard input that raises
+    EOFError, which pyinfra reports as an internal error with a traceback and exit 1
+    while the summary would claim success. Nothing else in a deploy run reads standard
+    input (with -y nothing does); everything else is the real stream's."""
+
+    def __init__(self, stream, summary: RunSummary) -> None:
+        self._stream = stream
+        self._summary = summary
+
+    def readline(self, *args):
+        line = self._stream.readline(*args)
+        if line == "":
+            self._summary.end(1, "no one could answer pyinfra (standard input is closed; use -y)")
+            sys.stderr.write(f"\n--> roslab: {NO_STDIN}\n")
+            raise SystemExit(1)
+        return line
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
+def _guard_stdin(summary: RunSummary) -> None:
+    """Without a terminal (cron, CI), pyinfra's confirmation prompt reads a pipe or
+    /dev/null: guard its end. A terminal has someone to answer."""
+    stdin = sys.stdin
+    if stdin is None or isinstance(stdin, _ClosedStdinGuard):
+        return
+    try:
+        interactive = stdin.isatty()
+    except (ValueError, OSError):  # closed
+        interactive = False
+    if not interactive:
+        sys.stdin = _ClosedStdinGuard(stdin if not stdin.closed else open(os.devnull), summary)
 
 
 def _print_at_exit() -> None:
     if _current is None:
         return
     summary, state = _current
+    if state is None:  # no deploy.py ran (no host could be reached): pyinfra's state all the same
+        state = ctx_state.get()
+        if state is None or not getattr(state, "initialised", False):
+            return  # pyinfra stopped before it had a state to report (its error says why)
     try:
         summary.write(state)
     except Exception as error:  # noqa: BLE001 - the run's result stands; say why there is no table
@@ -500,6 +736,120 @@ class _LogCapture(logging.Handler):
 
 
 _log_capture: _LogCapture | None = None
+
+# --- compact output ------------------------------------------------------------------------
+
+LONG_STEP = 5.0  # seconds after which a step that has changed nothing yet is shown anyway
+STILL_RUNNING_EVERY = 20.0  # seconds between "still running on ..." lines of a long step
+_STARTING = re.compile(r"^--> Starting\b.*\boperation:")
+_QUIET_STATUSES = re.compile(r"^(?:No changes|Skipped)\b")
+
+
+class CompactOutput(logging.Filter):
+    """pyinfra's default output without the steps that changed nothing, so that a converged
+    class's run fits a screen and ends with the summary (`-v` shows pyinfra's full output).
+
+    A "--> Starting operation" line is held back until a host reports something about it
+    (a change, a warning, an error: then it is shown, with that line), or until the step
+    has run `LONG_STEP` seconds (then it is shown, so a long step is never silent); a
+    step every host reports "No changes" for is not shown at all. While a long step runs,
+    every `STILL_RUNNING_EVERY` seconds one line says which hosts are still in it and for how
+    long. Warnings and errors always pass, at once.
+    """
+
+    def __init__(self, logger: logging.Logger, long_step: float | None = LONG_STEP,
+                 hosts=None, every: float = STILL_RUNNING_EVERY) -> None:
+        super().__init__("roslab-compact")
+        self.logger = logger
+        self.long_step = long_step
+        self.every = every
+        self.hosts = hosts or (lambda: [])  # the names of the hosts the run executes on
+        self.pending: logging.LogRecord | None = None
+        self.step: logging.LogRecord | None = None  # the step running now
+        self.done: set[str] = set()  # hosts that finished it
+        self.hidden_steps = 0
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if getattr(record, "roslab_shown", False):
+            return True
+        try:
+            text = _ANSI.sub("", record.getMessage()).strip()
+        except Exception:  # noqa: BLE001 - a line that cannot be read is shown as it is
+            return True
+        prefixed = _PREFIXED.match(text)
+        if prefixed and (_QUIET_STATUSES.match(prefixed.group(2)) or prefixed.group(2).startswith(
+                ("Success", "Error"))):
+            self.done.add(prefixed.group(1))  # the host is through the step
+        if record.levelno > logging.INFO:
+            self.show_pending()
+            return True
+        if _STARTING.match(text):
+            self.drop_pending()
+            self.pending = self.step = record
+            self.done = set()
+            if self.long_step is not None:
+                self._later(record)
+            return False
+        if prefixed:
+            if _QUIET_STATUSES.match(prefixed.group(2)):
+                return False
+            self.show_pending()
+            return True
+        self.drop_pending()  # the run moved on (results, disconnecting)
+        self.step = None
+        return True
+
+    def show_pending(self) -> None:
+        record, self.pending = self.pending, None
+        if record is not None:
+            record.roslab_shown = True
+            self.logger.handle(record)
+
+    def drop_pending(self) -> None:
+        if self.pending is not None:
+            self.hidden_steps += 1
+        self.pending = None
+
+    def _later(self, record: logging.LogRecord) -> None:
+        try:
+            import gevent
+        except ImportError:  # pragma: no cover - pyinfra's CLI runs on gevent
+            return
+
+        started = time.monotonic()
+
+        def still_running(first: bool) -> None:
+            if self.step is not record:
+                return  # the step is over
+            if first:
+                self.show_pending()
+            else:
+                waiting = [name for name in self.hosts() if name not in self.done]
+                if waiting:
+                    self.logger.info(f"    still running on {', '.join(waiting)} "
+                                     f"({time.monotonic() - started:.0f} s)", extra={"roslab_shown": True})
+            gevent.spawn_later(self.every, still_running, False)
+
+        gevent.spawn_later(self.long_step, still_running, True)
+
+
+_compact: CompactOutput | None = None
+
+
+def _attach_compact_output() -> None:
+    global _compact
+    if _compact is None:
+        _compact = CompactOutput(pyinfra.logger, hosts=_executing_hosts)
+        pyinfra.logger.addFilter(_compact)
+
+
+def _executing_hosts() -> list[str]:
+    state = _current[1] if _current is not None else None
+    state = state or ctx_state.get()
+    try:
+        return sorted(host.name for host in state.active_hosts)
+    except Exception:  # noqa: BLE001 - progress must never break the run
+        return []
 
 
 def _attach_log_capture() -> None:

@@ -1,6 +1,6 @@
 """Verify each team's main host hears its robot: a table per team, non-zero exit unless all do.
 
-    roslab verify [INVENTORY] [--limit team1 ...]      (or: python -m roslab.verify ...)
+    roslab verify [ROSTER] [--limit team1 ...]      (or: python -m roslab.verify ...)
 
 Read-only and bounded. On every host it asks systemd for the state of
 roslab-nodes.service (that unit only). On each main host, as the login user and with the
@@ -20,21 +20,20 @@ runtime (no `ros2` command, as in the sandbox's stand-in ROS) is reported as suc
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import shlex
 import sys
 from dataclasses import dataclass, field
 
-from pyinfra.api import Config, FactBase, State
-from pyinfra.api.connect import connect_all, disconnect_all
-from pyinfra.context import ctx_config, ctx_host, ctx_inventory, ctx_state
+from pyinfra.api import FactBase, State
+from pyinfra.api.connect import disconnect_all
+from pyinfra.context import ctx_host
 from pyinfra.facts.server import LinuxDistribution
 
-from roslab import sudo
 from roslab.distro import default_distro
 from roslab.operations import as_user
 from roslab.quoting import shell_home_path, shell_word
+from roslab.roster import RosterError
 from roslab.ros_env import ros_variables_of
 from roslab.workspace import NODES_SERVICE, NodesUnitState
 
@@ -351,8 +350,8 @@ def verify(state: State) -> list[TeamResult]:
         else:
             team.robots.append(host.name)
         team.error = team.error or error
-    for host in state.inventory.iter_activated_hosts():
-        if host not in state.active_hosts:
+    for host in state.inventory:  # unreachable ones too: never activated, or failed since
+        if state.is_host_in_limit(host) and host not in state.active_hosts:
             team = team_of(host)
             if host.data.get("roslab_role") == "main":
                 team.main = host.name
@@ -365,32 +364,33 @@ def verify(state: State) -> list[TeamResult]:
     return list(teams.values())
 
 
-def connect(inventory_path: str, limit: list[str] | None = None) -> State:
-    """A pyinfra state connected to the inventory's hosts (as `pyinfra INVENTORY ...` would)."""
-    from pyinfra_cli.cli import _apply_inventory_limit
-    from pyinfra_cli.inventory import make_inventory
+def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    from roslab.reach import add_roster_argument
 
-    sudo.install()  # whatever the inventory: no sudo password on a host's command line
-    state = State(check_for_changes=False)
-    state.cwd = os.getcwd()
-    config = Config()
-    ctx_state.set(state)
-    ctx_config.set(config)
-    inventory = make_inventory(inventory_path, cwd=state.cwd)
-    ctx_inventory.set(inventory)
-    # The same --limit patterns as pyinfra's (group or host names, globs).
-    state.init(inventory, config, initial_limit=_apply_inventory_limit(inventory, limit))
-    connect_all(state)
-    return state
+    parser = parser or argparse.ArgumentParser(prog="roslab verify", description=__doc__.splitlines()[0])
+    add_roster_argument(parser)
+    return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="roslab verify", description=__doc__.splitlines()[0])
-    parser.add_argument("inventory", nargs="?", default="inventories/lab.py",
-                        help="pyinfra inventory (default: inventories/lab.py)")
-    parser.add_argument("--limit", action="append", help="a group or host name (repeatable)")
-    args = parser.parse_args(argv)
-    state = connect(args.inventory, args.limit)
+def run(args: argparse.Namespace) -> int:
+    """`roslab verify [ROSTER] [--limit NAME ...]`: the roster's hosts, reached as deploy.py
+    reaches them (roslab.reach)."""
+    from roslab.reach import RosterProblem, connected_state, load_classroom, roster_inventory, select_hosts
+    from roslab.roster import inventory_groups
+
+    try:
+        classroom = load_classroom(args.roster, "verify")
+        groups = inventory_groups(classroom)
+    except RosterProblem as problem:
+        print(problem, file=sys.stderr)
+        return 1
+    except RosterError as error:  # a broken addresses.yaml or known_hosts beside the roster
+        print(error, file=sys.stderr)
+        return 1
+    if args.limit and not select_hosts(roster_inventory(groups), args.limit):
+        print(f"roslab verify: --limit {' '.join(args.limit)} selects no host of the roster", file=sys.stderr)
+        return 2
+    state = connected_state(groups, args.limit)
     try:
         results = verify(state)
     finally:
@@ -402,6 +402,10 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     print(f"\nevery team's main host hears its robot ({len(results)} teams)")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run(build_parser().parse_args(argv))
 
 
 if __name__ == "__main__":

@@ -123,11 +123,13 @@ def keyfile_path(settings: NetworkSettings) -> str:
     return f"{KEYFILE_DIR}/{connection_id(settings)}.nmconnection"
 
 
-def netplan_values(settings: NetworkSettings, renderer: str) -> dict:
+def netplan_values(settings: NetworkSettings, renderer: str, regulatory_domain: str | None = None) -> dict:
     """The netplan template's variables: every value it prints is a YAML double-quoted
-    scalar; `kind`, `method` and `ipv6` (checked choices) are for its conditions only."""
+    scalar; `kind`, `method` and `ipv6` (checked choices) are for its conditions only.
+    `regulatory_domain`: a checked country code for a WiFi interface (the seed's)."""
     password = settings.password
     return {
+        "regulatory_domain": yaml_string(regulatory_domain) if regulatory_domain else None,
         "kind": settings.kind,
         "method": settings.method,
         "ipv6": settings.ipv6,
@@ -170,8 +172,8 @@ def keyfile_values(settings: NetworkSettings) -> dict:
     }
 
 
-def render_netplan(settings: NetworkSettings, renderer: str) -> str:
-    return render("netplan.yaml.j2", **netplan_values(settings, renderer))
+def render_netplan(settings: NetworkSettings, renderer: str, regulatory_domain: str | None = None) -> str:
+    return render("netplan.yaml.j2", **netplan_values(settings, renderer, regulatory_domain))
 
 
 def render_keyfile(settings: NetworkSettings) -> str:

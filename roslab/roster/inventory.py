@@ -15,15 +15,19 @@ from roslab.roster.problems import Problem, RosterError, display_path
 
 DEFAULT_ROSTER = Path("inventories/lab.yaml")
 CLASSROOM_ROSTER = Path("inventories/classroom.yaml")
+FOLDER_ROSTER = Path("classroom.yaml")  # a classroom folder (`roslab init DIR`)
 
 
 def default_roster_path(base: Path | None = None) -> Path:
-    """The roster to use: $ROSLAB_ROSTER, else a real classroom.yaml, else the example."""
+    """The roster every roslab command and inventories/lab.py use when none is named:
+    $ROSLAB_ROSTER, else in the current folder (`base`) a classroom folder's classroom.yaml,
+    a clone's inventories/classroom.yaml, else the example inventories/lab.yaml."""
     if os.environ.get("ROSLAB_ROSTER"):
         return Path(os.environ["ROSLAB_ROSTER"])
     base = Path.cwd() if base is None else base
-    if (base / CLASSROOM_ROSTER).exists():
-        return base / CLASSROOM_ROSTER
+    for candidate in (FOLDER_ROSTER, CLASSROOM_ROSTER):
+        if (base / candidate).exists():
+            return base / candidate
     return base / DEFAULT_ROSTER
 
 

@@ -70,10 +70,12 @@ def _interrupt(signum, frame):
 
 
 def run(args: argparse.Namespace) -> int:
-    if os.geteuid() != 0 and args.sandbox_command != "status":
-        print("roslab sandbox: needs root (it makes network namespaces, mounts and containers)",
-              file=sys.stderr)
+    if os.geteuid() != 0:  # status too: it looks into the hosts' namespaces and the sandbox's state
+        print(f"roslab sandbox {args.sandbox_command}: needs root (the sandbox is network namespaces, "
+              "mounts and containers); run it with sudo", file=sys.stderr)
         return 1
+    if not logging.getLogger().handlers:  # `roslab sandbox ...`: say what it is doing, on stderr
+        logging.basicConfig(level=logging.INFO, format="roslab sandbox: %(message)s")
     # A SIGTERM (a CI timeout, `kill`) unwinds like Ctrl-C, so a half-done `up`
     # takes down what it started.
     signal.signal(signal.SIGTERM, _interrupt)

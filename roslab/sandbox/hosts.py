@@ -11,6 +11,7 @@ host is killing what is in them.
 from __future__ import annotations
 
 import ipaddress
+import logging
 import os
 import shlex
 import shutil
@@ -60,14 +61,24 @@ def _pids_in(tree: Path) -> set[int]:
     return pids
 
 
-def kill_cgroup_trees(trees: list[Path], timeout: float = 10.0) -> None:
-    """SIGKILL every process in the cgroup trees, then remove the cgroups."""
+def kill_cgroup_trees(trees: list[Path], timeout: float = 120.0) -> None:
+    """SIGKILL every process in the cgroup trees, then remove the cgroups.
+
+    A killed process can take long to go: on a busy disk the kernel first frees its files
+    (seen: over 10 s in discard). Said once after a few seconds, then waited for, bounded."""
     trees = [tree for tree in trees if tree.is_dir()]
-    deadline = time.monotonic() + timeout
+    started = time.monotonic()
+    deadline = started + timeout
+    said = False
     while True:
         pids = set().union(*(_pids_in(tree) for tree in trees)) if trees else set()
         if not pids:
             break
+        if not said and time.monotonic() - started > 5:
+            said = True
+            logging.getLogger(__name__).info(
+                "waiting for %d killed process(es) in %s to exit (the kernel is still freeing their files)",
+                len(pids), trees[0])
         if time.monotonic() > deadline:
             raise SandboxError(f"processes {sorted(pids)} in {trees[0]} survived SIGKILL")
         for pid in pids:

@@ -16,7 +16,7 @@ import shutil
 from pathlib import Path
 
 from . import seeding
-from .system import SandboxError, file_lock, log, run, write_file
+from .system import SandboxError, announced, file_lock, log, run, write_file
 
 # Bump when the way the image is built or customised changes: it is part of the cache key.
 BUILDER_VERSION = 5
@@ -118,13 +118,16 @@ def base_image() -> Path:
         shutil.rmtree(building, ignore_errors=True)
         building.mkdir(parents=True)
         write_file(building / "debian.sources", sources)
-        log.warning("building the sandbox base image (once; takes about a minute)...")
-        run(
-            "mmdebstrap", "--variant=minbase", "--mode=root", "--format=directory",
-            "--include=" + ",".join(BASE_PACKAGES),
-            machine_codename(), building / "rootfs", building / "debian.sources",
-        )
-        _customise(building / "rootfs")
+        log.warning("building the sandbox base image (once, then cached in %s; about a minute)", cache_dir())
+        with announced(f"downloading and unpacking {len(BASE_PACKAGES)} Debian packages and their "
+                       "dependencies (mmdebstrap)"):
+            run(
+                "mmdebstrap", "--variant=minbase", "--mode=root", "--format=directory",
+                "--include=" + ",".join(BASE_PACKAGES),
+                machine_codename(), building / "rootfs", building / "debian.sources",
+            )
+        with announced("making the image look like a Pi after its first setup"):
+            _customise(building / "rootfs")
         building.rename(root)
     return rootfs
 

@@ -23,7 +23,7 @@ from roslab import identity
 
 from . import hosts, image, seeding, upstream
 from .instance import STATE_ROOT, UPSTREAM_PORT, Instance, SandboxHost
-from .system import SandboxError, file_lock, log, run, write_file
+from .system import SandboxError, announced, file_lock, log, run, write_file
 
 DEFAULT_HOSTS = 4
 INOTIFY_INSTANCES = Path("/proc/sys/fs/inotify/max_user_instances")
@@ -165,7 +165,8 @@ def _up_locked(instance: Instance, planned: list[SandboxHost]) -> Classroom:
     run("ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-C", f"roslab-sandbox-{instance.name}",
         "-f", instance.key_path)
     hosts.ensure_bridge(instance)
-    published = upstream.build(instance.state_dir / "upstream", instance.upstream_url, rootfs)
+    with announced("building the stand-in upstream (Ubuntu-layout archive, stand-in ROS packages, rosdep data)"):
+        published = upstream.build(instance.state_dir / "upstream", instance.upstream_url, rootfs)
     _record_ros(instance, published.ros)
     upstream.start_server(instance.state_dir / "upstream", instance.bridge_address, UPSTREAM_PORT,
                           instance.state_dir / "upstream.pid", instance.state_dir / "upstream.log")
@@ -181,7 +182,8 @@ def _up_locked(instance: Instance, planned: list[SandboxHost]) -> Classroom:
         hosts.start(instance, host, merged)
         hosts.wait_for_ssh(host.address)
 
-    _on_all(classroom.hosts, boot)
+    with announced(f"booting {len(planned)} hosts and waiting for their SSH"):
+        _on_all(classroom.hosts, boot)
     for host in planned:  # one writer: known_hosts is rewritten whole each time
         identity.trust(instance.roster_path, host.name, [host.address], boots[host.name].host_key[1])
     _save_host_states(instance, {host.name: {"seeded": True} for host in planned})
@@ -274,18 +276,22 @@ def down(instance: Instance | None = None) -> None:
 
 
 def _down_locked(instance: Instance) -> None:
-    for cgroup in hosts.instance_cgroups(instance):
-        hosts.kill_cgroup_trees([cgroup])
-        try:
-            cgroup.parent.rmdir()  # .../roslab, when no other instance uses it
-        except OSError:
-            pass
-    upstream.stop_server(instance.state_dir / "upstream.pid")
-    if instance.state_dir.exists():
-        hosts.unmount_all(instance.state_dir)
-    hosts.remove_network(instance)
-    if instance.state_dir.exists():
-        shutil.rmtree(instance.state_dir)
+    if not instance.state_dir.exists() and not any(cgroup.is_dir() for cgroup in hosts.instance_cgroups(instance)):
+        hosts.remove_network(instance)  # nothing else is there: quietly
+        return
+    with announced(f"taking sandbox {instance.name!r} down (stopping its hosts, unmounting, removing its network)"):
+        for cgroup in hosts.instance_cgroups(instance):
+            hosts.kill_cgroup_trees([cgroup])
+            try:
+                cgroup.parent.rmdir()  # .../roslab, when no other instance uses it
+            except OSError:
+                pass
+        upstream.stop_server(instance.state_dir / "upstream.pid")
+        if instance.state_dir.exists():
+            hosts.unmount_all(instance.state_dir)
+        hosts.remove_network(instance)
+        if instance.state_dir.exists():
+            shutil.rmtree(instance.state_dir)
 
 
 # -- status, reset, reboot -------------------------------------------------------------------

@@ -7,6 +7,7 @@ import fcntl
 import logging
 import os
 import signal
+import threading
 import time
 import subprocess
 from pathlib import Path
@@ -76,3 +77,25 @@ def terminate(pid: int, timeout: float = 2.0) -> None:
             os.kill(pid, signal.SIGKILL)
             break
         time.sleep(0.01)
+
+
+@contextlib.contextmanager
+def announced(what: str, every: float = 15.0):
+    """Say what the sandbox is doing, again every `every` seconds while it lasts, and how long
+    it took: a long step (building the image, tearing hosts down) is never silent."""
+    log.info("%s ...", what)
+    started = time.monotonic()
+    done = threading.Event()
+
+    def heartbeat() -> None:
+        while not done.wait(every):
+            log.info("  still %s (%d s)", what, time.monotonic() - started)
+
+    beat = threading.Thread(target=heartbeat, name="roslab-sandbox-progress", daemon=True)
+    beat.start()
+    try:
+        yield
+    finally:
+        done.set()
+        beat.join(timeout=1)
+    log.info("%s: done in %.0f s", what, time.monotonic() - started)

@@ -126,7 +126,9 @@ def node_dependencies(nodes_dir: Path) -> tuple[set[str], dict[str, str]]:
 
 
 def default_nodes_dir() -> Path:
-    return Path(__file__).resolve().parents[2] / "nodes"
+    from roslab.packaged import nodes_dir  # the checkout's nodes/, or the installed package's
+
+    return nodes_dir()
 
 
 # -- signing keys ---------------------------------------------------------------------

@@ -9,10 +9,11 @@ from pathlib import Path
 
 from roslab import identity
 from roslab.network.state import last_known_addresses
-from roslab.roster import RosterError, default_roster_path, display_path, load_roster
+from roslab.reach import RosterProblem, add_roster_argument, load_classroom
+from roslab.roster import display_path
 from roslab.roster.inventory import known_addresses
 from roslab.seed import targets, tools
-from roslab.seed.documents import SeedError, authorized_keys, host_seed, network_config
+from roslab.seed.documents import SeedError, authorized_keys, check_console_password, host_seed, network_config
 
 
 def _secrets_of(host, roster_path) -> list[str]:
@@ -21,20 +22,39 @@ def _secrets_of(host, roster_path) -> list[str]:
     private = identity.host_keys(roster_path, host.name).private_text()
     found = [private, private.replace("\n", "\\n"),
              *(line for line in private.splitlines() if not line.startswith("-----"))]
-    password = host.data.get("wifi_password")
-    if password is not None:
-        found.append(str(getattr(password, "unmask", lambda: password)()))
+    for key in ("wifi_password", "console_password"):
+        password = host.data.get(key)
+        if password is not None:
+            found.append(str(getattr(password, "unmask", lambda: password)()))
     return found
 
 
+def console_password_problem(host) -> None:
+    if host.data.get("console_password_secret"):
+        check_console_password(host)
+
+
+def grouped(problems: dict, hosts: list, path) -> list[str]:
+    """One line per problem: the hosts that share it named together (all of them: "every host")."""
+    lines = []
+    for (field, message), names in problems.items():
+        if len(names) == len(hosts) and len(hosts) > 1:
+            who = f"every host ({len(names)})"
+        elif len(names) == 1:
+            who = f"host {names[0]!r}"
+        else:
+            who = f"hosts {', '.join(map(repr, names))}"
+        lines.append(f"{display_path(path)}: {who}" + (f", field {field!r}" if field else "") + f": {message}")
+    return lines
+
+
 def run_seed(args: argparse.Namespace) -> int:
-    path = Path(args.roster) if args.roster else default_roster_path()
     try:
-        classroom = load_roster(path)
-    except RosterError as error:
-        print(error, file=sys.stderr)
-        print("roslab seed: the roster has errors; nothing was written", file=sys.stderr)
+        classroom = load_classroom(args.roster, "seed")
+    except RosterProblem as problem:
+        print(problem, file=sys.stderr)
         return 1
+    path = classroom.path
     hosts = classroom.hosts
     if args.host:
         by_name = {host.name: host for host in hosts}
@@ -57,17 +77,26 @@ def run_seed(args: argparse.Namespace) -> int:
         return 1
 
     # What the roster cannot say on its own: every host first, before any key or file.
-    problems = []
+    shared: dict[tuple, list[str]] = {}
     for host in hosts:
-        for check in (authorized_keys, network_config):
+        for check in (authorized_keys, network_config, console_password_problem):
             try:
                 check(host)
             except SeedError as error:
-                problems.append(f"{display_path(path)}: {error}")
-    if problems:
-        print("\n".join(dict.fromkeys(problems)), file=sys.stderr)
+                names = shared.setdefault((error.field, error.message), [])
+                if host.name not in names:
+                    names.append(host.name)
+    if shared:
+        print("\n".join(grouped(shared, hosts, path)), file=sys.stderr)
         print("roslab seed: nothing was written", file=sys.stderr)
         return 1
+    without_domain = [host.name for host in hosts
+                      if host.data.get("network_kind") == "wifi" and not host.data.get("wifi_regulatory_domain")]
+    if without_domain:
+        print(f"warning: {display_path(path)}: {', '.join(without_domain)} on WiFi without "
+              "wifi_regulatory_domain: their WiFi keeps to the channels and power allowed everywhere; "
+              "set it to your country's code (like DE)", file=sys.stderr)
+    problems = []
 
     seeds = {host.name: host_seed(host, path) for host in hosts}
     secrets = [secret for host in hosts for secret in _secrets_of(host, path)]
@@ -149,8 +178,7 @@ def register(commands) -> None:
         "SSH host key (generated once, kept beside the roster), its network, locale, time zone and "
         "time sync. Checked with cloud-init's and netplan's own parsers before anything is written.",
     )
-    seed.add_argument("roster", nargs="?", metavar="ROSTER",
-                      help="roster file (default: as for roslab check)")
+    add_roster_argument(seed, limit=False)  # one host is named with --host (a card is one Pi)
     where = seed.add_mutually_exclusive_group(required=True)
     where.add_argument("--out", metavar="DIR", help="write DIR/<host>/{user-data,network-config,meta-data}")
     where.add_argument("--boot-partition", metavar="PATH",

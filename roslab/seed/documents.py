@@ -100,7 +100,7 @@ def user_data(host: Host, keys: identity.HostKeys) -> dict:
     data = host.data
     ssh_user = data.get("ssh_user") or settings.SETTINGS["ssh_user"].default
     keys_text = authorized_keys(host)
-    users = [{
+    user = {
         "name": ssh_user,
         "gecos": "roslab lab user",
         "groups": LAB_USER_GROUPS,
@@ -109,7 +109,14 @@ def user_data(host: Host, keys: identity.HostKeys) -> dict:
         "lock_passwd": True,
         "sudo": "ALL=(ALL) NOPASSWD:ALL",
         "ssh_authorized_keys": keys_text,
-    }]
+    }
+    console = data.get("console_password")
+    if console is not None:
+        # A way in at the Pi's own keyboard when its network is wrong. Hashed here, never the
+        # plain text; SSH still takes keys only (ssh_pwauth: false).
+        user["lock_passwd"] = False
+        user["hashed_passwd"] = console_password_hash(host, keys)
+    users = [user]
     login = data.get("login_user")
     if login and login != ssh_user:  # the student account that owns the ROS environment
         users.append({"name": login, "groups": [g for g in LAB_USER_GROUPS if g != "sudo"],
@@ -126,10 +133,50 @@ def user_data(host: Host, keys: identity.HostKeys) -> dict:
         "ssh_deletekeys": True,
         "ssh_genkeytypes": ["ed25519"],
         "ssh_keys": {"ed25519_private": keys.private_text(), "ed25519_public": keys.public_line()},
-        "packages": ["openssh-server"],
+        # Nothing from the internet at first boot (a classroom network may have none): Ubuntu
+        # Server's image has openssh-server, and the deploy installs everything else.
+        "package_update": False,
+        "package_upgrade": False,
         # Pis have no clock battery: time must sync before apt trusts signatures.
         "ntp": {"enabled": True, "ntp_client": "systemd-timesyncd"},
     }
+
+
+CRYPT_SALT_CHARS = "./0123456789ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz"
+
+
+def check_console_password(host: Host) -> tuple[str, str]:
+    """(the console password, openssl's path); SeedError when it cannot be hashed."""
+    import shutil
+
+    secret = host.data.get("console_password")
+    password = str(secret.unmask() if hasattr(secret, "unmask") else secret)
+    if secret is None or not password or any(char in password for char in "\n\r\0"):
+        raise SeedError(host.name, "console_password_secret", "the console password must be one non-empty line")
+    openssl = shutil.which("openssl")
+    if openssl is None:
+        raise SeedError(host.name, "console_password_secret",
+                        "hashing the console password needs openssl on this machine (apt install openssl)")
+    return password, openssl
+
+
+def console_password_hash(host: Host, keys: identity.HostKeys) -> str:
+    """The console password as a SHA-512 crypt hash (`$6$salt$...`, what /etc/shadow holds),
+    made by `openssl passwd -6` with the password on its stdin (never on a command line).
+    The salt is derived from the host's own key, so the same roster gives the same seed
+    (and the same cloud-init instance) on every `roslab seed`, and each Pi its own salt."""
+    import subprocess
+
+    password, openssl = check_console_password(host)
+    digest = hashlib.sha256(f"roslab console salt\0{host.name}\0{keys.private_text()}".encode()).digest()
+    salt = "".join(CRYPT_SALT_CHARS[byte % len(CRYPT_SALT_CHARS)] for byte in digest[:16])
+    done = subprocess.run([openssl, "passwd", "-6", "-salt", salt, "-stdin"], input=password + "\n",
+                          capture_output=True, text=True, timeout=30)
+    hashed = done.stdout.strip()
+    if done.returncode != 0 or not hashed.startswith(f"$6${salt}$"):
+        raise SeedError(host.name, "console_password_secret",
+                        f"openssl could not hash the console password ({' '.join(done.stderr.split())[:200]})")
+    return hashed
 
 
 def network_config(host: Host) -> tuple[str, bool]:
@@ -144,7 +191,8 @@ def network_config(host: Host) -> tuple[str, bool]:
         return HEADER.format(host=host.name, what="DHCP on eth0") + dump({"network": {
             "version": 2, "renderer": "networkd",
             "ethernets": {"eth0": {"dhcp4": True, "optional": True}}}}), False
-    return render_netplan(settings, "networkd"), settings.password is not None
+    return (render_netplan(settings, "networkd", host.data.get("wifi_regulatory_domain")),
+            settings.password is not None)
 
 
 def host_seed(host: Host, roster_path) -> dict[str, SeedFile]:

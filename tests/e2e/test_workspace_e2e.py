@@ -365,7 +365,7 @@ esac
 def roslab_verify(sandbox):
     started = time.monotonic()
     proc = subprocess.run(
-        [str(BIN / "roslab"), "verify", "inventories/sandbox.py"],
+        [str(BIN / "roslab"), "verify", str(sandbox.roster_path)],
         cwd=REPO, env=sandbox.env, capture_output=True, text=True, timeout=600,
     )
     proc.seconds = time.monotonic() - started

@@ -55,7 +55,7 @@ def test_check_with_errors_exits_1_and_lists_them_on_stderr(tmp_path, capsys):
     errors = captured.err.splitlines()
     assert "host 't-main', field 'ros_distr': unknown key" in errors[0]
     assert "host 't-robot', field 'address':" in errors[1]
-    assert errors[-1] == "roslab: 2 errors in the roster"
+    assert errors[-1] == "roslab check: 2 errors in the roster; no host was touched, nothing was written"
 
 
 def test_check_never_prints_a_secret(tmp_path, capsys):
@@ -155,3 +155,33 @@ def test_limit_groups_resolve_in_pyinfra():
         "humble": ["team2-main"],
     }
     assert found["robot_hostname"] == "127.0.0.12"
+
+
+@pytest.mark.parametrize("command", ["check", "verify", "status", "seed"])
+def test_every_roster_command_refuses_a_pyinfra_inventory_in_one_line(command, capsys):
+    assert main([command, "inventories/lab.py"] + (["--out", "/nonexistent"] if command == "seed" else [])) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    assert err.strip() == (f"roslab {command}: inventories/lab.py is a pyinfra inventory; roslab {command} "
+                           f"takes the roster itself (a .yaml file), as every roslab command does: "
+                           f"roslab {command} [ROSTER]")
+
+
+@pytest.mark.parametrize("command", ["check", "verify", "status", "seed"])
+def test_every_roster_command_says_a_missing_roster_in_lines_not_a_traceback(command, tmp_path, capsys):
+    missing = tmp_path / "classroom.yaml"
+    extra = ["--out", str(tmp_path / "out")] if command == "seed" else []
+    assert main([command, str(missing), *extra]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    assert f"{missing}: cannot read the file: No such file or directory" in err
+    assert err.strip().endswith(f"roslab {command}: 1 error in the roster; no host was touched, nothing was written")
+
+
+@pytest.mark.parametrize("subcommand", [["status"], ["up"], ["down"], ["reset", "team1-main"]])
+def test_every_sandbox_command_says_it_needs_root_in_one_line(subcommand, monkeypatch, capsys):
+    monkeypatch.setattr(os, "geteuid", lambda: 1000)
+    assert main(["sandbox", *subcommand]) == 1
+    err = capsys.readouterr().err
+    assert err.strip() == (f"roslab sandbox {subcommand[0]}: needs root (the sandbox is network namespaces, "
+                           "mounts and containers); run it with sudo")

@@ -22,13 +22,14 @@ def test_first_run_converges_and_second_run_changes_nothing(tmp_path, codename, 
     first = plan(run_deploy_py, host.facts(), data)
     assert not first.failed, first.errors
     install = first.changing()[next(name for name in first.changing() if "Ensure ROS 2" in name)]
-    assert install[0].endswith(f"install -o DPkg::Lock::Timeout=600 -- {ros_packages}")
+    assert "apt-get -y -o DPkg::Lock::Timeout=600 " in install[0]
+    assert f" install -- {ros_packages}; status=$?;" in install[0]
     assert f"/opt/ros/{ros_packages.split('-')[1]}/setup.bash" in host_bashrc_after(host, first)
 
     second = plan(run_deploy_py, host.facts(), data)
     assert second.changing() == {}
     assert "block (ROS 2 environment) in /home/student/.bashrc is already up to date" in second.noops
-    assert f"package ros-{ros_packages.split('-')[1]}-{'desktop' if role == 'main' else 'ros-base'} is installed (1.0)" in second.noops
+    assert f"{ros_packages.replace(' ', ', ')} are installed" in second.noops
 
 
 def host_bashrc_after(host, result):

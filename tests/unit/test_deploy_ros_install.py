@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import signal
+import subprocess
+
 import pytest
 from fixtures.classroom import host_data
 from fixtures.fake_host import plan
@@ -10,6 +13,7 @@ from fixtures.fake_ubuntu import FakeUbuntu
 from deploy.ros_install import DEFAULTS, ros_install, ros_packages
 from deploy.rosdep import rosdep
 from roslab import settings as schema
+from roslab.operations import reporting_a_signal
 
 
 def settings(**changes):
@@ -49,8 +53,35 @@ def test_packages_go_after_the_lock_wait_and_an_end_of_options(tmp_path):
     assert schema.check_value(schema.SETTINGS["ros_extra_packages"], data["ros_extra_packages"]) is None
     result = plan(ros_install, FakeUbuntu().facts(), data)
     (command,) = result.operation("Ensure ROS 2 jazzy is installed").text()
-    assert command.endswith(
-        "install -o DPkg::Lock::Timeout=600 -- ros-jazzy-desktop ros-dev-tools ros-jazzy-turtlesim g++")
+    assert "apt-get -y -o DPkg::Lock::Timeout=600 " in command
+    assert " install -- ros-jazzy-desktop ros-dev-tools ros-jazzy-turtlesim g++; status=$?;" in command
+
+
+def test_only_missing_packages_are_installed_and_none_is_a_noop(tmp_path):
+    host = FakeUbuntu()
+    host.packages["ros-jazzy-desktop"] = {"0.11.0"}
+    result = plan(ros_install, host.facts(), host_data(tmp_path))
+    (command,) = result.operation("Ensure ROS 2 jazzy is installed").text()
+    assert " install -- ros-dev-tools; status=$?;" in command
+    host.packages["ros-dev-tools"] = {"1.0.0"}
+    result = plan(ros_install, host.facts(), host_data(tmp_path))
+    assert result.operation("Ensure ROS 2 jazzy is installed").text() == []
+
+
+@pytest.mark.parametrize("signal_name", ["KILL", "TERM", "INT"])
+def test_a_killed_install_says_which_signal_and_keeps_its_exit_status(signal_name):
+    command = reporting_a_signal(f"sh -c 'kill -{signal_name} $$'", "apt-get install")
+    done = subprocess.run(["sh", "-c", command], capture_output=True, text=True, timeout=10)
+    number = getattr(signal, f"SIG{signal_name}")
+    assert done.returncode == 128 + number
+    assert done.stderr.strip().splitlines()[-1] == (  # the shell may say "Killed" before it
+        f"roslab: apt-get install was killed by signal SIG{signal_name} (exit status {128 + number})")
+
+
+def test_an_install_that_fails_on_its_own_keeps_its_words_and_status():
+    command = reporting_a_signal("echo 'E: Unable to locate package x' >&2; exit 100", "apt-get install")
+    done = subprocess.run(["sh", "-c", command], capture_output=True, text=True, timeout=10)
+    assert (done.returncode, done.stderr.strip()) == (100, "E: Unable to locate package x")
 
 
 def test_rosdep_is_initialised_and_updated_as_the_login_user(tmp_path):

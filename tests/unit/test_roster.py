@@ -261,6 +261,8 @@ def test_default_roster_path_prefers_env_then_classroom_then_example(tmp_path, m
     (tmp_path / "inventories").mkdir()
     (tmp_path / "inventories/classroom.yaml").write_text("")
     assert roster.default_roster_path(tmp_path) == tmp_path / "inventories/classroom.yaml"
+    (tmp_path / "classroom.yaml").write_text("")  # a classroom folder (roslab init)
+    assert roster.default_roster_path(tmp_path) == tmp_path / "classroom.yaml"
     monkeypatch.setenv("ROSLAB_ROSTER", "/elsewhere/r.yaml")
     assert roster.default_roster_path(tmp_path) == Path("/elsewhere/r.yaml")
 

@@ -506,3 +506,18 @@ def test_an_lxcfs_mount_left_by_a_killed_run_is_not_taken_for_a_running_lxcfs(mo
     assert hosts.lxcfs_running() is False
     hosts._unmount_stale_lxcfs()
     assert unmounted and unmounted[0][:2] == ("umount", "--lazy")
+
+
+def test_a_long_sandbox_step_says_what_it_does_while_it_lasts_and_when_it_is_done(caplog):
+    import logging
+    import time as _time
+
+    from roslab.sandbox.system import announced
+
+    with caplog.at_level(logging.INFO, logger="roslab.sandbox"):
+        with announced("building the thing", every=0.1):
+            _time.sleep(0.35)
+    messages = [record.getMessage() for record in caplog.records]
+    assert messages[0] == "building the thing ..."
+    assert any(message.startswith("  still building the thing (") for message in messages[1:-1])
+    assert messages[-1].startswith("building the thing: done in ")

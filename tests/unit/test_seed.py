@@ -88,7 +88,9 @@ def test_seeds_pass_cloud_inits_and_netplans_checks(tmp_path, capsys, release, n
     assert user["ssh_pwauth"] is False
     keys = identity.host_keys(roster, "team1-main")
     assert user["ssh_keys"] == {"ed25519_private": keys.private_text(), "ed25519_public": keys.public_line()}
-    assert "openssh-server" in user["packages"] and user["ntp"]["enabled"] is True
+    # Nothing fetched from the internet at first boot: no packages, no update, no upgrade.
+    assert "packages" not in user and user["package_update"] is False and user["package_upgrade"] is False
+    assert user["ntp"]["enabled"] is True
 
     netplan = yaml.safe_load(texts["network-config"])["network"]
     assert netplan["renderer"] == "networkd"  # without it a Pi falls back to DHCP
@@ -321,3 +323,75 @@ def test_a_gpt_image_is_read_too(tmp_path):
         disk.seek(2 * 512)
         disk.write(basic_data + b"\x11" * 16 + struct.pack("<QQ", first, last))
     assert targets.boot_partition(image) == targets.Partition(1, offset, (last - first + 1) * 512, "SYSTEM-BOOT")
+
+
+def test_the_wifi_regulatory_domain_reaches_netplan_and_passes_its_parser(tmp_path, capsys):
+    host = NETWORKS["wifi-static"].format(ssid='"lab"') + "wifi_regulatory_domain: DE\n"
+    roster = write_roster(tmp_path, host=host)
+    assert seed(roster, "--out", tmp_path / "seeds") == 0
+    text = (tmp_path / "seeds/team1-main/network-config").read_text()
+    assert tools.check_network_config("network-config", text, []) == []
+    assert yaml.safe_load(text)["network"]["wifis"]["wlan0"]["regulatory-domain"] == "DE"
+    assert "wifi_regulatory_domain" not in capsys.readouterr().err  # no warning once it is set
+
+
+def test_wifi_without_a_regulatory_domain_is_warned_about_in_one_line(tmp_path, capsys):
+    roster = write_roster(tmp_path, host=NETWORKS["wifi-static"].format(ssid='"lab"'))
+    assert seed(roster, "--out", tmp_path / "seeds") == 0
+    warnings = [line for line in capsys.readouterr().err.splitlines() if "wifi_regulatory_domain" in line]
+    assert len(warnings) == 1 and "team1-main on WiFi without wifi_regulatory_domain" in warnings[0]
+
+
+@pytest.mark.parametrize("value, message", [
+    ("de", "'de' is not a country code like DE, GB or US (did you mean 'DE'?)"),
+    ("XX", "'XX' is not a country code like DE, GB or US"),
+    ("DEU", "'DEU' is not a country code like DE, GB or US"),
+])
+def test_a_regulatory_domain_that_is_no_country_code_is_refused_naming_the_field(tmp_path, capsys, value, message):
+    roster = write_roster(tmp_path, classroom=f"wifi_regulatory_domain: {value}\n")
+    assert seed(roster, "--out", tmp_path / "seeds") == 1
+    err = capsys.readouterr().err
+    assert "field 'wifi_regulatory_domain'" in err and message in err
+    assert not (tmp_path / "seeds").exists()
+
+
+def test_a_console_password_is_seeded_hashed_never_in_plain_text(tmp_path, capsys):
+    roster = write_roster(tmp_path, classroom="console_password_secret: pi_console\n",
+                          host=NETWORKS["ethernet-static"])
+    secrets = tmp_path / "secrets.yaml"
+    secrets.write_text(yaml.safe_dump({"classroom_wifi": PASSWORD, "pi_console": "Cons0le-Pa55 word"}))
+    assert seed(roster, "--out", tmp_path / "seeds") == 0
+    text = (tmp_path / "seeds/team1-main/user-data").read_text()
+    assert "Cons0le" not in text and "Cons0le" not in "".join(capsys.readouterr())
+    assert tools.check_user_data({"team1-main": text}, []) == {"team1-main": []}
+    [user] = yaml.safe_load(text)["users"]
+    assert user["lock_passwd"] is False and yaml.safe_load(text)["ssh_pwauth"] is False
+    hashed = user["hashed_passwd"]
+    salt = hashed.split("$")[2]
+    again = subprocess.run(["openssl", "passwd", "-6", "-salt", salt, "-stdin"], input="Cons0le-Pa55 word\n",
+                           capture_output=True, text=True, check=True).stdout.strip()
+    assert hashed == again  # the password's SHA-512 crypt hash, as /etc/shadow keeps it
+    assert seed(roster, "--out", tmp_path / "seeds") == 0  # the same seed again: the same hash
+    assert (tmp_path / "seeds/team1-main/user-data").read_text() == text
+
+
+def test_a_problem_every_host_shares_is_one_line(tmp_path, capsys):
+    roster = tmp_path / "classroom.yaml"
+    roster.write_text(textwrap.dedent("""\
+        classroom:
+          ubuntu_release: "24.04"
+        teams:
+          team1:
+            ros_domain_id: 11
+            hosts:
+              team1-main: {role: main, address: 192.168.50.11}
+              team1-robot: {role: robot, address: 192.168.50.12}
+          team2:
+            ros_domain_id: 12
+            hosts:
+              team2-main: {role: main, address: 192.168.50.21}
+    """))
+    assert seed(roster, "--out", tmp_path / "seeds") == 1
+    lines = [line for line in capsys.readouterr().err.splitlines() if "teacher_ssh_keys" in line]
+    assert len(lines) == 1, lines
+    assert "every host (3), field 'teacher_ssh_keys': a seeded Pi allows no password login" in lines[0]

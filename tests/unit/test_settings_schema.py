@@ -96,6 +96,8 @@ BAD_VALUES: dict[str, list] = {
     "network_ipv6": ["on"],
     "wifi_ssid": ["lab\nnetwork", "x" * 33],
     "wifi_password_secret": ["../x", "a b"],
+    "wifi_regulatory_domain": ["de", "XX", "DEU", "D\u0395", "GB\n"],
+    "console_password_secret": ["../x", "a b"],
     "network_confirm_timeout": [5, 100000],
     "network_backups_keep": [0, 101],
     "ssh_permit_root_login": ["yes", "without-password", "No"],
@@ -268,7 +270,10 @@ def test_legal_awkward_values_are_written_as_they_are():
 
 def test_roslab_never_imports_deploy():
     offenders = []
+    shipped = REPO / "roslab" / "data"  # the deploy and nodes roslab ships (roslab.packaged), not its code
     for path in (REPO / "roslab").rglob("*.py"):
+        if shipped in path.parents:
+            continue
         for node in ast.walk(ast.parse(path.read_text())):
             names = []
             if isinstance(node, ast.Import):

@@ -397,3 +397,32 @@ def test_a_refused_host_key_says_which_roslab_command_to_run():
                               ".roslab-state/known_hosts"), message
     assert "`roslab trust classroom.yaml --host status-test-host`" in message
     assert status.explained("other", "Could not connect (refused)") == "Could not connect (refused)"
+
+
+def failed_run_host(name="team1-main") -> "status.HostStatus":
+    """Reachable, its nodes running, but its last deploy.py run failed."""
+    return reachable_host(name=name, run=RunRecord(NOW - timedelta(minutes=2), "failed", "Ensure ROS 2 jazzy",
+                                                   "E: Unable to locate package x", NOW - timedelta(days=1)))
+
+
+def test_a_failed_last_run_is_red_in_the_box_the_row_and_the_chips():
+    hosts = [failed_run_host(), reachable_host(name="team1-robot", role="robot")]
+    context = page_context("lab", "classroom.yaml", hosts, NOW)
+    tags = Elements(render_page(context)).tags
+    boxes = {attrs["data-host"]: attrs["data-level"] for tag, attrs in tags if tag == "g" and "data-host" in attrs}
+    assert boxes == {"team1-main": "bad", "team1-robot": "ok"}
+    cells = host_cells(hosts[0], NOW)
+    assert cells["LAST RUN"].level == "bad" and cells["LAST RUN"].text.startswith("failed ")
+    assert cells["NOTE"].level == "bad"
+    assert 'last run failed in "Ensure ROS 2 jazzy": E: Unable to locate package x' in cells["NOTE"].text
+    chips = {count["text"]: count["level"] for count in context["counts"]}
+    assert chips["1 failed in their last run"] == "bad"
+    assert chips["2 reachable"] == "ok"
+
+
+def test_status_exits_1_when_a_host_failed_its_last_run_or_is_unreachable():
+    assert status.status_problems([reachable_host()]) == []
+    assert status.status_problems([failed_run_host(), reachable_host(name="team1-robot")]) == [
+        "1 of 2 hosts failed in their last run: team1-main"]
+    assert status.status_problems([unreachable_host(), reachable_host()]) == [
+        "1 of 2 hosts unreachable: team1-robot", "1 of 2 hosts failed in their last run: team1-robot"]

@@ -64,3 +64,25 @@ def test_the_browser_paints_the_page(tmp_path):
 
     assert distinct_rows(empty) <= 2  # the measure tells a blank page
     assert distinct_rows(shot) > 100
+
+
+def test_after_a_failed_run_the_browser_shows_the_host_and_the_chip_red(tmp_path):
+    from datetime import timedelta
+
+    from roslab.runs import RunRecord
+
+    failed = reachable_host(run=RunRecord(NOW - timedelta(minutes=2), "failed", "Ensure ROS 2 jazzy",
+                                          "E: Unable to locate package x", NOW - timedelta(days=1)))
+    hosts = [failed, reachable_host(name="team1-robot", role="robot")]
+    page = tmp_path / "status.html"
+    page.write_text(render_page(page_context("robotics-lab", "classroom.yaml", hosts, NOW)))
+
+    dom = dump_dom(page)
+
+    boxes = dict(re.findall(r'<g class="host" data-host="([^"]*)" data-level="([^"]*)"', dom))
+    assert boxes == {"team1-main": "bad", "team1-robot": "ok"}
+    chips = dict((text, level) for level, text in re.findall(r'<span class="(\w+)">([^<]*)</span>', dom))
+    assert chips["1 failed in their last run"] == "bad"
+    assert chips["2 reachable"] == "ok"
+    row = re.search(r'<tr data-host="team1-main">(.*?)</tr>', dom, re.S).group(1)
+    assert '<td class="bad">failed ' in row

@@ -215,7 +215,9 @@ def test_a_fact_that_failed_while_planning_names_its_stderr_not_pyinfras_error_l
     state.fail_hosts({robot})
     summary.mark_planned(state.inventory.get_host("team1-main"))
 
-    assert printed(state, handler)[3] == '    team1-robot  failed   in "apt is ready": sudo: a password is required'
+    assert printed(state, handler)[3] == (
+        '    team1-robot  failed   in "apt is ready": sudo asks for a password and the roster sets no '
+        "sudo_password_secret for this host (sudo: a password is required)")
 
 
 @operation()
@@ -363,3 +365,183 @@ def test_log_capture_ignores_info_lines_and_lines_without_a_host():
     assert [(line.level, line.text) for line in handler.host("team1-robot").log] == [
         (logging.WARNING, "roslab: a warning"),
     ]
+
+
+def test_a_wrong_sudo_password_names_the_roster_setting_not_just_sudos_words():
+    state, handler = classroom("team1-main", "team1-robot", data={"team1-main": {
+        "sudo_password_secret": "lab_sudo", "_sudo_password": Secret("wrong")}})
+    main = state.inventory.get_host("team1-main")
+    operation_on(state, "team1-main", "op-hostname", "Ensure the hostname is team1-main", changed=True)
+    finished_run(state)
+    executed(state, handler, "team1-main", "op-hostname", success=False, commands=0, output=[
+        ("stderr", "Sorry, try again."), ("stderr", "Sorry, try again."),
+        ("stderr", "sudo: 3 incorrect password attempts"),
+    ])
+    state.fail_hosts({main})
+
+    assert printed(state, handler)[2] == (
+        '    team1-main   failed   in "Ensure the hostname is team1-main": sudo refused the password from '
+        "the roster's sudo_password_secret: the secret it names does not hold this host's sudo password "
+        "(sudo: 3 incorrect password attempts)")
+    assert "wrong" not in "\n".join(printed(state, handler))
+
+
+def test_an_interrupted_run_names_each_unfinished_host_and_step_and_exits_130():
+    state, handler = classroom("team1-main", "team1-robot", "team2-main")
+    for name in ("team1-main", "team1-robot", "team2-main"):
+        operation_on(state, name, "op-1", "Ensure the locale", changed=True)
+        operation_on(state, name, "op-2", INSTALL, changed=True)
+    state.set_stage(StateStage.Execute)
+    state.is_executing = True
+    for name in ("team1-main", "team1-robot", "team2-main"):
+        executed(state, handler, name, "op-1", success=True)
+    executed(state, handler, "team2-main", "op-2", success=True)  # finished before the signal
+    handler.end(130, "stopped by SIGINT (Ctrl-C)", "SIGINT (Ctrl-C)")
+
+    lines = printed(state, handler)
+    assert lines[2] == (f'    team1-main   interrupted  in "{INSTALL}": the run was stopped by SIGINT (Ctrl-C) '
+                        "before this step finished here")
+    assert lines[3].startswith(f'    team1-robot  interrupted  in "{INSTALL}"')
+    assert lines[4] == "    team2-main   changed"
+    assert lines[5] == ("    exit code 130: stopped by SIGINT (Ctrl-C); 0 failed, 1 changed, 0 ok, "
+                        "2 interrupted (3 hosts)")
+    assert handler.exit_code(state) == 130
+    assert {run.host: run.result for run in handler_runs(state, handler)} == {
+        "team1-main": "interrupted", "team1-robot": "interrupted", "team2-main": "changed"}
+
+
+def handler_runs(state, handler):
+    return [summary.HostRun(row.host, row.status, row.step, row.reason) for row in handler.rows(state)]
+
+
+def conditional(state, host_name, op_hash, name, condition):
+    meta = operation_on(state, host_name, op_hash, name, changed=True)
+    state.ops[state.inventory.get_host(host_name)][op_hash].global_arguments["_if"] = condition
+    return meta
+
+
+def test_dry_a_converged_host_is_ok_although_pyinfra_counts_its_conditional_restart():
+    state, handler = classroom("team1-main", "team1-robot")
+    unit = operation_on(state, "team1-main", "op-unit", "Ensure the unit", changed=False)
+    conditional(state, "team1-main", "op-reload", "Reload systemd", unit.did_change)
+    conditional(state, "team1-main", "op-restart", "Restart", lambda: unit.did_change())
+    changed_unit = operation_on(state, "team1-robot", "op-unit", "Ensure the unit", changed=True)
+    conditional(state, "team1-robot", "op-reload", "Reload systemd", [changed_unit.did_change])
+    for host in state.active_hosts:
+        summary.mark_planned(host)
+    assert state.get_meta_for_host(state.inventory.get_host("team1-main")).ops_change == 2  # pyinfra's count
+
+    assert printed(state, handler)[1:] == [
+        "--> roslab summary (nothing was executed: changed = would change)",
+        "    team1-main   ok",
+        "    team1-robot  changed",
+        "    exit code 0: 0 failed, 1 changed, 1 ok (2 hosts)",
+    ]
+
+
+def test_dry_a_condition_that_cannot_be_known_counts_as_a_change():
+    state, handler = classroom("team1-main")
+
+    def unknowable():
+        raise RuntimeError("needs the host")
+
+    conditional(state, "team1-main", "op", "Restart", unknowable)
+    summary.mark_planned(state.inventory.get_host("team1-main"))
+    assert printed(state, handler)[2] == "    team1-main  changed"
+
+
+def test_compact_output_hides_steps_that_changed_nothing_and_shows_the_others_with_their_lines():
+    shown: list[str] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record):
+            shown.append(record.getMessage())
+
+    log = logging.getLogger("roslab-test-compact")
+    log.propagate = False
+    log.setLevel(logging.INFO)
+    log.handlers = [Collect()]
+    compact = summary.CompactOutput(log, long_step=None)
+    log.addFilter(compact)
+    try:
+        for line in ["    [team1-main] Connected", "--> Starting operation: Ensure the locale",
+                     "    [team1-main] No changes", "    [team1-robot] No changes",
+                     "--> Starting operation: Ensure ROS 2 jazzy", "    [team1-main] No changes",
+                     "    [team1-robot] Success",
+                     "--> Starting operation: Ensure the unit", "    [team1-main] No changes"]:
+            log.info(line)
+        log.warning("    [team1-main] roslab: a warning in that step")
+        log.info("--> Starting operation: Reload sshd")
+        log.error("    [team1-robot] Error: executed 0 commands")
+        log.info("--> Disconnecting from hosts...")
+    finally:
+        log.removeFilter(compact)
+
+    assert shown == ["    [team1-main] Connected",
+                     "--> Starting operation: Ensure ROS 2 jazzy", "    [team1-robot] Success",
+                     "--> Starting operation: Ensure the unit", "    [team1-main] roslab: a warning in that step",
+                     "--> Starting operation: Reload sshd", "    [team1-robot] Error: executed 0 commands",
+                     "--> Disconnecting from hosts..."]
+    assert compact.hidden_steps == 1
+
+
+def test_compact_output_shows_a_long_step_before_any_host_is_done():
+    import gevent
+
+    shown: list[str] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record):
+            shown.append(record.getMessage())
+
+    log = logging.getLogger("roslab-test-compact-long")
+    log.propagate = False
+    log.setLevel(logging.INFO)
+    log.handlers = [Collect()]
+    compact = summary.CompactOutput(log, long_step=0.05)
+    log.addFilter(compact)
+    try:
+        log.info("--> Starting operation: Ensure ROS 2 jazzy is installed")
+        assert shown == []
+        gevent.sleep(0.2)
+        assert shown == ["--> Starting operation: Ensure ROS 2 jazzy is installed"]
+        log.info("    [team1-main] No changes")
+        log.info("    [team1-robot] Success")
+    finally:
+        log.removeFilter(compact)
+    assert shown == ["--> Starting operation: Ensure ROS 2 jazzy is installed", "    [team1-robot] Success"]
+    assert compact.hidden_steps == 0
+
+
+def test_a_long_step_says_which_hosts_are_still_in_it():
+    import gevent
+
+    shown: list[str] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record):
+            shown.append(record.getMessage())
+
+    log = logging.getLogger("roslab-test-compact-still")
+    log.propagate = False
+    log.setLevel(logging.INFO)
+    log.handlers = [Collect()]
+    compact = summary.CompactOutput(log, long_step=0.05, every=0.1,
+                                    hosts=lambda: ["team1-main", "team1-robot", "team2-main"])
+    log.addFilter(compact)
+    try:
+        log.info("--> Starting operation: Ensure ROS 2 is installed")
+        log.info("    [team1-main] No changes")
+        gevent.sleep(0.1)
+        log.info("    [team2-main] Success")
+        gevent.sleep(0.15)
+        log.info("--> Starting operation: Ensure the locale")
+        still = [line for line in shown if line.startswith("    still running on ")]
+        gevent.sleep(0.3)  # the next step: its own lines, none about the last one
+    finally:
+        log.removeFilter(compact)
+    assert shown[0] == "--> Starting operation: Ensure ROS 2 is installed"
+    assert still and all(line.startswith("    still running on team1-robot (") for line in still), shown
+    after = shown[shown.index("--> Starting operation: Ensure the locale") + 1:]
+    assert after and all(line.startswith("    still running on team1-main, team1-robot, team2-main (")
+                         for line in after), shown

@@ -1,0 +1,61 @@
+"""What roslab ships besides its Python code: the classroom deploy and the demo nodes.
+
+In a checkout they are the repository's `deploy.py` and `nodes/`; in an installed roslab
+(a wheel, `pip install`/`pipx install`) they are package data, `roslab/data/deploy.py` and
+`roslab/data/nodes/` (in a checkout those are links to the same files, so both read one
+source). A classroom folder made by `roslab init` holds only the teacher's files and two
+small pyinfra entry files that run these (`classroom_inventory`, `run_deploy`).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+DATA = Path(__file__).resolve().parent / "data"
+FOLDER_ROSTER = "classroom.yaml"
+
+
+def nodes_dir() -> Path:
+    """The demo ROS 2 packages (the default `workspace_nodes_dir`)."""
+    return (DATA / "nodes").resolve()
+
+
+def deploy_file() -> Path:
+    """The classroom deploy (the checkout's deploy.py, or the installed copy)."""
+    return (DATA / "deploy.py").resolve()
+
+
+_compiled: dict[str, object] = {}
+
+
+def run_deploy() -> None:
+    """Run roslab's classroom deploy for the current host (a folder's deploy.py calls this;
+    pyinfra runs that file once per host)."""
+    path = deploy_file()
+    code = _compiled.get(str(path))
+    if code is None:
+        code = _compiled[str(path)] = compile(path.read_text(encoding="utf-8"), str(path), "exec")
+    exec(code, {"__name__": "roslab_deploy", "__file__": str(path)})  # noqa: S102 - roslab's own file
+
+
+def classroom_inventory(folder_file: str) -> dict:
+    """pyinfra's groups for a classroom folder's inventory.py: the roster $ROSLAB_ROSTER names,
+    else classroom.yaml beside that file; an invalid roster stops here, before pyinfra
+    connects (as inventories/lab.py)."""
+    from roslab import sudo, summary
+    from roslab.roster import RosterError, inventory_groups, load_roster
+
+    path = Path(os.environ.get("ROSLAB_ROSTER") or Path(folder_file).resolve().parent / FOLDER_ROSTER)
+    try:
+        classroom = load_roster(path)
+        groups = inventory_groups(classroom)
+    except RosterError as error:
+        print(f"roslab: the roster has errors, no host was touched:\n{error}", file=sys.stderr)
+        sys.exit(2)
+    for warning in classroom.warnings:
+        print(f"roslab: warning: {warning}", file=sys.stderr)
+    summary.install()  # before pyinfra connects: a run where no host answers is summarised too
+    sudo.install()  # before pyinfra's first command: no sudo password on a host's command line
+    return groups

@@ -1,0 +1,122 @@
+"""How a `roslab` command takes a roster and reaches its hosts: one way for every command.
+
+    roslab COMMAND [ROSTER] [--limit NAME ...]
+
+`add_roster_argument` registers ROSTER (and `--limit`) the same way on every subcommand;
+`load_classroom` loads it (the default roster found as `inventories/lab.py` finds it) and
+turns a mistake into lines on stderr and an exit status, never a traceback;
+`roster_state` makes the pyinfra State of the roster's hosts as deploy.py's inventory makes
+them (the same groups and connection data), through pyinfra's public API only, and
+`connected_state` connects it. `--limit` selects as pyinfra's does: a group (team, role,
+distro) or a host name, with shell-style wildcards.
+"""
+
+from __future__ import annotations
+
+import argparse
+import fnmatch
+import os
+import sys
+from pathlib import Path
+
+from roslab.roster import Classroom, RosterError, default_roster_path, display_path, load_roster
+
+ROSTER_HELP = ("roster file (default: $ROSLAB_ROSTER, else classroom.yaml or inventories/classroom.yaml "
+               "in this folder if present, else inventories/lab.yaml)")
+LIMIT_HELP = "a team, role, distro or host name, wildcards allowed (pyinfra's --limit; repeatable)"
+
+
+def add_roster_argument(parser: argparse.ArgumentParser, limit: bool = True) -> None:
+    """ROSTER (optional, positional) and, with `limit`, --limit NAME (repeatable)."""
+    parser.add_argument("roster", nargs="?", metavar="ROSTER", help=ROSTER_HELP)
+    if limit:
+        parser.add_argument("--limit", action="append", metavar="NAME", help=LIMIT_HELP)
+
+
+class RosterProblem(Exception):
+    """A roster that cannot be used, said in lines for stderr (no traceback)."""
+
+
+def roster_path(argument: str | None) -> Path:
+    return Path(argument) if argument else default_roster_path()
+
+
+def load_classroom(argument: str | None, command: str) -> Classroom:
+    """The roster ROSTER names (or the default one), checked; RosterProblem says what is wrong."""
+    path = roster_path(argument)
+    if path.suffix == ".py":
+        raise RosterProblem(
+            f"roslab {command}: {display_path(path)} is a pyinfra inventory; roslab {command} takes the "
+            f"roster itself (a .yaml file), as every roslab command does: roslab {command} [ROSTER]")
+    try:
+        return load_roster(path)
+    except RosterError as error:
+        count = len(error.problems)
+        raise RosterProblem(f"{error}\nroslab {command}: {count} error{'s' if count != 1 else ''} "
+                            f"in the roster; no host was touched, nothing was written") from None
+
+
+def roster_inventory(groups: dict):
+    """pyinfra's Inventory of `roslab.roster.inventory_groups(...)`, as inventories/lab.py makes it."""
+    from pyinfra.api import Inventory
+
+    everyone: dict[str, dict] = {}
+    for entries in groups.values():
+        for name, data in entries:
+            everyone[name] = data
+    return Inventory((list(everyone.items()), {}),
+                     **{group: (entries, {}) for group, entries in groups.items()})
+
+
+def select_hosts(inventory, patterns: list[str] | None) -> list:
+    """The hosts `--limit` patterns select (all without patterns), as pyinfra's --limit: each
+    pattern a group's name (team, role, distro), else host names with shell-style wildcards."""
+    hosts = list(inventory)
+    if not patterns:
+        return hosts
+    selected: set = set()
+    for pattern in patterns:
+        group = inventory.get_group(pattern, None)
+        selected.update(group if group else [host for host in hosts if fnmatch.fnmatch(host.name, pattern)])
+    return [host for host in hosts if host in selected]
+
+
+def roster_state(groups: dict, limit: list[str] | None = None, **config):
+    """A pyinfra State over the roster's hosts that `limit` selects (not connected), set as
+    pyinfra's current state, config and inventory. `config`: pyinfra Config options."""
+    from pyinfra.api import Config, State
+    from pyinfra.context import ctx_config, ctx_inventory, ctx_state
+
+    from roslab import sudo
+
+    sudo.install()  # no sudo password on a host's command line, whatever the command
+    inventory = roster_inventory(groups)
+    chosen = select_hosts(inventory, limit)
+    state = State(check_for_changes=False)
+    state.cwd = os.getcwd()
+    settings = Config(**config)
+    ctx_state.set(state)
+    ctx_config.set(settings)
+    ctx_inventory.set(inventory)
+    state.init(inventory, settings, initial_limit=chosen)
+    return state
+
+
+def connected_state(groups: dict, limit: list[str] | None = None, **config):
+    """`roster_state`, connected (in parallel) to the hosts it selects; the ones that cannot be
+    reached are left inactive (`state.active_hosts` holds the others)."""
+    from pyinfra.api.connect import connect_all
+    from pyinfra.api.exceptions import PyinfraError
+
+    state = roster_state(groups, limit, **config)
+    state.config.FAIL_PERCENT = None  # an unreachable host is a row of the result, not an error
+    try:
+        connect_all(state)
+    except PyinfraError:
+        pass  # "No hosts remaining!": every host is unreachable, which the caller reports
+    return state
+
+
+def fail(problem: Exception) -> int:
+    print(problem, file=sys.stderr)
+    return 1
