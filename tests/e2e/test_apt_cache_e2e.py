@@ -71,16 +71,17 @@ def requests_since(classroom, start: int) -> list[upstream.Request]:
     return upstream.read_requests(request_log(classroom))[start:]
 
 
-def cache_downloads(classroom) -> list[str]:
-    """The .debs apt-cacher-ng downloaded, from its transfer log: `time|I|bytes|client|host/path`
-    per download it stored (`O` records are what it served). Paths as the upstream saw them, unquoted."""
+def cache_downloads(classroom) -> list[tuple[int, str]]:
+    """(time, path) of each .deb apt-cacher-ng downloaded, from its transfer log: one
+    `time|I|bytes|client|host/path` record per download it stored (`O` records are what it
+    served). Paths as the upstream saw them, unquoted once."""
     log = classroom.sudo(CACHE_HOST, f"cat {ACNG_LOG}", check=True).stdout
-    paths = []
+    downloads = []
     for line in log.splitlines():
         fields = line.split("|")
         if len(fields) == 5 and fields[1] == "I" and fields[4].endswith(".deb"):
-            paths.append("/" + fields[4].split("/", 1)[1])
-    return paths
+            downloads.append((int(fields[0]), "/" + fields[4].split("/", 1)[1]))
+    return downloads
 
 
 def test_a_class_with_the_cache_downloads_each_deb_once(classroom):
@@ -109,9 +110,17 @@ def test_a_class_with_the_cache_downloads_each_deb_once(classroom):
           f"(most fetched: {per_path.most_common(3)})")
     # Each .deb downloaded once by the cache: apt-cacher-ng's own transfer log has exactly one
     # download ("I" record) per .deb, and none that the upstream did not serve.
-    downloads = Counter(cache_downloads(classroom))
-    assert set(downloads) == {unquote(path) for path in per_path}
+    # The only others the upstream served are apt-cacher-ng and its dependencies, which the
+    # cache host installed itself (directly) before its cache was running.
+    stored = cache_downloads(classroom)
+    downloads = Counter(path for _, path in stored)
     assert downloads.most_common(1)[0][1] == 1, [(path, n) for path, n in downloads.most_common(10) if n > 1]
+    assert set(downloads) <= {unquote(path) for path in per_path}
+    first_download = min(when for when, _ in stored)
+    direct = [request for request in debs if unquote(request.path) not in downloads]
+    assert any("/apt-cacher-ng_" in request.path for request in direct), direct
+    assert all(request.time < first_download + 1 for request in direct), \
+        [request.path for request in direct if request.time >= first_download + 1]
     # The upstream may see a .deb asked for again at once: apt-cacher-ng sometimes closes a
     # client's connection right after an answer, without `Connection: close`, while apt's next
     # request is already on it; it then drops the transfer it had started for that request

@@ -90,7 +90,7 @@ def test_the_demo_nodes_run_as_real_ros_nodes_and_the_main_sees_its_robots(real)
 
 
 def test_verify_and_status_listen_pass_when_each_main_hears_its_robot(real):
-    proc = roslab(real, "verify", "inventories/sandbox.py")
+    proc = roslab(real, "verify", str(real.roster_path))
     assert proc.returncode == 0, proc.stdout + proc.stderr
     rows = verify_rows(proc)
     for team in TEAMS:
@@ -109,7 +109,7 @@ def test_verify_fails_with_exit_1_for_a_stopped_robot_and_a_robot_on_another_dom
     real.sudo("team2-robot", f"mkdir -p {Path(dropin).parent} && printf '[Service]\\nEnvironment=ROS_DOMAIN_ID=42\\n'"
                              f" > {dropin} && systemctl daemon-reload && systemctl restart {SERVICE}", check=True)
     try:
-        proc = roslab(real, "verify", "inventories/sandbox.py")
+        proc = roslab(real, "verify", str(real.roster_path))
     finally:
         real.sudo("team1-robot", f"systemctl start {SERVICE}", check=True)
         real.sudo("team2-robot", f"rm -f {dropin} && systemctl daemon-reload && systemctl restart {SERVICE}",
@@ -164,7 +164,7 @@ def test_a_node_killed_by_a_signal_is_back_within_seconds(real):
     print(f"\ntalker back {time.monotonic() - killed:.1f} s after kill -9")
     restarts = real.ssh(host, f"systemctl show -p NRestarts --value {SERVICE}").stdout.strip()
     assert restarts == "1", restarts  # the service itself followed the node
-    proc = roslab(real, "verify", "inventories/sandbox.py", "--limit", "team2")
+    proc = roslab(real, "verify", str(real.roster_path), "--limit", "team2")
     assert proc.returncode == 0, proc.stdout + proc.stderr
 
 
@@ -174,7 +174,7 @@ def test_after_a_reboot_verify_passes_only_once_the_service_runs(real):
     rebooted = time.monotonic()
     verdicts = []
     while True:
-        proc = roslab(real, "verify", "inventories/sandbox.py", "--limit", "team1")
+        proc = roslab(real, "verify", str(real.roster_path), "--limit", "team1")
         row = verify_rows(proc).get("team1", "")
         verdicts.append(row)
         if "PASS" in row:
