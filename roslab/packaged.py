@@ -44,13 +44,25 @@ def classroom_inventory(folder_file: str) -> dict:
     """pyinfra's groups for a classroom folder's inventory.py: the roster $ROSLAB_ROSTER names,
     else classroom.yaml beside that file; an invalid roster stops here, before pyinfra
     connects (as inventories/lab.py)."""
-    from roslab import sudo, summary
-    from roslab.roster import RosterError, inventory_groups, load_roster
+    from roslab.roster import inventory_groups
 
     path = Path(os.environ.get("ROSLAB_ROSTER") or Path(folder_file).resolve().parent / FOLDER_ROSTER)
+    return inventory_groups(checked_classroom(path))
+
+
+def checked_classroom(path: Path):
+    """The roster at `path`, checked for a pyinfra run, for any inventory file (the checkout's
+    inventories/lab.py, a classroom folder's inventory.py).
+
+    pyinfra puts --data, --user, --port and --key values on top of the host data after the
+    inventory file: they are checked here like the roster's own (roslab.roster.overrides).
+    An invalid roster or override stops the run here, before pyinfra connects to any host.
+    """
+    from roslab import remote_files, sudo, summary
+    from roslab.roster import RosterError, load_roster, overrides
+
     try:
-        classroom = load_roster(path)
-        groups = inventory_groups(classroom)
+        classroom = load_roster(path, command_line=overrides.command_line_data(sys.argv))
     except RosterError as error:
         print(f"roslab: the roster has errors, no host was touched:\n{error}", file=sys.stderr)
         sys.exit(2)
@@ -58,4 +70,5 @@ def classroom_inventory(folder_file: str) -> dict:
         print(f"roslab: warning: {warning}", file=sys.stderr)
     summary.install()  # before pyinfra connects: a run where no host answers is summarised too
     sudo.install()  # before pyinfra's first command: no sudo password on a host's command line
-    return groups
+    remote_files.install()  # every upload: never through a link, never via SFTP or a temp file
+    return classroom
