@@ -184,10 +184,11 @@ def _age_text(seconds: float) -> str:
 def kept(url: str, cache_dir: Path, offline: bool = False, max_age: float | None = None) -> Kept:
     """The bytes at `url`, kept in `cache_dir` for the next runs.
 
-    For files that change upstream (rosdep's data). A kept copy younger than `max_age`
-    seconds (by the time it was last downloaded or confirmed) is used without asking
-    upstream at all. An older one is checked with a conditional request (If-None-Match /
-    If-Modified-Since: a 304 costs no body) and replaced when it changed. When upstream
+    For files that change upstream (rosdep's data). A kept copy is checked with a
+    conditional request on every run (If-None-Match / If-Modified-Since: a 304 costs no
+    body) and replaced when it changed, so a copy never hides an upstream change; the
+    same URL may serve other content tomorrow (a mirror updated, a sandbox rebuilt).
+    `max_age` only names how old a copy is when upstream is down. When upstream
     cannot be reached, a kept copy is used all the same, and `Kept.stale` says so; without
     one, DownloadError. `offline`: never ask, the kept copy or DownloadError.
     """
@@ -216,8 +217,6 @@ def _kept(url: str, cache_dir: Path, offline: bool, max_age: float | None) -> Ke
         if copy is None:
             raise DownloadError(f"offline, and {url} is not in the controller's cache ({path}): "
                                 "run once online first")
-        return Kept(copy)
-    if copy is not None and max_age is not None and 0 <= age < max_age:
         return Kept(copy)
     try:
         data, validators = _conditional_fetch(url, _validators(meta) if copy is not None else {})

@@ -2,9 +2,9 @@
 
 `rosdep init` and `rosdep update` on every Pi download the same files from GitHub (which
 rate-limits a classroom behind one address, ros/rosdistro#48409). Instead the controller
-downloads, once per run, and keeps (for the offline mode, for runs within
-`rosdep_update_max_age`, which ask upstream nothing, and for a run when upstream is down,
-which uses the kept copy and says so):
+downloads, once per run, and keeps (for the offline mode, for no-op runs, which only ask
+upstream whether each file changed and download nothing when it did not, and for a run
+when upstream is down, which uses the kept copy and says so):
 
 - rosdep's sources list (20-default.list) and every rule file it lists (`yaml` and
   `gbpdistro` lines, tags kept);
@@ -154,9 +154,9 @@ def for_distro(sources_list_url: str | None, index_url: str | None, distro: str,
                offline: bool = False, max_age: float | None = None) -> RosdepData:
     """rosdep's data for hosts of `distro`, built once per run (RosdepDataError naming the URL).
 
-    Each file comes from the controller's kept copy while it is younger than `max_age`
-    seconds (no request at all), else from a conditional download; when upstream cannot
-    be reached the kept copy is used and `stale` says so (downloads.kept).
+    Each file is checked against the controller's kept copy with a conditional request
+    (no body when unchanged); when upstream cannot be reached the kept copy is used and
+    `stale` says so (downloads.kept).
     """
     sources_list_url = sources_list_url or OFFICIAL_SOURCES_LIST_URL
     index_url = index_url or OFFICIAL_INDEX_URL

@@ -239,7 +239,8 @@ SCHEMA: list[Setting] = [
          f.cache_dir),
         ("rosdep_update_max_age", 7 * SECONDS_PER_DAY, int,
          "Seconds before the login user's rosdep cache counts as stale and is updated again; "
-         "within it the controller uses its kept copy of rosdep's data without asking upstream.",
+         "the controller checks its kept copy of rosdep's data on each run with a conditional request "
+         "(nothing downloaded when unchanged), and uses it when upstream does not answer.",
          f.int_range(0, 365 * SECONDS_PER_DAY, " s")),
     ),
     *_concern(
