@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import http.client
 import socket
+import time
 
 from roslab.sandbox import upstream
 
@@ -28,6 +29,12 @@ def test_every_request_is_logged_with_its_status_and_bytes_on_one_kept_alive_con
             response = connection.getresponse()
             response.read()  # HTTP/1.1: the next request goes on the same connection
         connection.close()
+        # The server writes a request's line once its answer is sent, so the client can
+        # have the last answer a moment before its line is written: wait for it (bounded)
+        # rather than stop the server under it.
+        deadline = time.monotonic() + 10
+        while len(upstream.read_requests(tmp_path / upstream.REQUEST_LOG)) < 3 and time.monotonic() < deadline:
+            time.sleep(0.02)
     finally:
         upstream.stop_server(tmp_path / "upstream.pid")
     requests = upstream.read_requests(tmp_path / upstream.REQUEST_LOG)
