@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from roslab import distro as distros
 from roslab import formats as f
 
 # Where a key may be set: everywhere, or only at one level.
@@ -158,14 +159,13 @@ SCHEMA: list[Setting] = [
         ("ros_apt_source_mode", "package", str,
          "package: install ros2-apt-source (official); mirror: a local mirror's key and URL.",
          f.choice("package", "mirror")),
-        ("ros_apt_source_version", "1.2.0", str, "The pinned ros2-apt-source release (1.2.0, 2026-04).",
-         f.version),
-        ("ros_apt_source_sha256", {
-            "noble": "0804d9b13db770eb87019be414cd78378835228ad5fa801fc88758596dd8f7e5",
-            "jammy": "767884cf4ed03116b9d64438930a832ed854147ae435279a7924dfdf60f94433",
-        }, dict,
-         "Ubuntu codename -> sha256 of that release's .deb. Copied from public install scripts that "
-         "pin 1.2.0; not verified from here (GitHub is unreachable): check once online.",
+        ("ros_apt_source_version", distros.ROS_APT_SOURCE_VERSION, str,
+         f"The pinned ros2-apt-source release ({distros.ROS_APT_SOURCE_VERSION}, 2026-04).", f.version),
+        ("ros_apt_source_sha256", distros.ros_apt_source_pins(), dict,
+         "Ubuntu codename -> sha256 of that release's .deb (roslab/distro.py's records). Pins set in a "
+         "roster are added to these (for the default version; another version needs all its pins). "
+         "roslab knows none for 26.04 (resolute) yet: set it from the release page, or use mirror mode. "
+         "The known ones are copied from public install scripts; not verified from here: check once online.",
          f.sha256_pins, {"allowed": "codename: 64 hex digits"}),
         ("ros_apt_source_url",
          "https://github.com/ros-infrastructure/ros-apt-source/releases/download/"
@@ -186,9 +186,10 @@ SCHEMA: list[Setting] = [
         _enabled("ros_install", "Install the ROS 2 packages."),
         ("ubuntu_release", "24.04", str,
          "The Ubuntu release the roster expects; a host running another release is stopped.",
-         f.ubuntu_release, {"allowed": "22.04, 24.04, 26.04"}),
-        ("ros_distro", None, str, "ROS 2 distro; None: the release's default (noble: jazzy, jammy: humble).",
-         f.ros_distro, {"nullable": True, "allowed": "humble, jazzy, kilted, lyrical"}),
+         f.ubuntu_release, {"allowed": ", ".join(p.release for p in distros.PLATFORMS)}),
+        ("ros_distro", None, str, "ROS 2 distro; None: the release's default ("
+         + ", ".join(f"{p.codename}: {p.distro}" for p in distros.PLATFORMS) + ").",
+         f.ros_distro, {"nullable": True, "allowed": ", ".join(sorted(distros.DISTRO_RELEASES))}),
         ("ros_variant", None, str, "Variant to install; None: by role, see the next two keys.",
          f.ros_variant, {"nullable": True}),
         ("ros_variant_main", "desktop", str, "Variant for main hosts (with GUI: RViz, rqt, demos).",

@@ -71,9 +71,14 @@ def check_host(host: Host, report: Report) -> None:
                              field=key, line=host.lines.get("ros_apt_source_mode"), **where)
     elif data.get("ros_apt_source_enabled") and codename:
         if codename not in (data.get("ros_apt_source_sha256") or {}):
-            report.error(f"has no sha256 for Ubuntu {codename}, which this host runs",
-                         field="ros_apt_source_sha256", line=host.lines.get("ros_apt_source_sha256"),
-                         **where)
+            version = data.get("ros_apt_source_version")
+            report.error(
+                f"roslab knows no sha256 of ros2-apt-source {version} for Ubuntu {host.ubuntu_release} "
+                f"({codename}), which this host runs: set ros_apt_source_sha256: {{{codename}: <sha256 of "
+                f"ros2-apt-source_{version}.{codename}_all.deb>}} from its release page, "
+                "or use ros_apt_source_mode: mirror",
+                field="ros_apt_source_sha256",
+                line=host.lines.get("ros_apt_source_sha256") or host.lines.get("ubuntu_release"), **where)
     if data.get("login_user") == "root" or (not data.get("login_user") and data.get("ssh_user") == "root"):
         field = "login_user" if data.get("login_user") else "ssh_user"
         report.error("the ROS environment belongs to a student account, not root: set login_user",

@@ -269,6 +269,11 @@ class RosterReader:
             data[key] = value
             if secrets.is_secret_reference(key) and value in (self._secrets or {}):
                 data[secrets.resolved_key(key)] = secrets.wrap(key, self._secrets[value])
+        if "ros_apt_source_sha256" in resolved and \
+                data["ros_apt_source_version"] == self.defaults["ros_apt_source_version"]:
+            # A pin the roster adds (e.g. resolute's) keeps roslab's known ones for the other releases.
+            data["ros_apt_source_sha256"] = {**self.defaults["ros_apt_source_sha256"],
+                                             **(data["ros_apt_source_sha256"] or {})}
         data["teacher_ssh_keys"] = self.teacher_keys(data["teacher_ssh_keys"])
         if data["ros_apt_source_cache_dir"]:
             data["ros_apt_source_cache_dir"] = os.path.expanduser(data["ros_apt_source_cache_dir"])

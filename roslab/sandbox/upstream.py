@@ -36,19 +36,23 @@ from pathlib import Path
 
 import yaml
 
+from roslab.distro import PLATFORMS
+from roslab.distro import ROS_APT_SOURCE_VERSION as ROS_APT_SOURCE_PIN
+
 from . import image
 from .system import SandboxError, file_lock, log, pid_alive, run, terminate, write_file
 
 # Bump when the archives' layout or the stand-ins change: part of the cache keys.
-ARCHIVE_VERSION = 4
+ARCHIVE_VERSION = 5
 
-ROS_APT_SOURCE_VERSION = "1.2.0"
+ROS_APT_SOURCE_VERSION = ROS_APT_SOURCE_PIN  # the version roslab pins (roslab.distro)
 
-# Ubuntu codename -> the ROS distro whose stand-ins its ROS archive suite holds.
-ROS_DISTROS = {"noble": "jazzy", "jammy": "humble"}
+# Ubuntu codename -> the ROS distro whose stand-ins its ROS archive suite holds
+# (roslab.distro's one record per Ubuntu/ROS pair).
+ROS_DISTROS = {p.codename: p.distro for p in PLATFORMS}
 UBUNTU_SUITE_POCKETS = ("", "-updates", "-backports", "-security")
 UBUNTU_COMPONENTS = ("main", "restricted", "universe", "multiverse")
-UBUNTU_VERSIONS = {"noble": "24.04", "jammy": "22.04"}
+UBUNTU_VERSIONS = {p.codename: p.release for p in PLATFORMS}
 
 # The real Debian tools ros-dev-tools brings (Debian's names for them).
 ROS_DEV_TOOLS_DEPENDS = (
