@@ -64,6 +64,10 @@ def check_host(host: Host, report: Report) -> None:
             distros.check_distro(override, codename)
         except distros.DistroError as exc:
             report.error(str(exc), field="ros_distro", line=host.lines.get("ros_distro"), **where)
+    if data.get("board") == "pi5" and codename and distros.BY_CODENAME[codename].release == "22.04":
+        report.error("there is no Ubuntu 22.04 image for a Raspberry Pi 5 (its first is 24.04): use "
+                     "ubuntu_release 24.04 (jazzy), or another board for Humble",
+                     field="board", line=host.lines.get("board") or host.lines.get("ubuntu_release"), **where)
     if data.get("ros_apt_source_enabled") and data.get("ros_apt_source_mode") == "mirror":
         for key in ("ros_apt_mirror_url", "ros_apt_mirror_key_file"):
             if not data.get(key):

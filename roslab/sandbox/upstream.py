@@ -97,6 +97,23 @@ VARIANT_DEPENDS = {
 
 STANDIN_NOTE = "roslab sandbox stand-in"
 
+# The simulators the robot profiles' ROS packages bring, as stand-ins that conflict the way the
+# real ones do: Gazebo Classic 11 (Humble's turtlebot3_gazebo, through gazebo_ros_pkgs) cannot be
+# installed beside Gazebo Harmonic (Jazzy's, through ros_gz) (turtlebot3_simulations#241).
+SIMULATOR_STANDINS = {
+    "gazebo11": ("11.10.2", "Gazebo Classic 11", "gz-harmonic"),
+    "gz-harmonic": ("8.9.0", "Gazebo Harmonic", "gazebo11"),
+}
+# ROS package key -> the simulator stand-in it depends on, per distro.
+SIMULATOR_OF = {("humble", "gazebo_ros_pkgs"): "gazebo11", ("jazzy", "ros_gz"): "gz-harmonic"}
+
+
+def profile_keys(distro: str) -> set[str]:
+    """Every ROS package roslab's built-in robot profiles install on `distro` (stand-ins for each)."""
+    from roslab.profiles.library import builtin_ros_packages
+
+    return builtin_ros_packages(distro)
+
 
 def debian_name(distro: str, key: str) -> str:
     """The apt package name of ROS package `key` for `distro` (ros-jazzy-launch-ros)."""
@@ -219,7 +236,8 @@ def _write_release(dist_dir: Path, key: SigningKey, **fields: str) -> None:
 
 def _build_deb(workdir: Path, package: str, version: str, description: str,
                files: dict[str, str | bytes] | None = None, depends: list[str] | None = None,
-               links: dict[str, str] | None = None, out_dir: Path | None = None) -> Path:
+               links: dict[str, str] | None = None, out_dir: Path | None = None,
+               conflicts: list[str] | None = None) -> Path:
     """Build an Architecture: all .deb of plain files with dpkg-deb."""
     root = workdir / package
     shutil.rmtree(root, ignore_errors=True)
@@ -238,6 +256,8 @@ def _build_deb(workdir: Path, package: str, version: str, description: str,
     )
     if depends:
         control += f"Depends: {', '.join(depends)}\n"
+    if conflicts:
+        control += f"Conflicts: {', '.join(conflicts)}\n"
     control += f"Description: {description}\n"
     write_file(root / "DEBIAN/control", control)
     out = (out_dir or workdir) / f"{package}_{version}_all.deb"
@@ -390,11 +410,16 @@ def ros_archive(extra_keys: set[str]) -> Path:
         common = out / "pool/main/common"
         _build_deb(work, "ros-dev-tools", "1.0.1", f"{STANDIN_NOTE}: ROS development tools (real Debian "
                    "rosdep, colcon and vcstool)", depends=list(ROS_DEV_TOOLS_DEPENDS), out_dir=common)
+        for simulator, (version, title, conflicts) in SIMULATOR_STANDINS.items():
+            _build_deb(work, simulator, version, f"{STANDIN_NOTE}: {title} (no simulator; conflicts with "
+                       f"{conflicts} as the real packages do)", conflicts=[conflicts], out_dir=common)
         for codename, distro in ROS_DISTROS.items():
             pool = out / "pool/main" / codename
-            for key in keys:
+            for key in sorted(set(keys) | profile_keys(distro)):
                 package = debian_name(distro, key)
                 files, depends = {}, [debian_name(distro, dep) for dep in VARIANT_DEPENDS.get(key, [])]
+                if (distro, key) in SIMULATOR_OF:
+                    depends.append(SIMULATOR_OF[(distro, key)])
                 if key == ROS_WORKSPACE_KEY:
                     prefix = f"/opt/ros/{distro}"
                     files = {f"{prefix}/{name}": setup_script(distro)
@@ -402,7 +427,7 @@ def ros_archive(extra_keys: set[str]) -> Path:
                     files[f"{prefix}/STANDIN"] = standin_marker(distro)
                     files[f"{prefix}/bin/ros2"] = standin_ros2(distro)
                 elif key not in VARIANT_DEPENDS:
-                    depends = [debian_name(distro, ROS_WORKSPACE_KEY)]
+                    depends = [debian_name(distro, ROS_WORKSPACE_KEY), *depends]
                 _build_deb(work, package, f"0.0.0-1{codename}", f"{STANDIN_NOTE}: {key} for ROS 2 {distro} "
                            "(no code)", files=files, depends=depends, out_dir=pool)
             dist_dir = out / "dists" / codename
@@ -414,8 +439,9 @@ def ros_archive(extra_keys: set[str]) -> Path:
         shutil.rmtree(work)
         shutil.rmtree(common)
 
-    return _cached_build("ros-archive", _cache_key(ARCHIVE_VERSION, keys, ROS_DEV_TOOLS_DEPENDS,
-                                                   signer.fingerprint), build)
+    profiles = {distro: sorted(profile_keys(distro)) for distro in ROS_DISTROS.values()}
+    return _cached_build("ros-archive", _cache_key(ARCHIVE_VERSION, keys, ROS_DEV_TOOLS_DEPENDS, profiles,
+                                                   SIMULATOR_STANDINS, signer.fingerprint), build)
 
 
 # -- per-instance content ----------------------------------------------------------------
@@ -479,7 +505,7 @@ def rosdistro_files(url: str, ros_keys: list[str]) -> dict[str, str]:
             key: {"release": {"packages": [key], "tags": {"release": f"release/{distro}/{{package}}/{{version}}"},
                               "url": f"{url}/release/{key}.git", "version": "0.0.0-1"},
                   "status": "maintained"}
-            for key in ros_keys
+            for key in sorted(set(ros_keys) | profile_keys(distro))
         }
         distribution = {"type": "distribution", "version": 2, "release_platforms": {"ubuntu": [codename]},
                         "repositories": repositories}
