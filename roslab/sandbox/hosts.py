@@ -60,8 +60,12 @@ def _pids_in(tree: Path) -> set[int]:
     return pids
 
 
-def kill_cgroup_trees(trees: list[Path], timeout: float = 10.0) -> None:
-    """SIGKILL every process in the cgroup trees, then remove the cgroups."""
+def kill_cgroup_trees(trees: list[Path], timeout: float = 60.0) -> None:
+    """SIGKILL every process in the cgroup trees, then remove the cgroups.
+
+    A killed process leaves only once the kernel has released its files: on a machine busy
+    with disk I/O (several sandboxes at once) that took more than 10 s, so the wait is longer.
+    """
     trees = [tree for tree in trees if tree.is_dir()]
     deadline = time.monotonic() + timeout
     while True:

@@ -84,6 +84,9 @@ STANDIN_ROS_KEYS = (
     "rclpy", "std_msgs", "sensor_msgs", "geometry_msgs", "diagnostic_msgs", "launch",
     "launch_ros", "ros2launch", "ros2cli", "ament_index_python", "ament_copyright",
     "ament_flake8", "ament_pep257", "ament_xmllint", "ament_lint_auto", "ament_lint_common",
+    # ros_extra_packages' documented example (ros-{distro}-turtlesim): the roster's package check
+    # reads the sandbox's rosdistro, so a name the sandbox does not serve is refused as a typo.
+    "turtlesim",
 )
 
 # The stand-ins carrying the setup scripts, and the variant metapackages.
