@@ -34,7 +34,7 @@ from roslab.distro import default_distro
 from roslab.operations import as_user
 from roslab.quoting import shell_home_path, shell_word
 from roslab.roster import RosterError
-from roslab.ros_env import ros_variables_of
+from roslab.ros_env import host_environment
 from roslab.workspace import NODES_SERVICE, NodesUnitState
 
 # The demo talker's message: nodes/roslab_demo/roslab_demo/logic.py, CHATTER_FORMAT
@@ -302,7 +302,7 @@ def hear(host, distro: str | None = None, timeout: int | None = None) -> dict:
     return host.get_fact(
         NodesHeard,
         distro=distro,
-        environment=ros_variables_of(host.data, distro),
+        environment=host_environment(host.data, distro),
         workspace_dir=host.data.workspace_dir,
         topic=host.data.nodes_verify_topic,
         timeout=timeout,
@@ -317,8 +317,8 @@ def _check_host(state: State, host) -> tuple[str, dict | None, str | None]:
     with ctx_host.use(host):
         try:
             service = service_state(host.get_fact(NodesUnitState, service=NODES_SERVICE))
-            if host.data.get("roslab_role") != "main":
-                return service, None, None
+            if host.data.get("roslab_role") != "main" or not host.data.get("nodes_verify_topic"):
+                return service, None, None  # a robot, or a main whose profile has nothing to hear (sim)
             return service, hear(host), None
         except Exception as error:  # one host's trouble is its team's row, not a crash
             return "?", None, f"{host.name}: {error}"

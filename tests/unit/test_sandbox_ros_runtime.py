@@ -105,6 +105,13 @@ def test_the_archive_serves_the_real_core_and_stand_ins_that_depend_on_it(monkey
     assert rclpy["Depends"] == "ros-jazzy-ros-core"
     xmllint = fields(pool / "ros-jazzy-ament-xmllint_0.0.0-1noble_all.deb", "Depends")
     assert xmllint["Depends"] == "ros-jazzy-ros-core, libxml2-utils"
+    # turtlesim and every built-in profile's package: stand-ins on the real core (Jazzy's
+    # ros_gz also on its simulator's stand-in, which conflicts with Gazebo Classic's).
+    for key in ("turtlesim", "turtlebot3_bringup", "turtlebot3_teleop", "ld08_driver", "turtlebot3_gazebo"):
+        deb = pool / f"ros-jazzy-{key.replace('_', '-')}_0.0.0-1noble_all.deb"
+        assert fields(deb, "Depends")["Depends"] == "ros-jazzy-ros-core", key
+    assert fields(pool / "ros-jazzy-ros-gz_0.0.0-1noble_all.deb", "Depends")["Depends"] == (
+        "ros-jazzy-ros-core, gz-harmonic")
     workspace = subprocess.run(["dpkg-deb", "--contents", pool / "ros-jazzy-ros-workspace_0.0.0-1noble_all.deb"],
                                capture_output=True, text=True, check=True).stdout
     assert "setup.bash" not in workspace  # the real tree's own setup scripts, not the stand-in's
@@ -130,3 +137,4 @@ def test_a_tarball_that_is_no_install_tree_is_refused(tmp_path):
     with pytest.raises(SandboxError, match="not a ROS 2 install tree for /opt/ros/jazzy"):
         ros_runtime.build_core_deb(tmp_path / "work", tarball, "jazzy", "ros-jazzy-ros-core", "1", "0" * 64,
                                    tmp_path / "out")
+
