@@ -121,6 +121,91 @@ def profile_keys(distro: str) -> set[str]:
     return builtin_ros_packages(distro)
 
 
+def profile_launches(distro: str) -> dict[str, dict[str, list[str]]]:
+    """ROS package -> {launch file -> the variables its profile sets on that side} for every launch
+    a built-in profile's service runs from a stand-in package on `distro`.
+
+    roslab_bringup is not among them: the demo's workspace builds it from source.
+    """
+    from roslab.profiles.library import builtin_profiles
+
+    stand_ins = profile_keys(distro)
+    launches: dict[str, dict[str, list[str]]] = {}
+    for profile in builtin_profiles().values():
+        if distro not in profile.distros:
+            continue
+        for side in profile.sides.values():
+            if not side.launch:
+                continue
+            package, launch_file = side.launch.split()
+            if package not in stand_ins:
+                continue
+            names = set(side.environment)
+            for block in side.when:
+                names |= set(block["side"].environment)
+            files = launches.setdefault(package, {})
+            files[launch_file] = sorted(set(files.get(launch_file, [])) | names)
+    return launches
+
+
+def standin_launch(distro: str, package: str, launch_file: str, variables: list[str]) -> str:
+    """A stand-in launch file: read by the REAL `ros2 launch` where the sandbox has a real runtime
+    (the stand-in `ros2` never reads it).
+
+    Like the real one, it needs the profile's variables (the real turtlebot3_bringup's
+    robot.launch.py ends in a KeyError without TURTLEBOT3_MODEL or LDS_MODEL), then runs one
+    labelled process that says which values it got and stays up (`sleep` under the label as its
+    argv[0], so `pgrep -f` and `ps` name it); the launch ends when it ends, so the service's
+    restart is what a real node's end would cause.
+    """
+    label = f"roslab-standin-{package}-{launch_file.removesuffix('.launch.py')}"
+    return (
+        f"# {STANDIN_NOTE} for {package}'s {launch_file} (ROS 2 {distro}): no robot code behind it.\n"
+        "# It needs the variables the real launch file needs, and runs one process that reports them.\n"
+        "import os\n\n"
+        "from launch import LaunchDescription\n"
+        "from launch.actions import ExecuteProcess, Shutdown\n\n"
+        f"LABEL = {label!r}\n"
+        f"VARIABLES = {variables!r}\n\n\n"
+        "def generate_launch_description():\n"
+        "    values = [f'{name}={os.environ[name]}' for name in VARIABLES]  # KeyError, as the real one\n"
+        "    return LaunchDescription([\n"
+        "        ExecuteProcess(\n"
+        "            name=LABEL,\n"
+        "            cmd=['/bin/bash', '-c',\n"
+        "                 'printf \"%s: stand-in, no robot code; got %s\\\\n\" \"$0\" \"$*\"; exec -a \"$0\" sleep infinity',\n"
+        "                 LABEL, *values],\n"
+        "            output='screen',\n"
+        "            on_exit=Shutdown(reason=f'{LABEL} ended'),\n"
+        "        ),\n"
+        "    ])\n"
+    )
+
+
+def standin_launch_files(distro: str, key: str) -> dict[str, str]:
+    """The files a stand-in package whose launch a profile runs carries: its launch files, its
+    package.xml and its ament index entry, where the real `ros2 launch` looks for them."""
+    launches = profile_launches(distro).get(key)
+    if not launches:
+        return {}
+    share = f"/opt/ros/{distro}/share"
+    files = {
+        f"{share}/ament_index/resource_index/packages/{key}": "",
+        f"{share}/{key}/package.xml": (
+            '<?xml version="1.0"?>\n<package format="3">\n'
+            f"  <name>{key}</name>\n  <version>0.0.0</version>\n"
+            f"  <description>{STANDIN_NOTE} for {key}: its launch files only</description>\n"
+            "  <maintainer email=\"roslab-sandbox@invalid\">roslab sandbox</maintainer>\n"
+            "  <license>Apache-2.0</license>\n"
+            "  <exec_depend>launch</exec_depend>\n"
+            "  <export><build_type>ament_python</build_type></export>\n</package>\n"
+        ),
+    }
+    for launch_file, variables in sorted(launches.items()):
+        files[f"{share}/{key}/launch/{launch_file}"] = standin_launch(distro, key, launch_file, variables)
+    return files
+
+
 def debian_name(distro: str, key: str) -> str:
     """The apt package name of ROS package `key` for `distro` (ros-jazzy-launch-ros)."""
     return f"ros-{distro}-{key.replace('_', '-')}"
@@ -439,7 +524,8 @@ def ros_archive(extra_keys: set[str], runtime: ros_runtime.Runtime | None = None
                 keys_to_stand_in = distro_keys
             for key in keys_to_stand_in:
                 package = debian_name(distro, key)
-                files, depends = {}, [debian_name(distro, dep) for dep in VARIANT_DEPENDS.get(key, [])]
+                files, depends = standin_launch_files(distro, key), [
+                    debian_name(distro, dep) for dep in VARIANT_DEPENDS.get(key, [])]
                 if (distro, key) in SIMULATOR_OF:
                     depends.append(SIMULATOR_OF[(distro, key)])
                 if key == ROS_WORKSPACE_KEY:
@@ -462,14 +548,20 @@ def ros_archive(extra_keys: set[str], runtime: ros_runtime.Runtime | None = None
         shutil.rmtree(common)
 
     profiles = {distro: sorted(profile_keys(distro)) for distro in ROS_DISTROS.values()}
+    launches = {distro: profile_launches(distro) for distro in ROS_DISTROS.values()}
     return _cached_build("ros-archive", _cache_key(ARCHIVE_VERSION, keys, ROS_DEV_TOOLS_DEPENDS, profiles,
-                                                   SIMULATOR_STANDINS, signer.fingerprint,
+                                                   launches, SIMULATOR_STANDINS, signer.fingerprint,
                                                    runtime.cache_key()), build)
 
 
 def _real_ros_packages(work: Path, codename: str, distro: str, keys: list[str],
                        runtime: ros_runtime.Runtime, pool: Path) -> None:
-    """A distro on real ROS: the real ros-core from its tree, ros-base on it, stand-ins on them."""
+    """A distro on real ROS: the real ros-core from its tree, ros-base on it, stand-ins on them.
+
+    A stand-in whose launch a profile's service runs (turtlebot3_bringup robot.launch.py)
+    carries a real launch file in the ament index (standin_launch_files), so the real
+    `ros2 launch` finds it and runs its labelled stand-in process.
+    """
     version = f"0.0.0-1{codename}"
     core = debian_name(distro, "ros_core")
     ros_runtime.build_core_deb(work, runtime.trees[distro], distro, core, version, runtime.sums[distro], pool)
@@ -485,8 +577,11 @@ def _real_ros_packages(work: Path, codename: str, distro: str, keys: list[str],
         depends += ros_runtime.LINTER_DEPENDS.get(key, ())
         if (distro, key) in SIMULATOR_OF:
             depends.append(SIMULATOR_OF[(distro, key)])
-        _build_deb(work, package, version, f"{STANDIN_NOTE}: {key} for ROS 2 {distro} (no files of its own; "
-                   "the real code, where the runtime has it, is in ros-core)", depends=depends, out_dir=pool)
+        files = standin_launch_files(distro, key)
+        what = "a stand-in launch" if files else "no files of its own"
+        _build_deb(work, package, version, f"{STANDIN_NOTE}: {key} for ROS 2 {distro} ({what}; "
+                   "the real code, where the runtime has it, is in ros-core)", files=files, depends=depends,
+                   out_dir=pool)
 
 
 # -- per-instance content ----------------------------------------------------------------

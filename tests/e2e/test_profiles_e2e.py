@@ -15,6 +15,11 @@ robot.launch.py` with the profile's variables (systemd says so; the stand-in `ro
 stays up like a healthy launch), the udev rules are in place, the login user is in dialout.
 systemd-udevd does not run in a container, so the reload step says the rules apply at the
 next boot (on a Pi it reloads udev and replays the devices' add events).
+
+With ROSLAB_SANDBOX_ROS_RUNTIME (CI), `ros2` on the Jazzy and Humble hosts is real: the bringup's
+stand-in package then carries a real robot.launch.py (roslab/sandbox/upstream.py,
+standin_launch_files) that the real `ros2 launch` runs, and its labelled process reports the
+variables it got in the service's journal (checked only there).
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ import os
 import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -142,6 +148,28 @@ def test_the_robots_service_runs_the_bringup_with_the_profiles_variables(sandbox
     # The main drives and watches: no bringup there, the model in the students' shell.
     assert login_shell(sandbox, "team1-main", "echo $TURTLEBOT3_MODEL/${LDS_MODEL:-unset}").strip() == "burger/unset"
     assert login_shell(sandbox, "team2-robot", 'printf %s "$ROSLAB_E2E_NOTE"') == NOTE
+
+
+def test_on_real_ros_the_bringups_launch_runs_with_the_profiles_variables(sandbox, first_run):
+    served = sandbox.ros_served
+    robots = [(host, model, lds) for host, distro, model, lds in (
+        ("team1-robot", "jazzy", "burger", "LDS-02"), ("team2-robot", "humble", "waffle", "LDS-01"))
+        if served.get(distro, "").startswith("real")]
+    if not robots:
+        pytest.skip("no real ROS runtime for Jazzy or Humble (ROSLAB_SANDBOX_ROS_RUNTIME): the stand-in ros2 "
+                    "does not read launch files")
+    label = "roslab-standin-turtlebot3_bringup-robot"
+    for host, model, lds in robots:
+        expected = f"{label}: stand-in, no robot code; got LDS_MODEL={lds} TURTLEBOT3_MODEL={model}"
+        deadline = time.monotonic() + 60  # the launch's first start after the deploy
+        while True:
+            journal = sandbox.sudo(host, f"journalctl -u {SERVICE} --no-pager -o cat", check=True).stdout
+            if expected in journal or time.monotonic() > deadline:
+                break
+            time.sleep(2)
+        assert expected in journal, (host, journal[-3000:])
+        assert show(sandbox, host, SERVICE, "ActiveState")["ActiveState"] == "active"
+        assert sandbox.ssh(host, f"pgrep -f '^{label} '").returncode == 0, host
 
 
 def test_the_lyrical_team_runs_the_demo_and_the_sim_main_keeps_discovery_on_the_host(sandbox, first_run):
