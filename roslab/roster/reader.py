@@ -404,6 +404,14 @@ class RosterReader:
         valid: dict[str, Value] = {}
         for option, key, text, value in self.command_line_data:
             shown = f"{option} {key}={text}" if option == "--data" else f"{option} {text}"
+            if option == "--data" and key in self.profile_settings and key not in settings.SETTINGS:
+                # A profile's own setting (lds_model...): checked against each host's profile like
+                # a roster value (apply_profile); here only its type.
+                if isinstance(value, str):
+                    valid[key] = Value(value, None)
+                else:
+                    report.error(f"{shown}: {settings.type_problem(value, str) or 'must be a string'}", field=key)
+                continue
             problem = overrides.key_problem(key)
             setting = settings.SETTINGS.get(key)
             if problem is None and setting is not None:
@@ -423,6 +431,8 @@ class RosterReader:
         a .pub file read into key lines), so what runs is what was checked."""
         report = Report(COMMAND_LINE)
         for key, item in self.command_line.items():
+            if key not in settings.SETTINGS:
+                continue  # a profile's setting: in the host's resolved profile, not its own data
             for host in classroom.hosts:
                 if host.data.get(key) != item.value:
                     option, text = self._command_line_shown[key]

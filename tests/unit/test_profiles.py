@@ -432,3 +432,18 @@ def test_role_named_keys_are_deprecated_aliases_of_the_role_free_ones(tmp_path):
         "(on the host, or in a robot profile's side); it is honoured for now",
         "lab.yaml:4: team 't1', field 'nodes_launch_main': nodes_launch_main is deprecated: set nodes_launch "
         "(on the host, or in a robot profile's side); it is honoured for now"]
+
+
+def test_a_profile_setting_from_pyinfras_command_line_is_checked_like_the_rosters(tmp_path, rosdistro_url):
+    from roslab.roster.overrides import command_line_data
+
+    roster = tb3_roster(tmp_path, rosdistro_url, "turtlebot3_model: burger\n            lds_model: LDS-02")
+    classroom = load_roster(roster, command_line=command_line_data(["pyinfra", "--data", "lds_model=LDS-03"]))
+    robot = next(host for host in classroom.hosts if host.role == "robot")
+    assert robot.data["roslab_profile"]["environment"]["LDS_MODEL"] == "LDS-03"
+    with pytest.raises(RosterError) as raised:
+        load_roster(roster, command_line=command_line_data(["pyinfra", "--data", "lds_model=LDS-9"]))
+    assert "'LDS-9' is not one of LDS-01, LDS-02, LDS-03" in str(raised.value)
+    with pytest.raises(RosterError) as raised:
+        load_roster(roster, command_line=command_line_data(["pyinfra", "--data", "lds_model=[1]"]))
+    assert "--data lds_model=[1]" in str(raised.value)
