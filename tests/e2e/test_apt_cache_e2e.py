@@ -7,8 +7,9 @@ counts what the class fetched:
 
 - the first run of all 12 hosts converges, every .deb (real Debian packages and stand-in
   ROS packages alike) is fetched from upstream by the cache host only (without the cache:
-  once per host), apt-cacher-ng downloads each .deb exactly once (its own transfer log), and
-  no host fetches rosdep's data (the controller did, once per file);
+  once per host), once each apart from apt-cacher-ng's immediate retries of transfers it
+  abandoned (see the test), and no host fetches rosdep's data (the controller did, once per
+  file);
 - with `offline: true` a freshly imaged host converges from the cache and the controller's
   kept copies, and nothing at all is fetched from upstream;
 - a second run of the cache host and a client changes nothing;
@@ -41,7 +42,8 @@ INSTANCE = os.environ.get("ROSLAB_CACHE_E2E_SANDBOX", "cache-e2e")
 SUBNET = os.environ.get("ROSLAB_CACHE_E2E_SUBNET", "10.213.42.0/24")
 HOSTS = 12
 # An upstream repeat of one .deb within this many seconds is apt-cacher-ng's retry of a
-# transfer it abandoned (see the first test); measured 2 ms to 0.5 s apart.
+# transfer it abandoned (see the first test); measured 2 ms to 0.5 s apart, so this leaves
+# room for a loaded machine and still tells a retry from a second miss minutes later.
 RETRY_WINDOW = 30
 ACNG_LOG = "/var/log/apt-cacher-ng/apt-cacher.log"
 CACHE_HOST = "team1-main"
@@ -108,29 +110,29 @@ def test_a_class_with_the_cache_downloads_each_deb_once(classroom):
     print(f"\n{HOSTS} hosts with the cache: first run {seconds:.0f} s, {len(fetched)} upstream requests, "
           f"{sum(r.bytes for r in fetched)} bytes; {len(debs)} .deb fetches for {len(per_path)} distinct .debs "
           f"(most fetched: {per_path.most_common(3)})")
-    # Each .deb downloaded once by the cache: apt-cacher-ng's own transfer log has exactly one
-    # download ("I" record) per .deb, and none that the upstream did not serve.
-    # The only others the upstream served are apt-cacher-ng and its dependencies, which the
-    # cache host installed itself (directly) before its cache was running.
+    # Each .deb fetched once for the class, apart from apt-cacher-ng's immediate retries:
+    # apt-cacher-ng sometimes closes a client's connection right after an answer, without
+    # `Connection: close`, while apt's next request is already on it; it then abandons the
+    # transfer it had started for that request and fetches the file again when apt asks anew
+    # (packet captures on the cache host; it does the same with nginx as the upstream, so real
+    # mirrors see it too). Its own log then may show that file's download twice. Such a
+    # repeat comes within a second; a file fetched again later in the run (a second miss, a
+    # host that was not served from the cache) fails here.
+    for path, count in per_path.items():
+        if count > 1:
+            times = [request.time for request in debs if request.path == path]
+            assert max(times) - min(times) < RETRY_WINDOW, (path, times)
+    # apt-cacher-ng's transfer log names the same files the upstream served, but for
+    # apt-cacher-ng itself and its dependencies, which the cache host installed directly
+    # before its cache was running.
     stored = cache_downloads(classroom)
-    downloads = Counter(path for _, path in stored)
-    assert downloads.most_common(1)[0][1] == 1, [(path, n) for path, n in downloads.most_common(10) if n > 1]
-    assert set(downloads) <= {unquote(path) for path in per_path}
+    downloads = {path for _, path in stored}
+    assert downloads <= {unquote(path) for path in per_path}
     first_download = min(when for when, _ in stored)
     direct = [request for request in debs if unquote(request.path) not in downloads]
     assert any("/apt-cacher-ng_" in request.path for request in direct), direct
     assert all(request.time < first_download + 1 for request in direct), \
         [request.path for request in direct if request.time >= first_download + 1]
-    # The upstream may see a .deb asked for again at once: apt-cacher-ng sometimes closes a
-    # client's connection right after an answer, without `Connection: close`, while apt's next
-    # request is already on it; it then drops the transfer it had started for that request
-    # and fetches the file again when apt asks anew. This happens with any web server (seen
-    # with nginx too), so it is no stand-in artefact; the abandoned transfer is never stored.
-    # A repeat is only ever that retry, seconds apart, never a second miss later in the run.
-    for path, count in per_path.items():
-        if count > 1:
-            times = [request.time for request in debs if request.path == path]
-            assert max(times) - min(times) < RETRY_WINDOW, (path, times)
 
     # rosdep's data: the controller's requests only (no host asks for it).
     rosdep = [request for request in fetched if request.path.startswith(("/rosdep/", "/rosdistro/"))]
