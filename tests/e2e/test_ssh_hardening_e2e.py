@@ -116,7 +116,11 @@ def test_a_students_broken_sshd_file_stops_the_step_and_sshd_keeps_its_config(sa
     run = deploy(sandbox, [BROKEN, HARDENED[0]])  # with a bystander: the other hosts carry on
     assert run.returncode != 0 and run.failed_hosts == [BROKEN], run.stderr[-4000:]
     output = run.stdout + run.stderr
-    assert output.count("roslab: sshd -t rejects the configuration, so ssh hardening changed nothing") == 1, output[-4000:]
+    said = "roslab: sshd -t rejects the configuration, so ssh hardening changed nothing"
+    # Said once while the step runs, and once more as the host's reason in the run summary.
+    assert output.count(f"[{BROKEN}] {said}") == 1, output[-4000:]
+    assert [line for line in output.splitlines() if line.strip().startswith(f"{BROKEN} ") and "failed" in line
+            and said in line], output[-4000:]
     assert f"{STUDENT_FILE}: line 1: Bad configuration option: PasswordAuthentcation" in output
     # Nothing changed: no drop-in, nothing left behind, sshd serves the old configuration.
     assert sandbox.sudo(BROKEN, f"ls -d {DROPIN}* /run/roslab-sshd-check.* 2>/dev/null").stdout == ""
