@@ -173,6 +173,18 @@ def bring_up(name: str, subnet: str, hosts: int | None = None) -> tuple[SandboxC
     return SandboxClassroom(classroom.instance, classroom.hosts), teardown
 
 
+def summary_lines(stderr: str) -> list[str]:
+    """The lines of the last `--> roslab summary` block of a run's output, whitespace squeezed."""
+    lines = [" ".join(line.split()) for line in stderr.splitlines()]
+    start = max(i for i, line in enumerate(lines) if line.startswith("--> roslab summary"))
+    block = []
+    for line in lines[start:]:
+        if not line:
+            break
+        block.append(line)
+    return block
+
+
 def _interrupt(signum, frame):
     # SIGTERM (a CI timeout, `kill`) would end pytest without running finalizers:
     # turn it into the interrupt Ctrl-C gives, which pytest unwinds through them.

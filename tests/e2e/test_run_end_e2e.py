@@ -30,7 +30,7 @@ import pytest
 import yaml
 
 from roslab import runs
-from tests.e2e.conftest import BIN, REPO
+from tests.e2e.conftest import BIN, REPO, summary_lines
 
 pytestmark = pytest.mark.e2e
 
@@ -43,14 +43,7 @@ INSTALL_STEP = "ROS 2 is installed for the host's distro and role | Ensure ROS 2
 
 def summary_block(stderr: str) -> tuple[str, dict[str, str], str]:
     """(header, host -> row, last line) of the last `--> roslab summary` block, squeezed."""
-    lines = [" ".join(line.split()) for line in stderr.splitlines()]
-    start = max(i for i, line in enumerate(lines) if line.startswith("--> roslab summary"))
-    block = []
-    for line in lines[start:]:
-        if not line:
-            break
-        block.append(line)
-    header, *rows, last = block
+    header, *rows, last = summary_lines(stderr)
     return header, {row.split()[0]: row for row in rows}, last
 
 

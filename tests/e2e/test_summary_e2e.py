@@ -11,23 +11,13 @@ from __future__ import annotations
 import pytest
 import yaml
 
+from tests.e2e.conftest import summary_lines
+
 pytestmark = pytest.mark.e2e
 
 STOPPED = "team1-robot"  # runs 24.04; the roster will say 22.04
 BROKEN = "team2-main"  # gets an extra package that no archive has
 MISSING = "roslab-e2e-no-such-package"
-
-
-def summary_lines(stderr: str) -> list[str]:
-    """The summary's lines (the last `--> roslab summary` block), whitespace squeezed."""
-    lines = [" ".join(line.split()) for line in stderr.splitlines()]
-    start = max(i for i, line in enumerate(lines) if line.startswith("--> roslab summary"))
-    block = []
-    for line in lines[start:]:
-        if not line:
-            break
-        block.append(line)
-    return block
 
 
 def test_a_failed_host_is_named_with_its_step_and_reason_and_the_others_carry_on(fresh_hosts, tmp_path):

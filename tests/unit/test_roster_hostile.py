@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import os
 import runpy
-import socket
 import sys
 import time
 from pathlib import Path
@@ -43,20 +42,6 @@ teams:
 LINE = {"classroom": 3, "team": 6, "host": 9}
 DOMAIN_LINE = 5  # a team's ros_domain_id replaces the template's own
 WHERE = {"classroom": "", "team": "team 'team1', ", "host": "team 'team1', host 'team1-main', "}
-
-
-@pytest.fixture
-def no_connections(monkeypatch):
-    """Any attempt to reach a host fails the test."""
-    attempts = []
-
-    def refuse(*args, **kwargs):
-        attempts.append(args)
-        raise AssertionError(f"a host was contacted: {args}")
-
-    monkeypatch.setattr(socket, "create_connection", refuse)
-    monkeypatch.setattr(socket.socket, "connect", refuse)
-    return attempts
 
 
 @pytest.fixture

@@ -11,7 +11,6 @@ from __future__ import annotations
 import ast
 import json
 import runpy
-import socket
 from pathlib import Path
 
 import pytest
@@ -139,20 +138,6 @@ def level_of(setting: settings.Setting) -> str:
 def expected_prefix(level: str, line: int, key: str) -> str:
     where = {"classroom": "", "team": "team 'team1', ", "host": "team 'team1', host 'team1-main', "}
     return f"lab.yaml:{line}: {where[level]}field '{key}': "
-
-
-@pytest.fixture
-def no_connections(monkeypatch):
-    """Any attempt to reach a host fails the test."""
-    attempts = []
-
-    def refuse(*args, **kwargs):
-        attempts.append(args)
-        raise AssertionError(f"a host was contacted: {args}")
-
-    monkeypatch.setattr(socket, "create_connection", refuse)
-    monkeypatch.setattr(socket.socket, "connect", refuse)
-    return attempts
 
 
 def inventory_refuses(path: Path, monkeypatch, capsys) -> str:
