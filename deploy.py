@@ -12,6 +12,7 @@ from deploy.apt_ready import apt_lists, apt_ready
 from deploy.common import supported_host
 from deploy.locale import system_locale
 from deploy.network import network
+from deploy.robot_profile import robot_profile
 from deploy.ros_apt_source import ros_apt_source
 from deploy.ros_install import ros_install
 from deploy.rosdep import rosdep
@@ -36,6 +37,7 @@ if supported_host():
     apt_cache_filled()  # one host per release downloads for the class before anyone installs
     system_locale()
     ros_install()
+    robot_profile()  # udev rules and groups (its packages are ros_install's)
     rosdep()
     shell_env()
     ssh_identity()

@@ -32,7 +32,7 @@ from pyinfra.operations import apt, files, systemd
 
 from deploy.common import host_codename, should_run, stop_host, where
 from roslab import probe, settings
-from roslab.distro import DistroError, codename_for, default_distro
+from roslab.distro import DistroError, codename_for
 from roslab.operations import (
     apt_install_options,
     apt_lists_updated,
@@ -208,18 +208,20 @@ def report_cache_down(cache_host: str, address: str, port: int, offline: bool) -
 
 def planned_packages(data, codename: str) -> list[str]:
     """The packages roslab's steps install on a host with these settings (a host.data mapping)
-    and Ubuntu codename: what the class cache is filled with before anyone installs."""
-    from deploy.ros_install import ros_packages  # deploy.py imports apt_cache first
+    and Ubuntu codename: what the class cache is filled with before anyone installs.
 
-    packages = []
-    if data.get("locale_enabled"):
-        packages.append("locales")
-    if data.get("ros_install_enabled"):
-        distro = data.get("ros_distro") or default_distro(codename)
-        packages += ros_packages(distro, data.get("roslab_role"), data)
-    if data.get("ssh_identity_enabled"):
-        packages.append("openssh-server")
-    return packages
+    Each step declares its packages once, beside itself (`@probe.installs`); this asks them
+    all. Every deploy module is imported first, so the list does not depend on which of them
+    the caller happened to import.
+    """
+    import importlib
+    import pkgutil
+
+    import deploy as deploy_package
+
+    for module in pkgutil.iter_modules(deploy_package.__path__):
+        importlib.import_module(f"deploy.{module.name}")
+    return probe.declared_packages(data, codename)
 
 
 def _settings_of(some_host) -> dict:

@@ -19,6 +19,12 @@ DEFAULTS = settings.defaults("locale")
 DEFAULT_LOCALE = "/etc/default/locale"
 
 
+@probe.installs
+def locale_packages(data, codename) -> list[str]:
+    """What this step installs (roslab.probe.installs): the locales package."""
+    return ["locales"] if data.get("locale_enabled") else []
+
+
 @deploy("A UTF-8 locale is generated and set system-wide", data_defaults=DEFAULTS)
 def system_locale():
     """Generate the locale and make it the system default in /etc/default/locale.
@@ -32,7 +38,7 @@ def system_locale():
 
     apt.packages(
         name="Ensure the locales package is installed",
-        packages=["locales"],
+        packages=locale_packages(host.data, None),
         extra_install_args=apt_install_options(host.data.apt_lock_timeout),
     )
     locale_generated(name=f"Ensure the locale {locale} is generated", locale=locale)

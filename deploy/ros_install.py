@@ -5,8 +5,9 @@ from __future__ import annotations
 from pyinfra import host
 from pyinfra.api import deploy
 
-from deploy.common import host_distro, should_run
+from deploy.common import host_codename, host_distro, should_run
 from roslab import probe, settings
+from roslab.distro import default_distro
 from roslab.operations import packages_installed
 from roslab.quoting import apt_arguments
 
@@ -14,19 +15,34 @@ DEFAULTS = settings.defaults("ros_install")
 
 
 def ros_packages(distro: str, role: str | None, data) -> list[str]:
-    """The apt packages a host of this role gets, from its settings (`data`: a mapping).
+    """The apt packages a host of this role gets, from its settings (`data`: a mapping): what this
+    step declares it installs (the class cache, deploy/apt_cache.py, fills itself from it).
+
+    The robot profile's packages for the host's side (roslab_profile, resolved from the roster)
+    come after the variant, the dev tools and ros_extra_packages.
 
     The variants and extra package names were checked by the schema (roslab.settings);
     `apt_arguments` refuses anything apt-get would read as an option all the same.
     """
-    variant = data["ros_variant"] or (
-        data["ros_variant_robot"] if role == "robot" else data["ros_variant_main"]
-    )
+    # The roster loader resolved ros_variant (host's, deprecated role key, profile side); a
+    # hand-made inventory without it gets the role's default.
+    variant = data["ros_variant"] or data[f"ros_variant_{'robot' if role == 'robot' else 'main'}"]
     packages = [f"ros-{distro}-{variant}"]
     if data["ros_dev_tools"]:
         packages.append("ros-dev-tools")
     packages += [name.replace("{distro}", distro) for name in data["ros_extra_packages"] or []]
+    profile = data.get("roslab_profile") or {}
+    if profile.get("distro") == distro:  # resolved for the distro the roster expects, which this host runs
+        packages += [name for name in profile.get("packages") or [] if name not in packages]
     return apt_arguments(packages)
+
+
+@probe.installs
+def ros_install_packages(data, codename: str) -> list[str]:
+    """What this step installs on a host of this codename (roslab.probe.installs)."""
+    if not data.get("ros_install_enabled"):
+        return []
+    return ros_packages(data.get("ros_distro") or default_distro(codename), data.get("roslab_role"), data)
 
 
 @deploy("ROS 2 is installed for the host's distro and role", data_defaults=DEFAULTS)
@@ -34,13 +50,14 @@ def ros_install():
     """Install ros-<distro>-<variant>, ros-dev-tools and the classroom's extra packages.
 
     Reads host.data: ros_install_enabled, ros_distro, ros_variant, ros_variant_main,
-    ros_variant_robot, ros_dev_tools, ros_extra_packages, roslab_role, apt_lock_timeout.
+    ros_variant_robot, ros_dev_tools, ros_extra_packages, roslab_role, roslab_profile,
+    apt_lock_timeout.
     (ubuntu_release is checked by deploy.common.supported_host.)
     """
     if not should_run("ros_install_enabled"):
         return
     distro = host_distro()
-    packages = ros_packages(distro, host.data.get("roslab_role"), host.data.dict())
+    packages = ros_install_packages(host.data.dict(), host_codename())  # as declared for the class cache
     packages_installed(
         name=f"Ensure ROS 2 {distro} is installed ({', '.join(packages)})",
         packages=packages,

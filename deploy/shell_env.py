@@ -22,7 +22,7 @@ from deploy.common import (
 from roslab import probe, settings
 from roslab.operations import managed_block, managed_block_reads
 from roslab.quoting import shell_home_path, shell_word
-from roslab.ros_env import ros_variables
+from roslab.ros_env import extra_variables, ros_variables
 from roslab.templating import render
 
 BLOCK_LABEL = "ROS 2 environment"
@@ -37,18 +37,20 @@ def render_ros_environment(
     static_peers: list[str] | tuple = (),
     workspace_dir: str = settings.SETTINGS["workspace_dir"].default,
     rosdistro_index_url: str | None = None,
+    extra: dict[str, str] | None = None,
 ) -> str:
-    """The text of the ~/.bashrc block for these (schema-checked) settings."""
+    """The text of the ~/.bashrc block for these (schema-checked) settings.
+
+    `extra`: the robot profile's and ros_environment's variables (roslab.ros_env.extra_variables).
+    """
+    variables = {**ros_variables(distro, domain_id, discovery_range, static_peers), **(extra or {})}
     return render(
         "bashrc-ros-environment.sh.j2",
         ros_setup=shell_word(f"/opt/ros/{distro}/setup.bash"),
         # "$HOME"/'rest': ~ would not expand inside quotes, and double quotes would run
         # a $(...) in the rest in every student shell.
         workspace_setup=shell_home_path(workspace_dir.rstrip("/") + "/install/setup.bash"),
-        ros_variables={
-            name: shell_word(value)
-            for name, value in ros_variables(distro, domain_id, discovery_range, static_peers).items()
-        },
+        ros_variables={name: shell_word(value) for name, value in variables.items()},
         rosdistro_index_url=shell_word(rosdistro_index_url) if rosdistro_index_url else None,
     )
 
@@ -61,7 +63,8 @@ def shell_env():
     """Write the ROS 2 environment block into the login user's ~/.bashrc.
 
     Reads host.data: shell_env_enabled, ros_domain_id, ros_automatic_discovery_range,
-    ros_static_peers, ros_distro, workspace_dir, rosdistro_index_url, login_user, ssh_user.
+    ros_static_peers, ros_distro, workspace_dir, rosdistro_index_url, login_user, ssh_user,
+    roslab_profile (its environment), ros_environment.
     """
     if not should_run("shell_env_enabled"):
         return
@@ -77,6 +80,7 @@ def shell_env():
             static_peers=host.data.ros_static_peers or [],
             workspace_dir=host.data.workspace_dir,
             rosdistro_index_url=host.data.rosdistro_index_url,
+            extra=extra_variables(host.data),
         )
     except ValueError as error:  # a value no shell word can carry (only `--data` skips the schema)
         stop_host(f"{where()}: shell_env: {error}; nothing was changed by this step")

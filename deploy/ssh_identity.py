@@ -38,6 +38,12 @@ def etc_hosts_lines(classroom_hosts) -> list[str]:
     return lines
 
 
+@probe.installs
+def ssh_identity_packages(data, codename) -> list[str]:
+    """What this step installs (roslab.probe.installs): openssh-server."""
+    return ["openssh-server"] if data.get("ssh_identity_enabled") else []
+
+
 @deploy(
     "SSH is on, the teacher's keys are authorised and the host knows its classroom's names",
     data_defaults=DEFAULTS,
@@ -53,7 +59,7 @@ def ssh_identity():
         return
     apt.packages(
         name="Ensure openssh-server is installed",
-        packages=["openssh-server"],
+        packages=ssh_identity_packages(host.data, None),
         extra_install_args=apt_install_options(host.data.apt_lock_timeout),
     )
     unit = sshd_unit()

@@ -38,7 +38,8 @@ from deploy.common import (
 from roslab import packaged, probe, settings
 from roslab import workspace as ws_ops
 from roslab.quoting import shell_word, systemd_assignment, systemd_value, systemd_word
-from roslab.ros_env import ros_variables_of
+from roslab.profiles.library import DEFAULT_PROFILE, builtin_profiles
+from roslab.ros_env import host_environment
 from roslab.templating import render
 from roslab.workspace import NODES_SERVICE, NODES_UNIT_PATH
 
@@ -77,7 +78,7 @@ def unit_text(
 ) -> str:
     """templates/roslab-nodes.service.j2 with every value written for systemd.
 
-    `launch` is the role's `nodes_launch_<role>` ("<package> <launch file>").
+    `launch` is the host's `role_launch()` ("<package> <launch file>").
     """
     script = exec_script(distro=distro, workspace_dir=workspace_dir, launch=launch)
     return render(
@@ -98,6 +99,25 @@ def unit_text(
     )
 
 
+def role_launch() -> str | None:
+    """What this host's service runs ("<package> <launch file>"), or None for no service:
+    nodes_launch, which the roster loader resolved (the host's own, a deprecated
+    nodes_launch_<role>, else its robot profile's launch for its side)."""
+    if not host.data.nodes_service_enabled:
+        return None
+    role = host.data.roslab_role
+    launch = host.data.get("nodes_launch") or host.data.get(f"nodes_launch_{role}")
+    if launch is None and host.data.get("roslab_profile") is None:
+        # A hand-made inventory (no roster, so no resolved profile): the default profile's launch.
+        side = builtin_profiles()[DEFAULT_PROFILE].sides.get(role)
+        launch = side.launch if side else None
+    return launch
+
+
+def profile_name() -> str:
+    return (host.data.get("roslab_profile") or {}).get("name") or "demo"
+
+
 @deploy("The demo nodes are built in the login user's workspace and run as the role's service",
         data_defaults=DEFAULTS)
 def workspace():
@@ -105,8 +125,9 @@ def workspace():
 
     Reads host.data: workspace_enabled, workspace_dir, workspace_nodes_dir,
     workspace_colcon_args, workspace_rosdep_install, nodes_service_enabled,
-    nodes_launch_main, nodes_launch_robot, login_user, ssh_user, ros_distro,
-    ros_domain_id, ros_automatic_discovery_range, ros_static_peers, roslab_role.
+    nodes_launch (nodes_launch_<role> in hand-made inventories), login_user, ssh_user, ros_distro,
+    ros_domain_id, ros_automatic_discovery_range, ros_static_peers, roslab_role,
+    roslab_profile (its environment and name), ros_environment.
     """
     if not should_run("workspace_enabled"):
         return
@@ -125,12 +146,12 @@ def workspace():
         stop_host(f"{where()}: workspace: {error}; nothing was changed by this step")
         return
 
+    launch = role_launch()
     try:  # before any change: a value the unit cannot carry stops this host only
         unit_file = unit_text(
             role=role, user=user, home=home, workspace_dir=workspace_dir, distro=distro,
-            launch=host.data.get(f"nodes_launch_{role}"),
-            environment=ros_variables_of(host.data, distro),
-        )
+            launch=launch, environment=host_environment(host.data, distro),
+        ) if launch else None
     except ValueError as error:  # e.g. a home directory whose name holds a newline
         stop_host(f"{where()}: workspace: {error}; nothing was changed by this step")
         return
@@ -175,10 +196,12 @@ def workspace():
         **as_login_user(user),
     )
 
-    if not host.data.nodes_service_enabled:
+    if unit_file is None:
         if host.get_fact(File, path=NODES_UNIT_PATH):
+            why = "nodes_service_enabled is off" if not host.data.nodes_service_enabled else \
+                f"robot profile {profile_name()!r} runs nothing on a {role}"
             systemd.service(
-                name=f"Ensure {NODES_SERVICE} is stopped and disabled (nodes_service_enabled is off)",
+                name=f"Ensure {NODES_SERVICE} is stopped and disabled ({why})",
                 service=NODES_SERVICE, running=False, enabled=False,
             )
         return
@@ -241,7 +264,7 @@ def workspace_reads() -> list:
         probe.read(ws_ops.WorkspaceStamps, workspace_dir=workspace_dir),
         *probe.service_reads(NODES_SERVICE),
     ]
-    if host.data.nodes_service_enabled:
+    if role_launch():
         reads += [*probe.put_reads(NODES_UNIT_PATH), probe.read(ws_ops.NodesUnitState, service=NODES_SERVICE)]
     else:
         reads.append(probe.read(File, path=NODES_UNIT_PATH))

@@ -99,6 +99,10 @@ def build_parser() -> argparse.ArgumentParser:
     register_seed(commands)  # roslab seed
     register_trust(commands)  # roslab trust, roslab forget
 
+    from roslab.profiles.opencr import register as register_opencr
+
+    register_opencr(commands)  # roslab opencr-update
+
     status = commands.add_parser(
         "status",
         help="show every host's state as a table and an HTML page",

@@ -631,6 +631,37 @@ _controller(nodes_dir, "a folder of ROS packages")
 
 # --- composite values ---------------------------------------------------------------------
 
+_VARIABLE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,127}")
+# Variables roslab writes from its own settings, or that would change what runs: never set
+# through an environment mapping.
+RESERVED_VARIABLES = frozenset({
+    "ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_STATIC_PEERS", "ROS_LOCALHOST_ONLY",
+    "ROSDISTRO_INDEX_URL", "HOME", "USER", "LOGNAME", "PATH", "SHELL", "LD_PRELOAD", "LD_LIBRARY_PATH",
+    "PYTHONPATH", "AMENT_PREFIX_PATH", "BASH_ENV", "ENV", "IFS", "PROMPT_COMMAND",
+})
+
+
+def variable(name, value) -> str | None:
+    """One environment variable roslab may write: a plain name, not roslab's own, one line of text."""
+    if not isinstance(name, str) or not _VARIABLE_NAME.fullmatch(name):
+        return f"{name!r} is not a variable name (letters, digits and _, not starting with a digit)"
+    if name in RESERVED_VARIABLES:
+        return f"{name} is not set through an environment mapping (roslab sets it from its own setting)"
+    if not isinstance(value, str):
+        return f"the value of {name} must be a string (quote it), not {value!r}"
+    problem = single_line(value)
+    return f"the value of {name} {problem}" if problem else None
+
+
+def environment(value: dict, context: Context | None = None) -> str | None:
+    """VARIABLE: value, each value one line of text."""
+    for name, text in value.items():
+        problem = variable(name, text)
+        if problem:
+            return problem
+    return None
+
+
 def launch(value: str, context: Context | None = None) -> str | None:
     """`<package> <launch file>`, e.g. 'roslab_bringup main.launch.py'."""
     problem = single_line(value)

@@ -258,6 +258,26 @@ def reader(function: Callable[[], Iterable[Read]]):
     return function
 
 
+# What each step installs, declared once beside the step (`@installs`): the step installs exactly
+# that list, and the class apt cache (deploy/apt_cache.py planned_packages) fills itself from it.
+INSTALLERS: list[Callable[[Any, str], list[str]]] = []
+
+
+def installs(function: Callable[[Any, str], list[str]]):
+    """Register what a step installs: `function(data, codename)` -> apt package names, for a
+    host with these settings (a host.data mapping) on this Ubuntu codename."""
+    INSTALLERS.append(function)
+    return function
+
+
+def declared_packages(data, codename: str) -> list[str]:
+    """Every registered step's packages for one host, in registration order, each once."""
+    packages: list[str] = []
+    for function in INSTALLERS:
+        packages += [name for name in function(data, codename) if name not in packages]
+    return packages
+
+
 def registered_reads() -> list[Read]:
     reads: list[Read] = []
     for function in READERS:

@@ -13,8 +13,10 @@ from collections.abc import Iterable
 
 from roslab.distro import DISCOVERY_RANGE_DISTROS
 
-# The host.data keys `ros_variables_of` reads (all from the shell_env concern).
+# The host.data keys `ros_variables_of` reads (all from the shell_env concern); `host_environment`
+# reads these, the resolved robot profile (roslab_profile) and ros_environment.
 SETTING_KEYS = ("ros_domain_id", "ros_automatic_discovery_range", "ros_static_peers")
+ENVIRONMENT_KEYS = (*SETTING_KEYS, "roslab_profile", "ros_environment")
 
 
 def ros_variables(
@@ -45,3 +47,18 @@ def ros_variables_of(data, distro: str) -> dict[str, str]:
         get("ros_automatic_discovery_range"),
         get("ros_static_peers") or (),
     )
+
+
+def extra_variables(data) -> dict[str, str]:
+    """The robot profile's variables (TURTLEBOT3_MODEL...), then the roster's ros_environment.
+
+    Both were checked before connecting (roslab.formats.variable): plain names, never roslab's
+    own ROS_* variables, one line each. The roster's value wins over the profile's.
+    """
+    profile = data.get("roslab_profile") or {}
+    return {**(profile.get("environment") or {}), **(data.get("ros_environment") or {})}
+
+
+def host_environment(data, distro: str) -> dict[str, str]:
+    """Every variable a host's shell, its service and `roslab verify` set: ROS's, then the extras."""
+    return {**ros_variables_of(data, distro), **extra_variables(data)}

@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from roslab import distro as distros
 from roslab import formats as f
 
 # Where a key may be set: everywhere, or only at one level.
@@ -173,14 +174,13 @@ SCHEMA: list[Setting] = [
         ("ros_apt_source_mode", "package", str,
          "package: install ros2-apt-source (official); mirror: a local mirror's key and URL.",
          f.choice("package", "mirror")),
-        ("ros_apt_source_version", "1.2.0", str, "The pinned ros2-apt-source release (1.2.0, 2026-04).",
-         f.version),
-        ("ros_apt_source_sha256", {
-            "noble": "0804d9b13db770eb87019be414cd78378835228ad5fa801fc88758596dd8f7e5",
-            "jammy": "767884cf4ed03116b9d64438930a832ed854147ae435279a7924dfdf60f94433",
-        }, dict,
-         "Ubuntu codename -> sha256 of that release's .deb. Copied from public install scripts that "
-         "pin 1.2.0; not verified from here (GitHub is unreachable): check once online.",
+        ("ros_apt_source_version", distros.ROS_APT_SOURCE_VERSION, str,
+         f"The pinned ros2-apt-source release ({distros.ROS_APT_SOURCE_VERSION}, 2026-04).", f.version),
+        ("ros_apt_source_sha256", distros.ros_apt_source_pins(), dict,
+         "Ubuntu codename -> sha256 of that release's .deb (roslab/distro.py's records). Pins set in a "
+         "roster are added to these (for the default version; another version needs all its pins). "
+         "roslab knows none for 26.04 (resolute) yet: set it from the release page, or use mirror mode. "
+         "The known ones are copied from public install scripts; not verified from here: check once online.",
          f.sha256_pins, {"allowed": "codename: 64 hex digits"}),
         ("ros_apt_source_url",
          "https://github.com/ros-infrastructure/ros-apt-source/releases/download/"
@@ -204,18 +204,45 @@ SCHEMA: list[Setting] = [
         _enabled("ros_install", "Install the ROS 2 packages."),
         ("ubuntu_release", "24.04", str,
          "The Ubuntu release the roster expects; a host running another release is stopped.",
-         f.ubuntu_release, {"allowed": "22.04, 24.04, 26.04"}),
-        ("ros_distro", None, str, "ROS 2 distro; None: the release's default (noble: jazzy, jammy: humble).",
-         f.ros_distro, {"nullable": True, "allowed": "humble, jazzy, kilted, lyrical"}),
-        ("ros_variant", None, str, "Variant to install; None: by role, see the next two keys.",
-         f.ros_variant, {"nullable": True}),
-        ("ros_variant_main", "desktop", str, "Variant for main hosts (with GUI: RViz, rqt, demos).",
-         f.ros_variant),
-        ("ros_variant_robot", "ros-base", str, "Variant for robots (no GUI).", f.ros_variant),
+         f.ubuntu_release, {"allowed": ", ".join(p.release for p in distros.PLATFORMS)}),
+        ("ros_distro", None, str, "ROS 2 distro; None: the release's default ("
+         + ", ".join(f"{p.codename}: {p.distro}" for p in distros.PLATFORMS) + ").",
+         f.ros_distro, {"nullable": True, "allowed": ", ".join(sorted(distros.DISTRO_RELEASES))}),
+        ("ros_variant", None, str,
+         "Variant to install; None: the robot profile's for the host's side (demo, turtlebot3: "
+         "desktop on the main, with RViz and rqt; ros-base on a robot).", f.ros_variant, {"nullable": True}),
+        ("ros_variant_main", "desktop", str,
+         "Deprecated (the role is not a key's business): set ros_variant on the main host, or in a "
+         "profile's main side. Still honoured, with a warning, when a roster sets it.", f.ros_variant),
+        ("ros_variant_robot", "ros-base", str,
+         "Deprecated: set ros_variant on the robot, or in a profile's robot side. Still honoured, "
+         "with a warning, when a roster sets it.", f.ros_variant),
         ("ros_dev_tools", True, bool, "Install ros-dev-tools (colcon, rosdep, vcstool)."),
         ("ros_extra_packages", [], list,
          'Extra apt packages for every host; "{distro}" is replaced, e.g. "ros-{distro}-turtlesim".',
          f.package_template, {"item": str, "allowed": "Debian package names"}),
+    ),
+    *_concern(
+        "robot_profile",
+        _enabled("robot_profile", "Apply the robot profile's udev rules and the login user's groups."),
+        ("robot_profile", "demo", str,
+         "What the team's hosts run (roslab/profiles/data, or the roster's own `profiles:`): demo "
+         "(roslab's talker/listener), turtlebot3 (robot + its main), sim (Gazebo on the main). "
+         "Its settings (e.g. turtlebot3_model, lds_model) are set beside it; see README, Robots.",
+         f.pattern(r"[a-z][a-z0-9_]{0,62}", "a profile name"),
+         {"allowed": "demo, turtlebot3, sim, or a roster's profile"}),
+        ("board", None, str,
+         "The board the host is: pi3b+, pi4, pi5 or pc; None: not said (nothing is checked). "
+         "Ubuntu 22.04 has no image for a Pi 5.", f.choice("pi3b+", "pi4", "pi5", "pc"),
+         {"nullable": True}),
+        ("ros_environment", {}, dict,
+         "Extra environment variables for the login user's shell (~/.bashrc block), the nodes' "
+         "service and `roslab verify`, e.g. {RCUTILS_COLORIZED_OUTPUT: \"1\"}; each value is "
+         "written with the escaping its destination needs.", f.environment,
+         {"allowed": "VARIABLE: one line of text"}),
+        ("ros_packages_check", True, bool,
+         "Before connecting, check every ROS package the roster or a profile names against the "
+         "distro's rosdistro file (from rosdistro_index_url; offline: the controller's copy)."),
     ),
     *_concern(
         "rosdep",
@@ -343,14 +370,20 @@ SCHEMA: list[Setting] = [
          "Run `rosdep install --from-paths src --ignore-src -y` when a package.xml changed."),
         ("nodes_service_enabled", True, bool,
          "Run the role's launch as the systemd service roslab-nodes, restarted whenever one of its nodes ends."),
-        ("nodes_launch_main", "roslab_bringup main.launch.py", str,
-         "What the service runs on main hosts: `ros2 launch <package> <launch file>`.", f.launch,
-         {"allowed": "<package> <file>.launch.py"}),
-        ("nodes_launch_robot", "roslab_bringup robot.launch.py", str,
-         "What the service runs on robots: `ros2 launch <package> <launch file>`.", f.launch,
-         {"allowed": "<package> <file>.launch.py"}),
-        ("nodes_verify_topic", "/chatter", str,
-         "The topic `roslab verify` expects each team's main host to hear from its robot.", f.ros_topic),
+        ("nodes_launch", None, str,
+         "What the host's service runs: `ros2 launch <package> <launch file>`; None: its robot "
+         "profile's launch for its side (demo: roslab_bringup main.launch.py / robot.launch.py, "
+         "turtlebot3: the robot's bringup, nothing on the main).", f.launch,
+         {"allowed": "<package> <file>.launch.py", "nullable": True}),
+        ("nodes_launch_main", None, str,
+         "Deprecated: set nodes_launch on the main host (or in a profile). Still honoured, with a "
+         "warning, for main hosts.", f.launch, {"allowed": "<package> <file>.launch.py", "nullable": True}),
+        ("nodes_launch_robot", None, str,
+         "Deprecated: set nodes_launch on the robot (or in a profile). Still honoured, with a "
+         "warning, for robots.", f.launch, {"allowed": "<package> <file>.launch.py", "nullable": True}),
+        ("nodes_verify_topic", None, str,
+         "The topic `roslab verify` expects each team's main host to hear from its robot; None: the "
+         "robot profile's (demo: /chatter, turtlebot3: /scan).", f.ros_topic, {"nullable": True}),
         ("nodes_verify_timeout", 20, int, "Seconds `roslab verify` waits for a message on that topic.",
          f.int_range(1, 600, " s")),
     ),

@@ -584,8 +584,10 @@ def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = 
 
 def page_context(classroom_name: str | None, roster: str, hosts: list[HostStatus], now: datetime,
                  listen: bool = False, topics: dict[str, str] | None = None,
-                 warnings: list[str] | None = None) -> dict:
-    """Everything the page shows, computed here (the template only loops and tests)."""
+                 warnings: list[str] | None = None, checklists: list[dict] | None = None) -> dict:
+    """Everything the page shows, computed here (the template only loops and tests).
+
+    `checklists`: per host, its robot profile's steps done by hand (`checklists()`)."""
     teams: dict[str, list[HostStatus]] = {}
     for host in hosts:
         teams.setdefault(host.team, []).append(host)
@@ -612,7 +614,26 @@ def page_context(classroom_name: str | None, roster: str, hosts: list[HostStatus
         "rows": [{"host": host.name, "cells": [host_cells(host, now)[column] for column in COLUMNS]}
                  for host in hosts],
         "warnings": warnings or [],
+        "checklists": checklists or [],
     }
+
+
+def checklists(classroom: Classroom, names: set[str] | None = None) -> list[dict]:
+    """Per host, the robot profile's steps that need the hardware attached (done by hand)."""
+    result = []
+    for host in classroom.hosts:
+        profile = host.data.get("roslab_profile") or {}
+        if profile.get("checklist") and (names is None or host.name in names):
+            result.append({"host": host.name, "profile": profile.get("name"), "items": list(profile["checklist"])})
+    return result
+
+
+def format_checklists(lists: list[dict]) -> str:
+    lines = ["Hardware checklist (by hand, with the hardware attached):"]
+    for entry in lists:
+        lines.append(f"  {entry['host']} ({entry['profile']}):")
+        lines += [f"    [ ] {item}" for item in entry["items"]]
+    return "\n".join(lines)
 
 
 def render_page(context: dict) -> str:
@@ -700,12 +721,16 @@ def run(args: argparse.Namespace) -> int:
     now = now_utc()
     topics = {host.team: host.data.get("nodes_verify_topic") or "/chatter"
               for host in classroom.hosts if host.role == "main"}
-    context = page_context(classroom.name, display_path(path), statuses, now, args.listen, topics, warnings)
+    context = page_context(classroom.name, display_path(path), statuses, now, args.listen, topics, warnings,
+                           checklists(classroom, {status.name for status in statuses}))
     for warning in warnings:
         print(f"warning: {warning}", file=sys.stderr)
     title = f"Classroom {classroom.name!r}" if classroom.name else "Classroom"
     print(f"{title} ({display_path(path)}), {now.astimezone().strftime('%Y-%m-%d %H:%M:%S')}")
     print(format_table(statuses, now))
+    if context["checklists"]:
+        print()
+        print(format_checklists(context["checklists"]))
     if args.listen:
         print()
         for picture in context["teams"]:

@@ -34,7 +34,7 @@ from roslab.distro import default_distro
 from roslab.operations import as_user
 from roslab.quoting import shell_home_path, shell_word
 from roslab.roster import RosterError
-from roslab.ros_env import ros_variables_of
+from roslab.ros_env import host_environment
 from roslab.workspace import NODES_SERVICE, NodesUnitState
 
 # The demo talker's message: nodes/roslab_demo/roslab_demo/logic.py, CHATTER_FORMAT
@@ -186,6 +186,9 @@ class TeamResult:
     services: dict = field(default_factory=dict)  # host name -> "active (running)", "failed (...)", ...
     heard: dict | None = None  # NodesHeard of the main host
     error: str | None = None
+    # Hosts whose roster gives them no launch (a TurtleBot3's main: its profile runs nothing there),
+    # so no roslab-nodes service is theirs to run.
+    without_service: set = field(default_factory=set)
 
     def services_down(self) -> list[tuple[str, str]]:
         """(host, state) of the team's hosts whose nodes service is not active (running).
@@ -196,7 +199,8 @@ class TeamResult:
         """
         hosts = ([self.main] if self.main else []) + list(self.robots)
         return [(host, self.services.get(host, "?")) for host in hosts
-                if self.services.get(host) != SERVICE_RUNNING]
+                if self.services.get(host) != SERVICE_RUNNING
+                and not (host in self.without_service and self.services.get(host) == "not installed")]
 
     @property
     def passed(self) -> bool:
@@ -302,7 +306,7 @@ def hear(host, distro: str | None = None, timeout: int | None = None) -> dict:
     return host.get_fact(
         NodesHeard,
         distro=distro,
-        environment=ros_variables_of(host.data, distro),
+        environment=host_environment(host.data, distro),
         workspace_dir=host.data.workspace_dir,
         topic=host.data.nodes_verify_topic,
         timeout=timeout,
@@ -312,13 +316,22 @@ def hear(host, distro: str | None = None, timeout: int | None = None) -> dict:
     )
 
 
+def runs_a_launch(data) -> bool:
+    """Whether the roster gives the host a launch for roslab-nodes to run: its nodes_launch (or a
+    deprecated nodes_launch_<role>), as the roster loader resolved it from the robot profile; a
+    host without a resolved profile (a hand-made inventory) runs the demo's."""
+    if data.get("roslab_profile") is None:
+        return True
+    return bool(data.get("nodes_launch") or data.get(f"nodes_launch_{data.get('roslab_role')}"))
+
+
 def _check_host(state: State, host) -> tuple[str, dict | None, str | None]:
     """(service state, NodesHeard on main hosts, error) for one host."""
     with ctx_host.use(host):
         try:
             service = service_state(host.get_fact(NodesUnitState, service=NODES_SERVICE))
-            if host.data.get("roslab_role") != "main":
-                return service, None, None
+            if host.data.get("roslab_role") != "main" or not host.data.get("nodes_verify_topic"):
+                return service, None, None  # a robot, or a main whose profile has nothing to hear (sim)
             return service, hear(host), None
         except Exception as error:  # one host's trouble is its team's row, not a crash
             return "?", None, f"{host.name}: {error}"
@@ -343,6 +356,8 @@ def verify(state: State) -> list[TeamResult]:
         service, heard, error = greenlet.get()
         team = team_of(host)
         team.services[host.name] = service
+        if not runs_a_launch(host.data):
+            team.without_service.add(host.name)
         if host.data.get("roslab_role") == "main":
             team.main, team.heard = host.name, heard
             team.topic = host.data.get("nodes_verify_topic") or team.topic

@@ -15,6 +15,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from roslab.network.settings import validate_roster as _validate_network
+from roslab.profiles.packages import check_classroom as _check_ros_packages
 from roslab.roster.checks import Validator, check_classroom
 from roslab.roster.inventory import add_host_lists, default_roster_path, inventory_groups
 from roslab.roster.model import ROLES, Classroom, Host, Team
@@ -22,7 +23,7 @@ from roslab.roster.problems import Problem, Report, RosterError, display_path
 from roslab.roster.reader import RosterReader
 
 # Checks across the classroom that live with their concern, each `(classroom, report)`.
-VALIDATORS: list[Validator] = [_validate_network]
+VALIDATORS: list[Validator] = [_validate_network, _check_ros_packages]
 
 
 def load_roster(path: Path | str, validators: list[Validator] | None = None,

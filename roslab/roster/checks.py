@@ -64,6 +64,10 @@ def check_host(host: Host, report: Report) -> None:
             distros.check_distro(override, codename)
         except distros.DistroError as exc:
             report.error(str(exc), field="ros_distro", line=host.lines.get("ros_distro"), **where)
+    if data.get("board") == "pi5" and codename and distros.BY_CODENAME[codename].release == "22.04":
+        report.error("there is no Ubuntu 22.04 image for a Raspberry Pi 5 (its first is 24.04): use "
+                     "ubuntu_release 24.04 (jazzy), or another board for Humble",
+                     field="board", line=host.lines.get("board") or host.lines.get("ubuntu_release"), **where)
     if data.get("ros_apt_source_enabled") and data.get("ros_apt_source_mode") == "mirror":
         for key in ("ros_apt_mirror_url", "ros_apt_mirror_key_file"):
             if not data.get(key):
@@ -71,9 +75,14 @@ def check_host(host: Host, report: Report) -> None:
                              field=key, line=host.lines.get("ros_apt_source_mode"), **where)
     elif data.get("ros_apt_source_enabled") and codename:
         if codename not in (data.get("ros_apt_source_sha256") or {}):
-            report.error(f"has no sha256 for Ubuntu {codename}, which this host runs",
-                         field="ros_apt_source_sha256", line=host.lines.get("ros_apt_source_sha256"),
-                         **where)
+            version = data.get("ros_apt_source_version")
+            report.error(
+                f"roslab knows no sha256 of ros2-apt-source {version} for Ubuntu {host.ubuntu_release} "
+                f"({codename}), which this host runs: set ros_apt_source_sha256: {{{codename}: <sha256 of "
+                f"ros2-apt-source_{version}.{codename}_all.deb>}} from its release page, "
+                "or use ros_apt_source_mode: mirror",
+                field="ros_apt_source_sha256",
+                line=host.lines.get("ros_apt_source_sha256") or host.lines.get("ubuntu_release"), **where)
     if data.get("login_user") == "root" or (not data.get("login_user") and data.get("ssh_user") == "root"):
         field = "login_user" if data.get("login_user") else "ssh_user"
         report.error("the ROS environment belongs to a student account, not root: set login_user",

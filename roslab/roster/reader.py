@@ -33,7 +33,10 @@ from roslab.roster.loading import (
 from roslab.roster.model import Classroom, Host, Team
 from roslab.roster.problems import Report, display_path
 
-TOP_LEVEL_KEYS = ("classroom", "teams")
+TOP_LEVEL_KEYS = ("classroom", "teams", "profiles")
+# Role-named keys kept as aliases of the role-free ones (a warning says which to set instead).
+DEPRECATED = {"ros_variant_main": "ros_variant", "ros_variant_robot": "ros_variant",
+              "nodes_launch_main": "nodes_launch", "nodes_launch_robot": "nodes_launch"}
 DEFAULT_SECRETS_FILE = "secrets.yaml"
 _TEAM_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,62}", re.ASCII)
 # Connection keys pyinfra reads from host data under the same name.
@@ -94,6 +97,8 @@ class RosterReader:
         self.secrets_refused = False
         self.secrets_default_problem: str | None = None
         self._key_files: dict[str, list[str]] = {}  # teacher_ssh_keys entry -> its key lines
+        self.profiles: dict = {}  # name -> roslab.profiles.Profile (built-in and the roster's)
+        self.profile_settings: dict[str, list[str]] = {}  # profile setting -> profiles declaring it
 
     # --- one level ---
 
@@ -112,6 +117,15 @@ class RosterReader:
             if key == "hosts" and level == "team":
                 continue
             setting = allowed.get(key)
+            if setting is None and key in self.profile_settings:
+                # A profile's own setting (lds_model...): checked against the host's profile once
+                # its profile is known (read_host); here only its type.
+                if not isinstance(value, str):
+                    self.report.error(settings.type_problem(value, str) or "must be a string",
+                                      line=line, field=key, **where)
+                else:
+                    valid[key] = Value(value, line)
+                continue
             if setting is None:
                 self.report.error(unknown_key_message(key, level), line=line, field=key, **where)
                 continue
@@ -225,6 +239,10 @@ class RosterReader:
                 self.report.error(f"unknown top-level key {key!r}{hint}",
                                   line=line_of(roster, key), field=str(key))
 
+        from roslab.profiles.library import profile_setting_names, roster_profiles  # profiles read rosters' YAML
+
+        self.profiles = roster_profiles(roster.get("profiles"), self.report)
+        self.profile_settings = profile_setting_names(self.profiles)
         classroom_map = roster.get("classroom") or Mapping()
         if not isinstance(classroom_map, dict):
             self.report.error("'classroom' must be a mapping of settings",
@@ -329,7 +347,7 @@ class RosterReader:
 
         data = dict(self.defaults)
         for key, item in resolved.items():
-            if key in ("name", "secrets_file", "role", "address"):
+            if key in ("name", "secrets_file", "role", "address") or key not in settings.SETTINGS:
                 continue
             setting = settings.SETTINGS[key]
             value = item.value
@@ -340,6 +358,11 @@ class RosterReader:
             data[key] = value
             if secrets.is_secret_reference(key) and value in (self._secrets or {}):
                 data[secrets.resolved_key(key)] = secrets.wrap(key, self._secrets[value])
+        if "ros_apt_source_sha256" in resolved and \
+                data["ros_apt_source_version"] == self.defaults["ros_apt_source_version"]:
+            # A pin the roster adds (e.g. resolute's) keeps roslab's known ones for the other releases.
+            data["ros_apt_source_sha256"] = {**self.defaults["ros_apt_source_sha256"],
+                                             **(data["ros_apt_source_sha256"] or {})}
         data["teacher_ssh_keys"] = self.teacher_keys(data["teacher_ssh_keys"])
         if data["ros_apt_source_cache_dir"]:
             data["ros_apt_source_cache_dir"] = os.path.expanduser(data["ros_apt_source_cache_dir"])
@@ -361,6 +384,15 @@ class RosterReader:
         if data.get("ssh_user") not in (None, "root"):
             data["_sudo"] = True  # a Pi's default user provisions through sudo
         lines = {key: item.line for key, item in resolved.items()}
+        for old_key, new_key in DEPRECATED.items():
+            if any(level.get(old_key) is not None and level[old_key].value is not None
+                   for level in (*outer, own)):
+                self.report.warning(f"{old_key} is deprecated: set {new_key} (on the host, or in a robot "
+                                    "profile's side); it is honoured for now", field=old_key,
+                                    line=lines.get(old_key), team=team.name)
+        set_here = {key for level in (*outer[1:], own) for key in level}  # team and host, not classroom
+        self.apply_profile(data, resolved, set_here, lines, line, where)
+        variant = data["ros_variant"] or variant
         return Host(name, team.name, role, address, release, expected, variant,
                     team.ros_domain_id, data, line, lines)
 
@@ -372,6 +404,14 @@ class RosterReader:
         valid: dict[str, Value] = {}
         for option, key, text, value in self.command_line_data:
             shown = f"{option} {key}={text}" if option == "--data" else f"{option} {text}"
+            if option == "--data" and key in self.profile_settings and key not in settings.SETTINGS:
+                # A profile's own setting (lds_model...): checked against each host's profile like
+                # a roster value (apply_profile); here only its type.
+                if isinstance(value, str):
+                    valid[key] = Value(value, None)
+                else:
+                    report.error(f"{shown}: {settings.type_problem(value, str) or 'must be a string'}", field=key)
+                continue
             problem = overrides.key_problem(key)
             setting = settings.SETTINGS.get(key)
             if problem is None and setting is not None:
@@ -391,6 +431,8 @@ class RosterReader:
         a .pub file read into key lines), so what runs is what was checked."""
         report = Report(COMMAND_LINE)
         for key, item in self.command_line.items():
+            if key not in settings.SETTINGS:
+                continue  # a profile's setting: in the host's resolved profile, not its own data
             for host in classroom.hosts:
                 if host.data.get(key) != item.value:
                     option, text = self._command_line_shown[key]
@@ -417,3 +459,51 @@ class RosterReader:
                 self._key_files[entry] = formats.public_key_lines(text) or []
             keys.extend(self._key_files[entry])
         return keys
+
+    def apply_profile(self, data: dict, resolved: dict, set_here: set, lines: dict, line, where: dict) -> None:
+        """Resolve the host's robot profile into `data["roslab_profile"]` (problems reported)."""
+        from roslab.profiles.resolve import resolve_host
+
+        def error(message, field):
+            self.report.error(message, field=field, line=lines.get(field) or lines.get("robot_profile") or line,
+                              **where)
+
+        name = data["robot_profile"]
+        profile = self.profiles.get(name)
+        if profile is None:
+            close = difflib.get_close_matches(name, sorted(self.profiles), n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            error(f"{name!r} is not a robot profile (known: {', '.join(sorted(self.profiles))}){hint}",
+                  "robot_profile")
+            data["roslab_profile"] = None
+            return
+        given = {key: item.value for key, item in resolved.items() if key in self.profile_settings}
+        for key in sorted(set(given) - set(profile.settings)):
+            if key in set_here:
+                owners = ", ".join(self.profile_settings[key])
+                error(f"{key} is a setting of profile {owners}, not of this host's profile {name!r}", key)
+            del given[key]
+        distro = data["roslab_expected_distro"]
+        if distro is None:  # an unknown release: reported by its own check
+            data["roslab_profile"] = None
+            return
+        result, problems = resolve_host(profile, given, distro=distro, role=data["roslab_role"],
+                                        board=data.get("board"))
+        for problem in problems:
+            error(problem.message, problem.field)
+        data["roslab_profile"] = result
+        if result is None:
+            return
+        role = data["roslab_role"]
+        # Role-free keys: the host's own value, else the deprecated role-named key the roster set,
+        # else the profile's side.
+        for key, profile_value in (("nodes_launch", result["launch"]), ("ros_variant", result["variant"])):
+            old_key = f"{key}_{role}"
+            if data.get(key) is None and old_key in resolved and data.get(old_key) is not None:
+                data[key] = data[old_key]
+            elif data.get(key) is None:
+                data[key] = profile_value or data.get(old_key)
+        if data.get("nodes_verify_topic") is None:
+            data["nodes_verify_topic"] = result["verify_topic"]
+        if result["discovery"] == "localhost" and "ros_automatic_discovery_range" not in resolved:
+            data["ros_automatic_discovery_range"] = "LOCALHOST"

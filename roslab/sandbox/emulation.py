@@ -13,10 +13,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-# Ubuntu release -> what its os-release says.
+from roslab.distro import PLATFORMS
+
+# Ubuntu release -> what its os-release says (from roslab.distro's one record per release).
 RELEASES = {
-    "24.04": {"codename": "noble", "pretty": "Ubuntu 24.04.2 LTS", "version": "24.04.2 LTS (Noble Numbat)"},
-    "22.04": {"codename": "jammy", "pretty": "Ubuntu 22.04.5 LTS", "version": "22.04.5 LTS (Jammy Jellyfish)"},
+    p.release: {"codename": p.codename, "pretty": p.pretty, "version": p.version_text} for p in PLATFORMS
 }
 
 HEADER = "# roslab sandbox emulation of Ubuntu {release}: this host runs a Debian userland.\n"
@@ -29,7 +30,7 @@ class HostIdentity:
     """What one emulated host is: its name, release and address on the sandbox network."""
 
     hostname: str
-    release: str  # "24.04" or "22.04"
+    release: str  # "24.04", "22.04" or "26.04"
     address: str  # "10.213.0.11"
     prefixlen: int  # 24
     flavour: str = "server"  # "server" (networkd) or "desktop" (NetworkManager)

@@ -25,8 +25,25 @@ UPSTREAM_PORT = 8080
 FIRST_HOST_OCTET = 11  # hosts are .11, .12, ...; .1 is the bridge (the "upstream")
 MAX_HOSTS = 200
 
-# Team n's release: odd teams on 24.04, even teams on 22.04.
+# Team n's release: odd teams on 24.04, even teams on 22.04, unless $ROSLAB_SANDBOX_RELEASES
+# lists the teams' releases in turn (e.g. "24.04,22.04,26.04"; the list repeats).
 RELEASES_BY_TEAM = ("24.04", "22.04")
+RELEASES_ENV = "ROSLAB_SANDBOX_RELEASES"
+
+
+def releases_by_team() -> tuple[str, ...]:
+    """The Ubuntu release of team 1, 2, ... in turn ($ROSLAB_SANDBOX_RELEASES, else RELEASES_BY_TEAM)."""
+    from roslab.distro import BY_RELEASE
+
+    text = os.environ.get(RELEASES_ENV, "").strip()
+    if not text:
+        return RELEASES_BY_TEAM
+    releases = tuple(part.strip() for part in text.split(","))
+    unknown = [release for release in releases if release not in BY_RELEASE]
+    if unknown or not releases:
+        raise SandboxError(f"{RELEASES_ENV}={text!r}: {', '.join(unknown) or 'empty'} is not a release the "
+                           f"sandbox emulates ({', '.join(BY_RELEASE)})")
+    return releases
 
 _NAME_RE = re.compile(r"^[a-z][a-z0-9-]{0,30}$")
 
@@ -118,21 +135,23 @@ class Instance:
         return self.state_dir / "hosts" / host.name
 
     # -- the classroom ---------------------------------------------------------------
-    def plan_hosts(self, count: int, desktop: Iterable[str] = ()) -> list[SandboxHost]:
-        """`count` hosts in teams of two (main, robot), teams alternating 24.04 and 22.04.
+    def plan_hosts(self, count: int, desktop: Iterable[str] = (),
+                   releases: Iterable[str] | None = None) -> list[SandboxHost]:
+        """`count` hosts in teams of two (main, robot), teams on the releases of `releases_by_team()`.
 
         Hosts named in `desktop` are Ubuntu Desktop-like (NetworkManager), the rest Server-like.
         """
         if not 1 <= count <= min(MAX_HOSTS, self.subnet.num_addresses - FIRST_HOST_OCTET - 1):
             raise SandboxError(f"--hosts {count}: a sandbox holds 1 to {MAX_HOSTS} hosts")
         hosts = []
+        releases = tuple(releases or ()) or releases_by_team()
         for index in range(count):
             team_number, member = divmod(index, 2)
             team = f"team{team_number + 1}"
             role = ("main", "robot")[member]
             hosts.append(SandboxHost(
                 name=f"{team}-{role}", team=team, role=role,
-                release=RELEASES_BY_TEAM[team_number % 2], index=index,
+                release=releases[team_number % len(releases)], index=index,
                 address=str(self.subnet.network_address + FIRST_HOST_OCTET + index),
             ))
         desktop = set(desktop)

@@ -22,7 +22,7 @@ import yaml
 from roslab import identity
 
 from . import hosts, image, seeding, upstream
-from .instance import STATE_ROOT, UPSTREAM_PORT, Instance, SandboxHost
+from .instance import STATE_ROOT, UPSTREAM_PORT, Instance, SandboxHost, releases_by_team
 from .system import SandboxError, announced, file_lock, log, run, write_file
 
 DEFAULT_HOSTS = 4
@@ -62,7 +62,8 @@ def load(instance: Instance | None = None) -> Classroom:
     except FileNotFoundError:
         raise SandboxError(f"no sandbox {instance.name!r} is running: run `roslab sandbox up`") from None
     instance = replace(instance, subnet=IPv4Network(state["subnet"]))
-    return Classroom(instance, instance.plan_hosts(state["hosts"], state.get("desktop", ())))
+    return Classroom(instance, instance.plan_hosts(state["hosts"], state.get("desktop", ()),
+                                                   state.get("releases")))
 
 
 def known_hosts(instance: Instance) -> Path:
@@ -160,7 +161,8 @@ def _up_locked(instance: Instance, planned: list[SandboxHost]) -> Classroom:
     instance.state_dir.mkdir(parents=True, mode=0o700)
     desktop = [host.name for host in planned if host.flavour == "desktop"]
     write_file(_state_file(instance), json.dumps(
-        {"hosts": len(planned), "subnet": str(instance.subnet), "desktop": desktop}) + "\n")
+        {"hosts": len(planned), "subnet": str(instance.subnet), "desktop": desktop,
+         "releases": list(releases_by_team())}) + "\n")
     _claim_machine(instance)
     run("ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-C", f"roslab-sandbox-{instance.name}",
         "-f", instance.key_path)

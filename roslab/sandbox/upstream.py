@@ -39,19 +39,23 @@ from pathlib import Path
 
 import yaml
 
+from roslab.distro import PLATFORMS
+from roslab.distro import ROS_APT_SOURCE_VERSION as ROS_APT_SOURCE_PIN
+
 from . import image, ros_runtime
 from .system import SandboxError, file_lock, log, pid_alive, run, terminate, write_file
 
 # Bump when the archives' layout or the stand-ins change: part of the cache keys.
-ARCHIVE_VERSION = 5
+ARCHIVE_VERSION = 6
 
-ROS_APT_SOURCE_VERSION = "1.2.0"
+ROS_APT_SOURCE_VERSION = ROS_APT_SOURCE_PIN  # the version roslab pins (roslab.distro)
 
-# Ubuntu codename -> the ROS distro whose stand-ins its ROS archive suite holds.
-ROS_DISTROS = {"noble": "jazzy", "jammy": "humble"}
+# Ubuntu codename -> the ROS distro whose stand-ins its ROS archive suite holds
+# (roslab.distro's one record per Ubuntu/ROS pair).
+ROS_DISTROS = {p.codename: p.distro for p in PLATFORMS}
 UBUNTU_SUITE_POCKETS = ("", "-updates", "-backports", "-security")
 UBUNTU_COMPONENTS = ("main", "restricted", "universe", "multiverse")
-UBUNTU_VERSIONS = {"noble": "24.04", "jammy": "22.04"}
+UBUNTU_VERSIONS = {p.codename: p.release for p in PLATFORMS}
 
 # The real Debian tools ros-dev-tools brings (Debian's names for them).
 ROS_DEV_TOOLS_DEPENDS = (
@@ -83,6 +87,9 @@ STANDIN_ROS_KEYS = (
     "rclpy", "std_msgs", "sensor_msgs", "geometry_msgs", "diagnostic_msgs", "launch",
     "launch_ros", "ros2launch", "ros2cli", "ament_index_python", "ament_copyright",
     "ament_flake8", "ament_pep257", "ament_xmllint", "ament_lint_auto", "ament_lint_common",
+    # ros_extra_packages' documented example (ros-{distro}-turtlesim): the roster's package check
+    # reads the sandbox's rosdistro, so a name the sandbox does not serve is refused as a typo.
+    "turtlesim",
 )
 
 # The stand-ins carrying the setup scripts, and the variant metapackages.
@@ -95,6 +102,108 @@ VARIANT_DEPENDS = {
 }
 
 STANDIN_NOTE = "roslab sandbox stand-in"
+
+# The simulators the robot profiles' ROS packages bring, as stand-ins that conflict the way the
+# real ones do: Gazebo Classic 11 (Humble's turtlebot3_gazebo, through gazebo_ros_pkgs) cannot be
+# installed beside Gazebo Harmonic (Jazzy's, through ros_gz) (turtlebot3_simulations#241).
+SIMULATOR_STANDINS = {
+    "gazebo11": ("11.10.2", "Gazebo Classic 11", "gz-harmonic"),
+    "gz-harmonic": ("8.9.0", "Gazebo Harmonic", "gazebo11"),
+}
+# ROS package key -> the simulator stand-in it depends on, per distro.
+SIMULATOR_OF = {("humble", "gazebo_ros_pkgs"): "gazebo11", ("jazzy", "ros_gz"): "gz-harmonic"}
+
+
+def profile_keys(distro: str) -> set[str]:
+    """Every ROS package roslab's built-in robot profiles install on `distro` (stand-ins for each)."""
+    from roslab.profiles.library import builtin_ros_packages
+
+    return builtin_ros_packages(distro)
+
+
+def profile_launches(distro: str) -> dict[str, dict[str, list[str]]]:
+    """ROS package -> {launch file -> the variables its profile sets on that side} for every launch
+    a built-in profile's service runs from a stand-in package on `distro`.
+
+    roslab_bringup is not among them: the demo's workspace builds it from source.
+    """
+    from roslab.profiles.library import builtin_profiles
+
+    stand_ins = profile_keys(distro)
+    launches: dict[str, dict[str, list[str]]] = {}
+    for profile in builtin_profiles().values():
+        if distro not in profile.distros:
+            continue
+        for side in profile.sides.values():
+            if not side.launch:
+                continue
+            package, launch_file = side.launch.split()
+            if package not in stand_ins:
+                continue
+            names = set(side.environment)
+            for block in side.when:
+                names |= set(block["side"].environment)
+            files = launches.setdefault(package, {})
+            files[launch_file] = sorted(set(files.get(launch_file, [])) | names)
+    return launches
+
+
+def standin_launch(distro: str, package: str, launch_file: str, variables: list[str]) -> str:
+    """A stand-in launch file: read by the REAL `ros2 launch` where the sandbox has a real runtime
+    (the stand-in `ros2` never reads it).
+
+    Like the real one, it needs the profile's variables (the real turtlebot3_bringup's
+    robot.launch.py ends in a KeyError without TURTLEBOT3_MODEL or LDS_MODEL), then runs one
+    labelled process that says which values it got and stays up (`sleep` under the label as its
+    argv[0], so `pgrep -f` and `ps` name it); the launch ends when it ends, so the service's
+    restart is what a real node's end would cause.
+    """
+    label = f"roslab-standin-{package}-{launch_file.removesuffix('.launch.py')}"
+    return (
+        f"# {STANDIN_NOTE} for {package}'s {launch_file} (ROS 2 {distro}): no robot code behind it.\n"
+        "# It needs the variables the real launch file needs, and runs one process that reports them.\n"
+        "import os\n\n"
+        "from launch import LaunchDescription\n"
+        "from launch.actions import ExecuteProcess, Shutdown\n\n"
+        f"LABEL = {label!r}\n"
+        f"VARIABLES = {variables!r}\n\n\n"
+        "def generate_launch_description():\n"
+        "    values = [f'{name}={os.environ[name]}' for name in VARIABLES]  # KeyError, as the real one\n"
+        "    return LaunchDescription([\n"
+        "        ExecuteProcess(\n"
+        "            name=LABEL,\n"
+        "            cmd=['/bin/bash', '-c',\n"
+        "                 'printf \"%s: stand-in, no robot code; got %s\\\\n\" \"$0\" \"$*\"; exec -a \"$0\" sleep infinity',\n"
+        "                 LABEL, *values],\n"
+        "            output='screen',\n"
+        "            on_exit=Shutdown(reason=f'{LABEL} ended'),\n"
+        "        ),\n"
+        "    ])\n"
+    )
+
+
+def standin_launch_files(distro: str, key: str) -> dict[str, str]:
+    """The files a stand-in package whose launch a profile runs carries: its launch files, its
+    package.xml and its ament index entry, where the real `ros2 launch` looks for them."""
+    launches = profile_launches(distro).get(key)
+    if not launches:
+        return {}
+    share = f"/opt/ros/{distro}/share"
+    files = {
+        f"{share}/ament_index/resource_index/packages/{key}": "",
+        f"{share}/{key}/package.xml": (
+            '<?xml version="1.0"?>\n<package format="3">\n'
+            f"  <name>{key}</name>\n  <version>0.0.0</version>\n"
+            f"  <description>{STANDIN_NOTE} for {key}: its launch files only</description>\n"
+            "  <maintainer email=\"roslab-sandbox@invalid\">roslab sandbox</maintainer>\n"
+            "  <license>Apache-2.0</license>\n"
+            "  <exec_depend>launch</exec_depend>\n"
+            "  <export><build_type>ament_python</build_type></export>\n</package>\n"
+        ),
+    }
+    for launch_file, variables in sorted(launches.items()):
+        files[f"{share}/{key}/launch/{launch_file}"] = standin_launch(distro, key, launch_file, variables)
+    return files
 
 
 def debian_name(distro: str, key: str) -> str:
@@ -220,7 +329,8 @@ def _write_release(dist_dir: Path, key: SigningKey, **fields: str) -> None:
 
 def _build_deb(workdir: Path, package: str, version: str, description: str,
                files: dict[str, str | bytes] | None = None, depends: list[str] | None = None,
-               links: dict[str, str] | None = None, out_dir: Path | None = None) -> Path:
+               links: dict[str, str] | None = None, out_dir: Path | None = None,
+               conflicts: list[str] | None = None) -> Path:
     """Build an Architecture: all .deb of plain files with dpkg-deb."""
     root = workdir / package
     shutil.rmtree(root, ignore_errors=True)
@@ -239,6 +349,8 @@ def _build_deb(workdir: Path, package: str, version: str, description: str,
     )
     if depends:
         control += f"Depends: {', '.join(depends)}\n"
+    if conflicts:
+        control += f"Conflicts: {', '.join(conflicts)}\n"
     control += f"Description: {description}\n"
     write_file(root / "DEBIAN/control", control)
     out = (out_dir or workdir) / f"{package}_{version}_all.deb"
@@ -399,16 +511,23 @@ def ros_archive(extra_keys: set[str], runtime: ros_runtime.Runtime | None = None
         common = out / "pool/main/common"
         _build_deb(work, "ros-dev-tools", "1.0.1", f"{STANDIN_NOTE}: ROS development tools (real Debian "
                    "rosdep, colcon and vcstool)", depends=list(ROS_DEV_TOOLS_DEPENDS), out_dir=common)
+        for simulator, (version, title, conflicts) in SIMULATOR_STANDINS.items():
+            _build_deb(work, simulator, version, f"{STANDIN_NOTE}: {title} (no simulator; conflicts with "
+                       f"{conflicts} as the real packages do)", conflicts=[conflicts], out_dir=common)
         for codename, distro in ROS_DISTROS.items():
             pool = out / "pool/main" / codename
+            distro_keys = sorted(set(keys) | profile_keys(distro))
             if runtime.is_real(distro):
-                _real_ros_packages(work, codename, distro, keys, runtime, pool)
+                _real_ros_packages(work, codename, distro, distro_keys, runtime, pool)
                 keys_to_stand_in = []
             else:
-                keys_to_stand_in = keys
+                keys_to_stand_in = distro_keys
             for key in keys_to_stand_in:
                 package = debian_name(distro, key)
-                files, depends = {}, [debian_name(distro, dep) for dep in VARIANT_DEPENDS.get(key, [])]
+                files, depends = standin_launch_files(distro, key), [
+                    debian_name(distro, dep) for dep in VARIANT_DEPENDS.get(key, [])]
+                if (distro, key) in SIMULATOR_OF:
+                    depends.append(SIMULATOR_OF[(distro, key)])
                 if key == ROS_WORKSPACE_KEY:
                     prefix = f"/opt/ros/{distro}"
                     files = {f"{prefix}/{name}": setup_script(distro)
@@ -416,7 +535,7 @@ def ros_archive(extra_keys: set[str], runtime: ros_runtime.Runtime | None = None
                     files[f"{prefix}/STANDIN"] = standin_marker(distro)
                     files[f"{prefix}/bin/ros2"] = standin_ros2(distro)
                 elif key not in VARIANT_DEPENDS:
-                    depends = [debian_name(distro, ROS_WORKSPACE_KEY)]
+                    depends = [debian_name(distro, ROS_WORKSPACE_KEY), *depends]
                 _build_deb(work, package, f"0.0.0-1{codename}", f"{STANDIN_NOTE}: {key} for ROS 2 {distro} "
                            "(no code)", files=files, depends=depends, out_dir=pool)
             dist_dir = out / "dists" / codename
@@ -428,13 +547,21 @@ def ros_archive(extra_keys: set[str], runtime: ros_runtime.Runtime | None = None
         shutil.rmtree(work)
         shutil.rmtree(common)
 
-    return _cached_build("ros-archive", _cache_key(ARCHIVE_VERSION, keys, ROS_DEV_TOOLS_DEPENDS,
-                                                   signer.fingerprint, runtime.cache_key()), build)
+    profiles = {distro: sorted(profile_keys(distro)) for distro in ROS_DISTROS.values()}
+    launches = {distro: profile_launches(distro) for distro in ROS_DISTROS.values()}
+    return _cached_build("ros-archive", _cache_key(ARCHIVE_VERSION, keys, ROS_DEV_TOOLS_DEPENDS, profiles,
+                                                   launches, SIMULATOR_STANDINS, signer.fingerprint,
+                                                   runtime.cache_key()), build)
 
 
 def _real_ros_packages(work: Path, codename: str, distro: str, keys: list[str],
                        runtime: ros_runtime.Runtime, pool: Path) -> None:
-    """A distro on real ROS: the real ros-core from its tree, ros-base on it, stand-ins on them."""
+    """A distro on real ROS: the real ros-core from its tree, ros-base on it, stand-ins on them.
+
+    A stand-in whose launch a profile's service runs (turtlebot3_bringup robot.launch.py)
+    carries a real launch file in the ament index (standin_launch_files), so the real
+    `ros2 launch` finds it and runs its labelled stand-in process.
+    """
     version = f"0.0.0-1{codename}"
     core = debian_name(distro, "ros_core")
     ros_runtime.build_core_deb(work, runtime.trees[distro], distro, core, version, runtime.sums[distro], pool)
@@ -448,8 +575,13 @@ def _real_ros_packages(work: Path, codename: str, distro: str, keys: list[str],
             continue
         depends = [debian_name(distro, dep) for dep in VARIANT_DEPENDS.get(key, [])] or [core]
         depends += ros_runtime.LINTER_DEPENDS.get(key, ())
-        _build_deb(work, package, version, f"{STANDIN_NOTE}: {key} for ROS 2 {distro} (no files of its own; "
-                   "the real code, where the runtime has it, is in ros-core)", depends=depends, out_dir=pool)
+        if (distro, key) in SIMULATOR_OF:
+            depends.append(SIMULATOR_OF[(distro, key)])
+        files = standin_launch_files(distro, key)
+        what = "a stand-in launch" if files else "no files of its own"
+        _build_deb(work, package, version, f"{STANDIN_NOTE}: {key} for ROS 2 {distro} ({what}; "
+                   "the real code, where the runtime has it, is in ros-core)", files=files, depends=depends,
+                   out_dir=pool)
 
 
 # -- per-instance content ----------------------------------------------------------------
@@ -513,7 +645,7 @@ def rosdistro_files(url: str, ros_keys: list[str]) -> dict[str, str]:
             key: {"release": {"packages": [key], "tags": {"release": f"release/{distro}/{{package}}/{{version}}"},
                               "url": f"{url}/release/{key}.git", "version": "0.0.0-1"},
                   "status": "maintained"}
-            for key in ros_keys
+            for key in sorted(set(ros_keys) | profile_keys(distro))
         }
         distribution = {"type": "distribution", "version": 2, "release_platforms": {"ubuntu": [codename]},
                         "repositories": repositories}

@@ -115,3 +115,51 @@ def test_a_first_run_updates_apt_once_and_a_noop_run_reads_the_host_in_two_comma
     # roslab.probe: the release and home, then everything else; a fact read on its own here
     # is a remote command per host on every no-op run (add it to its deploy's @probe.reader).
     assert second.facts_asked == ["HostProbe", "HostProbe"]
+
+
+def turtlebot3_robot_data(tmp_path, lds_model="LDS-02", **settings):
+    from roslab.profiles.library import builtin_profiles
+    from roslab.profiles.resolve import resolve_host
+
+    profile, problems = resolve_host(builtin_profiles()["turtlebot3"],
+                                     {"turtlebot3_model": "burger", "lds_model": lds_model},
+                                     distro="jazzy", role="robot")
+    assert not problems
+    return host_data(tmp_path, "noble", "robot", roslab_profile=profile,
+                     nodes_launch=profile["launch"], ros_variant=profile["variant"], **settings)
+
+
+def test_a_turtlebot3_robot_gets_its_packages_udev_rules_group_and_variables_then_nothing(tmp_path):
+    host = with_stand_in_deb(FakeUbuntu())
+    first = plan(run_deploy_py, host.facts(), turtlebot3_robot_data(tmp_path))
+    assert not first.failed, first.errors
+    changing = first.changing()
+    install = next(commands for name, commands in changing.items() if "Ensure ROS 2" in name)
+    assert (" install -- ros-jazzy-ros-base ros-dev-tools ros-jazzy-turtlebot3-bringup "
+            "ros-jazzy-turtlebot3-node ros-jazzy-turtlebot3-description "
+            "ros-jazzy-turtlebot3-msgs ros-jazzy-dynamixel-sdk ros-jazzy-hls-lfcd-lds-driver "
+            "ros-jazzy-ld08-driver ros-jazzy-coin-d4-driver; status=$?;") in install[0]
+    rules = first.uploads()["/etc/udev/rules.d/60-roslab-profile.rules"]
+    assert 'ATTRS{idVendor}=="0483", ATTRS{idProduct}=="5740"' in rules and "tb3_lidar" not in rules
+    assert any("udevadm control --reload-rules" in " ".join(c) for n, c in changing.items() if "udev has read" in n)
+    assert ["usermod -a -G dialout student"] in changing.values()
+    bashrc = host_bashrc_after(host, first)
+    assert "export TURTLEBOT3_MODEL=burger" in bashrc and "export LDS_MODEL=LDS-02" in bashrc
+
+    second = plan(run_deploy_py, host.facts(), turtlebot3_robot_data(tmp_path))
+    assert second.changing() == {}
+    assert "student is already in dialout" in second.noops
+
+
+def test_another_lidar_changes_the_variable_only_and_an_lds_01_its_udev_name(tmp_path):
+    host = with_stand_in_deb(FakeUbuntu())
+    host.apply(plan(run_deploy_py, host.facts(), turtlebot3_robot_data(tmp_path)))
+    result = plan(run_deploy_py, host.facts(), turtlebot3_robot_data(tmp_path, lds_model="LDS-03"))
+    assert [name.split(" | ")[1] for name in result.changing()] == [
+        "Ensure student's ~/.bashrc sets up the ROS 2 environment"]
+    result = plan(run_deploy_py, host.facts(), turtlebot3_robot_data(tmp_path, lds_model="LDS-01"))
+    names = [name.split(" | ")[1] for name in result.changing()]
+    assert names == ["Ensure /etc/udev/rules.d/60-roslab-profile.rules holds robot profile turtlebot3's udev rules",
+                     "Ensure udev has read the robot profile's rules",
+                     "Ensure student's ~/.bashrc sets up the ROS 2 environment"]
+    assert 'SYMLINK+="tb3_lidar"' in result.uploads()["/etc/udev/rules.d/60-roslab-profile.rules"]

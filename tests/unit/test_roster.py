@@ -132,6 +132,15 @@ def test_host_data_holds_identity_connection_and_every_setting_with_its_default(
             {"name": "team2-main", "address": "127.0.0.21"},
         ],
         "roslab_team_hosts": [{"name": "team2-main", "address": "127.0.0.21", "role": "main"}],
+        # The default robot profile (demo), resolved for the main on humble.
+        "nodes_launch": "roslab_bringup main.launch.py",
+        "ros_variant": "desktop",
+        "nodes_verify_topic": "/chatter",
+        "roslab_profile": {
+            "name": "demo", "distro": "humble", "settings": {}, "ros_packages": [], "packages": [],
+            "environment": {}, "groups": [], "udev_rules": "", "launch": "roslab_bringup main.launch.py",
+            "variant": "desktop", "verify_topic": "/chatter", "discovery": None, "checklist": [],
+        },
     }
 
 
@@ -171,6 +180,10 @@ def test_every_deploy_setting_is_accepted_with_its_default(tmp_path):
     data = load_roster(path).hosts[0].data
     settings["ros_apt_source_cache_dir"] = str(Path(settings["ros_apt_source_cache_dir"]).expanduser())
     settings["rosdep_cache_dir"] = str(Path(settings["rosdep_cache_dir"]).expanduser())  # set: a path here
+    # None means "the robot profile's": the demo profile's main launch, variant and topic.
+    settings["nodes_launch"] = "roslab_bringup main.launch.py"
+    settings["ros_variant"] = "desktop"
+    settings["nodes_verify_topic"] = "/chatter"
     assert {key: data[key] for key in settings} == settings
 
 

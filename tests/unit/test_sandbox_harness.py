@@ -236,7 +236,7 @@ def test_rosdistro_index_resolves_ros_keys_to_stand_in_packages(tmp_path):
         (tmp_path / path).write_text(content)
     # rosdep reads the index with the rosdistro library, as done here.
     index = rosdistro.get_index((tmp_path / "rosdistro/index-v4.yaml").as_uri())
-    assert sorted(index.distributions) == ["humble", "jazzy"]
+    assert sorted(index.distributions) == ["humble", "jazzy", "lyrical"]
     jazzy = rosdistro.get_distribution_file(index, "jazzy")
     assert jazzy.release_platforms == {"ubuntu": ["noble"]}
     assert "rclpy" in jazzy.repositories

@@ -105,6 +105,20 @@ def test_the_archive_serves_the_real_core_and_stand_ins_that_depend_on_it(monkey
     assert rclpy["Depends"] == "ros-jazzy-ros-core"
     xmllint = fields(pool / "ros-jazzy-ament-xmllint_0.0.0-1noble_all.deb", "Depends")
     assert xmllint["Depends"] == "ros-jazzy-ros-core, libxml2-utils"
+    # turtlesim and every built-in profile's package: stand-ins on the real core (Jazzy's
+    # ros_gz also on its simulator's stand-in, which conflicts with Gazebo Classic's).
+    for key in ("turtlesim", "turtlebot3_bringup", "turtlebot3_teleop", "ld08_driver", "turtlebot3_gazebo"):
+        deb = pool / f"ros-jazzy-{key.replace('_', '-')}_0.0.0-1noble_all.deb"
+        assert fields(deb, "Depends")["Depends"] == "ros-jazzy-ros-core", key
+    assert fields(pool / "ros-jazzy-ros-gz_0.0.0-1noble_all.deb", "Depends")["Depends"] == (
+        "ros-jazzy-ros-core, gz-harmonic")
+    # The bringup the robot's service launches is found by the real `ros2 launch`: its launch
+    # file, package.xml and ament index entry are in the tree the real setup.bash points at.
+    bringup = subprocess.run(["dpkg-deb", "--contents", pool / "ros-jazzy-turtlebot3-bringup_0.0.0-1noble_all.deb"],
+                             capture_output=True, text=True, check=True).stdout
+    for path in ("share/ament_index/resource_index/packages/turtlebot3_bringup",
+                 "share/turtlebot3_bringup/package.xml", "share/turtlebot3_bringup/launch/robot.launch.py"):
+        assert f"./opt/ros/jazzy/{path}\n" in bringup, path
     workspace = subprocess.run(["dpkg-deb", "--contents", pool / "ros-jazzy-ros-workspace_0.0.0-1noble_all.deb"],
                                capture_output=True, text=True, check=True).stdout
     assert "setup.bash" not in workspace  # the real tree's own setup scripts, not the stand-in's
@@ -130,3 +144,55 @@ def test_a_tarball_that_is_no_install_tree_is_refused(tmp_path):
     with pytest.raises(SandboxError, match="not a ROS 2 install tree for /opt/ros/jazzy"):
         ros_runtime.build_core_deb(tmp_path / "work", tarball, "jazzy", "ros-jazzy-ros-core", "1", "0" * 64,
                                    tmp_path / "out")
+
+
+def test_the_bringups_stand_in_launch_needs_the_profiles_variables_and_reports_them(monkeypatch):
+    """The launch file the real `ros2 launch` reads, run here with the launch API stubbed (this
+    machine has no ROS): a missing variable fails as the real robot.launch.py does, and the one
+    process it starts is labelled, says what it got, stays up and ends the launch when it ends."""
+    import sys
+    import types
+    import xml.etree.ElementTree as ElementTree
+
+    assert upstream.profile_launches("jazzy") == {
+        "turtlebot3_bringup": {"robot.launch.py": ["LDS_MODEL", "TURTLEBOT3_MODEL"]}}
+    assert upstream.profile_launches("lyrical") == {}  # no TurtleBot3 on Lyrical
+    assert upstream.standin_launch_files("jazzy", "turtlesim") == {}
+    files = upstream.standin_launch_files("humble", "turtlebot3_bringup")
+    share = "/opt/ros/humble/share"
+    assert files[f"{share}/ament_index/resource_index/packages/turtlebot3_bringup"] == ""
+    manifest = ElementTree.fromstring(files[f"{share}/turtlebot3_bringup/package.xml"])
+    assert manifest.findtext("name") == "turtlebot3_bringup"
+    source = files[f"{share}/turtlebot3_bringup/launch/robot.launch.py"]
+    assert upstream.STANDIN_NOTE in source.splitlines()[0]
+
+    launch = types.ModuleType("launch")
+    actions = types.ModuleType("launch.actions")
+    launch.LaunchDescription = lambda entities: entities
+    actions.ExecuteProcess = lambda **kwargs: kwargs
+    actions.Shutdown = lambda reason: ("Shutdown", reason)
+    monkeypatch.setitem(sys.modules, "launch", launch)
+    monkeypatch.setitem(sys.modules, "launch.actions", actions)
+    namespace: dict = {}
+    exec(compile(source, "robot.launch.py", "exec"), namespace)
+
+    monkeypatch.delenv("LDS_MODEL", raising=False)
+    monkeypatch.setenv("TURTLEBOT3_MODEL", "waffle")
+    with pytest.raises(KeyError, match="LDS_MODEL"):
+        namespace["generate_launch_description"]()
+    monkeypatch.setenv("LDS_MODEL", "LDS-01")
+    (process,) = namespace["generate_launch_description"]()
+    assert process["name"] == "roslab-standin-turtlebot3_bringup-robot"
+    assert process["on_exit"][0] == "Shutdown"
+    # The values are arguments of the shell, never part of its script.
+    assert process["cmd"][:2] == ["/bin/bash", "-c"]
+    stays_up = 'exec -a "$0" sleep infinity'
+    assert process["cmd"][2].endswith(stays_up)
+    result = subprocess.run([*process["cmd"][:2], process["cmd"][2].replace(stays_up, "exit 0"),
+                             *process["cmd"][3:]], capture_output=True, text=True, check=True)
+    assert result.stdout == ("roslab-standin-turtlebot3_bringup-robot: stand-in, no robot code; "
+                             "got LDS_MODEL=LDS-01 TURTLEBOT3_MODEL=waffle\n")
+    # Under its label: what `ps` shows of the process that stays up.
+    labelled = subprocess.run([*process["cmd"][:2], process["cmd"][2].replace("sleep infinity", "ps -o args= -p $$"),
+                               *process["cmd"][3:]], capture_output=True, text=True, check=True)
+    assert labelled.stdout.splitlines()[-1].startswith("roslab-standin-turtlebot3_bringup-robot -o args= -p ")

@@ -108,8 +108,14 @@ BAD_VALUES: dict[str, list] = {
                           "roslab_bringup ../main.launch.py", "roslab_bringup main.launch.py x:=1",
                           "roslab_bringup main.launch.py; id", "Roslab main.launch.py"],
     "nodes_launch_robot": ["roslab_bringup robot.launch.py %n", "$(id) robot.launch.py"],
+    "nodes_launch": ["turtlebot3_bringup", "turtlebot3_bringup robot.launch.py\nUser=root",
+                     "turtlebot3_bringup robot.launch.py LDS_MODEL:=x", "$(id) robot.launch.py"],
     "nodes_verify_topic": ["chatter topic", "/chatter\n", "/$(id)"],
     "nodes_verify_timeout": [0, 10**6],
+    "robot_profile": ["TurtleBot3", "turtle bot", "tb3;id", "../demo", ""],
+    "board": ["pi6", "Pi4", "raspberry"],
+    "ros_environment": [{"ROS_DOMAIN_ID": "3"}, {"A B": "x"}, {"X": "a\nb"}, {"PATH": "/tmp"},
+                        {"LD_PRELOAD": "/tmp/x.so"}, {"X": 1}, {"9X": "y"}, {"X": ""}],
 }
 
 

@@ -269,6 +269,23 @@ def test_a_team_without_a_robot_is_not_verified():
     assert not alone.passed and "no robot in the team" in alone.verdict()
 
 
+def test_a_main_whose_profile_runs_no_launch_needs_no_service_but_a_robot_does():
+    # A TurtleBot3 team: the bringup runs on the robot, nothing on the main (roslab.profiles).
+    team = result("tb3", heard=heard("tb3-robot"), without_service={"tb3-main"})
+    team.services["tb3-main"] = "not installed"
+    assert team.passed and team.services_down() == []
+    team.services["tb3-robot"] = "not installed"  # the robot's bringup is always required
+    assert not team.passed and team.services_down() == [("tb3-robot", "not installed")]
+    demo = result("team1", heard=heard("team1-robot"))
+    demo.services["team1-main"] = "not installed"
+    assert not demo.passed
+    assert verify.runs_a_launch({"roslab_role": "main", "roslab_profile": {"name": "turtlebot3"},
+                                 "nodes_launch": None}) is False
+    assert verify.runs_a_launch({"roslab_role": "main", "roslab_profile": {"name": "demo"},
+                                 "nodes_launch": "roslab_bringup main.launch.py"}) is True
+    assert verify.runs_a_launch({"roslab_role": "main"}) is True  # a hand-made inventory: the demo's
+
+
 def test_an_unreachable_host_fails_its_team():
     failed = result("team5", heard=None, error="team5-robot is unreachable")
     assert not failed.passed

@@ -1,0 +1,162 @@
+"""A host's profile, resolved for its side, distro and settings into plain host data.
+
+`resolve()` returns what the deploys read as `host.data.roslab_profile`: Debian package
+names for the distro, the environment with the settings filled in, the udev rules file's
+text, the groups, the launch, the verify topic and the checklist. A setting's value is
+checked against the profile's declaration first (allowed values or pattern), so what is
+filled into a file or a command is one of the values the profile allows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from roslab.distro import DISTRO_RELEASES, PLATFORMS
+from roslab.profiles.schema import PLACEHOLDER, Profile, Side
+
+UDEV_RULES_PATH = "/etc/udev/rules.d/60-roslab-profile.rules"
+
+
+@dataclass(frozen=True)
+class ResolveError(Exception):
+    field: str
+    message: str
+
+
+def gazebo_package(distro: str) -> str:
+    """The ROS package of the distro's Gazebo, from roslab.distro's records."""
+    for platform in PLATFORMS:
+        if platform.distro == distro:
+            return platform.gazebo.ros_package
+    return "ros_gz"  # a non-LTS distro (kilted): Gazebo through ros_gz
+
+
+def debian_name(distro: str, ros_package: str) -> str:
+    return f"ros-{distro}-{ros_package.replace('_', '-')}"
+
+
+def _matches(conditions: dict, values: dict) -> bool:
+    for name, wanted in conditions.items():
+        value = values.get(name)
+        if wanted is None:
+            ok = value is None
+        elif wanted == "*":
+            ok = value is not None
+        elif isinstance(wanted, list):
+            ok = value in wanted
+        else:
+            ok = value == wanted
+        if not ok:
+            return False
+    return True
+
+
+def used_settings(side: Side | None) -> set[str]:
+    """The profile settings a side refers to (its texts and its when blocks' conditions)."""
+    if side is None:
+        return set()
+    texts = [*side.environment.values(), *(rule["rule"] for rule in side.udev_rules), *side.checklist]
+    names = {name for text in texts for name in PLACEHOLDER.findall(text)}
+    for block in side.when:
+        names |= set(block["if"]) | used_settings(block["side"])
+    return names
+
+
+def setting_values(profile: Profile, given: dict, side: Side | None = None) -> tuple[dict, list[ResolveError]]:
+    """The profile's settings for a host: given values checked, defaults filled in, and the
+    required ones that this side uses present."""
+    values, problems = {}, []
+    used = used_settings(side) if side is not None else set(profile.settings)
+    for name, setting in profile.settings.items():
+        value = given.get(name, setting.default)
+        if value is None:
+            if setting.required and name in used:
+                allowed = f" ({', '.join(setting.allowed)})" if setting.allowed else ""
+                problems.append(ResolveError(name, f"profile {profile.name!r} needs {name}{allowed}: "
+                                                   f"{setting.doc or 'set it for the team or the host'}"))
+            continue
+        problem = setting.problem(value)
+        if problem:
+            problems.append(ResolveError(name, problem))
+            continue
+        values[name] = value
+    return values, problems
+
+
+def fill(text: str, values: dict) -> str:
+    """`text` with each ${setting} replaced by its (checked) value."""
+    return PLACEHOLDER.sub(lambda match: str(values.get(match.group(1), "")), text)
+
+
+def resolve(profile: Profile, given: dict, *, distro: str, role: str, board: str | None = None) -> dict:
+    """`host.data.roslab_profile` for a host of `role` on `distro`; ResolveError list via `problems`.
+
+    Raises ExceptionGroup-free: returns (data, problems) through `resolve_host`.
+    """
+    data, problems = resolve_host(profile, given, distro=distro, role=role, board=board)
+    if problems:
+        raise problems[0]
+    return data
+
+
+def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
+                 board: str | None = None) -> tuple[dict | None, list[ResolveError]]:
+    problems: list[ResolveError] = []
+    if distro not in profile.distros:
+        works = " or ".join(f"{p.release} ({p.distro})" for p in PLATFORMS if p.distro in profile.distros)
+        other = [d for d in profile.distros if d not in {p.distro for p in PLATFORMS}]
+        if other:
+            works = ", ".join([works, *(f"ros_distro: {d}" for d in other)]).strip(", ")
+        problems.append(ResolveError(
+            "robot_profile", f"profile {profile.name!r} supports {', '.join(profile.distros)}, not {distro} "
+                             f"(this host's distro): set ubuntu_release to {works}, or another robot_profile"))
+    if board is not None and board not in profile.boards:
+        problems.append(ResolveError(
+            "board", f"profile {profile.name!r} does not run on a {board} (it runs on: "
+                     f"{', '.join(profile.boards)})"))
+    side = profile.sides.get(role)
+    if side is None:
+        has = " and ".join(profile.sides)
+        problems.append(ResolveError(
+            "robot_profile", f"profile {profile.name!r} has no {role} side (only {has}): give this host "
+                             "another robot_profile (e.g. demo), or leave it out of the team"))
+    values, value_problems = setting_values(profile, given, side)
+    problems += value_problems
+    if problems or distro not in DISTRO_RELEASES:
+        return None, problems
+
+    conditions = {**values, "distro": distro, "board": board}
+    parts = [side, *(block["side"] for block in side.when if _matches(block["if"], conditions))]
+    merged = Side()
+    for part in parts:
+        merged.ros_packages += [p for p in part.ros_packages if p not in merged.ros_packages]
+        merged.apt_packages += [p for p in part.apt_packages if p not in merged.apt_packages]
+        merged.environment.update(part.environment)
+        merged.groups += [g for g in part.groups if g not in merged.groups]
+        merged.udev_rules += part.udev_rules
+        merged.checklist += part.checklist
+    ros_packages = [fill(name, {"gazebo": gazebo_package(distro)}) for name in merged.ros_packages]
+    rules = ""
+    if merged.udev_rules:
+        lines = [f"# managed by roslab (deploy/robot_profile.py) for robot profile {profile.name!r}: "
+                 "edits here are overwritten;", "# set the profile's settings in the roster instead."]
+        for rule in merged.udev_rules:
+            if rule["comment"]:
+                lines.append(f"# {rule['comment']}")
+            lines.append(fill(rule["rule"], values))
+        rules = "\n".join(lines) + "\n"
+    return {
+        "name": profile.name,
+        "distro": distro,
+        "settings": values,
+        "ros_packages": ros_packages,
+        "packages": [debian_name(distro, name) for name in ros_packages] + merged.apt_packages,
+        "environment": {name: fill(value, values) for name, value in merged.environment.items()},
+        "groups": merged.groups,
+        "udev_rules": rules,
+        "launch": side.launch,
+        "variant": side.variant,
+        "verify_topic": profile.verify_topic,
+        "discovery": profile.discovery,
+        "checklist": [fill(item, values) for item in merged.checklist],
+    }, []

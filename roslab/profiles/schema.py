@@ -1,0 +1,358 @@
+"""One profile mapping, checked: every key known, every value of its type and format.
+
+Problems go to a `Report` with the line of the offending key (the profile's own file for a
+built-in one, the roster for a roster's), so a typo in a profile reads like one in a roster.
+"""
+
+from __future__ import annotations
+
+import difflib
+import re
+from dataclasses import dataclass, field
+
+from roslab import formats, settings
+from roslab.distro import DISTRO_RELEASES
+from roslab.roster.loading import line_of
+from roslab.roster.problems import Report
+
+SIDES = ("main", "robot")
+BOARDS = ("pi3b+", "pi4", "pi5", "pc")
+DISCOVERY = ("localhost",)  # room for issue 20's modes (static, discovery_server...)
+
+_NAME = re.compile(r"[a-z][a-z0-9_]{0,62}")
+_VALUE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.:+-]{0,127}")
+# udev keys that run programs: a profile's rules name and permit devices, they run nothing.
+_UDEV_RUNS = re.compile(r"\b(RUN|PROGRAM|IMPORT\{program\}|IMPORT\{builtin\})")
+_ROS_PACKAGE = re.compile(r"[a-z][a-z0-9_]*|\$\{gazebo\}")
+# Conditions a `when` block may test besides the profile's settings.
+BUILTIN_CONDITIONS = ("distro", "board")
+
+TOP_KEYS = ("profile", "extends", "description", "distros", "boards", "discovery", "verify_topic",
+            "settings", *SIDES)
+SETTING_KEYS = ("doc", "allowed", "pattern", "required", "default")
+SIDE_KEYS = ("variant", "ros_packages", "apt_packages", "environment", "groups", "udev_rules", "launch",
+             "checklist", "when")
+WHEN_KEYS = ("if", "ros_packages", "apt_packages", "environment", "groups", "udev_rules", "checklist")
+RULE_KEYS = ("rule", "comment")
+
+
+@dataclass(frozen=True)
+class ProfileSetting:
+    name: str
+    doc: str = ""
+    allowed: tuple[str, ...] = ()
+    pattern: str | None = None
+    required: bool = False
+    default: str | None = None
+
+    def problem(self, value) -> str | None:
+        """Why `value` is not a legal value of this setting, or None.
+
+        Whatever a profile allows, a value is a word (letters, digits, _ . : + -): it is filled
+        into udev rules, shell and systemd lines, where no quoting of a profile's text happens.
+        """
+        if not isinstance(value, str):
+            return f"must be a string, not {value!r}"
+        if not _VALUE.fullmatch(value):
+            return f"{value!r} is not a word (letters, digits and _ . : + -, at most 128)"
+        if self.allowed and value not in self.allowed:
+            close = difflib.get_close_matches(value, self.allowed, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            return f"{value!r} is not one of {', '.join(self.allowed)}{hint}"
+        if self.pattern and not re.fullmatch(self.pattern, value):
+            return f"{value!r} does not match {self.pattern}"
+        return None
+
+
+@dataclass
+class Side:
+    """What one side (main or robot) of a profile installs and runs."""
+
+    ros_packages: list[str] = field(default_factory=list)
+    apt_packages: list[str] = field(default_factory=list)
+    environment: dict[str, str] = field(default_factory=dict)
+    groups: list[str] = field(default_factory=list)
+    udev_rules: list[dict] = field(default_factory=list)  # {"rule", "comment"}
+    launch: str | None = None
+    variant: str | None = None  # ros-<distro>-<variant>: desktop, ros-base...
+    checklist: list[str] = field(default_factory=list)
+    when: list[dict] = field(default_factory=list)  # {"if": {...}, and the list/env keys above}
+
+
+@dataclass
+class Profile:
+    name: str
+    description: str = ""
+    distros: tuple[str, ...] = ()
+    boards: tuple[str, ...] = BOARDS
+    discovery: str | None = None
+    verify_topic: str | None = None
+    settings: dict[str, ProfileSetting] = field(default_factory=dict)
+    sides: dict[str, Side] = field(default_factory=dict)
+    source: str = ""  # where it was defined, for messages ("built-in", "the roster")
+    line: int | None = None
+
+
+# A profile's text refers to its settings as ${name} (braces only: udev's own $attr{...} and
+# shell text stay as they are).
+PLACEHOLDER = re.compile(r"\$\{([A-Za-z0-9_]*)\}")
+
+
+def placeholders(text: str) -> list[str]:
+    """The ${names} a text refers to."""
+    return PLACEHOLDER.findall(text)
+
+
+class ProfileReader:
+    """Checks one profile mapping; problems go to `report` with `field` prefixed by `prefix`."""
+
+    def __init__(self, report: Report, prefix: str):
+        self.report = report
+        self.prefix = prefix
+        self.ok = True
+
+    def error(self, message: str, mapping, key=None, path: str = "") -> None:
+        self.ok = False
+        self.report.error(message, line=line_of(mapping, key),
+                          field=".".join(part for part in (self.prefix, path) if part))
+
+    def unknown_keys(self, mapping, allowed, path: str) -> None:
+        for key in mapping:
+            if key not in allowed:
+                close = difflib.get_close_matches(str(key), allowed, n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                self.error(f"unknown key {key!r} in a profile{hint}", mapping, key,
+                           f"{path}.{key}".lstrip("."))
+
+    def string_list(self, mapping, key, path, check=None) -> list[str]:
+        value = mapping.get(key)
+        if value is None:
+            return []
+        if not isinstance(value, list) or not all(isinstance(item, str) for item in value):
+            self.error("must be a list of strings", mapping, key, path)
+            return []
+        for item in value:
+            problem = check(item) if check else None
+            if problem:
+                self.error(problem, mapping, key, path)
+        return list(value)
+
+    # --- the parts ---
+
+    def read_settings(self, mapping) -> dict[str, ProfileSetting]:
+        value = mapping.get("settings") or {}
+        if not isinstance(value, dict):
+            self.error("must be a mapping of setting name -> {doc, allowed, pattern, required, default}",
+                       mapping, "settings", "settings")
+            return {}
+        result = {}
+        for name, spec in value.items():
+            path = f"settings.{name}"
+            if not isinstance(name, str) or not _NAME.fullmatch(name):
+                self.error("a profile setting's name is lower-case letters, digits and _", value, name, path)
+                continue
+            if not isinstance(spec, dict):
+                self.error("must be a mapping (doc, allowed, pattern, required, default)", value, name, path)
+                continue
+            if name in settings.SETTINGS or name in ("hosts", "role", "address"):
+                self.error(f"{name!r} is a roslab setting: a profile's settings need names of their own",
+                           value, name, path)
+                continue
+            self.unknown_keys(spec, SETTING_KEYS, path)
+            allowed = self.string_list(spec, "allowed", f"{path}.allowed")
+            pattern = spec.get("pattern")
+            if pattern is not None:
+                try:
+                    re.compile(pattern)
+                except (re.error, TypeError):
+                    self.error("is not a regular expression", spec, "pattern", f"{path}.pattern")
+                    pattern = None
+            if allowed and pattern:
+                self.error("give allowed or pattern, not both", spec, "pattern", f"{path}.pattern")
+            if not allowed and not pattern:
+                self.error("a profile setting needs allowed values or a pattern (values are written into "
+                           "files and commands)", spec, None, path)
+            required = spec.get("required", False)
+            if not isinstance(required, bool):
+                self.error("must be true or false", spec, "required", f"{path}.required")
+                required = False
+            default = spec.get("default")
+            setting = ProfileSetting(name, str(spec.get("doc") or ""), tuple(allowed), pattern, required,
+                                     default if isinstance(default, str) else None)
+            if default is not None and setting.problem(default):
+                self.error(f"the default: {setting.problem(default)}", spec, "default", f"{path}.default")
+            if default is not None and required:
+                self.error("a required setting has no default", spec, "default", f"{path}.default")
+            result[name] = setting
+        return result
+
+    def check_text(self, text: str, known: set[str], mapping, key, path) -> None:
+        """A text's ${placeholders} name the profile's settings."""
+        for name in placeholders(text):
+            if name not in known:
+                close = difflib.get_close_matches(name, sorted(known), n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                self.error(f"names ${{{name}}}, which is not a setting of this profile{hint}",
+                           mapping, key, path)
+
+    def read_parts(self, mapping, path: str, known: set[str], side: Side, when_ok: bool) -> None:
+        """The list and environment keys of a side or a `when` block, into `side`."""
+        side.ros_packages += self.string_list(
+            mapping, "ros_packages", f"{path}.ros_packages",
+            lambda name: None if _ROS_PACKAGE.fullmatch(name) else
+            f"{name!r} is not a ROS package name (lower-case letters, digits, _; or ${{gazebo}})")
+        side.apt_packages += self.string_list(mapping, "apt_packages", f"{path}.apt_packages",
+                                              formats.debian_package)
+        side.groups += self.string_list(mapping, "groups", f"{path}.groups", formats.linux_user)
+        side.checklist += self.string_list(mapping, "checklist", f"{path}.checklist", formats.single_line)
+        for item in mapping.get("checklist") or []:
+            if isinstance(item, str):
+                self.check_text(item, known, mapping, "checklist", f"{path}.checklist")
+        env = mapping.get("environment") or {}
+        if not isinstance(env, dict):
+            self.error("must be a mapping of VARIABLE -> value", mapping, "environment", f"{path}.environment")
+            env = {}
+        for name, value in env.items():
+            where = f"{path}.environment.{name}"
+            problem = variable_problem(name, value)
+            if problem:
+                self.error(problem, env, name, where)
+                continue
+            self.check_text(value, known, env, name, where)
+            side.environment[name] = value
+        rules = mapping.get("udev_rules") or []
+        if not isinstance(rules, list):
+            self.error("must be a list of {rule, comment}", mapping, "udev_rules", f"{path}.udev_rules")
+            rules = []
+        for rule in rules:
+            if not isinstance(rule, dict) or not isinstance(rule.get("rule"), str):
+                self.error("each udev rule is a mapping with 'rule' (and 'comment')", mapping, "udev_rules",
+                           f"{path}.udev_rules")
+                continue
+            self.unknown_keys(rule, RULE_KEYS, f"{path}.udev_rules")
+            for key in RULE_KEYS:
+                text = rule.get(key)
+                if text is not None and (not isinstance(text, str) or formats.single_line(text)):
+                    self.error("must be one line of text", rule, key, f"{path}.udev_rules.{key}")
+            self.check_text(rule["rule"], known, rule, "rule", f"{path}.udev_rules")
+            if _UDEV_RUNS.search(rule["rule"]):
+                self.error("a profile's udev rule may not run programs (RUN, PROGRAM, IMPORT{program})",
+                           rule, "rule", f"{path}.udev_rules")
+            side.udev_rules.append({"rule": rule["rule"], "comment": str(rule.get("comment") or "")})
+        if not when_ok and "when" in mapping:
+            self.error("a when block cannot hold another", mapping, "when", f"{path}.when")
+
+    def read_side(self, mapping, name: str, known: set[str]) -> Side | None:
+        value = mapping.get(name)
+        if value is None:
+            return None
+        if not isinstance(value, dict):
+            self.error(f"must be a mapping of what the {name} gets", mapping, name, name)
+            return None
+        self.unknown_keys(value, SIDE_KEYS, name)
+        side = Side()
+        self.read_parts(value, name, known, side, when_ok=True)
+        launch = value.get("launch")
+        if launch is not None:
+            problem = formats.launch(launch) if isinstance(launch, str) else "must be a string"
+            if problem:
+                self.error(problem, value, "launch", f"{name}.launch")
+            else:
+                side.launch = launch
+        variant = value.get("variant")
+        if variant is not None:
+            problem = formats.ros_variant(variant) if isinstance(variant, str) else "must be a string"
+            if problem:
+                self.error(problem, value, "variant", f"{name}.variant")
+            else:
+                side.variant = variant
+        blocks = value.get("when") or []
+        if not isinstance(blocks, list):
+            self.error("must be a list of {if: {setting: value}, ...}", value, "when", f"{name}.when")
+            blocks = []
+        for index, block in enumerate(blocks, 1):
+            path = f"{name}.when[{index}]"
+            if not isinstance(block, dict) or not isinstance(block.get("if"), dict):
+                self.error("each when block is a mapping with 'if' (setting: value)", value, "when", path)
+                continue
+            self.unknown_keys(block, WHEN_KEYS, path)
+            for setting, wanted in block["if"].items():
+                if setting not in known and setting not in BUILTIN_CONDITIONS:
+                    close = difflib.get_close_matches(str(setting), sorted(known), n=1)
+                    hint = f" (did you mean {close[0]!r}?)" if close else ""
+                    self.error(f"tests {setting!r}, which is not a setting of this profile{hint}",
+                               block["if"], setting, f"{path}.if")
+                elif not (wanted is None or isinstance(wanted, str) or
+                          (isinstance(wanted, list) and all(isinstance(w, str) for w in wanted))):
+                    self.error("a condition is a value, a list of values, '*' (set) or null (unset)",
+                               block["if"], setting, f"{path}.if")
+            part = Side()
+            self.read_parts(block, path, known, part, when_ok=False)
+            side.when.append({"if": dict(block["if"]), "side": part})
+        return side
+
+
+def variable_problem(name, value) -> str | None:
+    """Why `name: value` cannot be an environment variable roslab writes, or None."""
+    return formats.variable(name, value)
+
+
+def read_profile(mapping, report: Report, prefix: str, source: str, base: Profile | None = None) -> Profile | None:
+    """A checked Profile from a mapping (extending `base` if given), or None with problems reported."""
+    reader = ProfileReader(report, prefix)
+    reader.unknown_keys(mapping, TOP_KEYS, "")
+    name = mapping.get("profile", prefix.rsplit(".", 1)[-1])
+    if not isinstance(name, str) or not _NAME.fullmatch(name):
+        reader.error("a profile's name is lower-case letters, digits and _", mapping, "profile", "profile")
+        return None
+    settings = dict(base.settings) if base else {}
+    settings.update(reader.read_settings(mapping))
+    known = set(settings)
+    distros = mapping.get("distros", list(base.distros) if base else None)
+    if not isinstance(distros, list) or not distros or not all(d in DISTRO_RELEASES for d in distros):
+        reader.error(f"must list the distros the profile supports (of {', '.join(sorted(DISTRO_RELEASES))})",
+                     mapping, "distros", "distros")
+        distros = []
+    boards = mapping.get("boards", list(base.boards) if base else list(BOARDS))
+    if not isinstance(boards, list) or not all(b in BOARDS for b in boards):
+        reader.error(f"must be a list of boards ({', '.join(BOARDS)})", mapping, "boards", "boards")
+        boards = list(BOARDS)
+    discovery = mapping.get("discovery", base.discovery if base else None)
+    if discovery is not None and discovery not in DISCOVERY:
+        reader.error(f"must be {', '.join(DISCOVERY)} or absent", mapping, "discovery", "discovery")
+    topic = mapping.get("verify_topic", base.verify_topic if base else None)
+    if topic is not None and (not isinstance(topic, str) or formats.ros_topic(topic)):
+        reader.error("must be a ROS topic name (or null: nothing to verify)", mapping, "verify_topic",
+                     "verify_topic")
+    sides = {}
+    for side_name in SIDES:
+        own = reader.read_side(mapping, side_name, known)
+        inherited = base.sides.get(side_name) if base else None
+        if own and inherited:
+            own = merged_side(inherited, own)
+        if own or inherited:
+            sides[side_name] = own or inherited
+    if not sides:
+        reader.error("a profile needs a main or a robot side", mapping, None, "")
+    description = mapping.get("description", base.description if base else "")
+    if not reader.ok:
+        return None
+    return Profile(name, str(description or ""), tuple(distros), tuple(boards), discovery, topic, settings,
+                   sides, source, line_of(mapping))
+
+
+def merged_side(base: Side, own: Side) -> Side:
+    """A side extending `base`: lists appended (once), environment merged, launch replaced if given."""
+    def union(a, b):
+        return list(dict.fromkeys([*a, *b]))
+    return Side(
+        ros_packages=union(base.ros_packages, own.ros_packages),
+        apt_packages=union(base.apt_packages, own.apt_packages),
+        environment={**base.environment, **own.environment},
+        groups=union(base.groups, own.groups),
+        udev_rules=[*base.udev_rules, *own.udev_rules],
+        launch=own.launch or base.launch,
+        variant=own.variant or base.variant,
+        checklist=[*base.checklist, *own.checklist],
+        when=[*base.when, *own.when],
+    )

@@ -1,0 +1,96 @@
+"""One record per Ubuntu/ROS 2 pair: the schema, the roster checks and the sandbox read the same facts."""
+
+from __future__ import annotations
+
+import textwrap
+
+import pytest
+
+from roslab import distro, settings
+from roslab.roster import RosterError, load_roster
+from roslab.sandbox import emulation, upstream
+from roslab.sandbox.instance import Instance, releases_by_team
+from roslab.sandbox.system import SandboxError
+
+RESOLUTE_PIN = "ab" * 32
+
+
+@pytest.fixture(autouse=True)
+def _in_tmp(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("ROSLAB_SANDBOX_RELEASES", raising=False)
+
+
+def roster(tmp_path, classroom_extra: str = "") -> object:
+    path = tmp_path / "lab.yaml"
+    path.write_text(textwrap.dedent("""\
+        classroom:
+          ssh_user: ubuntu
+          ubuntu_release: "26.04"
+        """) + textwrap.indent(textwrap.dedent(classroom_extra), "  ") + textwrap.dedent("""\
+        teams:
+          team1:
+            ros_domain_id: 11
+            hosts:
+              team1-main: {role: main}
+        """))
+    return path
+
+
+def test_every_record_is_consistent_with_the_derived_mappings():
+    assert [p.release for p in distro.PLATFORMS] == ["22.04", "24.04", "26.04"]
+    for platform in distro.PLATFORMS:
+        assert distro.codename_for(platform.release) == platform.codename
+        assert distro.default_distro(platform.codename) == platform.distro
+        distro.check_distro(platform.distro, platform.codename)
+        assert emulation.RELEASES[platform.release]["codename"] == platform.codename
+        assert upstream.ROS_DISTROS[platform.codename] == platform.distro
+    assert distro.BY_RELEASE["26.04"].distro == "lyrical"
+    assert distro.BY_RELEASE["26.04"].gazebo.name == "Jetty"
+    assert distro.BY_RELEASE["22.04"].gazebo.ros_package == "gazebo_ros_pkgs"
+
+
+def test_the_schema_lists_the_records():
+    assert settings.SETTINGS["ubuntu_release"].allowed_text() == "22.04, 24.04, 26.04"
+    assert "resolute: lyrical" in settings.SETTINGS["ros_distro"].doc
+    assert settings.SETTINGS["ros_apt_source_sha256"].default == distro.ros_apt_source_pins()
+
+
+def test_26_04_without_a_known_pin_is_refused_naming_the_setting_to_set(tmp_path):
+    with pytest.raises(RosterError) as raised:
+        load_roster(roster(tmp_path))
+    (problem,) = [str(p) for p in raised.value.problems]
+    assert problem.startswith("lab.yaml:3: team 'team1', host 'team1-main', field 'ros_apt_source_sha256': ")
+    assert "roslab knows no sha256 of ros2-apt-source 1.2.0 for Ubuntu 26.04 (resolute)" in problem
+    assert "set ros_apt_source_sha256: {resolute: <sha256 of ros2-apt-source_1.2.0.resolute_all.deb>}" in problem
+    assert "ros_apt_source_mode: mirror" in problem
+
+
+def test_26_04_with_its_pin_loads_as_lyrical_and_keeps_the_known_pins(tmp_path):
+    classroom = load_roster(roster(tmp_path, f"ros_apt_source_sha256: {{resolute: '{RESOLUTE_PIN}'}}\n"))
+    (host,) = classroom.hosts
+    assert host.distro == "lyrical"
+    assert host.data["roslab_expected_distro"] == "lyrical"
+    pins = host.data["ros_apt_source_sha256"]
+    assert pins["resolute"] == RESOLUTE_PIN
+    assert pins["noble"] == distro.BY_CODENAME["noble"].ros_apt_source_sha256
+
+
+def test_26_04_in_mirror_mode_needs_no_pin(tmp_path):
+    key = tmp_path / "mirror.asc"
+    key.write_text("-----BEGIN PGP PUBLIC KEY BLOCK-----\n\nmQINBGtest\n-----END PGP PUBLIC KEY BLOCK-----\n")
+    classroom = load_roster(roster(tmp_path, "ros_apt_source_mode: mirror\n"
+                                             "ros_apt_mirror_url: http://mirror.invalid/ros2\n"
+                                             "ros_apt_mirror_key_file: mirror.asc\n"))
+    assert classroom.hosts[0].distro == "lyrical"
+
+
+def test_the_sandbox_emulates_each_record_and_takes_releases_per_team(monkeypatch):
+    assert emulation.os_release(emulation.HostIdentity("h", "26.04", "10.0.0.2", 24)).count("resolute") == 2
+    monkeypatch.setenv("ROSLAB_SANDBOX_RELEASES", "24.04,22.04,26.04")
+    assert releases_by_team() == ("24.04", "22.04", "26.04")
+    hosts = Instance.from_env("h17-unit").plan_hosts(6)
+    assert [h.release for h in hosts] == ["24.04", "24.04", "22.04", "22.04", "26.04", "26.04"]
+    monkeypatch.setenv("ROSLAB_SANDBOX_RELEASES", "24.04,23.10")
+    with pytest.raises(SandboxError, match="23.10 is not a release the sandbox emulates"):
+        releases_by_team()

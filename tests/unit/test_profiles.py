@@ -1,0 +1,449 @@
+"""Robot profiles: built-in data checked by the schema, resolved per side, refused before connecting.
+
+Every refusal names file:line, team, host and field, as a teacher reads it from `roslab check`
+(and `inventories/lab.py`, which loads the roster the same way). The package check runs
+against the real rosdistro distribution files (tests/unit/fixtures/rosdistro), served on
+loopback as a rosdistro index, exactly as a roster's `rosdistro_index_url` would point at a mirror.
+"""
+
+from __future__ import annotations
+
+import functools
+import gzip
+import http.server
+import textwrap
+import threading
+from pathlib import Path
+
+import pytest
+
+from roslab.cli import main
+from roslab.distro import PLATFORMS
+from roslab.profiles import packages
+from roslab.profiles.library import builtin_profiles
+from roslab.profiles.resolve import resolve_host
+from roslab.roster import RosterError, load_roster
+
+FIXTURES = Path(__file__).parent / "fixtures" / "rosdistro"
+DISTROS = ("humble", "jazzy", "kilted", "lyrical")
+
+
+@functools.cache
+def distribution(distro: str) -> set[str]:
+    return packages.packages_of_distribution(gzip.decompress((FIXTURES / f"{distro}-distribution.yaml.gz")
+                                                             .read_bytes()))
+
+
+@pytest.fixture(autouse=True)
+def _in_tmp(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("ROSLAB_ROSTER", raising=False)
+
+
+@pytest.fixture(scope="module")
+def rosdistro_url(tmp_path_factory):
+    """A rosdistro index on loopback serving the fixtures' distribution files."""
+    root = tmp_path_factory.mktemp("rosdistro")
+    index = "%YAML 1.1\n---\ntype: index\nversion: 4\ndistributions:\n"
+    for distro in DISTROS:
+        (root / distro).mkdir()
+        (root / distro / "distribution.yaml").write_bytes(
+            gzip.decompress((FIXTURES / f"{distro}-distribution.yaml.gz").read_bytes()))
+        index += (f"  {distro}:\n    distribution: [{distro}/distribution.yaml]\n"
+                  "    distribution_status: active\n    distribution_type: ros2\n    python_version: 3\n")
+    (root / "index-v4.yaml").write_text(index)
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(root))
+    handler.log_message = lambda *args: None
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield f"http://127.0.0.1:{server.server_address[1]}/index-v4.yaml"
+    server.shutdown()
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "lab.yaml"
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+def errors_of(path: Path) -> list[str]:
+    with pytest.raises(RosterError) as raised:
+        load_roster(path)
+    return [str(problem) for problem in raised.value.problems]
+
+
+def tb3_roster(tmp_path, url, team_extra="", host_extra="", release="24.04", classroom_extra=""):
+    team_extra = team_extra.replace("\n            ", "\n").replace("\n", "\n" + " " * 12)
+    return write(tmp_path, f"""\
+        classroom:
+          ssh_user: ubuntu
+          rosdistro_index_url: {url}
+          rosdep_cache_dir: cache
+        {classroom_extra}
+        teams:
+          tb3:
+            ros_domain_id: 30
+            ubuntu_release: "{release}"
+            robot_profile: turtlebot3
+            {team_extra}
+            hosts:
+              tb3-main: {{role: main}}
+              tb3-robot: {{role: robot{host_extra}}}
+        """)
+
+
+# --- the built-in profiles ----------------------------------------------------------------
+
+def test_the_built_in_profiles_load():
+    assert {"demo", "turtlebot3", "sim"} <= set(builtin_profiles())
+    assert builtin_profiles()["turtlebot3"].distros == ("humble", "jazzy")
+
+
+@pytest.mark.parametrize("name", sorted(builtin_profiles()))
+def test_every_built_in_profile_installs_only_packages_its_distros_have(name):
+    profile = builtin_profiles()[name]
+    values_per_setting = {key: list(s.allowed) or ["x1"] for key, s in profile.settings.items()}
+    checked = 0
+    for distro in profile.distros:
+        for role in profile.sides:
+            # Every value of every setting (the when blocks), one setting at a time.
+            combos = [{}] + [{key: value} for key, values in values_per_setting.items() for value in values]
+            for combo in combos:
+                given = {key: values[0] for key, values in values_per_setting.items()} | combo
+                data, problems = resolve_host(profile, given, distro=distro, role=role)
+                assert not problems, problems
+                missing = [p for p in data["ros_packages"] if p not in distribution(distro)]
+                assert not missing, f"{name} ({role}) on {distro}: {missing} not in rosdistro"
+                checked += len(data["ros_packages"])
+    assert checked or name == "demo"
+
+
+def test_turtlebot3_robot_gets_the_driver_of_its_lidar_and_the_udev_rules():
+    profile = builtin_profiles()["turtlebot3"]
+    drivers = {}
+    for lds in ("LDS-01", "LDS-02", "LDS-03"):
+        data, _ = resolve_host(profile, {"turtlebot3_model": "waffle_pi", "lds_model": lds},
+                               distro="jazzy", role="robot")
+        drivers[lds] = sorted(p for p in data["ros_packages"] if "driver" in p)
+        assert data["environment"] == {"TURTLEBOT3_MODEL": "waffle_pi", "LDS_MODEL": lds}
+        assert data["launch"] == "turtlebot3_bringup robot.launch.py"
+        assert data["groups"] == ["dialout"]
+        assert 'ATTRS{idProduct}=="5740", ENV{ID_MM_DEVICE_IGNORE}="1"' in data["udev_rules"]
+        assert 'ATTRS{idProduct}=="df11"' in data["udev_rules"]
+        assert ("tb3_lidar" in data["udev_rules"]) == (lds == "LDS-01")
+        assert any("waffle_pi.opencr" in item for item in data["checklist"])
+    # Every driver on every robot (as turtlebot3_bringup's own dependencies): a new lidar is a variable.
+    assert all(found == ["coin_d4_driver", "hls_lfcd_lds_driver", "ld08_driver"] for found in drivers.values())
+    data, _ = resolve_host(profile, {"turtlebot3_model": "burger", "lds_model": "LDS-01",
+                                     "lds_usb_serial": "0001"}, distro="humble", role="robot")
+    assert 'ATTRS{serial}=="0001"' in data["udev_rules"]
+    main_side, _ = resolve_host(profile, {"turtlebot3_model": "burger"}, distro="humble", role="main")
+    assert main_side["environment"] == {"TURTLEBOT3_MODEL": "burger"}
+    assert main_side["launch"] is None and main_side["udev_rules"] == ""
+    assert "ros-humble-turtlebot3-teleop" in main_side["packages"]
+
+
+def test_sim_brings_each_distros_gazebo_and_keeps_discovery_on_the_host():
+    profile = builtin_profiles()["sim"]
+    humble, _ = resolve_host(profile, {}, distro="humble", role="main")
+    jazzy, _ = resolve_host(profile, {}, distro="jazzy", role="main")
+    assert "ros-humble-gazebo-ros-pkgs" in humble["packages"]
+    assert "ros-jazzy-ros-gz" in jazzy["packages"]
+    assert humble["discovery"] == "localhost"
+    assert {p.distro: p.gazebo.ros_package for p in PLATFORMS}["humble"] == "gazebo_ros_pkgs"
+
+
+# --- a TurtleBot3 class from the roster -----------------------------------------------------
+
+def test_a_turtlebot3_team_loads_with_its_profile_per_side(tmp_path, rosdistro_url):
+    classroom = load_roster(tb3_roster(tmp_path, rosdistro_url, "turtlebot3_model: burger\nlds_model: LDS-02"))
+    main_host, robot = classroom.hosts
+    assert robot.data["roslab_profile"]["environment"] == {"TURTLEBOT3_MODEL": "burger", "LDS_MODEL": "LDS-02"}
+    assert "ros-jazzy-ld08-driver" in robot.data["roslab_profile"]["packages"]
+    assert robot.data["nodes_launch"] == "turtlebot3_bringup robot.launch.py"
+    assert (robot.variant, main_host.variant) == ("ros-base", "desktop")
+    assert robot.data["nodes_verify_topic"] == "/scan"
+    assert main_host.data["roslab_profile"]["environment"] == {"TURTLEBOT3_MODEL": "burger"}
+    assert main_host.data["nodes_launch"] is None  # the main runs no service: the students drive
+
+
+def test_turtlebot3_on_lyrical_is_refused_with_what_would_work(tmp_path, rosdistro_url):
+    path = tb3_roster(tmp_path, rosdistro_url, "turtlebot3_model: burger\n            lds_model: LDS-02",
+                      release="26.04", classroom_extra=f"  ros_apt_source_sha256: {{resolute: '{'ab' * 32}'}}")
+    errors = errors_of(path)
+    assert errors[0] == (
+        "lab.yaml:10: team 'tb3', host 'tb3-main', field 'robot_profile': profile 'turtlebot3' supports "
+        "humble, jazzy, not lyrical (this host's distro): set ubuntu_release to 22.04 (humble) or 24.04 "
+        "(jazzy), or another robot_profile")
+    assert len(errors) == 2 and "host 'tb3-robot'" in errors[1]
+
+
+def test_a_missing_lds_model_is_refused_for_the_robot_only(tmp_path, rosdistro_url):
+    errors = errors_of(tb3_roster(tmp_path, rosdistro_url, "turtlebot3_model: burger"))
+    assert errors == [
+        "lab.yaml:10: team 'tb3', host 'tb3-robot', field 'lds_model': profile 'turtlebot3' needs lds_model "
+        "(LDS-01, LDS-02, LDS-03): The lidar (LDS_MODEL); robots sold from 2025 ship the LDS-03."]
+
+
+def test_a_misspelt_model_is_refused_with_did_you_mean(tmp_path, rosdistro_url):
+    errors = errors_of(tb3_roster(tmp_path, rosdistro_url, "lds_model: LDS-02", host_extra=", turtlebot3_model: burgr"))
+    assert errors == [
+        "lab.yaml:10: team 'tb3', host 'tb3-main', field 'turtlebot3_model': profile 'turtlebot3' needs "
+        "turtlebot3_model (burger, waffle, waffle_pi): The TurtleBot3's model (TURTLEBOT3_MODEL; the OpenCR "
+        "firmware file is <model>.opencr).",
+        "lab.yaml:14: team 'tb3', host 'tb3-robot', field 'turtlebot3_model': 'burgr' is not one of burger, "
+        "waffle, waffle_pi (did you mean 'burger'?)"]
+
+
+def test_a_package_not_in_the_distro_is_refused_with_did_you_mean(tmp_path, rosdistro_url):
+    path = tb3_roster(tmp_path, rosdistro_url, "turtlebot3_model: burger\n            lds_model: LDS-02",
+                      host_extra=', ros_extra_packages: ["ros-{distro}-turtlebot3-bringupp", "htop"]')
+    assert errors_of(path) == [
+        "lab.yaml:15: team 'tb3', host 'tb3-robot', field 'ros_extra_packages': ros-jazzy-turtlebot3-bringupp "
+        f"is not a package of ROS 2 jazzy (rosdistro {rosdistro_url}) (did you mean ros-jazzy-turtlebot3-bringup?)"]
+
+
+def test_the_package_check_reads_the_controllers_copy_offline(tmp_path, rosdistro_url):
+    roster = tb3_roster(tmp_path, rosdistro_url, "turtlebot3_model: burger\n            lds_model: LDS-02")
+    load_roster(roster)  # online: the files are kept in rosdep_cache_dir
+    packages._parsed.clear()
+    offline = roster.read_text().replace("  ssh_user: ubuntu\n", "  ssh_user: ubuntu\n  offline: true\n")
+    roster.write_text(offline.replace('lds_model: LDS-02', 'lds_model: LDS-02\n    '
+                                      'ros_extra_packages: ["ros-jazzy-nav2-bringupp"]'))
+    errors = errors_of(roster)
+    assert len(errors) == 2, errors  # each host names it
+    error = errors[0]
+    assert "ros-jazzy-nav2-bringupp is not a package of ROS 2 jazzy" in error
+    assert "did you mean ros-jazzy-nav2-bringup?" in error
+
+
+def test_unreachable_rosdistro_data_is_a_warning_not_a_silent_pass(tmp_path):
+    packages._parsed.clear()
+    roster = tb3_roster(tmp_path, "http://127.0.0.1:9/index-v4.yaml",
+                        "turtlebot3_model: burger\n            lds_model: LDS-02")
+    classroom = load_roster(roster)
+    (warning,) = [str(w) for w in classroom.warnings]
+    assert "the ROS package names of the jazzy hosts were not checked against rosdistro" in warning
+    assert "ros_packages_check: false" in warning
+
+
+def test_a_profile_naming_an_unknown_setting_is_refused_where_it_is_defined(tmp_path, rosdistro_url):
+    path = write(tmp_path, f"""\
+        classroom:
+          ssh_user: ubuntu
+          rosdistro_index_url: {rosdistro_url}
+        profiles:
+          mybot:
+            extends: turtlebot3
+            robot:
+              environment:
+                MYBOT_ARM: "${{arm_modle}}"
+        teams:
+          t1:
+            robot_profile: mybot
+            turtlebot3_model: burger
+            lds_model: LDS-03
+            hosts:
+              t1-robot: {{role: robot}}
+        """)
+    errors = errors_of(path)
+    assert errors[0] == ("lab.yaml:9: field 'profiles.mybot.robot.environment.MYBOT_ARM': names ${arm_modle}, "
+                         "which is not a setting of this profile")
+    assert errors[1] == ("lab.yaml:12: team 't1', host 't1-robot', field 'robot_profile': 'mybot' is not a robot "
+                         "profile (known: demo, sim, turtlebot3)")
+
+
+def test_a_roster_profile_extends_a_built_in_one(tmp_path, rosdistro_url):
+    path = write(tmp_path, f"""\
+        classroom:
+          ssh_user: ubuntu
+          rosdistro_index_url: {rosdistro_url}
+          rosdep_cache_dir: cache
+        profiles:
+          tb3_nav:
+            extends: turtlebot3
+            settings:
+              map_name: {{allowed: [house, world], default: world}}
+            main:
+              ros_packages: [nav2_bringup, turtlebot3_navigation2]
+              environment: {{TB3_MAP: "${{map_name}}"}}
+        teams:
+          t1:
+            robot_profile: tb3_nav
+            turtlebot3_model: burger
+            lds_model: LDS-03
+            hosts:
+              t1-main: {{role: main}}
+              t1-robot: {{role: robot}}
+        """)
+    main_host, robot = load_roster(path).hosts
+    assert main_host.data["roslab_profile"]["environment"] == {"TURTLEBOT3_MODEL": "burger", "TB3_MAP": "world"}
+    assert "ros-jazzy-nav2-bringup" in main_host.data["roslab_profile"]["packages"]
+    assert robot.data["roslab_profile"]["launch"] == "turtlebot3_bringup robot.launch.py"
+
+
+def test_a_profile_setting_on_a_host_whose_profile_lacks_it_is_refused(tmp_path):
+    path = write(tmp_path, """\
+        classroom:
+          ssh_user: ubuntu
+        teams:
+          t1:
+            lds_model: LDS-02
+            hosts:
+              t1-robot: {role: robot}
+        """)
+    assert errors_of(path) == [
+        "lab.yaml:5: team 't1', host 't1-robot', field 'lds_model': lds_model is a setting of profile "
+        "turtlebot3, not of this host's profile 'demo'"]
+
+
+def test_sim_has_no_robot_and_humble_on_a_pi5_has_no_image(tmp_path):
+    path = write(tmp_path, """\
+        classroom:
+          ssh_user: ubuntu
+          ros_packages_check: false
+        teams:
+          t1:
+            ros_domain_id: 1
+            robot_profile: sim
+            hosts:
+              t1-main: {role: main}
+              t1-robot: {role: robot}
+          t2:
+            ros_domain_id: 2
+            ubuntu_release: "22.04"
+            hosts:
+              t2-robot: {role: robot, board: pi5}
+        """)
+    assert errors_of(path) == [
+        "lab.yaml:7: team 't1', host 't1-robot', field 'robot_profile': profile 'sim' has no robot side "
+        "(only main): give this host another robot_profile (e.g. demo), or leave it out of the team",
+        "lab.yaml:15: team 't2', host 't2-robot', field 'board': there is no Ubuntu 22.04 image for a "
+        "Raspberry Pi 5 (its first is 24.04): use ubuntu_release 24.04 (jazzy), or another board for Humble"]
+
+
+def test_sim_main_keeps_discovery_on_the_host_unless_the_roster_says_otherwise(tmp_path):
+    path = write(tmp_path, """\
+        classroom:
+          ssh_user: ubuntu
+          ros_packages_check: false
+        teams:
+          t1:
+            ros_domain_id: 1
+            robot_profile: sim
+            hosts:
+              t1-main: {role: main}
+        """)
+    (host,) = load_roster(path).hosts
+    assert host.data["ros_automatic_discovery_range"] == "LOCALHOST"
+    assert host.data["nodes_launch"] is None
+
+
+def test_roslab_check_refuses_before_connecting(tmp_path, rosdistro_url, capsys):
+    path = tb3_roster(tmp_path, rosdistro_url, "turtlebot3_model: burgr\n            lds_model: LDS-02")
+    assert main(["check", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert "lab.yaml:11: team 'tb3', host 'tb3-robot', field 'turtlebot3_model': 'burgr' is not one of" in err
+    assert "lab.yaml:11: team 'tb3', host 'tb3-main', field 'turtlebot3_model': 'burgr' is not one of" in err
+
+
+@pytest.mark.parametrize("variables, problem", [
+    ({"ROS_DOMAIN_ID": "5"}, "ROS_DOMAIN_ID is not set through an environment mapping"),
+    ({"LD_PRELOAD": "/tmp/x.so"}, "LD_PRELOAD is not set through an environment mapping"),
+    ({"1BAD": "x"}, "'1BAD' is not a variable name"),
+    ({"GOOD": "two\nlines"}, "the value of GOOD must be a single line"),
+    ({"GOOD": 5}, "the value of GOOD must be a string"),
+])
+def test_ros_environment_refuses_what_no_destination_can_carry(tmp_path, variables, problem):
+    import yaml as _yaml
+    path = write(tmp_path, "classroom:\n  ssh_user: ubuntu\n  ros_environment: "
+                 + _yaml.safe_dump(variables, default_flow_style=True).strip()
+                 + "\nteams:\n  t1:\n    hosts:\n      t1-main: {role: main}\n")
+    (error,) = errors_of(path)
+    assert error.startswith("lab.yaml:3: field 'ros_environment': ") and problem in error
+
+
+# --- roslab opencr-update ------------------------------------------------------------------
+
+def test_opencr_update_refuses_in_one_line_naming_the_device():
+    from roslab.profiles.opencr import UsbSerialPort, port_problem, update_script
+
+    fact = UsbSerialPort()
+    assert fact.process(["missing"]) is None
+    assert fact.process(["present 0483 5740 "]) == "0483:5740"
+    assert fact.process(["present "]) == ""
+    assert port_problem("tb3-robot", "/dev/ttyACM0", None) == (
+        "no OpenCR board on tb3-robot: /dev/ttyACM0 does not exist (attach the OpenCR to the Pi by USB "
+        "and run this again)")
+    assert port_problem("tb3-robot", "/dev/ttyACM0", "1a86:7523") == (
+        "/dev/ttyACM0 on tb3-robot is 1a86:7523, not an OpenCR (0483:5740): nothing was flashed")
+    assert port_problem("tb3-robot", "/dev/ttyACM0", "0483:5740") is None
+    assert "./update.sh /dev/ttyACM0 burger.opencr" in update_script("/dev/ttyACM0", "burger")
+    assert "./update.sh '/dev/tty ACM0' burger.opencr" in update_script("/dev/tty ACM0", "burger")
+
+
+def test_opencr_update_refuses_a_host_that_is_not_a_turtlebot3_robot(tmp_path, rosdistro_url, capsys):
+    path = tb3_roster(tmp_path, rosdistro_url, "turtlebot3_model: burger\nlds_model: LDS-02")
+    assert main(["opencr-update", "tb3-main", str(path)]) == 2
+    assert "tb3-main is not a TurtleBot3 robot in the roster" in capsys.readouterr().err
+    assert main(["opencr-update", "tb3-robt", str(path)]) == 2
+    assert "'tb3-robt' is not a host of" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("profile_text, problem", [
+    ("settings: {locale: {allowed: [a]}}", "'locale' is a roslab setting"),
+    ("settings: {arm: {pattern: '.*', default: 'a b'}}", "'a b' is not a word"),
+    ("robot: {udev_rules: [{rule: 'KERNEL==\"ttyUSB0\", RUN+=\"/bin/sh -c id\"'}]}", "may not run programs"),
+    ("robot: {environment: {PATH: /tmp}}", "PATH is not set through an environment mapping"),
+    ("robot: {ros_packages: [Nav2]}", "'Nav2' is not a ROS package name"),
+    ("robot: {launhc: x y.launch.py}", "unknown key 'launhc' in a profile (did you mean 'launch'?)"),
+    ("robot: {when: [{if: {lds_modle: LDS-01}, ros_packages: [x]}]}",
+     "tests 'lds_modle', which is not a setting of this profile (did you mean 'lds_model'?)"),
+    ("distros: [rolling]", "must list the distros the profile supports"),
+])
+def test_a_roster_profile_is_checked_like_the_roster(tmp_path, profile_text, problem):
+    path = write(tmp_path, "classroom:\n  ssh_user: ubuntu\nprofiles:\n  mine:\n    extends: turtlebot3\n    "
+                 + profile_text + "\nteams:\n  t1:\n    hosts:\n      t1-main: {role: main}\n")
+    errors = errors_of(path)
+    assert any(problem in error and "field 'profiles.mine" in error for error in errors), errors
+
+
+def test_role_named_keys_are_deprecated_aliases_of_the_role_free_ones(tmp_path):
+    path = write(tmp_path, """\
+        classroom:
+          ssh_user: ubuntu
+          ros_variant_robot: ros-core
+          nodes_launch_main: my_pkg main.launch.py
+        teams:
+          t1:
+            hosts:
+              t1-main: {role: main}
+              t1-robot: {role: robot, nodes_launch: other_pkg robot.launch.py}
+        """)
+    classroom = load_roster(path)
+    main_host, robot = classroom.hosts
+    assert (main_host.variant, robot.variant) == ("desktop", "ros-core")
+    assert main_host.data["nodes_launch"] == "my_pkg main.launch.py"
+    assert robot.data["nodes_launch"] == "other_pkg robot.launch.py"
+    warnings = sorted({str(w) for w in classroom.warnings})
+    assert warnings == [
+        "lab.yaml:3: team 't1', field 'ros_variant_robot': ros_variant_robot is deprecated: set ros_variant "
+        "(on the host, or in a robot profile's side); it is honoured for now",
+        "lab.yaml:4: team 't1', field 'nodes_launch_main': nodes_launch_main is deprecated: set nodes_launch "
+        "(on the host, or in a robot profile's side); it is honoured for now"]
+
+
+def test_a_profile_setting_from_pyinfras_command_line_is_checked_like_the_rosters(tmp_path, rosdistro_url):
+    from roslab.roster.overrides import command_line_data
+
+    roster = tb3_roster(tmp_path, rosdistro_url, "turtlebot3_model: burger\n            lds_model: LDS-02")
+    classroom = load_roster(roster, command_line=command_line_data(["pyinfra", "--data", "lds_model=LDS-03"]))
+    robot = next(host for host in classroom.hosts if host.role == "robot")
+    assert robot.data["roslab_profile"]["environment"]["LDS_MODEL"] == "LDS-03"
+    with pytest.raises(RosterError) as raised:
+        load_roster(roster, command_line=command_line_data(["pyinfra", "--data", "lds_model=LDS-9"]))
+    assert "'LDS-9' is not one of LDS-01, LDS-02, LDS-03" in str(raised.value)
+    with pytest.raises(RosterError) as raised:
+        load_roster(roster, command_line=command_line_data(["pyinfra", "--data", "lds_model=[1]"]))
+    assert "--data lds_model=[1]" in str(raised.value)
