@@ -1,4 +1,5 @@
-"""The robot profile's host changes: its udev rules, the login user's groups.
+"""The robot profile's host changes: its udev rules, the login user's groups, and (opt-in,
+`profile_os_tweaks`) the OS changes its maker recommends: masked units, a swap file.
 
 The profile's packages are ros_install's (deploy/ros_install.py `ros_packages`), its variables
 are in the shell block and the service's unit (roslab.ros_env.host_environment), its launch
@@ -17,22 +18,36 @@ from pyinfra.operations import files
 
 from deploy.common import existing_login_home, login_user, should_run
 from roslab import probe, settings
-from roslab.profiles.host import udev_reloaded, user_in_groups, user_in_groups_reads
+from roslab.operations import managed_block, managed_block_reads
+from roslab.profiles.host import (
+    MemoryTotal,
+    SwapFile,
+    UnitsMasked,
+    swap_file_on,
+    udev_reloaded,
+    units_masked,
+    user_in_groups,
+    user_in_groups_reads,
+)
 from roslab.profiles.resolve import UDEV_RULES_PATH
 
 DEFAULTS = settings.defaults("robot_profile")
+SWAP_FILE = "/swapfile"
+FSTAB = "/etc/fstab"
+FSTAB_LABEL = "robot profile swap file"
 
 
 def profile() -> dict:
     return host.data.get("roslab_profile") or {}
 
 
-@deploy("The robot profile's udev rules and groups are in place", data_defaults=DEFAULTS)
+@deploy("The robot profile's udev rules, groups and opted-in OS tweaks are in place", data_defaults=DEFAULTS)
 def robot_profile():
-    """Write the profile's udev rules (and reload udev), put the login user in its groups.
+    """Write the profile's udev rules (and reload udev), put the login user in its groups and,
+    where the roster opts in, apply the profile's OS tweaks.
 
-    Reads host.data: robot_profile_enabled, roslab_profile (udev_rules, groups, name),
-    login_user, ssh_user.
+    Reads host.data: robot_profile_enabled, roslab_profile (udev_rules, groups, name, os_tweaks),
+    profile_os_tweaks, login_user, ssh_user.
     """
     if not should_run("robot_profile_enabled"):
         return
@@ -57,6 +72,36 @@ def robot_profile():
         user = login_user()
         user_in_groups(name=f"Ensure {user} is in {', '.join(groups)} (robot profile {name})",
                        user=user, groups=groups)
+    tweaks = os_tweaks()
+    if tweaks:
+        os_tweaks_applied(name, tweaks)
+
+
+def os_tweaks() -> dict:
+    """The profile's OS tweaks for this host, or {} when the roster has not opted in."""
+    return (profile().get("os_tweaks") or {}) if host.data.get("profile_os_tweaks") else {}
+
+
+def swap_wanted(tweaks: dict, memory_mb: int | None) -> bool:
+    """A swap file is made where the profile asks for one and the host's memory is at most its
+    limit (no limit: always); a host whose memory cannot be read gets none."""
+    if not tweaks.get("swap_mb"):
+        return False
+    limit = tweaks.get("swap_if_memory_mb_at_most")
+    return limit is None or (memory_mb is not None and memory_mb <= limit)
+
+
+def os_tweaks_applied(name: str, tweaks: dict) -> None:
+    units = tweaks.get("mask_units") or []
+    if units:
+        units_masked(name=f"Ensure {', '.join(units)} are masked (robot profile {name}, profile_os_tweaks)",
+                     units=units)
+    if swap_wanted(tweaks, host.get_fact(MemoryTotal)):
+        size = tweaks["swap_mb"]
+        swap_file_on(name=f"Ensure {SWAP_FILE} ({size} MiB) is in use as swap (robot profile {name})",
+                     path=SWAP_FILE, size_mb=size)
+        managed_block(name=f"Ensure {FSTAB} turns {SWAP_FILE} on at boot", path=FSTAB,
+                      content=f"{SWAP_FILE} none swap sw 0 0", label=FSTAB_LABEL)
 
 
 @probe.reader
@@ -68,4 +113,10 @@ def robot_profile_reads() -> list:
         [probe.read(File, path=UDEV_RULES_PATH)]
     if profile().get("groups") and existing_login_home() is not None:
         reads += user_in_groups_reads(login_user())
+    tweaks = os_tweaks()
+    if tweaks.get("mask_units"):
+        reads.append(probe.read(UnitsMasked, units=tweaks["mask_units"]))
+    if tweaks.get("swap_mb"):
+        reads.append(probe.read(MemoryTotal))
+        reads += [probe.read(SwapFile, path=SWAP_FILE), *managed_block_reads(FSTAB)]
     return reads

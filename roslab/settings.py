@@ -240,6 +240,10 @@ SCHEMA: list[Setting] = [
          "service and `roslab verify`, e.g. {RCUTILS_COLORIZED_OUTPUT: \"1\"}; each value is "
          "written with the escaping its destination needs.", f.environment,
          {"allowed": "VARIABLE: one line of text"}),
+        ("profile_os_tweaks", False, bool,
+         "Apply the OS changes the robot's maker recommends, as the profile lists them (turtlebot3, "
+         "from ROBOTIS's e-Manual: mask systemd-networkd-wait-online and the sleep targets; a 2 GiB "
+         "/swapfile where the host has 2 GiB of memory or less). Turning it off later undoes nothing."),
         ("ros_packages_check", True, bool,
          "Before connecting, check every ROS package the roster or a profile names against the "
          "distro's rosdistro file (from rosdistro_index_url; offline: the controller's copy)."),

@@ -71,3 +71,100 @@ def udev_reloaded():
     Example: ``udev_reloaded(name="...", _if=rules.did_change)``
     """
     yield UDEV_RELOAD
+
+
+# --- opt-in OS tweaks (profile `os_tweaks`, roster `profile_os_tweaks`) -------------------
+
+
+class MemoryTotal(FactBase):
+    """The host's memory in MiB (MemTotal of /proc/meminfo), or None if unreadable."""
+
+    def command(self) -> str:
+        return "awk '/^MemTotal:/ {print int($2 / 1024)}' /proc/meminfo"
+
+    def process(self, output):
+        try:
+            return int(" ".join(output).strip())
+        except ValueError:
+            return None
+
+
+class UnitsMasked(FactBase):
+    """For each of `units`, whether systemd has it masked ({unit: bool})."""
+
+    def command(self, units: list[str]) -> str:
+        words = " ".join(shell_word(unit) for unit in units)
+        return (f"for unit in {words}; do "
+                'printf "%s %s\\n" "$unit" "$(systemctl is-enabled "$unit" 2>/dev/null || true)"; done')
+
+    def process(self, output):
+        masked = {}
+        for line in output:
+            unit, _, state = line.strip().partition(" ")
+            if unit:
+                masked[unit] = state.strip() == "masked"
+        return masked
+
+
+@operation()
+def units_masked(units: list[str]):
+    """Each of `units` is masked (linked to /dev/null): nothing starts or waits for it.
+
+    + units: systemd unit names (``sleep.target``, ``systemd-networkd-wait-online.service``)
+
+    A unit this host does not have is masked all the same, so a later install cannot start it.
+    Example: ``units_masked(name="...", units=["sleep.target", "suspend.target"])``
+    """
+    current = host.get_fact(UnitsMasked, units=units)
+    missing = [unit for unit in units if not current.get(unit)]
+    if not missing:
+        host.noop(f"{', '.join(units)} already masked")
+        return
+    yield f"systemctl mask {' '.join(shell_word(unit) for unit in missing)}"
+
+
+class SwapFile(FactBase):
+    """A swap file's size in bytes and whether it is in use: {"size": int | None, "active": bool}."""
+
+    def command(self, path: str) -> str:
+        word = shell_word(path)
+        return (f"if [ -f {word} ]; then stat -c 'size %s' {word}; else echo 'size none'; fi; "
+                f"if awk 'NR > 1 {{print $1}}' /proc/swaps | grep -qxF -- {word}; "
+                "then echo 'active yes'; else echo 'active no'; fi")
+
+    def process(self, output):
+        result = {"size": None, "active": False}
+        for line in output:
+            key, _, value = line.strip().partition(" ")
+            if key == "size" and value.isdigit():
+                result["size"] = int(value)
+            elif key == "active":
+                result["active"] = value == "yes"
+        return result
+
+
+@operation()
+def swap_file_on(path: str, size_mb: int):
+    """A swap file of `size_mb` MiB at `path` (mode 0600) is in use.
+
+    + path: the swap file (``/swapfile``)
+    + size_mb: its size in MiB; a file of another size is switched off and made anew
+
+    Only the running system: the /etc/fstab line that keeps it on after a reboot is a
+    managed block of its own (deploy/robot_profile.py).
+    Example: ``swap_file_on(name="...", path="/swapfile", size_mb=2048)``
+    """
+    current = host.get_fact(SwapFile, path=path)
+    word = shell_word(path)
+    if current["size"] == size_mb * 1024 * 1024:
+        if current["active"]:
+            host.noop(f"{path} ({size_mb} MiB) is already in use as swap")
+            return
+        yield f"swapon {word}"
+        return
+    if current["active"]:
+        yield f"swapoff {word}"
+    # umask 077: the file is never readable by others, not even while it is being made.
+    yield (f"rm -f {word} && (umask 077 && (fallocate -l {size_mb}M {word} || dd if=/dev/zero of={word} "
+           f"bs=1M count={size_mb} status=none)) && chmod 600 {word} && mkswap {word} >/dev/null && "
+           f"swapon {word}")

@@ -159,4 +159,5 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         "verify_topic": profile.verify_topic,
         "discovery": profile.discovery,
         "checklist": [fill(item, values) for item in merged.checklist],
+        "os_tweaks": dict(side.os_tweaks),
     }, []

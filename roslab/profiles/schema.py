@@ -31,9 +31,12 @@ TOP_KEYS = ("profile", "extends", "description", "distros", "boards", "discovery
             "settings", *SIDES)
 SETTING_KEYS = ("doc", "allowed", "pattern", "required", "default")
 SIDE_KEYS = ("variant", "ros_packages", "apt_packages", "environment", "groups", "udev_rules", "launch",
-             "checklist", "when")
+             "checklist", "os_tweaks", "when")
 WHEN_KEYS = ("if", "ros_packages", "apt_packages", "environment", "groups", "udev_rules", "checklist")
 RULE_KEYS = ("rule", "comment")
+# Opt-in OS changes a robot's maker recommends (applied when the roster sets profile_os_tweaks).
+OS_TWEAK_KEYS = ("mask_units", "swap_mb", "swap_if_memory_mb_at_most")
+_UNIT = re.compile(r"[A-Za-z0-9][A-Za-z0-9@_.:-]{0,120}\.(service|target|socket|timer|mount|path)", re.ASCII)
 
 
 @dataclass(frozen=True)
@@ -76,6 +79,7 @@ class Side:
     launch: str | None = None
     variant: str | None = None  # ros-<distro>-<variant>: desktop, ros-base...
     checklist: list[str] = field(default_factory=list)
+    os_tweaks: dict = field(default_factory=dict)  # OS_TWEAK_KEYS
     when: list[dict] = field(default_factory=list)  # {"if": {...}, and the list/env keys above}
 
 
@@ -242,6 +246,32 @@ class ProfileReader:
         if not when_ok and "when" in mapping:
             self.error("a when block cannot hold another", mapping, "when", f"{path}.when")
 
+    def read_os_tweaks(self, mapping, side: str) -> dict:
+        """A side's `os_tweaks`: units to mask, a swap file and the memory below which it is made."""
+        value = mapping.get("os_tweaks")
+        path = f"{side}.os_tweaks"
+        if value is None:
+            return {}
+        if not isinstance(value, dict):
+            self.error(f"must be a mapping ({', '.join(OS_TWEAK_KEYS)})", mapping, "os_tweaks", path)
+            return {}
+        self.unknown_keys(value, OS_TWEAK_KEYS, path)
+        tweaks: dict = {}
+        units = self.string_list(value, "mask_units", f"{path}.mask_units",
+                                 lambda unit: None if _UNIT.fullmatch(unit) else
+                                 f"{unit!r} is not a systemd unit name (name.service, name.target...)")
+        if units:
+            tweaks["mask_units"] = units
+        for key, low, high in (("swap_mb", 64, 65536), ("swap_if_memory_mb_at_most", 256, 1048576)):
+            number = value.get(key)
+            if number is None:
+                continue
+            if isinstance(number, bool) or not isinstance(number, int) or not low <= number <= high:
+                self.error(f"must be a whole number of MiB from {low} to {high}", value, key, f"{path}.{key}")
+                continue
+            tweaks[key] = number
+        return tweaks
+
     def read_side(self, mapping, name: str, known: set[str]) -> Side | None:
         value = mapping.get(name)
         if value is None:
@@ -266,6 +296,7 @@ class ProfileReader:
                 self.error(problem, value, "variant", f"{name}.variant")
             else:
                 side.variant = variant
+        side.os_tweaks = self.read_os_tweaks(value, name)
         blocks = value.get("when") or []
         if not isinstance(blocks, list):
             self.error("must be a list of {if: {setting: value}, ...}", value, "when", f"{name}.when")
@@ -332,6 +363,10 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
             own = merged_side(inherited, own)
         if own or inherited:
             sides[side_name] = own or inherited
+            tweaks = sides[side_name].os_tweaks
+            if "swap_if_memory_mb_at_most" in tweaks and "swap_mb" not in tweaks:
+                reader.error("names a memory limit for a swap file but no swap_mb",
+                             mapping.get(side_name) or mapping, "os_tweaks", f"{side_name}.os_tweaks")
     if not sides:
         reader.error("a profile needs a main or a robot side", mapping, None, "")
     description = mapping.get("description", base.description if base else "")
@@ -354,5 +389,6 @@ def merged_side(base: Side, own: Side) -> Side:
         launch=own.launch or base.launch,
         variant=own.variant or base.variant,
         checklist=[*base.checklist, *own.checklist],
+        os_tweaks={**base.os_tweaks, **own.os_tweaks},
         when=[*base.when, *own.when],
     )

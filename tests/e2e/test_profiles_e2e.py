@@ -3,7 +3,7 @@
 Its own sandbox instance ($ROSLAB_PROFILES_E2E_SANDBOX, $ROSLAB_PROFILES_E2E_SUBNET), 7 hosts on
 the releases 24.04, 22.04, 26.04, 24.04 in turn (ROSLAB_SANDBOX_RELEASES):
 
-    team1  24.04  turtlebot3 (burger, LDS-02)     main + robot
+    team1  24.04  turtlebot3 (burger, LDS-02)     main + robot, profile_os_tweaks (units masked)
     team2  22.04  turtlebot3 (waffle, LDS-01)     main + robot
     team3  26.04  demo on Lyrical                  main + robot
     team4  24.04  sim                              main only
@@ -71,7 +71,8 @@ def class_roster(sandbox, path: Path, team1_lds: str = "LDS-02") -> Path:
     data = yaml.safe_load(sandbox.roster_path.read_text())
     data["classroom"]["ros_environment"] = {"ROSLAB_E2E_NOTE": NOTE}
     teams = data["teams"]
-    teams["team1"].update(robot_profile="turtlebot3", turtlebot3_model="burger", lds_model=team1_lds)
+    teams["team1"].update(robot_profile="turtlebot3", turtlebot3_model="burger", lds_model=team1_lds,
+                          profile_os_tweaks=True)
     teams["team2"].update(robot_profile="turtlebot3", turtlebot3_model="waffle", lds_model="LDS-01")
     teams["team4"].update(robot_profile="sim")
     path.write_text(yaml.safe_dump(data, sort_keys=False))
@@ -193,6 +194,18 @@ def test_udev_rules_and_the_dialout_group_are_in_place(sandbox, first_run):
     assert reloaded == {"team1-robot", "team2-robot"}
     for host in ("team1-robot", "team2-robot"):
         assert "dialout" in sandbox.ssh(host, "id -nG ubuntu", check=True).stdout.split()
+
+
+def test_the_opted_in_robot_has_the_e_manuals_units_masked_and_no_swap_above_2_gib(sandbox, first_run):
+    units = "systemd-networkd-wait-online.service sleep.target suspend.target hibernate.target hybrid-sleep.target"
+    opted_in = sandbox.ssh("team1-robot", f"systemctl is-enabled {units}").stdout.split()
+    assert opted_in == ["masked"] * 5, opted_in
+    # team2 did not opt in: its robot's units are as Ubuntu ships them.
+    assert "masked" not in sandbox.ssh("team2-robot", f"systemctl is-enabled {units}").stdout.split()
+    # A sandbox host has the machine's memory (far above 2 GiB): no swap file (unit tests cover a 2 GB Pi).
+    memory_kib = int(sandbox.ssh("team1-robot", "awk '/^MemTotal:/ {print $2}' /proc/meminfo", check=True).stdout)
+    assert memory_kib > 2048 * 1024
+    assert sandbox.ssh("team1-robot", "test -e /swapfile").returncode == 1
 
 
 def test_another_lidar_changes_only_the_variable_in_the_shell_block_and_the_unit(sandbox, roster, first_run, tmp_path):

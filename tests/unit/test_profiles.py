@@ -401,6 +401,10 @@ def test_opencr_update_refuses_a_host_that_is_not_a_turtlebot3_robot(tmp_path, r
     ("robot: {when: [{if: {lds_modle: LDS-01}, ros_packages: [x]}]}",
      "tests 'lds_modle', which is not a setting of this profile (did you mean 'lds_model'?)"),
     ("distros: [rolling]", "must list the distros the profile supports"),
+    ("robot: {os_tweaks: {mask_units: ['sleep.target; rm -rf /']}}", "is not a systemd unit name"),
+    ("robot: {os_tweaks: {swap_mb: 2G}}", "must be a whole number of MiB"),
+    ("robot: {os_tweaks: {swap_mb: 1000000000}}", "must be a whole number of MiB"),
+    ("robot: {os_tweaks: {reboot: true}}", "unknown key 'reboot'"),
 ])
 def test_a_roster_profile_is_checked_like_the_roster(tmp_path, profile_text, problem):
     path = write(tmp_path, "classroom:\n  ssh_user: ubuntu\nprofiles:\n  mine:\n    extends: turtlebot3\n    "
