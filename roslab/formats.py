@@ -165,6 +165,8 @@ launch_file_name = pattern(r"[A-Za-z0-9_][A-Za-z0-9_.-]*\.launch\.(py|xml|yaml)"
                            "a launch file name (like main.launch.py)")
 # ROS 2 topic names (absolute or relative), no substitutions.
 ros_topic = pattern(r"/?[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*", "a ROS topic name (like /chatter)")
+ros_message_type = pattern(r"[a-z][a-z0-9_]*/msg/[A-Z][A-Za-z0-9]*",
+                           "a ROS message type (like sensor_msgs/msg/LaserScan)")
 version = pattern(r"[0-9]+(\.[0-9]+){1,3}", "a version like 1.2.0")
 sha256_hex = pattern(r"[0-9a-f]{64}", "a sha256 (64 lower-case hex digits)")
 interface_name = pattern(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,14}", "a network interface name (like eth0)")

@@ -388,6 +388,10 @@ SCHEMA: list[Setting] = [
         ("nodes_verify_topic", None, str,
          "The topic `roslab verify` expects each team's main host to hear from its robot; None: the "
          "robot profile's (demo: /chatter, turtlebot3: /scan).", f.ros_topic, {"nullable": True}),
+        ("nodes_verify_type", None, str,
+         "The message type on that topic; None: the robot profile's (demo: std_msgs/msg/String, "
+         "whose text must be a robot's greeting; turtlebot3: sensor_msgs/msg/LaserScan, where any "
+         "message passes).", f.ros_message_type, {"nullable": True}),
         ("nodes_verify_timeout", 20, int, "Seconds `roslab verify` waits for a message on that topic.",
          f.int_range(1, 600, " s")),
     ),

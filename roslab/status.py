@@ -38,7 +38,7 @@ from pyinfra.api import FactBase
 
 from roslab.roster import Classroom, RosterError, display_path, inventory_groups
 from roslab.runs import RunRecord, now_utc, read_runs, runs_path
-from roslab.verify import TeamResult, check_bound, hear, parse_check_output, service_state
+from roslab.verify import CHATTER_TYPE, TeamResult, check_bound, hear, parse_check_output, service_state
 from roslab.workspace import NODES_SERVICE
 
 # Bounds, in seconds.
@@ -500,7 +500,8 @@ def host_box(host: HostStatus, x: int, y: int) -> dict:
     }
 
 
-def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = "/chatter") -> dict:
+def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = "/chatter",
+                 message_type: str = CHATTER_TYPE) -> dict:
     """Coordinates and texts of one team's SVG: main on the left, robots on the right, arrows
     from each robot to the main host labelled with what the main host hears."""
     main = next((host for host in hosts if host.role == "main"), None)
@@ -516,14 +517,15 @@ def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = 
                           {"text": "no main host", "class": "name", "x": MAIN_X + 12, "y": main_y + 22}]})
 
     result = TeamResult(team, main=main.name if main else None, robots=sorted(r.name for r in robots),
-                        topic=topic, services={host.name: host.service for host in hosts})
+                        topic=topic, services={host.name: host.service for host in hosts},
+                        message_type=message_type)
     if main is not None:
         result.heard = main.heard
         if not main.reachable:
             result.error = f"{main.name} is {UNREACHABLE}"
         elif main.listen_error:
             result.error = main.listen_error
-    heard_robot = (main.heard or {}).get("robot") if main is not None else None
+    heard_robots = result.heard_robots()
     # Listened for real: the main host answered with a ROS 2 runtime (else nothing is known).
     listened = listen and main is not None and bool((main.heard or {}).get("ros"))
     for index, robot in enumerate(robots):
@@ -531,7 +533,7 @@ def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = 
         boxes.append(host_box(robot, ROBOT_X, y))
         if not listened:
             state, label = "unknown", f"{topic}: not checked"
-        elif heard_robot == robot.name:
+        elif robot.name in heard_robots:
             state, label = "ok", f"{topic}: heard"
         else:
             state, label = "bad", f"{topic}: not heard"
@@ -563,7 +565,7 @@ def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = 
         texts.append({"x": ROBOT_X, "y": main_y + BOX_HEIGHT // 2 + 4, "text": "no robot in this team"})
     height = max(MARGIN + rows * (BOX_HEIGHT + BOX_GAP), topics_y + len(topic_lines) * LINE) + MARGIN
     if listen:
-        verdict = ("heard " + heard_robot) if result.passed else result.verdict()
+        verdict = result.verdict()
         verdict_level = "ok" if result.passed else "bad" if listened else "warn"
     else:
         running = sum(host.service.startswith("active") for host in hosts)
@@ -584,7 +586,8 @@ def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = 
 
 def page_context(classroom_name: str | None, roster: str, hosts: list[HostStatus], now: datetime,
                  listen: bool = False, topics: dict[str, str] | None = None,
-                 warnings: list[str] | None = None, checklists: list[dict] | None = None) -> dict:
+                 warnings: list[str] | None = None, checklists: list[dict] | None = None,
+                 message_types: dict[str, str] | None = None) -> dict:
     """Everything the page shows, computed here (the template only loops and tests).
 
     `checklists`: per host, its robot profile's steps done by hand (`checklists()`)."""
@@ -608,7 +611,8 @@ def page_context(classroom_name: str | None, roster: str, hosts: list[HostStatus
              "level": "bad" if failed else "ok"},
         ],
         "listen": listen,
-        "teams": [team_picture(name, members, listen, topics.get(name, "/chatter"))
+        "teams": [team_picture(name, members, listen, topics.get(name, "/chatter"),
+                               (message_types or {}).get(name, CHATTER_TYPE))
                   for name, members in teams.items()],
         "columns": COLUMNS,
         "rows": [{"host": host.name, "cells": [host_cells(host, now)[column] for column in COLUMNS]}
@@ -721,8 +725,10 @@ def run(args: argparse.Namespace) -> int:
     now = now_utc()
     topics = {host.team: host.data.get("nodes_verify_topic") or "/chatter"
               for host in classroom.hosts if host.role == "main"}
+    message_types = {host.team: host.data.get("nodes_verify_type") or CHATTER_TYPE
+                     for host in classroom.hosts if host.role == "main"}
     context = page_context(classroom.name, display_path(path), statuses, now, args.listen, topics, warnings,
-                           checklists(classroom, {status.name for status in statuses}))
+                           checklists(classroom, {status.name for status in statuses}), message_types)
     for warning in warnings:
         print(f"warning: {warning}", file=sys.stderr)
     title = f"Classroom {classroom.name!r}" if classroom.name else "Classroom"

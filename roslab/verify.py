@@ -84,8 +84,8 @@ class NodesHeard(FactBase):
         return parse_check_output([])
 
     def command(self, distro: str, environment: dict, workspace_dir: str, topic: str,
-                timeout: int, kill_after: int = KILL_AFTER) -> str:
-        script = check_script(distro, environment, workspace_dir, topic, timeout, kill_after)
+                timeout: int, kill_after: int = KILL_AFTER, message_type: str = CHATTER_TYPE) -> str:
+        script = check_script(distro, environment, workspace_dir, topic, timeout, kill_after, message_type)
         bound = check_bound(timeout, kill_after)
         # The check always "succeeds" as a command; what happened is in its sections.
         return (f"timeout --kill-after={int(kill_after)} {bound} bash -c {shlex.quote(script)}; "
@@ -96,8 +96,12 @@ class NodesHeard(FactBase):
 
 
 def check_script(distro: str, environment: dict, workspace_dir: str, topic: str, timeout: int,
-                 kill_after: int = KILL_AFTER) -> str:
-    """The bash script the fact runs (as the login user): it reports in `## ` sections."""
+                 kill_after: int = KILL_AFTER, message_type: str = CHATTER_TYPE) -> str:
+    """The bash script the fact runs (as the login user): it reports in `## ` sections.
+
+    A greeting (CHATTER_TYPE) is echoed as its text (`--field data`); any other message type
+    as ros2 prints it (YAML), to show that one came.
+    """
     timeout, kill_after = int(timeout), int(kill_after)
 
     def bounded(seconds: int) -> str:
@@ -119,8 +123,9 @@ def check_script(distro: str, environment: dict, workspace_dir: str, topic: str,
             "echo '## topics'",
             f"{bounded(LIST_TIMEOUT)} ros2 topic list --no-daemon --spin-time {LIST_SPIN_TIME} 2>/dev/null",
             "echo '## message'",
-            f"{bounded(timeout)} ros2 topic echo --no-daemon --once --field data --full-length"
-            f" {shell_word(topic)} {CHATTER_TYPE} 2>/dev/null | head -c {MESSAGE_LIMIT}",
+            f"{bounded(timeout)} ros2 topic echo --no-daemon --once"
+            f"{' --field data' if message_type == CHATTER_TYPE else ''} --full-length"
+            f" {shell_word(topic)} {shell_word(message_type)} 2>/dev/null | head -c {MESSAGE_LIMIT}",
             "echo \"## echo status ${PIPESTATUS[0]}\"",
             # --no-daemon starts none; should one have been started anyway, stop it.
             f"if [ $daemon_before = 0 ] && {daemon_status}; then",
@@ -183,6 +188,9 @@ class TeamResult:
     robots: list[str] = field(default_factory=list)
     topic: str = "/chatter"
     timeout: int = 20
+    # CHATTER_TYPE: the message must be a robot's greeting; any other type: one message passes
+    # (a LaserScan does not say which robot sent it).
+    message_type: str = CHATTER_TYPE
     services: dict = field(default_factory=dict)  # host name -> "active (running)", "failed (...)", ...
     heard: dict | None = None  # NodesHeard of the main host
     error: str | None = None
@@ -203,11 +211,23 @@ class TeamResult:
                 and not (host in self.without_service and self.services.get(host) == "not installed")]
 
     @property
+    def greeting(self) -> bool:
+        """Whether the topic carries roslab's greeting, which names the robot that sent it."""
+        return self.message_type == CHATTER_TYPE
+
+    def heard_robots(self) -> list[str]:
+        """The team's robots the main heard: the one its greeting names, or, on a topic whose
+        messages name no sender, every robot once a message came."""
+        heard = self.heard or {}
+        if not heard.get("ros"):
+            return []
+        if self.greeting:
+            return [heard["robot"]] if heard.get("robot") in self.robots else []
+        return list(self.robots) if heard.get("message") else []
+
+    @property
     def passed(self) -> bool:
-        return bool(
-            not self.error and self.heard and self.heard["ros"] and self.heard["robot"]
-            and self.heard["robot"] in self.robots and not self.services_down()
-        )
+        return bool(not self.error and self.heard_robots() and not self.services_down())
 
     def verdict(self) -> str:
         if self.error:
@@ -224,6 +244,8 @@ class TeamResult:
         down = self.services_down()
         if down:
             return "; ".join(f"{NODES_SERVICE} on {host} is {state}" for host, state in down)
+        if not self.greeting and heard["message"]:
+            return f"heard a {self.message_type} on {self.topic}"
         if heard["robot"] is not None:
             if heard["robot"] in self.robots:
                 return f"heard {heard['robot']}"
@@ -310,6 +332,7 @@ def hear(host, distro: str | None = None, timeout: int | None = None) -> dict:
         workspace_dir=host.data.workspace_dir,
         topic=host.data.nodes_verify_topic,
         timeout=timeout,
+        message_type=host.data.get("nodes_verify_type") or CHATTER_TYPE,
         **user,
         # The connection's own bound, beyond the check's.
         _timeout=check_bound(timeout) + 30,
@@ -349,6 +372,7 @@ def verify(state: State) -> list[TeamResult]:
             teams[name] = TeamResult(
                 name, topic=host.data.get("nodes_verify_topic") or "/chatter",
                 timeout=host.data.get("nodes_verify_timeout") or 0,
+                message_type=host.data.get("nodes_verify_type") or CHATTER_TYPE,
             )
         return teams[name]
 
@@ -362,6 +386,7 @@ def verify(state: State) -> list[TeamResult]:
             team.main, team.heard = host.name, heard
             team.topic = host.data.get("nodes_verify_topic") or team.topic
             team.timeout = host.data.get("nodes_verify_timeout") or team.timeout
+            team.message_type = host.data.get("nodes_verify_type") or team.message_type
         else:
             team.robots.append(host.name)
         team.error = team.error or error

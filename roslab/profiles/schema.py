@@ -27,7 +27,7 @@ _ROS_PACKAGE = re.compile(r"[a-z][a-z0-9_]*|\$\{gazebo\}")
 # Conditions a `when` block may test besides the profile's settings.
 BUILTIN_CONDITIONS = ("distro", "board")
 
-TOP_KEYS = ("profile", "extends", "description", "distros", "boards", "discovery", "verify_topic",
+TOP_KEYS = ("profile", "extends", "description", "distros", "boards", "discovery", "verify_topic", "verify_type",
             "settings", *SIDES)
 SETTING_KEYS = ("doc", "allowed", "pattern", "required", "default")
 SIDE_KEYS = ("variant", "ros_packages", "apt_packages", "environment", "groups", "udev_rules", "launch",
@@ -91,6 +91,7 @@ class Profile:
     boards: tuple[str, ...] = BOARDS
     discovery: str | None = None
     verify_topic: str | None = None
+    verify_type: str = "std_msgs/msg/String"  # a greeting (roslab's talker), else any message passes
     settings: dict[str, ProfileSetting] = field(default_factory=dict)
     sides: dict[str, Side] = field(default_factory=dict)
     source: str = ""  # where it was defined, for messages ("built-in", "the roster")
@@ -355,6 +356,10 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
     if topic is not None and (not isinstance(topic, str) or formats.ros_topic(topic)):
         reader.error("must be a ROS topic name (or null: nothing to verify)", mapping, "verify_topic",
                      "verify_topic")
+    message_type = mapping.get("verify_type", base.verify_type if base else Profile.verify_type)
+    if not isinstance(message_type, str) or formats.ros_message_type(message_type):
+        reader.error("must be a ROS message type (like sensor_msgs/msg/LaserScan)", mapping, "verify_type",
+                     "verify_type")
     sides = {}
     for side_name in SIDES:
         own = reader.read_side(mapping, side_name, known)
@@ -372,8 +377,8 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
     description = mapping.get("description", base.description if base else "")
     if not reader.ok:
         return None
-    return Profile(name, str(description or ""), tuple(distros), tuple(boards), discovery, topic, settings,
-                   sides, source, line_of(mapping))
+    return Profile(name, str(description or ""), tuple(distros), tuple(boards), discovery, topic,
+                   message_type, settings, sides, source, line_of(mapping))
 
 
 def merged_side(base: Side, own: Side) -> Side:

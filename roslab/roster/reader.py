@@ -505,5 +505,7 @@ class RosterReader:
                 data[key] = profile_value or data.get(old_key)
         if data.get("nodes_verify_topic") is None:
             data["nodes_verify_topic"] = result["verify_topic"]
+        if data.get("nodes_verify_type") is None:
+            data["nodes_verify_type"] = result["verify_type"]
         if result["discovery"] == "localhost" and "ros_automatic_discovery_range" not in resolved:
             data["ros_automatic_discovery_range"] = "LOCALHOST"

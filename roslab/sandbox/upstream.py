@@ -148,7 +148,26 @@ def profile_launches(distro: str) -> dict[str, dict[str, list[str]]]:
     return launches
 
 
-def standin_launch(distro: str, package: str, launch_file: str, variables: list[str]) -> str:
+def profile_verify_topics(distro: str) -> dict[tuple[str, str], tuple[str, str]]:
+    """(ROS package, launch file) -> (topic, message type) that `roslab verify` expects from a
+    robot running it, for every robot-side launch of a built-in profile on `distro` whose
+    package is a stand-in (TurtleBot3's bringup: /scan, a LaserScan)."""
+    from roslab.profiles.library import builtin_profiles
+
+    stand_ins = profile_keys(distro)
+    topics = {}
+    for profile in builtin_profiles().values():
+        robot = profile.sides.get("robot")
+        if distro not in profile.distros or robot is None or not robot.launch or not profile.verify_topic:
+            continue
+        package, launch_file = robot.launch.split()
+        if package in stand_ins:
+            topics[(package, launch_file)] = (profile.verify_topic, profile.verify_type)
+    return topics
+
+
+def standin_launch(distro: str, package: str, launch_file: str, variables: list[str],
+                   publishes: tuple[str, str] | None = None) -> str:
     """A stand-in launch file: read by the REAL `ros2 launch` where the sandbox has a real runtime
     (the stand-in `ros2` never reads it).
 
@@ -157,8 +176,23 @@ def standin_launch(distro: str, package: str, launch_file: str, variables: list[
     labelled process that says which values it got and stays up (`sleep` under the label as its
     argv[0], so `pgrep -f` and `ps` name it); the launch ends when it ends, so the service's
     restart is what a real node's end would cause.
+
+    `publishes` (topic, type): what `roslab verify` expects from the robot; the real
+    `ros2 topic pub` sends default-valued messages of that type (the real bringup's lidar would
+    send scans), twice a second, printing none.
     """
     label = f"roslab-standin-{package}-{launch_file.removesuffix('.launch.py')}"
+    publisher = ""
+    if publishes:
+        topic, message_type = publishes
+        publisher = (
+            "        ExecuteProcess(\n"
+            f"            name=LABEL + '-publisher',\n"
+            f"            cmd=['ros2', 'topic', 'pub', '--rate', '2', '--print', '0', {topic!r}, {message_type!r}, '{{}}'],\n"
+            "            output='screen',\n"
+            "            on_exit=Shutdown(reason=f'{LABEL} publisher ended'),\n"
+            "        ),\n"
+        )
     return (
         f"# {STANDIN_NOTE} for {package}'s {launch_file} (ROS 2 {distro}): no robot code behind it.\n"
         "# It needs the variables the real launch file needs, and runs one process that reports them.\n"
@@ -178,6 +212,7 @@ def standin_launch(distro: str, package: str, launch_file: str, variables: list[
         "            output='screen',\n"
         "            on_exit=Shutdown(reason=f'{LABEL} ended'),\n"
         "        ),\n"
+        f"{publisher}"
         "    ])\n"
     )
 
@@ -201,8 +236,10 @@ def standin_launch_files(distro: str, key: str) -> dict[str, str]:
             "  <export><build_type>ament_python</build_type></export>\n</package>\n"
         ),
     }
+    publishes = profile_verify_topics(distro)
     for launch_file, variables in sorted(launches.items()):
-        files[f"{share}/{key}/launch/{launch_file}"] = standin_launch(distro, key, launch_file, variables)
+        files[f"{share}/{key}/launch/{launch_file}"] = standin_launch(distro, key, launch_file, variables,
+                                                                      publishes.get((key, launch_file)))
     return files
 
 
@@ -548,7 +585,8 @@ def ros_archive(extra_keys: set[str], runtime: ros_runtime.Runtime | None = None
         shutil.rmtree(common)
 
     profiles = {distro: sorted(profile_keys(distro)) for distro in ROS_DISTROS.values()}
-    launches = {distro: profile_launches(distro) for distro in ROS_DISTROS.values()}
+    launches = {distro: (profile_launches(distro), sorted(profile_verify_topics(distro).items()))
+                for distro in ROS_DISTROS.values()}
     return _cached_build("ros-archive", _cache_key(ARCHIVE_VERSION, keys, ROS_DEV_TOOLS_DEPENDS, profiles,
                                                    launches, SIMULATOR_STANDINS, signer.fingerprint,
                                                    runtime.cache_key()), build)

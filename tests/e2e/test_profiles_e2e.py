@@ -173,6 +173,27 @@ def test_on_real_ros_the_bringups_launch_runs_with_the_profiles_variables(sandbo
         assert sandbox.ssh(host, f"pgrep -f '^{label} '").returncode == 0, host
 
 
+def test_on_real_ros_verify_passes_each_turtlebot3_team_whose_main_hears_its_scans(sandbox, roster, first_run):
+    teams = [team for team, distro in (("team1", "jazzy"), ("team2", "humble"))
+             if sandbox.ros_served.get(distro, "").startswith("real")]
+    if not teams:
+        pytest.skip("no real ROS runtime for Jazzy or Humble (ROSLAB_SANDBOX_ROS_RUNTIME): the stand-in ros2 "
+                    "publishes nothing")
+    # The stand-in bringup publishes /scan with the real `ros2 topic pub` (roslab/sandbox/upstream.py).
+    deadline = time.monotonic() + 90
+    while True:
+        result = subprocess.run([sys.executable, "-m", "roslab", "verify", str(roster),
+                                 *(word for team in teams for word in ("--limit", team))],
+                                cwd=REPO, env=sandbox.env, capture_output=True, text=True, timeout=600)
+        if result.returncode == 0 or time.monotonic() > deadline:
+            break
+        time.sleep(5)
+    assert result.returncode == 0, result.stdout + result.stderr
+    rows = {line.split()[0]: " ".join(line.split()) for line in result.stdout.splitlines()[2:] if line.strip()}
+    for team in teams:
+        assert "PASS heard a sensor_msgs/msg/LaserScan on /scan" in rows[team], rows
+
+
 def test_the_lyrical_team_runs_the_demo_and_the_sim_main_keeps_discovery_on_the_host(sandbox, first_run):
     props = show(sandbox, "team3-robot", SERVICE, "ActiveState", "ExecStart")
     assert props["ActiveState"] == "active" and "roslab_bringup robot.launch.py" in props["ExecStart"]

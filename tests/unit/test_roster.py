@@ -135,11 +135,11 @@ def test_host_data_holds_identity_connection_and_every_setting_with_its_default(
         # The default robot profile (demo), resolved for the main on humble.
         "nodes_launch": "roslab_bringup main.launch.py",
         "ros_variant": "desktop",
-        "nodes_verify_topic": "/chatter",
+        "nodes_verify_topic": "/chatter", "nodes_verify_type": "std_msgs/msg/String",
         "roslab_profile": {
             "name": "demo", "distro": "humble", "settings": {}, "ros_packages": [], "packages": [],
             "environment": {}, "groups": [], "udev_rules": "", "launch": "roslab_bringup main.launch.py",
-            "variant": "desktop", "verify_topic": "/chatter", "discovery": None, "checklist": [], "os_tweaks": {},
+            "variant": "desktop", "verify_topic": "/chatter", "verify_type": "std_msgs/msg/String", "discovery": None, "checklist": [], "os_tweaks": {},
         },
     }
 
@@ -184,6 +184,7 @@ def test_every_deploy_setting_is_accepted_with_its_default(tmp_path):
     settings["nodes_launch"] = "roslab_bringup main.launch.py"
     settings["ros_variant"] = "desktop"
     settings["nodes_verify_topic"] = "/chatter"
+    settings["nodes_verify_type"] = "std_msgs/msg/String"
     assert {key: data[key] for key in settings} == settings
 
 

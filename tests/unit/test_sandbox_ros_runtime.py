@@ -181,7 +181,11 @@ def test_the_bringups_stand_in_launch_needs_the_profiles_variables_and_reports_t
     with pytest.raises(KeyError, match="LDS_MODEL"):
         namespace["generate_launch_description"]()
     monkeypatch.setenv("LDS_MODEL", "LDS-01")
-    (process,) = namespace["generate_launch_description"]()
+    process, publisher = namespace["generate_launch_description"]()
+    # What `roslab verify` expects from a TurtleBot3: LaserScans on /scan, from the real ros2.
+    assert publisher["cmd"] == ["ros2", "topic", "pub", "--rate", "2", "--print", "0", "/scan",
+                                "sensor_msgs/msg/LaserScan", "{}"]
+    assert publisher["on_exit"][0] == "Shutdown"
     assert process["name"] == "roslab-standin-turtlebot3_bringup-robot"
     assert process["on_exit"][0] == "Shutdown"
     # The values are arguments of the shell, never part of its script.

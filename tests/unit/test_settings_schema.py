@@ -111,6 +111,7 @@ BAD_VALUES: dict[str, list] = {
     "nodes_launch": ["turtlebot3_bringup", "turtlebot3_bringup robot.launch.py\nUser=root",
                      "turtlebot3_bringup robot.launch.py LDS_MODEL:=x", "$(id) robot.launch.py"],
     "nodes_verify_topic": ["chatter topic", "/chatter\n", "/$(id)"],
+    "nodes_verify_type": ["LaserScan", "sensor_msgs/msg/LaserScan;id", "sensor_msgs/msg/Laser Scan", "Sensor/msg/X"],
     "nodes_verify_timeout": [0, 10**6],
     "robot_profile": ["TurtleBot3", "turtle bot", "tb3;id", "../demo", ""],
     "board": ["pi6", "Pi4", "raspberry"],

@@ -341,3 +341,35 @@ def test_a_message_heard_beside_a_service_that_does_not_run_is_no_pass(host, sta
     assert team.verdict() == f"roslab-nodes.service on {host} is {state}"
     row = verify.format_table([team]).splitlines()[2]
     assert f"FAIL roslab-nodes.service on {host} is {state}" in row and "PASS" not in row
+
+
+# A topic whose messages name no robot (a TurtleBot3's /scan)
+# ------------------------------------------------------------
+
+SCAN = "sensor_msgs/msg/LaserScan"
+
+
+def test_another_message_type_is_asked_for_by_its_type_and_echoed_whole(tmp_path):
+    home = stand_in_ros(tmp_path, "case \"$1 $2\" in \"topic echo\") printf 'header:\\n  frame_id: base_scan\\n"
+                                  "angle_min: 0.0\\n---\\n' ;; esac")
+    script = verify.check_script("jazzy", ENV, "~/ros2_ws", "/scan", 2, 1, SCAN)
+    script = script.replace("/opt/ros/jazzy/setup.bash", str(tmp_path / "setup.bash"))
+    output = subprocess.run(["bash", "-c", script], capture_output=True, text=True, env={"HOME": str(home)},
+                            timeout=120).stdout
+    (echo,) = [call for call in calls(tmp_path) if call.startswith("topic echo")]
+    assert echo == f"topic echo --no-daemon --once --full-length /scan {SCAN}"
+    heard_scan = verify.parse_check_output(output.splitlines())
+    assert heard_scan["message"] == "header:\n  frame_id: base_scan\nangle_min: 0.0"
+    assert heard_scan["robot"] is None
+
+
+def test_any_message_of_the_type_passes_a_team_whose_topic_names_no_robot():
+    scan = result("team1", heard=heard(topics=("/scan",), message="header:\n  frame_id: base_scan"),
+                  topic="/scan", message_type=SCAN)
+    assert scan.passed and scan.heard_robots() == ["team1-robot"]
+    assert scan.verdict() == f"heard a {SCAN} on /scan"
+    silent = result("team2", heard=heard(topics=("/scan",)), topic="/scan", message_type=SCAN)
+    assert not silent.passed and silent.verdict() == "/scan listed but no message within 20 s"
+    stopped = result("team3", heard=heard(message="header: {}"), topic="/scan", message_type=SCAN)
+    stopped.services["team3-robot"] = "failed (exit-code)"
+    assert not stopped.passed and "roslab-nodes.service on team3-robot is failed" in stopped.verdict()
