@@ -60,7 +60,9 @@ def test_every_host_asks_the_cache_through_the_managed_script_for_http_only(tmp_
     files = client_files(tmp_path, **CACHE)
     config = [line for line in files[PROXY_CONFIG].splitlines() if line and not line.startswith("//")]
     # https sources are left alone: apt reads Acquire::https::Proxy-Auto-Detect for them.
-    assert config == [f'Acquire::http::Proxy-Auto-Detect "{DETECT_SCRIPT}";']
+    # No pipelining through the cache: apt-cacher-ng's early closes made apt lose a request.
+    assert config == [f'Acquire::http::Proxy-Auto-Detect "{DETECT_SCRIPT}";',
+                      'Acquire::http::Pipeline-Depth "0";']
     assert files[PROXY_CONFIG].startswith("// managed by roslab")
     assert "address=10.11.0.2\nport=3142\nproxy=http://10.11.0.2:3142/\n" in files[DETECT_SCRIPT]
 
