@@ -163,3 +163,21 @@ def test_another_lidar_changes_the_variable_only_and_an_lds_01_its_udev_name(tmp
                      "Ensure udev has read the robot profile's rules",
                      "Ensure student's ~/.bashrc sets up the ROS 2 environment"]
     assert 'SYMLINK+="tb3_lidar"' in result.uploads()["/etc/udev/rules.d/60-roslab-profile.rules"]
+
+
+def test_an_opted_in_2_gb_robot_gets_the_e_manuals_tweaks_once_and_a_noop_reads_in_two_commands(tmp_path):
+    host = with_stand_in_deb(FakeUbuntu())
+    host.memory_mb = 1848  # a 2 GB Pi 4
+    data = turtlebot3_robot_data(tmp_path, profile_os_tweaks=True)
+    first = plan(run_deploy_py, host.facts(), data)
+    assert not first.failed, first.errors
+    names = [name.split(" | ")[1] for name in first.changing()]
+    assert "Ensure /swapfile (2048 MiB) is in use as swap (robot profile turtlebot3)" in names
+    assert "Ensure /etc/fstab turns /swapfile on at boot" in names
+    host.apply(first)
+    assert "sleep.target" in host.masked_units and host.swap_files["/swapfile"]["active"]
+    assert "/swapfile none swap sw 0 0" in host.files["/etc/fstab"]
+
+    second = plan(run_deploy_py, host.facts(), data)
+    assert second.changing() == {}
+    assert second.facts_asked == ["HostProbe", "HostProbe"]
