@@ -90,6 +90,11 @@ def named_packages(data: dict, distro: str) -> list[tuple[str, str, str]]:
     profile = data.get("roslab_profile") or {}
     for ros_name in profile.get("ros_packages") or []:
         named.append((f"ros-{distro}-{ros_name.replace('_', '-')}", ros_name, "robot_profile"))
+    ros_debs = {debian for debian, _, _ in named}
+    for debian in profile.get("packages") or []:  # a profile's apt_packages, {distro} filled in
+        match = _ROS_DEB.fullmatch(debian)
+        if match and match.group(1) == distro and debian not in ros_debs:
+            named.append((debian, match.group(2).replace("-", "_"), "robot_profile"))
     return named
 
 

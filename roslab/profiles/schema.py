@@ -207,7 +207,7 @@ class ProfileReader:
             lambda name: None if _ROS_PACKAGE.fullmatch(name) else
             f"{name!r} is not a ROS package name (lower-case letters, digits, _; or ${{gazebo}})")
         side.apt_packages += self.string_list(mapping, "apt_packages", f"{path}.apt_packages",
-                                              formats.debian_package)
+                                              formats.package_template)
         side.groups += self.string_list(mapping, "groups", f"{path}.groups", formats.linux_user)
         side.checklist += self.string_list(mapping, "checklist", f"{path}.checklist", formats.single_line)
         for item in mapping.get("checklist") or []:

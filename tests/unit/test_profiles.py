@@ -451,3 +451,20 @@ def test_a_profile_setting_from_pyinfras_command_line_is_checked_like_the_roster
     with pytest.raises(RosterError) as raised:
         load_roster(roster, command_line=command_line_data(["pyinfra", "--data", "lds_model=[1]"]))
     assert "--data lds_model=[1]" in str(raised.value)
+
+
+def test_a_profiles_apt_packages_get_the_distro_filled_in_and_checked(tmp_path, rosdistro_url):
+    profile = ("profiles:\n  tb3_tools:\n    extends: turtlebot3\n    robot:\n"
+               "      apt_packages: [\"ros-{distro}-ld08-driver\", htop]\n")
+    roster = tb3_roster(tmp_path, rosdistro_url, "turtlebot3_model: burger\n            lds_model: LDS-02",
+                        classroom_extra="")
+    text = roster.read_text().replace("teams:\n", profile + "teams:\n").replace(
+        "robot_profile: turtlebot3", "robot_profile: tb3_tools")
+    roster.write_text(text)
+    robot = next(host for host in load_roster(roster).hosts if host.name == "tb3-robot")
+    packages = robot.data["roslab_profile"]["packages"]
+    assert packages[-1] == "htop" and packages.count("ros-jazzy-ld08-driver") == 1
+    roster.write_text(text.replace("ld08-driver", "ld08-drivr"))
+    (error,) = errors_of(roster)
+    assert "ros-jazzy-ld08-drivr is not a package of ROS 2 jazzy" in error, error
+    assert "did you mean ros-jazzy-ld08-driver?" in error
