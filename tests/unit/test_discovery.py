@@ -356,8 +356,8 @@ def test_a_distro_without_the_middleware_package_is_refused(tmp_path, monkeypatc
 
 
 class DiscoveryHost(FakeUbuntu):
-    def __init__(self):
-        super().__init__("noble")
+    def __init__(self, codename: str = "noble"):
+        super().__init__(codename)
         self.unit_state = {"LoadState": "not-found", "ActiveState": "inactive", "SubState": "dead",
                            "Result": "success"}
 
@@ -399,3 +399,21 @@ def test_a_robot_runs_no_service_and_a_switched_team_retires_its_server_and_stal
     assert any("stop" in cmds and "roslab-discovery-server" in cmds for cmds in text.values())
     assert any(SUPER_XML in name for name in text)  # the super client's profile goes too
     assert any("roslab-discovery-server.service is gone" in name for name in text)
+
+
+@pytest.mark.parametrize("codename", ["jammy", "noble"])
+def test_deploy_py_on_a_discovery_server_main_converges_then_reads_the_host_in_two_commands(tmp_path, codename):
+    from fixtures.classroom import host_data, run_deploy_py, with_stand_in_deb
+
+    fake = with_stand_in_deb(DiscoveryHost(codename), codename)
+    data = host_data(tmp_path, codename, "main", ros_discovery_mode="discovery_server", roslab_team_hosts=TEAM)
+    first = plan(run_deploy_py, fake.facts(), data)
+    assert not first.failed, first.errors
+    assert "/etc/systemd/system/roslab-discovery-server.service" in first.uploads()
+    assert (SUPER_XML in first.uploads()) == (codename == "jammy")  # Humble's super client is XML
+    fake.apply(first)
+    fake.enabled_units["roslab-discovery-server.service"] = True
+    fake.unit_state = {"LoadState": "loaded", "ActiveState": "active", "SubState": "running", "Result": "success"}
+    second = plan(run_deploy_py, fake.facts(), data)
+    assert second.changing() == {}
+    assert second.facts_asked == ["HostProbe", "HostProbe"]
