@@ -13,10 +13,14 @@ comes back after a reboot; each main hears its robot (`roslab verify`); a team-2
 domain still does not see team 1's topic (static peers reach only its own team); switching team 2 to
 discovery_server changes only team 2's hosts and restarts only their services.
 
+Humble's static mode is the middleware's own XML (Humble has no ROS_STATIC_PEERS): the files roslab
+writes are read by the real Fast DDS 2.14 and Cyclone DDS 0.10 of the Jazzy core (Humble's Fast DDS
+is 2.6, with the same profile format; its Cyclone DDS is 0.10), each with a control that hears
+nothing when the peers are not the team's. Zenoh's router is proven by the unit tests only: no Zenoh
+exists here.
+
 It needs real ROS (`ROSLAB_SANDBOX_ROS_RUNTIME`, docs/sandbox.md): on stand-ins there is no
-`fast-discovery-server` and no node to hear, so every test skips, saying so. Humble's XML peer files
-and Zenoh's router are proven by the unit tests only (tests/unit/test_discovery.py): Humble's real
-core has no Fast DDS, and no Zenoh exists here.
+`fast-discovery-server` and no node to hear, so every test skips, saying so.
 """
 
 from __future__ import annotations
@@ -26,12 +30,14 @@ import re
 import shlex
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import pytest
 import yaml
 
+from roslab import discovery
 from tests.e2e.conftest import bring_up
 
 pytestmark = pytest.mark.e2e
@@ -168,6 +174,57 @@ def test_a_static_team_does_not_see_another_teams_topic_even_on_its_domain(sandb
                                        "ros2 node list --no-daemon --spin-time 5")
     assert other.returncode == 0, other.stdout
     assert "/talker" not in other.stdout.split() and "/listener" not in other.stdout.split(), other.stdout
+
+
+def clean_ros(sandbox, host: str, variables: dict[str, str], command: str, timeout: float = 60):
+    """`command` with only the distro's setup and `variables` (not the login shell's block)."""
+    exports = " ".join(f"{name}={shlex.quote(value)}" for name, value in variables.items())
+    script = f"source /opt/ros/jazzy/setup.bash && env {exports} {command}"
+    return sandbox.ssh(host, f"bash -c {shlex.quote(script)} 2>&1", timeout=timeout)
+
+
+def heard_with_peer_files(sandbox, variable: str, path: str, main_text: str, robot_text: str,
+                          variables: dict[str, str]) -> str:
+    """Put each side's file at `path`, publish on team2-robot, listen once on team2-main: what it heard."""
+    for host, text in (("team2-main", main_text), ("team2-robot", robot_text)):
+        sandbox.ssh(host, f"printf %s {shlex.quote(text)} > {path}", check=True)
+    value = f"file://{path}" if variable == "CYCLONEDDS_URI" else path
+    env = {**variables, variable: value}
+    publisher = threading.Thread(target=clean_ros, args=(
+        sandbox, "team2-robot", env, "timeout 25 ros2 topic pub -r 4 /roslab_probe std_msgs/msg/String "
+                                     "'{data: through the peer list}'"), kwargs={"timeout": 60})
+    publisher.start()
+    try:
+        heard = clean_ros(sandbox, "team2-main", env,
+                          "timeout 20 ros2 topic echo --once /roslab_probe std_msgs/msg/String")
+    finally:
+        publisher.join()
+    return heard.stdout
+
+
+@pytest.mark.parametrize("middleware", ["rmw_fastrtps_cpp", "rmw_cyclonedds_cpp"])
+def test_humbles_peer_files_work_with_the_real_middleware_and_turn_multicast_off(sandbox, roster, first_run,
+                                                                               middleware):
+    """The XML roslab writes for Humble's static mode, read by the real Fast DDS (2.14, the same 2.x
+    profile format as Humble's 2.6) and the real Cyclone DDS (0.10, Humble's) of the Jazzy core:
+    with the team's peers the main hears its robot; with peers that are not the team (multicast
+    off in both files) it hears nothing, so the peer list is what carries discovery."""
+    main, robot, stranger = (sandbox.host(name).address for name in ("team2-main", "team2-robot", "team3-main"))
+    taken = {team["ros_domain_id"] for team in yaml.safe_load(roster.read_text())["teams"].values()
+             if "ros_domain_id" in team}
+    domain = str(next(candidate for candidate in range(100, 80, -1) if candidate not in taken))
+    # SYSTEM_DEFAULT: Jazzy's rmw leaves discovery to the middleware's own configuration, as Humble does.
+    variables = {"ROS_DOMAIN_ID": domain, "RMW_IMPLEMENTATION": middleware,
+                 "ROS_AUTOMATIC_DISCOVERY_RANGE": "SYSTEM_DEFAULT"}
+    if middleware == "rmw_cyclonedds_cpp":
+        variable, path, render = "CYCLONEDDS_URI", "/tmp/roslab-e2e-cyclonedds.xml", discovery.cyclonedds_peers_xml
+    else:
+        variable, path, render = "FASTRTPS_DEFAULT_PROFILES_FILE", "/tmp/roslab-e2e-fastdds.xml", \
+            discovery.fastdds_peers_xml
+    heard = heard_with_peer_files(sandbox, variable, path, render([robot]), render([main]), variables)
+    assert "data: through the peer list" in heard, heard
+    unheard = heard_with_peer_files(sandbox, variable, path, render([stranger]), render([stranger]), variables)
+    assert "data: through the peer list" not in unheard, unheard
 
 
 def pids(sandbox) -> dict[tuple[str, str], str]:
