@@ -178,10 +178,15 @@ def check_discovery(classroom: Classroom, report: Report) -> None:
                              "(use ros_discovery_mode static, or ros_middleware rmw_fastrtps_cpp)",
                              field="ros_discovery_mode", line=mode_line, **where)
             needs_main = mode == "discovery_server" or (middleware == discovery.ZENOH and mode != "localhost")
+            what = "the discovery server" if mode == "discovery_server" else "the Zenoh router"
             if needs_main and main is None:
-                what = "the discovery server" if mode == "discovery_server" else "the Zenoh router"
                 report.error(f"{what} runs on the team's main host, and this team has none: "
                              "give it a host with role: main", field="ros_discovery_mode", line=mode_line, **where)
+            elif needs_main and main is not host and discovery.mode_of(main.data) == "localhost":
+                report.error(f"{what} runs on the team's main host, and {main.name!r} keeps its discovery on "
+                             "itself (ros_discovery_mode localhost): this host would find nobody",
+                             field="ros_discovery_mode",
+                             line=main.lines.get("ros_discovery_mode") or main.line, **where)
             if middleware == discovery.ZENOH and _runs_micro_ros_agent(data):
                 report.error("the micro-ROS agent speaks DDS only, so its robot would be invisible under "
                              "rmw_zenoh_cpp: use rmw_fastrtps_cpp for this class",

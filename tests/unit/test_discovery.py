@@ -417,3 +417,18 @@ def test_deploy_py_on_a_discovery_server_main_converges_then_reads_the_host_in_t
     second = plan(run_deploy_py, fake.facts(), data)
     assert second.changing() == {}
     assert second.facts_asked == ["HostProbe", "HostProbe"]
+
+
+def test_a_server_team_whose_main_keeps_discovery_on_itself_is_refused(tmp_path):
+    path = write(tmp_path, """\
+        teams:
+          alpha:
+            ros_discovery_mode: discovery_server
+            hosts:
+              alpha-main: {role: main, ros_discovery_mode: localhost}
+              alpha-robot: {role: robot}
+    """)
+    assert errors(path) == [
+        "lab.yaml:5: team 'alpha', host 'alpha-robot', field 'ros_discovery_mode': the discovery server runs "
+        "on the team's main host, and 'alpha-main' keeps its discovery on itself (ros_discovery_mode "
+        "localhost): this host would find nobody"]
