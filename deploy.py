@@ -10,6 +10,7 @@ failed with the step and the reason.
 from deploy.apt_cache import apt_cache_client, apt_cache_filled, apt_cache_server
 from deploy.apt_ready import apt_lists, apt_ready
 from deploy.common import supported_host
+from deploy.discovery import discovery_in_place
 from deploy.locale import system_locale
 from deploy.network import network
 from deploy.robot_profile import robot_profile
@@ -40,6 +41,7 @@ if supported_host():
     robot_profile()  # udev rules and groups (its packages are ros_install's)
     rosdep()
     shell_env()
+    discovery_in_place()  # the middleware's files, the team's discovery server or router (on its main)
     ssh_identity()
     ssh_hardening()  # only once a key login worked in this run
     # The address change takes effect here, after SSH is known good; the steps

@@ -7,6 +7,7 @@ from pyinfra.api import deploy
 
 from deploy.common import host_codename, host_distro, should_run
 from roslab import probe, settings
+from roslab.discovery import middleware_of, middleware_package
 from roslab.distro import default_distro
 from roslab.operations import packages_installed
 from roslab.quoting import apt_arguments
@@ -18,8 +19,9 @@ def ros_packages(distro: str, role: str | None, data) -> list[str]:
     """The apt packages a host of this role gets, from its settings (`data`: a mapping): what this
     step declares it installs (the class cache, deploy/apt_cache.py, fills itself from it).
 
-    The robot profile's packages for the host's side (roslab_profile, resolved from the roster)
-    come after the variant, the dev tools and ros_extra_packages.
+    The class's middleware (ros_middleware) and the robot profile's packages for the host's side
+    (roslab_profile, resolved from the roster) come after the variant, the dev tools and
+    ros_extra_packages.
 
     The variants and extra package names were checked by the schema (roslab.settings);
     `apt_arguments` refuses anything apt-get would read as an option all the same.
@@ -31,6 +33,9 @@ def ros_packages(distro: str, role: str | None, data) -> list[str]:
     if data["ros_dev_tools"]:
         packages.append("ros-dev-tools")
     packages += [name.replace("{distro}", distro) for name in data["ros_extra_packages"] or []]
+    middleware = middleware_package(middleware_of(data), distro)  # Fast DDS comes with every variant
+    if middleware and middleware not in packages:
+        packages.append(middleware)
     profile = data.get("roslab_profile") or {}
     if profile.get("distro") == distro:  # resolved for the distro the roster expects, which this host runs
         packages += [name for name in profile.get("packages") or [] if name not in packages]
@@ -50,7 +55,7 @@ def ros_install():
     """Install ros-<distro>-<variant>, ros-dev-tools and the classroom's extra packages.
 
     Reads host.data: ros_install_enabled, ros_distro, ros_variant, ros_variant_main,
-    ros_variant_robot, ros_dev_tools, ros_extra_packages, roslab_role, roslab_profile,
+    ros_variant_robot, ros_dev_tools, ros_extra_packages, ros_middleware, roslab_role, roslab_profile,
     apt_lock_timeout.
     (ubuntu_release is checked by deploy.common.supported_host.)
     """

@@ -22,7 +22,7 @@ from deploy.common import (
 from roslab import probe, settings
 from roslab.operations import managed_block, managed_block_reads
 from roslab.quoting import shell_home_path, shell_word
-from roslab.ros_env import extra_variables, ros_variables
+from roslab.ros_env import host_environment, ros_variables
 from roslab.templating import render
 
 BLOCK_LABEL = "ROS 2 environment"
@@ -38,12 +38,16 @@ def render_ros_environment(
     workspace_dir: str = settings.SETTINGS["workspace_dir"].default,
     rosdistro_index_url: str | None = None,
     extra: dict[str, str] | None = None,
+    variables: dict[str, str] | None = None,
 ) -> str:
     """The text of the ~/.bashrc block for these (schema-checked) settings.
 
     `extra`: the robot profile's and ros_environment's variables (roslab.ros_env.extra_variables).
+    `variables`: every variable, as `roslab.ros_env.host_environment(data, distro, shell=True)` gives
+    them (domain, middleware, discovery mode, extras); then the other value arguments are unused.
     """
-    variables = {**ros_variables(distro, domain_id, discovery_range, static_peers), **(extra or {})}
+    if variables is None:
+        variables = {**ros_variables(distro, domain_id, discovery_range, static_peers), **(extra or {})}
     return render(
         "bashrc-ros-environment.sh.j2",
         ros_setup=shell_word(f"/opt/ros/{distro}/setup.bash"),
@@ -63,8 +67,10 @@ def shell_env():
     """Write the ROS 2 environment block into the login user's ~/.bashrc.
 
     Reads host.data: shell_env_enabled, ros_domain_id, ros_automatic_discovery_range,
-    ros_static_peers, ros_distro, workspace_dir, rosdistro_index_url, login_user, ssh_user,
-    roslab_profile (its environment), ros_environment.
+    ros_static_peers, ros_middleware, ros_discovery_mode, ros_discovery_server_port,
+    ros_zenoh_router_port, roslab_team_hosts, roslab_hostname, roslab_role, ros_distro,
+    workspace_dir, rosdistro_index_url, login_user, ssh_user, roslab_profile (its environment),
+    ros_environment.
     """
     if not should_run("shell_env_enabled"):
         return
@@ -73,14 +79,13 @@ def shell_env():
     if home is None:  # the login user does not exist: login_home() stopped this host
         return
     try:
+        distro = host_distro()
         block = render_ros_environment(
-            distro=host_distro(),
+            distro=distro,
             domain_id=host.data.ros_domain_id,
-            discovery_range=host.data.ros_automatic_discovery_range,
-            static_peers=host.data.ros_static_peers or [],
             workspace_dir=host.data.workspace_dir,
             rosdistro_index_url=host.data.rosdistro_index_url,
-            extra=extra_variables(host.data),
+            variables=host_environment(host.data, distro, shell=True),
         )
     except ValueError as error:  # a value no shell word can carry (only `--data` skips the schema)
         stop_host(f"{where()}: shell_env: {error}; nothing was changed by this step")

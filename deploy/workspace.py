@@ -16,6 +16,7 @@ Classroom accidents heal on the next run, each named in one line for its host:
 
 from __future__ import annotations
 
+import hashlib
 import posixpath
 from io import StringIO
 from pathlib import Path
@@ -39,6 +40,7 @@ from roslab import packaged, probe, settings
 from roslab import workspace as ws_ops
 from roslab.quoting import shell_word, systemd_assignment, systemd_value, systemd_word
 from roslab.profiles.library import DEFAULT_PROFILE, builtin_profiles
+from roslab.discovery import host_discovery
 from roslab.ros_env import host_environment
 from roslab.templating import render
 from roslab.workspace import NODES_SERVICE, NODES_UNIT_PATH
@@ -74,11 +76,13 @@ def exec_script(*, distro: str, workspace_dir: str, launch: str) -> str:
 
 def unit_text(
     *, role: str, user: str, home: str, workspace_dir: str, distro: str, launch: str,
-    environment: dict[str, str],
+    environment: dict[str, str], discovery_files: dict[str, str] | None = None,
 ) -> str:
     """templates/roslab-nodes.service.j2 with every value written for systemd.
 
-    `launch` is the host's `role_launch()` ("<package> <launch file>").
+    `launch` is the host's `role_launch()` ("<package> <launch file>"). `discovery_files`: the
+    middleware files its variables point to (deploy/discovery.py writes them); their digest is in
+    the unit, so a changed file restarts the nodes, as a changed variable does.
     """
     script = exec_script(distro=distro, workspace_dir=workspace_dir, launch=launch)
     return render(
@@ -96,7 +100,23 @@ def unit_text(
         restart_sec=RESTART_SEC,
         start_limit_burst=START_LIMIT_BURST,
         start_limit_interval=START_LIMIT_INTERVAL,
+        discovery_digest=files_digest(discovery_files) if discovery_files else None,
     )
+
+
+def files_digest(contents: dict[str, str]) -> str:
+    """One sha256 over paths and contents."""
+    digest = hashlib.sha256()
+    for path, text in sorted(contents.items()):
+        digest.update(path.encode() + b"\0" + text.encode() + b"\0")
+    return digest.hexdigest()
+
+
+def discovery_files(distro: str) -> dict[str, str]:
+    """The discovery files this host's nodes read (none when the discovery deploy is switched off)."""
+    if not host.data.get("discovery_enabled", True):
+        return {}
+    return host_discovery({**settings.defaults("discovery"), **host.data.dict()}, distro).files
 
 
 def role_launch() -> str | None:
@@ -126,8 +146,9 @@ def workspace():
     Reads host.data: workspace_enabled, workspace_dir, workspace_nodes_dir,
     workspace_colcon_args, workspace_rosdep_install, nodes_service_enabled,
     nodes_launch (nodes_launch_<role> in hand-made inventories), login_user, ssh_user, ros_distro,
-    ros_domain_id, ros_automatic_discovery_range, ros_static_peers, roslab_role,
-    roslab_profile (its environment and name), ros_environment.
+    ros_domain_id, ros_automatic_discovery_range, ros_static_peers, ros_middleware,
+    ros_discovery_mode, ros_discovery_server_port, ros_zenoh_router_port, roslab_team_hosts,
+    roslab_hostname, roslab_role, roslab_profile (its environment and name), ros_environment.
     """
     if not should_run("workspace_enabled"):
         return
@@ -151,6 +172,7 @@ def workspace():
         unit_file = unit_text(
             role=role, user=user, home=home, workspace_dir=workspace_dir, distro=distro,
             launch=launch, environment=host_environment(host.data, distro),
+            discovery_files=discovery_files(distro),
         ) if launch else None
     except ValueError as error:  # e.g. a home directory whose name holds a newline
         stop_host(f"{where()}: workspace: {error}; nothing was changed by this step")

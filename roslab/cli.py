@@ -22,7 +22,7 @@ from roslab import __version__
 from roslab.reach import RosterProblem, add_roster_argument, load_classroom
 from roslab.roster import Classroom, display_path
 
-TABLE_COLUMNS = ("TEAM", "HOST", "ROLE", "ADDRESS", "UBUNTU", "DISTRO", "VARIANT", "DOMAIN")
+TABLE_COLUMNS = ("TEAM", "HOST", "ROLE", "ADDRESS", "UBUNTU", "DISTRO", "VARIANT", "DOMAIN", "DISCOVERY")
 
 
 def classroom_table(classroom: Classroom) -> str:
@@ -37,7 +37,9 @@ def classroom_table(classroom: Classroom) -> str:
             host.ubuntu_release or "-",
             host.distro or "-",
             host.variant or "-",
-            "-" if host.ros_domain_id is None else str(host.ros_domain_id),
+            "-" if host.ros_domain_id is None else
+            str(host.ros_domain_id) + (" (auto)" if host.data.get("roslab_domain_assigned") else ""),
+            host.data.get("ros_discovery_mode") or "-",
         ))
     widths = [max(len(row[column]) for row in rows) for column in range(len(TABLE_COLUMNS))]
     return "\n".join(
@@ -55,7 +57,9 @@ def run_check(args: argparse.Namespace) -> int:
     for warning in classroom.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     title = f"Classroom {classroom.name!r}" if classroom.name else "Classroom"
-    print(f"{title} ({display_path(path)}): {len(classroom.teams)} teams, {len(classroom.hosts)} hosts")
+    middleware = classroom.hosts[0].data.get("ros_middleware") if classroom.hosts else None
+    print(f"{title} ({display_path(path)}): {len(classroom.teams)} teams, {len(classroom.hosts)} hosts"
+          + (f", middleware {middleware}" if middleware else ""))
     print(classroom_table(classroom))
     return 0
 

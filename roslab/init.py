@@ -76,6 +76,10 @@ classroom:
   # The teacher's public keys (key lines or .pub files on this machine): every Pi authorises
   # them, and `roslab seed` writes them into each Pi's first-boot seed.
 {keys}
+  # How each team's hosts find each other: multicast (DDS's own), or on a WiFi that drops
+  # multicast static (each host's peers are its team's) or discovery_server (a server on each
+  # team's main). A team may set its own.
+  # ros_discovery_mode: static
   # Passwords live in secrets.yaml beside this file (mode 0600), named here, e.g.:
   # wifi_password_secret: classroom_wifi
   # sudo_password_secret: pi_sudo
@@ -85,7 +89,8 @@ teams:
   # students' workstation) and any number of robots. Team names are pyinfra groups
   # (`pyinfra -y inventory.py deploy.py --limit team1`).
   team1:
-    # ROS_DOMAIN_ID (0 to 101): every team needs its own.
+    # ROS_DOMAIN_ID (0 to 101): every team has its own; without one, roslab picks a free one
+    # from the team's name (`roslab check` shows it).
     ros_domain_id: 11
     hosts:
       team1-main:

@@ -11,11 +11,14 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
+from roslab.discovery import host_discovery
 from roslab.distro import DISCOVERY_RANGE_DISTROS
 
-# The host.data keys `ros_variables_of` reads (all from the shell_env concern); `host_environment`
+# The host.data keys `ros_variables_of` reads (shell_env's, discovery's, the host's identity); `host_environment`
 # reads these, the resolved robot profile (roslab_profile) and ros_environment.
-SETTING_KEYS = ("ros_domain_id", "ros_automatic_discovery_range", "ros_static_peers")
+SETTING_KEYS = ("ros_domain_id", "ros_automatic_discovery_range", "ros_static_peers", "ros_middleware",
+                "ros_discovery_mode", "ros_discovery_server_port", "ros_zenoh_router_port",
+                "roslab_team_hosts", "roslab_hostname", "roslab_role")
 ENVIRONMENT_KEYS = (*SETTING_KEYS, "roslab_profile", "ros_environment")
 
 
@@ -38,15 +41,13 @@ def ros_variables(
     return variables
 
 
-def ros_variables_of(data, distro: str) -> dict[str, str]:
-    """`ros_variables` for a host's data: pyinfra's host.data or a roster host's dict (anything with .get)."""
-    get = data.get
-    return ros_variables(
-        distro,
-        get("ros_domain_id"),
-        get("ros_automatic_discovery_range"),
-        get("ros_static_peers") or (),
-    )
+def ros_variables_of(data, distro: str, shell: bool = False) -> dict[str, str]:
+    """The ROS variables of a host's data (pyinfra's host.data or a roster host's dict: anything
+    with .get): domain, middleware and discovery mode (roslab.discovery). `shell`: also what the
+    command-line tools of a login shell and `roslab verify` need (the discovery server's super client).
+    """
+    setup = host_discovery(data, distro)
+    return {**setup.variables, **(setup.shell_variables if shell else {})}
 
 
 def extra_variables(data) -> dict[str, str]:
@@ -59,6 +60,7 @@ def extra_variables(data) -> dict[str, str]:
     return {**(profile.get("environment") or {}), **(data.get("ros_environment") or {})}
 
 
-def host_environment(data, distro: str) -> dict[str, str]:
-    """Every variable a host's shell, its service and `roslab verify` set: ROS's, then the extras."""
-    return {**ros_variables_of(data, distro), **extra_variables(data)}
+def host_environment(data, distro: str, shell: bool = False) -> dict[str, str]:
+    """Every variable a host's service (or, `shell`, its login shell and `roslab verify`) sets:
+    ROS's, then the extras."""
+    return {**ros_variables_of(data, distro, shell), **extra_variables(data)}

@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from roslab import discovery
 from roslab import distro as distros
 from roslab import formats as f
 
@@ -277,16 +278,44 @@ SCHEMA: list[Setting] = [
     *_concern(
         "shell_env",
         _enabled("shell_env", "Write the ROS 2 environment block into the login user's ~/.bashrc."),
-        ("ros_domain_id", 0, int,
-         "ROS_DOMAIN_ID, a team setting: give each team its own, so teams on one network do "
-         "not see each other's topics.", f.domain_id, {"levels": ("classroom", "team")}),
+        ("ros_domain_id", None, int,
+         "ROS_DOMAIN_ID, a team setting: each team has its own, so teams on one network do "
+         "not see each other's topics. None: a free ID from 1 to 101 derived from the team's name "
+         "(stable across runs and however the teams are ordered; `roslab check` shows it); two teams "
+         "on one ID are refused.", f.domain_id, {"levels": ("classroom", "team"), "nullable": True}),
         ("ros_automatic_discovery_range", "SUBNET", str,
-         "Jazzy and later: ROS_AUTOMATIC_DISCOVERY_RANGE. On Humble, LOCALHOST becomes "
-         "ROS_LOCALHOST_ONLY=1 and the others export nothing.",
+         "ros_discovery_mode multicast, Jazzy and later: ROS_AUTOMATIC_DISCOVERY_RANGE. On Humble, "
+         "LOCALHOST becomes ROS_LOCALHOST_ONLY=1 and the others export nothing.",
          f.choice("SUBNET", "LOCALHOST", "OFF", "SYSTEM_DEFAULT")),
         ("ros_static_peers", [], list,
-         "Jazzy and later: ROS_STATIC_PEERS, hosts to discover without multicast (unreliable on WiFi).",
+         "Jazzy and later: ROS_STATIC_PEERS, hosts to discover without multicast (unreliable on WiFi); "
+         "ros_discovery_mode static adds them to the team's own hosts (on Humble too).",
          f.static_peer, {"item": str, "allowed": "host names or IP addresses"}),
+    ),
+    *_concern(
+        "discovery",
+        _enabled("discovery",
+                 "Write each host's middleware discovery files (/etc/roslab/discovery) and run the team's "
+                 "discovery server or Zenoh router as a service on its main; false: the variables are "
+                 "still set, the files and services are yours."),
+        ("ros_middleware", discovery.DEFAULT_MIDDLEWARE, str,
+         "The class's ROS middleware (RMW_IMPLEMENTATION everywhere, its package installed): "
+         "rmw_fastrtps_cpp (Fast DDS, ROS's default), rmw_cyclonedds_cpp (Cyclone DDS) or rmw_zenoh_cpp "
+         "(Zenoh, with a router on each team's main). One for the whole class.",
+         f.choice(*discovery.MIDDLEWARES), {"levels": ("classroom",)}),
+        ("ros_discovery_mode", discovery.DEFAULT_MODE, str,
+         "How a team's hosts find each other: multicast (DDS's own discovery), static (each host's "
+         "peers are its team's hosts: for networks without multicast, Humble and Jazzy alike), "
+         "discovery_server (a Fast DDS discovery server on the team's main) or localhost (nothing "
+         "leaves the host: a simulation-only host). Set for the class, overridden per team; a host "
+         "may only be set to localhost.",
+         f.choice(*discovery.MODES)),
+        ("ros_discovery_server_port", discovery.DEFAULT_SERVER_PORT, int,
+         "UDP port of each team's discovery server (ros_discovery_mode discovery_server).",
+         f.int_range(1024, 65535), {"levels": ("classroom",)}),
+        ("ros_zenoh_router_port", discovery.DEFAULT_ROUTER_PORT, int,
+         "TCP port of each team's Zenoh router (ros_middleware rmw_zenoh_cpp).",
+         f.int_range(1024, 65535), {"levels": ("classroom",)}),
     ),
     *_concern(
         "ssh_identity",

@@ -150,6 +150,9 @@ class HostStatus:
     role: str
     address: str
     roster_domain: int | None = None
+    domain_assigned: bool = False  # roslab chose the team's ID from its name
+    discovery_mode: str | None = None  # the roster's ros_discovery_mode for this host
+    middleware: str | None = None  # the class's ros_middleware
     expected_release: str | None = None
     expected_distro: str | None = None
     reachable: bool = False
@@ -206,7 +209,7 @@ class Cell:
     level: str = "plain"  # ok, warn, bad, muted, plain: the page colours it
 
 
-COLUMNS = ("TEAM", "HOST", "ROLE", "ADDRESS", "SSH", "UBUNTU", "ROS", "DOMAIN", "NODES",
+COLUMNS = ("TEAM", "HOST", "ROLE", "ADDRESS", "SSH", "UBUNTU", "ROS", "DOMAIN", "DISCOVERY", "NODES",
            "LAST RUN", "LAST SUCCESS", "NOTE")
 
 
@@ -287,13 +290,14 @@ def host_cells(host: HostStatus, now: datetime) -> dict[str, Cell]:
 
     roster_domain = "-" if host.roster_domain is None else str(host.roster_domain)
     if host.domain is None:
-        cells["DOMAIN"] = Cell(f"{roster_domain} (roster)", "muted")
+        cells["DOMAIN"] = Cell(f"{roster_domain} ({'auto' if host.domain_assigned else 'roster'})", "muted")
     elif host.roster_domain is not None and host.domain != host.roster_domain:
         cells["DOMAIN"] = Cell(str(host.domain), "bad")
         notes.append(f"its nodes run on domain {host.domain}, the roster says {roster_domain}")
     else:
         cells["DOMAIN"] = Cell(str(host.domain), "ok")
 
+    cells["DISCOVERY"] = discovery_cell(host, notes)
     service = host.service
     cells["NODES"] = Cell(service, service_level(service))
 
@@ -314,6 +318,17 @@ def host_cells(host: HostStatus, now: datetime) -> dict[str, Cell]:
         notes.append(host.listen_error)
     cells["NOTE"] = Cell("; ".join(notes), "bad" if not host.reachable or last_run_failed(host) else "plain")
     return cells
+
+
+def discovery_cell(host: HostStatus, notes: list[str]) -> Cell:
+    """The host's discovery mode from the roster, checked against the middleware its nodes run with."""
+    mode = host.discovery_mode or "-"
+    running = parse_environment(host.unit.get("Environment", "")).get("RMW_IMPLEMENTATION") \
+        if host.unit.get("LoadState") == "loaded" else None
+    if running and host.middleware and running != host.middleware:
+        notes.append(f"its nodes run {running}, the roster says {host.middleware}")
+        return Cell(f"{mode} ({running})", "bad")
+    return Cell(mode, "plain" if running is None else "ok")
 
 
 def format_table(hosts: list[HostStatus], now: datetime) -> str:
@@ -341,6 +356,9 @@ def host_statuses(classroom: Classroom, groups: dict, limit: list[str] | None = 
             name=host.name, team=host.team, role=host.role,
             address=str(addresses.get(host.name) or host.address),
             roster_domain=host.ros_domain_id,
+            domain_assigned=bool(host.data.get("roslab_domain_assigned")),
+            discovery_mode=host.data.get("ros_discovery_mode"),
+            middleware=host.data.get("ros_middleware"),
             expected_release=host.ubuntu_release, expected_distro=host.distro,
         ))
     return statuses
@@ -579,9 +597,18 @@ def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = 
         "name": team, "width": ROBOT_X + BOX_WIDTH + MARGIN, "height": height,
         "boxes": boxes, "arrows": arrows, "texts": texts,
         "verdict": verdict, "verdict_level": verdict_level,
-        "domain": next((str(h.roster_domain) for h in hosts if h.roster_domain is not None), "-"),
+        "domain": next((str(h.roster_domain) + (" auto" if h.domain_assigned else "")
+                        for h in hosts if h.roster_domain is not None), "-"),
+        "discovery": team_discovery(hosts),
         "no_robot": not robots,
     }
+
+
+def team_discovery(hosts: list[HostStatus]) -> str:
+    """The team's discovery mode(s) and the class's middleware, as the team's heading shows them."""
+    modes = sorted({host.discovery_mode for host in hosts if host.discovery_mode})
+    middleware = next((host.middleware for host in hosts if host.middleware), None)
+    return ", ".join([*modes, *([middleware] if middleware else [])]) or "-"
 
 
 def page_context(classroom_name: str | None, roster: str, hosts: list[HostStatus], now: datetime,

@@ -328,7 +328,7 @@ def hear(host, distro: str | None = None, timeout: int | None = None) -> dict:
     return host.get_fact(
         NodesHeard,
         distro=distro,
-        environment=host_environment(host.data, distro),
+        environment=host_environment(host.data, distro, shell=True),
         workspace_dir=host.data.workspace_dir,
         topic=host.data.nodes_verify_topic,
         timeout=timeout,

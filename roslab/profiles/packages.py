@@ -19,7 +19,7 @@ from urllib.parse import urljoin
 
 import yaml
 
-from roslab import downloads
+from roslab import discovery, downloads
 from roslab.rosdep_data import OFFICIAL_INDEX_URL
 
 _lock = threading.Lock()
@@ -87,6 +87,9 @@ def named_packages(data: dict, distro: str) -> list[tuple[str, str, str]]:
         match = _ROS_DEB.fullmatch(template.replace("{distro}", distro))
         if match and match.group(1) == distro:
             named.append((match.group(0), match.group(2).replace("-", "_"), "ros_extra_packages"))
+    middleware = discovery.middleware_ros_package(discovery.middleware_of(data))
+    if middleware:
+        named.append((discovery.middleware_package(middleware, distro), middleware, "ros_middleware"))
     profile = data.get("roslab_profile") or {}
     for ros_name in profile.get("ros_packages") or []:
         named.append((f"ros-{distro}-{ros_name.replace('_', '-')}", ros_name, "robot_profile"))

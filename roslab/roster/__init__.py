@@ -16,7 +16,7 @@ from pathlib import Path
 
 from roslab.network.settings import validate_roster as _validate_network
 from roslab.profiles.packages import check_classroom as _check_ros_packages
-from roslab.roster.checks import Validator, check_classroom
+from roslab.roster.checks import Validator, assign_domain_ids, check_classroom
 from roslab.roster.inventory import add_host_lists, default_roster_path, inventory_groups
 from roslab.roster.model import ROLES, Classroom, Host, Team
 from roslab.roster.problems import Problem, Report, RosterError, display_path
@@ -37,6 +37,7 @@ def load_roster(path: Path | str, validators: list[Validator] | None = None,
     classroom = reader.read()
     if classroom is not None:
         reader.check_command_line(classroom)
+        assign_domain_ids(classroom)
         check_classroom(classroom, reader.report)
         add_host_lists(classroom)
         for validator in VALIDATORS if validators is None else validators:

@@ -13,6 +13,7 @@ import difflib
 import ipaddress
 from collections.abc import Callable
 
+from roslab import discovery
 from roslab import distro as distros
 from roslab import settings
 from roslab.roster.model import ROLES, Classroom, Host
@@ -45,6 +46,7 @@ def unknown_key_message(key: str, level: str) -> str:
 def check_classroom(classroom: Classroom, report: Report) -> None:
     check_groups(classroom, report)
     check_domain_ids(classroom, report)
+    check_discovery(classroom, report)
     check_unique(classroom, report, None, lambda host: host.name.lower())
     check_unique(classroom, report, "address", _address_key)
     check_unique(classroom, report, "network_address", _network_ip_key)
@@ -127,17 +129,31 @@ def check_groups(classroom: Classroom, report: Report) -> None:
                 "ambiguous; rename the host", team=host.team, host=host.name, line=host.line)
 
 
+def assign_domain_ids(classroom: Classroom) -> None:
+    """Give each team the roster left without a ros_domain_id a free one from its name
+    (roslab.discovery.assign_domain_ids), in the team and in each of its hosts' data."""
+    assigned = discovery.assign_domain_ids(
+        {team.name: team.ros_domain_id if team.domain_set else None for team in classroom.teams})
+    for team in classroom.teams:
+        if team.name not in assigned:
+            continue
+        team.ros_domain_id = assigned[team.name]
+        team.domain_assigned = True
+        for host in team.hosts:
+            host.ros_domain_id = team.ros_domain_id
+            host.data["ros_domain_id"] = team.ros_domain_id
+            host.data["roslab_domain_assigned"] = True
+
+
 def check_domain_ids(classroom: Classroom, report: Report) -> None:
     owners: dict[int, str] = {}
     for team in classroom.teams:
         line = team.domain_line or team.line
-        if not team.domain_set and len(classroom.teams) > 1:
-            report.error(
-                "set a ros_domain_id (0 to 101) for each team: teams on one "
-                "domain see and disturb each other's topics",
-                team=team.name, field="ros_domain_id", line=line)
-            continue
         if team.ros_domain_id is None:
+            if not team.domain_set:
+                report.error(f"no free ROS_DOMAIN_ID is left for this team (roslab gives out 1 to 101): "
+                             "set its ros_domain_id (215 to 232 also work on Linux)",
+                             team=team.name, field="ros_domain_id", line=line)
             continue
         if team.ros_domain_id in owners:
             report.error(
@@ -146,6 +162,43 @@ def check_domain_ids(classroom: Classroom, report: Report) -> None:
                 "each other's topics", team=team.name, field="ros_domain_id", line=line)
         else:
             owners[team.ros_domain_id] = team.name
+
+
+def check_discovery(classroom: Classroom, report: Report) -> None:
+    """Middleware and discovery mode: the combinations that cannot work, refused before connecting."""
+    for team in classroom.teams:
+        main = next((host for host in team.hosts if host.role == "main"), None)
+        for host in team.hosts:
+            data = host.data
+            where = {"team": host.team, "host": host.name}
+            mode, middleware = discovery.mode_of(data), discovery.middleware_of(data)
+            mode_line = host.lines.get("ros_discovery_mode") or host.line
+            if mode == "discovery_server" and middleware != discovery.FASTDDS:
+                report.error(f"a discovery server is Fast DDS's: ros_middleware {middleware} has none "
+                             "(use ros_discovery_mode static, or ros_middleware rmw_fastrtps_cpp)",
+                             field="ros_discovery_mode", line=mode_line, **where)
+            needs_main = mode == "discovery_server" or (middleware == discovery.ZENOH and mode != "localhost")
+            what = "the discovery server" if mode == "discovery_server" else "the Zenoh router"
+            if needs_main and main is None:
+                report.error(f"{what} runs on the team's main host, and this team has none: "
+                             "give it a host with role: main", field="ros_discovery_mode", line=mode_line, **where)
+            elif needs_main and main is not host and discovery.mode_of(main.data) == "localhost":
+                report.error(f"{what} runs on the team's main host, and {main.name!r} keeps its discovery on "
+                             "itself (ros_discovery_mode localhost): this host would find nobody",
+                             field="ros_discovery_mode",
+                             line=main.lines.get("ros_discovery_mode") or main.line, **where)
+            if middleware == discovery.ZENOH and _runs_micro_ros_agent(data):
+                report.error("the micro-ROS agent speaks DDS only, so its robot would be invisible under "
+                             "rmw_zenoh_cpp: use rmw_fastrtps_cpp for this class",
+                             field="ros_middleware", line=host.lines.get("ros_middleware") or host.line, **where)
+
+
+def _runs_micro_ros_agent(data: dict) -> bool:
+    """Whether a host runs or installs the micro-ROS agent (its launch or its profile's packages)."""
+    profile = data.get("roslab_profile") or {}
+    names = [*(profile.get("ros_packages") or ()), *(profile.get("packages") or ()),
+             *(data.get("ros_extra_packages") or ()), (data.get("nodes_launch") or "").split(" ")[0]]
+    return any("micro_ros_agent" in str(name).replace("-", "_") for name in names)
 
 
 def check_unique(classroom: Classroom, report: Report, field_name: str | None, key_of) -> None:

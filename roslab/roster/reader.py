@@ -302,7 +302,7 @@ class RosterReader:
         domain = (self.command_line.get("ros_domain_id") or team_settings.get("ros_domain_id")
                   or classroom.get("ros_domain_id"))
         team = Team(name, name.replace("-", "_"),
-                    domain.value if domain else self.defaults["ros_domain_id"], [],
+                    domain.value if domain else None, [],
                     domain_set=domain is not None, line=line,
                     domain_line=domain.line if domain else None)
         mains = []
@@ -339,6 +339,12 @@ class RosterReader:
                                   line=line_of(host_map) or line, **where)
             return None
 
+        own_mode = own.get("ros_discovery_mode")
+        if own_mode is not None and own_mode.value != "localhost":
+            # A team's hosts share one mode (one server or router, each other as peers).
+            self.report.error(f"a host may only be set to localhost (a simulation-only host); set "
+                              f"{own_mode.value} on its team, where its team mates get it too",
+                              field="ros_discovery_mode", line=own_mode.line, **where)
         resolved: dict[str, Value] = {}
         for level in (*outer, own, self.command_line):
             resolved.update(level)
@@ -507,5 +513,8 @@ class RosterReader:
             data["nodes_verify_topic"] = result["verify_topic"]
         if data.get("nodes_verify_type") is None:
             data["nodes_verify_type"] = result["verify_type"]
-        if result["discovery"] == "localhost" and "ros_automatic_discovery_range" not in resolved:
+        if result["discovery"] == "localhost" and "ros_automatic_discovery_range" not in resolved \
+                and "ros_discovery_mode" not in set_here:
+            # The profile keeps discovery on the host (sim) unless the team or host chose a mode.
+            data["ros_discovery_mode"] = "localhost"
             data["ros_automatic_discovery_range"] = "LOCALHOST"

@@ -90,6 +90,11 @@ STANDIN_ROS_KEYS = (
     # ros_extra_packages' documented example (ros-{distro}-turtlesim): the roster's package check
     # reads the sandbox's rosdistro, so a name the sandbox does not serve is refused as a typo.
     "turtlesim",
+    # The class's middleware (ros_middleware): STAND-INS here, no code. With a real runtime
+    # (ros_runtime.py) rmw_cyclonedds_cpp's code is in the real ros-core tree (both cores have
+    # Cyclone DDS), so its package is a name on ros-core; rmw_zenoh_cpp stays a stand-in
+    # everywhere: no Zenoh router runs in the sandbox.
+    "rmw_cyclonedds_cpp", "rmw_zenoh_cpp",
 )
 
 # The stand-ins carrying the setup scripts, and the variant metapackages.

@@ -30,10 +30,11 @@ def test_check_prints_the_classroom_as_aligned_columns(capsys):
     header, *rows = out[1:]
     assert header.split() == list(TABLE_COLUMNS)
     assert [row.split() for row in rows] == [
-        ["team1", "team1-main", "main", "127.0.0.11", "24.04", "jazzy", "desktop", "11"],
-        ["team1", "team1-robot", "robot", "127.0.0.12", "24.04", "jazzy", "ros-base", "11"],
-        ["team-2", "team2-main", "main", "127.0.0.21", "22.04", "humble", "desktop", "12"],
+        ["team1", "team1-main", "main", "127.0.0.11", "24.04", "jazzy", "desktop", "11", "multicast"],
+        ["team1", "team1-robot", "robot", "127.0.0.12", "24.04", "jazzy", "ros-base", "11", "multicast"],
+        ["team-2", "team2-main", "main", "127.0.0.21", "22.04", "humble", "desktop", "12", "multicast"],
     ]
+    assert out[0].endswith(", middleware rmw_fastrtps_cpp")
     # Every column starts at the same offset on every line.
     for column in TABLE_COLUMNS[1:]:
         offset = header.index(column)
@@ -185,3 +186,19 @@ def test_every_sandbox_command_says_it_needs_root_in_one_line(subcommand, monkey
     err = capsys.readouterr().err
     assert err.strip() == (f"roslab sandbox {subcommand[0]}: needs root (the sandbox is network namespaces, "
                            "mounts and containers); run it with sudo")
+
+
+def test_check_shows_an_assigned_domain_id_and_each_teams_mode(tmp_path, capsys):
+    from roslab.discovery import preferred_domain_id
+
+    roster = tmp_path / "lab.yaml"
+    roster.write_text(textwrap.dedent("""\
+        classroom: {ros_discovery_mode: static}
+        teams:
+          alpha: {ros_domain_id: 5, hosts: {alpha-main: {role: main, address: 10.0.0.1}}}
+          bravo: {ros_discovery_mode: discovery_server, hosts: {bravo-main: {role: main, address: 10.0.0.2}}}
+    """))
+    assert main(["check", str(roster)]) == 0
+    rows = [line.split() for line in capsys.readouterr().out.splitlines()[2:]]
+    assert [row[7:] for row in rows] == [["5", "static"],
+                                        [str(preferred_domain_id("bravo")), "(auto)", "discovery_server"]]

@@ -15,6 +15,7 @@ import yaml
 
 from roslab import roster
 from roslab import settings as schema
+from roslab.discovery import assign_domain_ids, preferred_domain_id
 from roslab.roster import RosterError, inventory_groups, load_roster
 
 REPO = Path(__file__).resolve().parents[2]
@@ -166,8 +167,9 @@ def test_table_fields_resolve_distro_variant_and_domain_by_level(tmp_path):
     main, robot = load_roster(path).hosts
     assert (main.address, main.distro, main.variant) == ("solo-main", "kilted", "desktop")
     assert (robot.distro, robot.variant) == ("jazzy", "ros-core")
-    # One team alone may leave it to the deploy's default.
-    assert main.ros_domain_id == schema.SETTINGS["ros_domain_id"].default
+    # A team without one gets a free ID from its name (never 0, everyone's default).
+    assert main.ros_domain_id == robot.ros_domain_id == preferred_domain_id("solo") != 0
+    assert main.data["ros_domain_id"] == main.ros_domain_id and main.data["roslab_domain_assigned"]
 
 
 def test_every_deploy_setting_is_accepted_with_its_default(tmp_path):
@@ -185,6 +187,7 @@ def test_every_deploy_setting_is_accepted_with_its_default(tmp_path):
     settings["ros_variant"] = "desktop"
     settings["nodes_verify_topic"] = "/chatter"
     settings["nodes_verify_type"] = "std_msgs/msg/String"
+    settings["ros_domain_id"] = preferred_domain_id("t")  # None: a free ID from the team's name
     assert {key: data[key] for key in settings} == settings
 
 
@@ -470,18 +473,50 @@ def test_classroom_wide_domain_id_puts_every_team_on_one_domain(tmp_path):
     assert "ROS_DOMAIN_ID 5 is already team 'team1''s" in one_error(path)
 
 
-def test_several_teams_each_need_a_domain_id(tmp_path):
-    path = write(tmp_path, """\
-        teams:
-          team1:
-            ros_domain_id: 1
-            hosts: {team1-main: {role: main}}
-          team2:
-            hosts: {team2-main: {role: main}}
-    """)
+TEAMS_WITHOUT_DOMAINS = """\
+    teams:
+      {first}:
+        ros_domain_id: {taken}
+        hosts: {{{first}-main: {{role: main}}}}
+      {second}:
+        hosts: {{{second}-main: {{role: main}}}}
+      {third}:
+        hosts: {{{third}-main: {{role: main}}}}
+"""
+
+
+def domains_of(path) -> dict[str, int]:
+    return {team.name: team.ros_domain_id for team in load_roster(path).teams}
+
+
+def test_teams_without_a_domain_id_get_free_ones_from_their_names(tmp_path):
+    taken = preferred_domain_id("bravo")  # the roster already holds bravo's preferred ID
+    roster = TEAMS_WITHOUT_DOMAINS.format(first="alpha", second="bravo", third="charlie", taken=taken)
+    first = domains_of(write(tmp_path, roster))
+    assert first["alpha"] == taken
+    assert first["bravo"] != taken and first["charlie"] == preferred_domain_id("charlie")
+    assert len(set(first.values())) == 3 and 0 not in first.values()
+    # The same on every run, and however the roster orders the teams.
+    assert domains_of(write(tmp_path, roster)) == first
+    reordered = TEAMS_WITHOUT_DOMAINS.format(first="alpha", second="charlie", third="bravo", taken=taken)
+    assert domains_of(write(tmp_path, reordered)) == first
+
+
+def test_assigned_domain_ids_never_collide_even_when_names_hash_alike():
+    teams = {f"team{index}": None for index in range(101)}
+    assigned = assign_domain_ids(teams)
+    assert sorted(assigned.values()) == list(range(1, 102))
+    # One team more than there are IDs: exactly one goes without (and the roster is refused).
+    assert len(assign_domain_ids({**teams, "late": None})) == 101
+
+
+def test_no_free_domain_id_left_is_refused_naming_the_team(tmp_path):
+    teams = "".join(f"  t{index}:\n    ros_domain_id: {index}\n    hosts: {{t{index}-main: {{role: main}}}}\n"
+                    for index in range(1, 102))
+    path = write(tmp_path, "teams:\n" + teams + "  late:\n    hosts: {late-main: {role: main}}\n")
     assert one_error(path) == (
-        "lab.yaml:5: team 'team2', field 'ros_domain_id': set a ros_domain_id (0 to 101) "
-        "for each team: teams on one domain see and disturb each other's topics")
+        "lab.yaml:305: team 'late', field 'ros_domain_id': no free ROS_DOMAIN_ID is left for this team "
+        "(roslab gives out 1 to 101): set its ros_domain_id (215 to 232 also work on Linux)")
 
 
 def test_domain_id_on_a_single_host_is_refused(tmp_path):

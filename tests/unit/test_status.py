@@ -426,3 +426,27 @@ def test_status_exits_1_when_a_host_failed_its_last_run_or_is_unreachable():
         "1 of 2 hosts failed in their last run: team1-main"]
     assert status.status_problems([unreachable_host(), reachable_host()]) == [
         "1 of 2 hosts unreachable: team1-robot", "1 of 2 hosts failed in their last run: team1-robot"]
+
+
+def test_status_shows_each_hosts_discovery_mode_and_an_auto_domain(tmp_path):
+    from fixtures.status_hosts import reachable_host
+
+    from roslab.status import host_cells, page_context
+
+    host = reachable_host(discovery_mode="static", middleware="rmw_fastrtps_cpp", domain_assigned=True)
+    cells = host_cells(host, NOW)
+    assert cells["DISCOVERY"].text == "static"
+    team = page_context("lab", "lab.yaml", [host], NOW)["teams"][0]
+    assert team["discovery"] == "static, rmw_fastrtps_cpp" and team["domain"].endswith(" auto")
+
+
+def test_status_flags_nodes_running_another_middleware_than_the_roster_says():
+    from fixtures.status_hosts import reachable_host
+
+    from roslab.status import host_cells
+
+    host = reachable_host(discovery_mode="multicast", middleware="rmw_cyclonedds_cpp")
+    host.probe["unit"]["Environment"] = "ROS_DOMAIN_ID=11 RMW_IMPLEMENTATION=rmw_fastrtps_cpp"
+    cells = host_cells(host, NOW)
+    assert (cells["DISCOVERY"].text, cells["DISCOVERY"].level) == ("multicast (rmw_fastrtps_cpp)", "bad")
+    assert "its nodes run rmw_fastrtps_cpp, the roster says rmw_cyclonedds_cpp" in cells["NOTE"].text

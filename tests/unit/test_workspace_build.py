@@ -22,7 +22,7 @@ from pyinfra.context import ctx_host
 
 from deploy import workspace as deploy_ws
 from roslab import settings, workspace
-from roslab.ros_env import ros_variables
+from roslab.ros_env import host_environment, ros_variables
 from test_workspace_sync import USER, LocalDirHost, run_operation
 
 WS = "/home/ubuntu/ros2_ws"
@@ -604,7 +604,7 @@ class WorkspaceHost(FakeUbuntu):
             unit_text = deploy_ws.unit_text(
                 role="robot", user="student", home="/home/student", workspace_dir=STUDENT_WS,
                 distro="jazzy", launch="roslab_bringup robot.launch.py",
-                environment=ros_variables("jazzy", 11, "SUBNET", []))
+                environment=host_environment(host_data(), "jazzy"))
             self.files[workspace.NODES_UNIT_PATH] = unit_text.splitlines()
             self.raw[workspace.NODES_UNIT_PATH] = unit_text
         self.workspace_facts.update(facts or {})

@@ -1,0 +1,360 @@
+"""How a classroom's ROS hosts find each other: one middleware for the class, a discovery mode per team.
+
+One source for what each host gets, per mode, middleware and distro:
+
+- the variables of its nodes' unit, its login shell and `roslab verify` (`HostDiscovery.variables`),
+  plus the ones only the shell and verify's command-line tools need (`shell_variables`: the
+  discovery server's super client, which sees the whole graph);
+- the files those variables point to (`files`: the middleware's own XML, for Humble, which has
+  no ROS_STATIC_PEERS, and for the super client there);
+- the service it runs for its team (`service`: the Fast DDS discovery server or the Zenoh router
+  on the team's main).
+
+Modes (`ros_discovery_mode`, a classroom setting a team may override):
+
+- `multicast`: DDS's own discovery (today's behaviour; ros_automatic_discovery_range and
+  ros_static_peers refine it on Jazzy and later).
+- `static`: no multicast; each host's peers are its team's hosts. Jazzy and later:
+  ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST with ROS_STATIC_PEERS; Humble: the middleware's own peer
+  list (Fast DDS initialPeersList with multicast off, Cyclone DDS Peers with AllowMulticast false).
+- `discovery_server`: a Fast DDS discovery server on the team's main (`roslab-discovery-server`),
+  ROS_DISCOVERY_SERVER on every host of the team, the super client for the command-line tools.
+- `localhost`: nothing leaves the host (a simulation-only host).
+
+With Zenoh (`rmw_zenoh_cpp`) discovery goes through a router: the team's main runs one
+(`roslab-zenoh-router`, multicast scouting off so teams' routers never join) and the team's other
+hosts connect to it; `multicast` and `static` mean the same there, a `localhost` host runs its own
+router on the loopback, and a discovery server is refused.
+
+Everything here is plain data from a host's data (pyinfra's host.data or a roster host's dict);
+the values were checked by the settings schema before, and each destination escapes them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from xml.sax.saxutils import escape, quoteattr
+
+from roslab.distro import DISCOVERY_RANGE_DISTROS
+
+MODES = ("multicast", "static", "discovery_server", "localhost")
+MIDDLEWARES = ("rmw_fastrtps_cpp", "rmw_cyclonedds_cpp", "rmw_zenoh_cpp")
+FASTDDS, CYCLONEDDS, ZENOH = MIDDLEWARES
+
+# Defaults, the same as the settings schema's (roslab/settings.py reads them from here).
+DEFAULT_MODE = "multicast"
+DEFAULT_MIDDLEWARE = FASTDDS
+DEFAULT_SERVER_PORT = 11811  # Fast DDS's own default for a discovery server
+DEFAULT_ROUTER_PORT = 7447  # rmw_zenoh's router default
+
+# The IDs a team without one is given: 0 is every unset ROS host's, 215-232 are Linux-only.
+AUTO_DOMAIN_IDS = tuple(range(1, 102))
+
+CONFIG_DIR = "/etc/roslab/discovery"
+FASTDDS_PEERS_XML = f"{CONFIG_DIR}/fastdds-static-peers.xml"
+FASTDDS_SUPER_CLIENT_XML = f"{CONFIG_DIR}/fastdds-super-client.xml"
+CYCLONEDDS_PEERS_XML = f"{CONFIG_DIR}/cyclonedds-static-peers.xml"
+DISCOVERY_SERVER_SERVICE = "roslab-discovery-server"
+ZENOH_ROUTER_SERVICE = "roslab-zenoh-router"
+SERVICES = (DISCOVERY_SERVER_SERVICE, ZENOH_ROUTER_SERVICE)
+
+# Fast DDS 2.x (Humble 2.6, Jazzy 2.14) reads FASTRTPS_DEFAULT_PROFILES_FILE; 3.x (Kilted, Lyrical)
+# only FASTDDS_DEFAULT_PROFILES_FILE. Only Humble needs a profile file here.
+FASTDDS_3_DISTROS = {"kilted", "lyrical"}
+# Fast DDS's well-known prefix of discovery server 0 (its CLI's `-i 0`, ROS_DISCOVERY_SERVER's first).
+SERVER_0_PREFIX = "44.53.00.5f.45.50.52.4f.53.49.4d.41"
+# Cyclone DDS without multicast probes this many participant indexes per peer (its default is 9:
+# a main with a launch, the ros2 daemon and a few terminals has more participants than that).
+CYCLONE_MAX_PARTICIPANT_INDEX = 32
+
+HEADER = "managed by roslab (roslab/discovery.py): edits here are overwritten; set ros_discovery_mode in the roster"
+
+
+@dataclass(frozen=True)
+class Service:
+    """A service the host runs for its team: its unit name, what it is, the command (after
+    sourcing the distro's setup.bash) and the variables it runs with."""
+
+    name: str
+    description: str
+    command: tuple[str, ...]
+    environment: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class HostDiscovery:
+    mode: str
+    middleware: str
+    variables: dict[str, str]  # the unit, the shell and verify
+    shell_variables: dict[str, str]  # added for the shell and verify's ros2 tools only
+    files: dict[str, str]  # path -> content
+    service: Service | None
+
+
+def middleware_package(middleware: str, distro: str) -> str | None:
+    """The Debian package a middleware needs beyond ros-<distro>-ros-base (Fast DDS comes with it)."""
+    if middleware == FASTDDS:
+        return None
+    return f"ros-{distro}-{middleware.replace('_', '-')}"
+
+
+def middleware_ros_package(middleware: str) -> str | None:
+    """The ROS package name of `middleware_package`, for the rosdistro check."""
+    return None if middleware == FASTDDS else middleware
+
+
+def _get(data, key, default):
+    value = data.get(key)
+    return default if value is None else value
+
+
+def mode_of(data) -> str:
+    return _get(data, "ros_discovery_mode", DEFAULT_MODE)
+
+
+def middleware_of(data) -> str:
+    return _get(data, "ros_middleware", DEFAULT_MIDDLEWARE)
+
+
+def team_main(data) -> dict | None:
+    """The host's team's main host ({"name", "address", "role"}), or None."""
+    for member in data.get("roslab_team_hosts") or ():
+        if member.get("role") == "main":
+            return member
+    return None
+
+
+def reach(member: dict) -> str:
+    """Where another host reaches a team member: its IP, else its name (/etc/hosts has it)."""
+    return member.get("address") or member["name"]
+
+
+def team_peers(data) -> list[str]:
+    """The host's team mates (not itself), as other hosts reach them, then the roster's ros_static_peers."""
+    me = data.get("roslab_hostname")
+    peers = [reach(member) for member in data.get("roslab_team_hosts") or () if member.get("name") != me]
+    peers += [peer for peer in data.get("ros_static_peers") or () if peer not in peers]
+    return peers
+
+
+def is_main(data) -> bool:
+    return data.get("roslab_role") == "main"
+
+
+def server_address(data) -> str:
+    """The discovery server or router this host talks to: its own loopback on the main."""
+    main = team_main(data)
+    if is_main(data) or main is None:
+        return "127.0.0.1"
+    return reach(main)
+
+
+def host_discovery(data, distro: str) -> HostDiscovery:
+    """Everything `data`'s host gets for discovery on `distro` (see the module's docstring)."""
+    mode, middleware = mode_of(data), middleware_of(data)
+    variables: dict[str, str] = {}
+    domain = data.get("ros_domain_id")
+    if domain is not None:
+        variables["ROS_DOMAIN_ID"] = str(domain)
+    variables["RMW_IMPLEMENTATION"] = middleware
+    shell: dict[str, str] = {}
+    files: dict[str, str] = {}
+    service = None
+    jazzy_era = distro in DISCOVERY_RANGE_DISTROS
+
+    if middleware == ZENOH:
+        port = _get(data, "ros_zenoh_router_port", DEFAULT_ROUTER_PORT)
+        if mode == "localhost":
+            service = zenoh_router(port, listen="127.0.0.1")
+            variables["ZENOH_CONFIG_OVERRIDE"] = zenoh_override(connect=f"tcp/127.0.0.1:{port}")
+        elif is_main(data):
+            service = zenoh_router(port, listen="0.0.0.0")
+            variables["ZENOH_CONFIG_OVERRIDE"] = zenoh_override(connect=f"tcp/127.0.0.1:{port}")
+        else:
+            variables["ZENOH_CONFIG_OVERRIDE"] = zenoh_override(connect=f"tcp/{server_address(data)}:{port}")
+        return HostDiscovery(mode, middleware, variables, shell, files, service)
+
+    if mode == "localhost":
+        if jazzy_era:
+            variables["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+        else:
+            variables["ROS_LOCALHOST_ONLY"] = "1"
+    elif mode == "multicast":
+        discovery_range = _get(data, "ros_automatic_discovery_range", "SUBNET")
+        static_peers = list(data.get("ros_static_peers") or ())
+        if jazzy_era:
+            variables["ROS_AUTOMATIC_DISCOVERY_RANGE"] = str(discovery_range)
+            if static_peers:
+                variables["ROS_STATIC_PEERS"] = ";".join(static_peers)
+        elif discovery_range == "LOCALHOST":
+            variables["ROS_LOCALHOST_ONLY"] = "1"
+    elif mode == "static":
+        peers = team_peers(data)
+        if jazzy_era:
+            variables["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+            if peers:
+                variables["ROS_STATIC_PEERS"] = ";".join(peers)
+        elif middleware == CYCLONEDDS:
+            variables["CYCLONEDDS_URI"] = f"file://{CYCLONEDDS_PEERS_XML}"
+            files[CYCLONEDDS_PEERS_XML] = cyclonedds_peers_xml(peers)
+        else:
+            variables[profiles_variable(distro)] = FASTDDS_PEERS_XML
+            files[FASTDDS_PEERS_XML] = fastdds_peers_xml(peers)
+    elif mode == "discovery_server":  # Fast DDS only (refused otherwise before connecting)
+        port = _get(data, "ros_discovery_server_port", DEFAULT_SERVER_PORT)
+        variables["ROS_DISCOVERY_SERVER"] = f"{server_address(data)}:{port}"
+        if distro == "humble":  # Fast DDS 2.6 has no ROS_SUPER_CLIENT: its XML profile
+            shell[profiles_variable(distro)] = FASTDDS_SUPER_CLIENT_XML
+            files[FASTDDS_SUPER_CLIENT_XML] = fastdds_super_client_xml(server_address(data), port)
+        else:
+            shell["ROS_SUPER_CLIENT"] = "TRUE"
+        if is_main(data):
+            service = discovery_server(port)
+    return HostDiscovery(mode, middleware, variables, shell, files, service)
+
+
+def profiles_variable(distro: str) -> str:
+    return "FASTDDS_DEFAULT_PROFILES_FILE" if distro in FASTDDS_3_DISTROS else "FASTRTPS_DEFAULT_PROFILES_FILE"
+
+
+def discovery_server(port: int) -> Service:
+    """Fast DDS's discovery server 0 on every interface of the main (its own binary: the `fastdds`
+    CLI would start it as a grandchild)."""
+    return Service(
+        DISCOVERY_SERVER_SERVICE,
+        f"roslab: the team's Fast DDS discovery server (UDP {port})",
+        ("fast-discovery-server", "-i", "0", "-l", "0.0.0.0", "-p", str(port)),
+    )
+
+
+def zenoh_router(port: int, listen: str) -> Service:
+    """rmw_zenoh's router; multicast scouting off, so two teams' routers never connect."""
+    return Service(
+        ZENOH_ROUTER_SERVICE,
+        f"roslab: the team's Zenoh router (TCP {port})",
+        ("ros2", "run", "rmw_zenoh_cpp", "rmw_zenohd"),
+        {"ZENOH_CONFIG_OVERRIDE": zenoh_override(listen=f"tcp/{listen}:{port}", scouting=False)},
+    )
+
+
+def zenoh_override(connect: str | None = None, listen: str | None = None, scouting: bool | None = None) -> str:
+    """ZENOH_CONFIG_OVERRIDE's `key=value;...` (values in JSON5)."""
+    parts = []
+    if connect:
+        parts.append(f'connect/endpoints=["{connect}"]')
+    if listen:
+        parts.append(f'listen/endpoints=["{listen}"]')
+    if scouting is False:
+        parts.append("scouting/multicast/enabled=false")
+    return ";".join(parts)
+
+
+def _xml_head() -> str:
+    return f'<?xml version="1.0" encoding="UTF-8"?>\n<!-- {HEADER} -->\n'
+
+
+def fastdds_peers_xml(peers: list[str]) -> str:
+    """Fast DDS (2.x) default participant profile: no multicast, the host itself and its peers
+    as initial peers (the discovery Fast DDS's docs give for networks without multicast)."""
+    locators = "".join(
+        f"                    <locator><udpv4><address>{escape(peer)}</address></udpv4></locator>\n"
+        for peer in ["127.0.0.1", *peers])
+    return (
+        _xml_head()
+        + '<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">\n'
+        + '    <participant profile_name="roslab_static_peers" is_default_profile="true">\n'
+        + "        <rtps>\n"
+        + "            <builtin>\n"
+        + "                <metatrafficUnicastLocatorList>\n"
+        + "                    <locator/>\n"
+        + "                </metatrafficUnicastLocatorList>\n"
+        + "                <initialPeersList>\n"
+        + locators
+        + "                </initialPeersList>\n"
+        + "            </builtin>\n"
+        + "        </rtps>\n"
+        + "    </participant>\n"
+        + "</profiles>\n"
+    )
+
+
+def fastdds_super_client_xml(server: str, port: int) -> str:
+    """Fast DDS (2.x) super client of discovery server 0: what lets `ros2 topic list` see the graph."""
+    return (
+        _xml_head()
+        + "<dds>\n"
+        + '    <profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">\n'
+        + '        <participant profile_name="roslab_super_client" is_default_profile="true">\n'
+        + "            <rtps>\n"
+        + "                <builtin>\n"
+        + "                    <discovery_config>\n"
+        + "                        <discoveryProtocol>SUPER_CLIENT</discoveryProtocol>\n"
+        + "                        <discoveryServersList>\n"
+        + f"                            <RemoteServer prefix={quoteattr(SERVER_0_PREFIX)}>\n"
+        + "                                <metatrafficUnicastLocatorList>\n"
+        + "                                    <locator>\n"
+        + "                                        <udpv4>\n"
+        + f"                                            <address>{escape(server)}</address>\n"
+        + f"                                            <port>{int(port)}</port>\n"
+        + "                                        </udpv4>\n"
+        + "                                    </locator>\n"
+        + "                                </metatrafficUnicastLocatorList>\n"
+        + "                            </RemoteServer>\n"
+        + "                        </discoveryServersList>\n"
+        + "                    </discovery_config>\n"
+        + "                </builtin>\n"
+        + "            </rtps>\n"
+        + "        </participant>\n"
+        + "    </profiles>\n"
+        + "</dds>\n"
+    )
+
+
+def cyclonedds_peers_xml(peers: list[str]) -> str:
+    """Cyclone DDS configuration: no multicast, the host itself and its peers."""
+    entries = "".join(f"            <Peer address={quoteattr(peer)}/>\n" for peer in ["127.0.0.1", *peers])
+    return (
+        _xml_head()
+        + '<CycloneDDS xmlns="https://cdds.io/config">\n'
+        + '    <Domain Id="any">\n'
+        + "        <General>\n"
+        + "            <AllowMulticast>false</AllowMulticast>\n"
+        + "        </General>\n"
+        + "        <Discovery>\n"
+        + "            <ParticipantIndex>auto</ParticipantIndex>\n"
+        + f"            <MaxAutoParticipantIndex>{CYCLONE_MAX_PARTICIPANT_INDEX}</MaxAutoParticipantIndex>\n"
+        + "            <Peers>\n"
+        + entries
+        + "            </Peers>\n"
+        + "        </Discovery>\n"
+        + "    </Domain>\n"
+        + "</CycloneDDS>\n"
+    )
+
+
+# --- domain IDs -------------------------------------------------------------------------
+
+
+def preferred_domain_id(team: str) -> int:
+    """Where a team's automatic ID starts: a hash of its name (never Python's salted hash())."""
+    digest = hashlib.sha256(team.encode("utf-8")).digest()
+    return AUTO_DOMAIN_IDS[int.from_bytes(digest[:4], "big") % len(AUTO_DOMAIN_IDS)]
+
+
+def assign_domain_ids(chosen: dict[str, int | None]) -> dict[str, int]:
+    """A free ID for each team whose value is None, from its name: stable across runs and however
+    the roster orders its teams (teams are taken in name order, each from its preferred ID on to
+    the next free one). IDs the roster chose are never given out. Teams beyond the free IDs get none.
+    """
+    taken = {value for value in chosen.values() if value is not None}
+    assigned: dict[str, int] = {}
+    for team in sorted(name for name, value in chosen.items() if value is None):
+        start = AUTO_DOMAIN_IDS.index(preferred_domain_id(team))
+        for step in range(len(AUTO_DOMAIN_IDS)):
+            candidate = AUTO_DOMAIN_IDS[(start + step) % len(AUTO_DOMAIN_IDS)]
+            if candidate not in taken:
+                taken.add(candidate)
+                assigned[team] = candidate
+                break
+    return assigned
