@@ -717,7 +717,16 @@ class Upstream:
             # An apt cache (apt_cache_host) may fetch from the upstream's port, as from a
             # classroom's local mirror on a port other than 80.
             "apt_cache_upstream_ports": [int(self.url.rsplit(":", 1)[1])],
+            **self.middleware_settings(),
         }
+
+    def middleware_settings(self) -> dict:
+        """The class's middleware where a distro is served from a real runtime: Cyclone DDS,
+        the one both runtimes have (Humble's has no Fast DDS, which Ubuntu's ros-base brings;
+        ROSLAB_SANDBOX_ROS_RUNTIME's README). With stand-ins only: roslab's default."""
+        if any(not served.startswith("stand-in") for served in (self.ros or {}).values()):
+            return {"ros_middleware": "rmw_cyclonedds_cpp"}
+        return {}
 
     def mirror_settings(self, key_file: Path) -> dict:
         return {"ros_apt_mirror_url": f"{self.url}/ros2/ubuntu", "ros_apt_mirror_key_file": str(key_file)}

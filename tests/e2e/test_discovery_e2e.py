@@ -75,6 +75,8 @@ def sandbox(sandbox_support):
 def class_roster(sandbox, path: Path, team2_mode: str = "static") -> Path:
     """The sandbox's roster with one line per team's mode, as a teacher writes it."""
     data = yaml.safe_load(sandbox.roster_path.read_text())
+    # Fast DDS, which the discovery server needs (the sandbox's real-runtime roster says Cyclone DDS).
+    data["classroom"]["ros_middleware"] = "rmw_fastrtps_cpp"
     data["classroom"]["ros_discovery_mode"] = "static"
     teams = data["teams"]
     teams["team1"]["ros_discovery_mode"] = "discovery_server"

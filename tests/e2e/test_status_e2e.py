@@ -31,7 +31,7 @@ EXPECTED = {
     "team2-main": ("22.04 jammy", "humble", "12"),
     "team2-robot": ("22.04 jammy", "humble", "12"),
 }
-COLUMNS = ("TEAM", "HOST", "ROLE", "ADDRESS", "SSH", "UBUNTU", "ROS", "DOMAIN", "NODES",
+COLUMNS = ("TEAM", "HOST", "ROLE", "ADDRESS", "SSH", "UBUNTU", "ROS", "DOMAIN", "DISCOVERY", "NODES",
            "LAST RUN", "LAST SUCCESS", "NOTE")
 
 
@@ -85,8 +85,8 @@ def test_status_shows_the_converged_class_and_its_last_run(class_converged, tmp_
     for name, (ubuntu, distro, domain) in EXPECTED.items():
         row = rows[name]
         assert row["ADDRESS"] == sandbox.host(name).address
-        assert (row["SSH"], row["UBUNTU"], row["ROS"], row["DOMAIN"], row["NODES"]) == (
-            "ok", ubuntu, distro, domain, "active (running)"), row
+        assert (row["SSH"], row["UBUNTU"], row["ROS"], row["DOMAIN"], row["DISCOVERY"], row["NODES"]) == (
+            "ok", ubuntu, distro, domain, "multicast", "active (running)"), row
         assert row["LAST RUN"].startswith("changed ") and "never" not in row["LAST SUCCESS"], row
         assert row["NOTE"] == "", row
     page = (tmp_path / "status.html").read_text()

@@ -521,3 +521,11 @@ def test_a_long_sandbox_step_says_what_it_does_while_it_lasts_and_when_it_is_don
     assert messages[0] == "building the thing ..."
     assert any(message.startswith("  still building the thing (") for message in messages[1:-1])
     assert messages[-1].startswith("building the thing: done in ")
+
+
+def test_a_class_on_a_real_runtime_runs_cyclone_dds_which_both_runtimes_have():
+    real = upstream.Upstream(url=URL, ros_apt_source_sha256={}, ros={
+        "jazzy": "real (ros-jazzy-core-debian12-amd64.tar.zst, sha256 bd465e21560d)", "humble": "stand-in"})
+    assert real.roster_settings()["ros_middleware"] == "rmw_cyclonedds_cpp"
+    stand_ins = upstream.Upstream(url=URL, ros_apt_source_sha256={}, ros={"jazzy": "stand-in"})
+    assert "ros_middleware" not in stand_ins.roster_settings()  # roslab's default, Fast DDS
