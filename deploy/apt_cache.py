@@ -249,12 +249,16 @@ def release_peers() -> list:
     ]
 
 
+def updates_through_the_class_cache() -> bool:
+    """True on a host whose apt asks the class cache in this run."""
+    return bool(should_run("apt_cache_enabled") and host.data.apt_cache_host
+                and cache_in_this_run(host.data.apt_cache_host))
+
+
 def fills_the_class_cache() -> bool:
     """True on the one host per release that fills the class cache (the first in the roster)."""
-    if not should_run("apt_cache_enabled") or not host.data.apt_cache_host:
-        return False
-    if not cache_in_this_run(host.data.apt_cache_host):
-        return False  # the hosts download directly this run: there is nothing to fill
+    if not updates_through_the_class_cache():
+        return False  # no cache, or the hosts download directly this run: there is nothing to fill
     peers = release_peers()
     return bool(peers) and peers[0].name == host.name  # `host` is pyinfra's context proxy
 

@@ -15,7 +15,7 @@ from deploy.common import (
     stop_host,
     where,
 )
-from deploy.apt_cache import fills_the_class_cache
+from deploy.apt_cache import fills_the_class_cache, updates_through_the_class_cache
 from deploy.ros_apt_source import OLD_METHOD_FILES, old_method_moved_aside
 from roslab import probe, settings
 from roslab.facts import AptProblem
@@ -115,7 +115,7 @@ def apt_lists():
 
     Runs after every step that writes apt sources (deploy.py) and before any install. With
     a class apt cache, the first host of each release (deploy.apt_cache.fills_the_class_cache)
-    updates before the others, one release at a time.
+    updates before the others, one release at a time, and then the others one at a time.
     Reads host.data: apt_ready_enabled, apt_lock_timeout, apt_cache_max_age,
     apt_cache_enabled, apt_cache_host, ubuntu_release, ros_apt_source_enabled (without apt_ready, the lists are updated only after the ROS 2
     source changed).
@@ -131,9 +131,20 @@ def apt_lists():
     if fills_the_class_cache():
         # With a class apt cache, the first host of each release updates first, alone: the
         # cache then holds fresh index files and answers the class's updates from them.
-        # Twelve hosts asking it for the same new index at once made it fail some of them.
         apt_lists_updated(
             name="Ensure the apt lists are fresh, updated through the class cache before the other hosts",
+            _serial=True,
+            **arguments,
+        )
+        return
+    if updates_through_the_class_cache():
+        # Then the others, one host at a time too. Hosts refreshing the same index through
+        # apt-cacher-ng in the same second made it fail one ("Failure to move file ... out of
+        # the way ... File exists" in apt-cacher.err), and that host's apt-get update then
+        # waited forever for the item it lost; FreshIndexMaxAge did not stop the refreshes.
+        # An update answered from the cache takes seconds, so a class of 30 waits a minute or two.
+        apt_lists_updated(
+            name="Ensure the apt lists are fresh, updated through the class cache one host at a time",
             _serial=True,
             **arguments,
         )
