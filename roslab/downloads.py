@@ -26,6 +26,10 @@ TIMEOUT = 60  # seconds, per download
 
 _lock = threading.Lock()
 _fetched: dict[str, bytes | DownloadError] = {}
+# The validators (ETag, Last-Modified) each URL came with this run: a second `kept` of the
+# same URL (the package check, then rosdep's data) keeps them, or the next run could not ask
+# conditionally and downloaded the whole file again.
+_fetched_validators: dict[str, dict[str, str]] = {}
 
 
 class DownloadError(Exception):
@@ -148,7 +152,7 @@ def _conditional_fetch(url: str, validators: dict[str, str], timeout: float = TI
         if isinstance(known, DownloadError):
             raise known
         if known is not None:
-            return known, {}
+            return known, dict(_fetched_validators.get(url, {}))
         request = urllib.request.Request(url)
         if validators.get("etag"):
             request.add_header("If-None-Match", validators["etag"])
@@ -170,7 +174,8 @@ def _conditional_fetch(url: str, validators: dict[str, str], timeout: float = TI
             raise failure from None
         _fetched[url] = data
         found = {"etag": headers.get("ETag"), "last_modified": headers.get("Last-Modified")}
-        return data, {key: value for key, value in found.items() if value}
+        _fetched_validators[url] = {key: value for key, value in found.items() if value}
+        return data, dict(_fetched_validators[url])
 
 
 def _age_text(seconds: float) -> str:

@@ -53,6 +53,7 @@ def upstream():
 def new_run():
     """What a new pyinfra run starts with: nothing fetched yet."""
     downloads._fetched.clear()
+    downloads._fetched_validators.clear()
     downloads._kept_this_run.clear()
 
 
@@ -106,3 +107,14 @@ def test_upstream_down_without_a_kept_copy_is_an_error_naming_the_url(upstream, 
     new_run()
     with pytest.raises(downloads.DownloadError, match=f"cannot download {upstream.url}"):
         downloads.kept(upstream.url, tmp_path, max_age=3600)
+
+
+def test_a_url_kept_twice_in_one_run_is_asked_conditionally_the_next_run(upstream, tmp_path):
+    """The package check (no max age) and rosdep's data (a max age) keep the same rosdistro
+    index in one run; the second used to drop its validators, so every run downloaded it."""
+    new_run()
+    downloads.kept(upstream.url, tmp_path)
+    downloads.kept(upstream.url, tmp_path, max_age=3600)
+    new_run()
+    downloads.kept(upstream.url, tmp_path)
+    assert upstream.requests[-1]["If-None-Match"] == '"v1"'  # answered 304: no body
