@@ -56,6 +56,18 @@ def load_classroom(argument: str | None, command: str) -> Classroom:
                             f"in the roster; no host was touched, nothing was written") from None
 
 
+def load_classroom_groups(argument: str | None, command: str) -> tuple[Classroom, dict]:
+    """`load_classroom` and its `roslab.roster.inventory_groups`; RosterProblem also for a broken
+    addresses.yaml or known_hosts beside the roster."""
+    from roslab.roster import inventory_groups
+
+    classroom = load_classroom(argument, command)
+    try:
+        return classroom, inventory_groups(classroom)
+    except RosterError as error:
+        raise RosterProblem(str(error)) from None
+
+
 def roster_inventory(groups: dict):
     """pyinfra's Inventory of `roslab.roster.inventory_groups(...)`, as inventories/lab.py makes it."""
     from pyinfra.api import Inventory

@@ -33,7 +33,6 @@ from pyinfra.facts.server import LinuxDistribution
 from roslab.distro import default_distro
 from roslab.operations import as_user
 from roslab.quoting import shell_home_path, shell_word
-from roslab.roster import RosterError
 from roslab.ros_env import host_environment
 from roslab.workspace import NODES_SERVICE, NodesUnitState
 
@@ -415,17 +414,12 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
 def run(args: argparse.Namespace) -> int:
     """`roslab verify [ROSTER] [--limit NAME ...]`: the roster's hosts, reached as deploy.py
     reaches them (roslab.reach)."""
-    from roslab.reach import RosterProblem, connected_state, load_classroom, roster_inventory, select_hosts
-    from roslab.roster import inventory_groups
+    from roslab.reach import RosterProblem, connected_state, load_classroom_groups, roster_inventory, select_hosts
 
     try:
-        classroom = load_classroom(args.roster, "verify")
-        groups = inventory_groups(classroom)
+        classroom, groups = load_classroom_groups(args.roster, "verify")
     except RosterProblem as problem:
         print(problem, file=sys.stderr)
-        return 1
-    except RosterError as error:  # a broken addresses.yaml or known_hosts beside the roster
-        print(error, file=sys.stderr)
         return 1
     if args.limit and not select_hosts(roster_inventory(groups), args.limit):
         print(f"roslab verify: --limit {' '.join(args.limit)} selects no host of the roster", file=sys.stderr)

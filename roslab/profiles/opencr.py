@@ -72,17 +72,12 @@ def run(args: argparse.Namespace) -> int:
     from pyinfra.api.connect import disconnect_all
 
     from roslab import downloads, remote_files
-    from roslab.reach import RosterProblem, connected_state, load_classroom
-    from roslab.roster import RosterError, inventory_groups
+    from roslab.reach import RosterProblem, connected_state, load_classroom_groups
 
     try:
-        classroom = load_classroom(args.roster, "opencr-update")
-        groups = inventory_groups(classroom)
+        classroom, groups = load_classroom_groups(args.roster, "opencr-update")
     except RosterProblem as problem:
         print(problem, file=sys.stderr)
-        return 1
-    except RosterError as error:  # a broken addresses.yaml or known_hosts beside the roster
-        print(error, file=sys.stderr)
         return 1
     host = next((h for h in classroom.hosts if h.name == args.host), None)
     if host is None:
