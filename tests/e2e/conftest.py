@@ -153,8 +153,22 @@ class SandboxClassroom:
         return lifecycle.reboot(host, self.instance)
 
 
-def bring_up(name: str, subnet: str, hosts: int | None = None) -> tuple[SandboxClassroom, callable]:
-    """Boot an instance and return it with its idempotent teardown (also run at exit and on SIGTERM)."""
+def bring_up(name: str, subnet: str, hosts: int | None = None,
+             releases: str | None = None) -> tuple[SandboxClassroom, callable]:
+    """Boot an instance and return it with its idempotent teardown (also run at exit and on SIGTERM).
+
+    `releases`: ROSLAB_SANDBOX_RELEASES for this boot only (e.g. "24.04,22.04"), the
+    environment as it was afterwards."""
+    if releases is not None:
+        previous = os.environ.get("ROSLAB_SANDBOX_RELEASES")
+        os.environ["ROSLAB_SANDBOX_RELEASES"] = releases
+        try:
+            return bring_up(name, subnet, hosts)
+        finally:
+            if previous is None:
+                os.environ.pop("ROSLAB_SANDBOX_RELEASES", None)
+            else:
+                os.environ["ROSLAB_SANDBOX_RELEASES"] = previous
     instance = Instance(name, ipaddress.IPv4Network(subnet))
     done = False
 

@@ -54,15 +54,7 @@ NODES = "roslab-nodes.service"
 
 @pytest.fixture(scope="module")
 def sandbox(sandbox_support):
-    previous = os.environ.get("ROSLAB_SANDBOX_RELEASES")
-    os.environ["ROSLAB_SANDBOX_RELEASES"] = RELEASES
-    try:
-        classroom, teardown = bring_up(INSTANCE, SUBNET, HOSTS)
-    finally:
-        if previous is None:
-            os.environ.pop("ROSLAB_SANDBOX_RELEASES", None)
-        else:
-            os.environ["ROSLAB_SANDBOX_RELEASES"] = previous
+    classroom, teardown = bring_up(INSTANCE, SUBNET, HOSTS, releases=RELEASES)
     try:
         if not classroom.real_ros:
             pytest.skip(f"the sandbox serves stand-in ROS 2 ({classroom.ros_served}): set "

@@ -51,15 +51,7 @@ NOTE = "it's $HOME; 100% \\ \"quoted\""
 
 @pytest.fixture(scope="module")
 def sandbox(sandbox_support):
-    previous = os.environ.get("ROSLAB_SANDBOX_RELEASES")
-    os.environ["ROSLAB_SANDBOX_RELEASES"] = RELEASES
-    try:
-        classroom, teardown = bring_up(INSTANCE, SUBNET, HOSTS)
-    finally:
-        if previous is None:
-            os.environ.pop("ROSLAB_SANDBOX_RELEASES", None)
-        else:
-            os.environ["ROSLAB_SANDBOX_RELEASES"] = previous
+    classroom, teardown = bring_up(INSTANCE, SUBNET, HOSTS, releases=RELEASES)
     try:
         yield classroom
     finally:
