@@ -19,7 +19,7 @@ import pytest
 import yaml
 
 from roslab.sandbox import git_standins, upstream
-from tests.e2e.conftest import bring_up
+from tests.e2e.conftest import bring_up, summary_lines
 
 pytestmark = pytest.mark.e2e
 
@@ -128,9 +128,10 @@ def test_the_class_converges_fetching_each_repository_once_and_a_rerun_changes_n
     again = classroom.deploy()
     assert again.returncode == 0, again.stderr[-3000:]
     assert again.changed == {}, again.changed
-    # a commit pin in the mirror asks nothing; a tag pin asks whether it moved (info/refs)
+    # a commit pin in the mirror asks nothing; a tag pin asks whether it moved (git ls-remote:
+    # info/refs and HEAD over dumb HTTP), and downloads nothing
     again_git = [r.path for r in requests_since(sandbox, start) if r.path.startswith("/git/")]
-    assert all("/info/refs" in path for path in again_git), again_git
+    assert not [path for path in again_git if "/objects/" in path], again_git
     assert not git_requests(requests_since(sandbox, start), IMU_URL)
 
 
@@ -202,5 +203,10 @@ def test_offline_the_class_converges_from_the_controllers_cache(sandbox, classro
     assert not [r for r in requests_since(sandbox, start) if r.path.startswith("/git/")]
     shutil.rmtree(classroom.folder / "sources-cache" / "git")  # what offline cannot do without
     run = classroom.deploy()
-    assert sorted(run.failed_hosts) == sorted(TEAM1 | {"team2-main"})
-    assert "offline, and the controller's cache" in run.stderr
+    # every host stopped while planning: pyinfra then ends without its JSON report, so the
+    # run summary is what says it
+    assert run.returncode != 0
+    assert "offline, and the controller's cache" in run.stderr, run.stderr[-3000:]
+    lines = summary_lines(run.stderr)
+    for host in sorted(TEAM1 | {"team2-main"}):
+        assert any(line.startswith(host + " ") and "failed" in line for line in lines), lines
