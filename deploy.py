@@ -18,6 +18,7 @@ from deploy.ros_apt_source import ros_apt_source
 from deploy.ros_install import ros_install
 from deploy.rosdep import rosdep
 from deploy.shell_env import shell_env
+from deploy.sources import sources
 from deploy.ssh_hardening import ssh_hardening
 from deploy.ssh_identity import ssh_identity
 from deploy.workspace import workspace
@@ -47,6 +48,7 @@ if supported_host():
     # The address change takes effect here, after SSH is known good; the steps
     # after it run at the host's new address.
     network()
+    sources()  # the underlay the workspace overlays (repositories fetched once by the controller)
     workspace()
 
 summary.mark_planned()  # this host's plan is complete (a run that stops before is reported so)

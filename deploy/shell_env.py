@@ -22,6 +22,7 @@ from deploy.common import (
 from roslab import probe, settings
 from roslab.operations import managed_block, managed_block_reads
 from roslab.quoting import shell_home_path, shell_word
+from deploy.sources import repositories
 from roslab.ros_env import host_environment, ros_variables
 from roslab.templating import render
 
@@ -39,12 +40,14 @@ def render_ros_environment(
     rosdistro_index_url: str | None = None,
     extra: dict[str, str] | None = None,
     variables: dict[str, str] | None = None,
+    underlay_dir: str | None = None,
 ) -> str:
     """The text of the ~/.bashrc block for these (schema-checked) settings.
 
     `extra`: the robot profile's and ros_environment's variables (roslab.ros_env.extra_variables).
     `variables`: every variable, as `roslab.ros_env.host_environment(data, distro, shell=True)` gives
     them (domain, middleware, discovery mode, extras); then the other value arguments are unused.
+    `underlay_dir`: the underlay workspace (deploy/sources.py) sourced before the workspace, or None.
     """
     if variables is None:
         variables = {**ros_variables(distro, domain_id, discovery_range, static_peers), **(extra or {})}
@@ -54,6 +57,7 @@ def render_ros_environment(
         # "$HOME"/'rest': ~ would not expand inside quotes, and double quotes would run
         # a $(...) in the rest in every student shell.
         workspace_setup=shell_home_path(workspace_dir.rstrip("/") + "/install/setup.bash"),
+        underlay_setup=shell_home_path(underlay_dir.rstrip("/") + "/install/setup.bash") if underlay_dir else None,
         ros_variables={name: shell_word(value) for name, value in variables.items()},
         rosdistro_index_url=shell_word(rosdistro_index_url) if rosdistro_index_url else None,
     )
@@ -70,7 +74,7 @@ def shell_env():
     ros_static_peers, ros_middleware, ros_discovery_mode, ros_discovery_server_port,
     ros_zenoh_router_port, roslab_team_hosts, roslab_hostname, roslab_role, ros_distro,
     workspace_dir, rosdistro_index_url, login_user, ssh_user, roslab_profile (its environment),
-    ros_environment.
+    ros_environment, roslab_sources and sources_underlay_dir (the underlay, sourced before the workspace).
     """
     if not should_run("shell_env_enabled"):
         return
@@ -86,6 +90,7 @@ def shell_env():
             workspace_dir=host.data.workspace_dir,
             rosdistro_index_url=host.data.rosdistro_index_url,
             variables=host_environment(host.data, distro, shell=True),
+            underlay_dir=host.data.get("sources_underlay_dir") if repositories() else None,
         )
     except ValueError as error:  # a value no shell word can carry (only `--data` skips the schema)
         stop_host(f"{where()}: shell_env: {error}; nothing was changed by this step")

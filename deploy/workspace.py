@@ -36,6 +36,7 @@ from deploy.common import (
     stop_host,
     where,
 )
+from deploy.sources import underlay_identity, underlay_setup
 from roslab import packaged, probe, settings
 from roslab import workspace as ws_ops
 from roslab.quoting import shell_word, systemd_assignment, systemd_value, systemd_word
@@ -62,12 +63,14 @@ def nodes_dir() -> str:
     return str(Path(value) if value else packaged.nodes_dir())  # the checkout's or the installed nodes/
 
 
-def exec_script(*, distro: str, workspace_dir: str, launch: str) -> str:
-    """The bash script the unit runs: the distro's and the workspace's setup, then the launch."""
+def exec_script(*, distro: str, workspace_dir: str, launch: str, underlay_setup: str | None = None) -> str:
+    """The bash script the unit runs: the distro's, the underlay's (deploy/sources.py) and the
+    workspace's setup, then the launch."""
     package, launch_file = launch.split(" ")
     return " && ".join(
         [
             f"source {shell_word(f'/opt/ros/{distro}/setup.bash')}",
+            *([f"source {shell_word(underlay_setup)}"] if underlay_setup else []),
             f"source {shell_word(posixpath.join(workspace_dir, 'install', 'setup.bash'))}",
             f"exec ros2 launch {shell_word(package)} {shell_word(launch_file)}",
         ]
@@ -77,6 +80,7 @@ def exec_script(*, distro: str, workspace_dir: str, launch: str) -> str:
 def unit_text(
     *, role: str, user: str, home: str, workspace_dir: str, distro: str, launch: str,
     environment: dict[str, str], discovery_files: dict[str, str] | None = None,
+    underlay_setup: str | None = None,
 ) -> str:
     """templates/roslab-nodes.service.j2 with every value written for systemd.
 
@@ -84,7 +88,8 @@ def unit_text(
     middleware files its variables point to (deploy/discovery.py writes them); their digest is in
     the unit, so a changed file restarts the nodes, as a changed variable does.
     """
-    script = exec_script(distro=distro, workspace_dir=workspace_dir, launch=launch)
+    script = exec_script(distro=distro, workspace_dir=workspace_dir, launch=launch,
+                         underlay_setup=underlay_setup)
     return render(
         "roslab-nodes.service.j2",
         role=systemd_value(role),
@@ -148,7 +153,8 @@ def workspace():
     nodes_launch (nodes_launch_<role> in hand-made inventories), login_user, ssh_user, ros_distro,
     ros_domain_id, ros_automatic_discovery_range, ros_static_peers, ros_middleware,
     ros_discovery_mode, ros_discovery_server_port, ros_zenoh_router_port, roslab_team_hosts,
-    roslab_hostname, roslab_role, roslab_profile (its environment and name), ros_environment.
+    roslab_hostname, roslab_role, roslab_profile (its environment and name), ros_environment,
+    roslab_sources and sources_underlay_dir (the underlay it overlays, deploy/sources.py).
     """
     if not should_run("workspace_enabled"):
         return
@@ -168,11 +174,12 @@ def workspace():
         return
 
     launch = role_launch()
+    underlay = underlay_setup(home)
     try:  # before any change: a value the unit cannot carry stops this host only
         unit_file = unit_text(
             role=role, user=user, home=home, workspace_dir=workspace_dir, distro=distro,
             launch=launch, environment=host_environment(host.data, distro),
-            discovery_files=discovery_files(distro),
+            discovery_files=discovery_files(distro), underlay_setup=underlay,
         ) if launch else None
     except ValueError as error:  # e.g. a home directory whose name holds a newline
         stop_host(f"{where()}: workspace: {error}; nothing was changed by this step")
@@ -213,8 +220,10 @@ def workspace():
         # classroom's deploy. (`--paths` is colcon-core's; `--packages-up-to` needs an
         # extension that not every colcon install has.)
         colcon_args=[*host.data.workspace_colcon_args, "--paths", *managed],
-        sources_hash=ws_ops.tree_hash(packages),
+        # a changed underlay (a new pin) rebuilds the overlay too
+        sources_hash=ws_ops.tree_hash(packages) + (f"\n{underlay_identity()}" if underlay else ""),
         python_paths=managed,
+        underlays=[underlay] if underlay else [],
         **as_login_user(user),
     )
 

@@ -69,6 +69,23 @@ def _enabled(concern: str, doc: str) -> tuple:
     return (f"{concern}_enabled", True, bool, doc)
 
 
+def _repos_file(value, context=None):
+    """A .repos file (vcstool's format), relative to the roster, inside its folder."""
+    from roslab.sources import repos_file_problem  # it reads YAML with the roster's loader
+
+    return repos_file_problem(value, context)
+
+
+def _url_rewrites(value, context=None):
+    """URL prefix -> replacement prefix (http, https, file), as git's insteadOf."""
+    from roslab.sources import rewrites_problem
+
+    return rewrites_problem(value, context)
+
+
+_repos_file.allowed = "a .repos file, relative to the roster"
+_url_rewrites.allowed = "URL prefix: replacement prefix (http, https, file)"
+
 SECONDS_PER_DAY = 24 * 3600
 SCHEMA: list[Setting] = [
     # --- the roster's own keys (identity and connection) ---
@@ -274,6 +291,34 @@ SCHEMA: list[Setting] = [
          "the controller checks its kept copy of rosdep's data on each run with a conditional request "
          "(nothing downloaded when unchanged), and uses it when upstream does not answer.",
          f.int_range(0, 365 * SECONDS_PER_DAY, " s")),
+    ),
+    *_concern(
+        "sources",
+        _enabled("sources", "Build the repositories of the host's .repos files (its robot profile's `sources`, "
+                            "the roster's workspace_sources) in the login user's underlay workspace."),
+        ("workspace_sources", [], list,
+         "Extra vcstool .repos files (relative to the roster) whose repositories the hosts build in "
+         "their underlay workspace, beside their robot profile's; each version a commit (40 hex digits) "
+         "or a tag, never a branch.", _repos_file, {"item": str}),
+        ("source_url_rewrites", {}, dict,
+         "Where the controller fetches a repository from instead, like git's url.<base>.insteadOf: "
+         "{\"https://github.com/\": \"http://mirror.lab/git/github.com/\"} (the longest matching prefix wins); "
+         "the lock file and every message keep the URL the .repos file gives.", _url_rewrites,
+         {"levels": ("classroom",)}),
+        ("sources_cache_dir", "~/.cache/roslab/sources", str,
+         "Where the controller keeps a bare mirror of each repository and the lock file (tag -> commit, "
+         "commit -> sha256 of its archive); offline: true builds from it alone. A folder of its own inside "
+         "the home directory, the roster's folder or the temporary directory.", f.cache_dir,
+         {"levels": ("classroom",)}),
+        ("sources_underlay_dir", "~/roslab_underlay", str,
+         "The login user's underlay workspace (inside their home): the repositories in src/, built with "
+         "colcon; the student's workspace (workspace_dir) overlays it.", f.home_path,
+         {"allowed": "~/ and a path inside the home"}),
+        ("sources_rosdep_install", True, bool,
+         "Run `rosdep install --from-paths src --ignore-src -y` in the underlay when its sources changed."),
+        ("sources_fetch_timeout", 300, int,
+         "Seconds the controller waits for one git command (ls-remote, fetch) of one repository.",
+         f.int_range(5, 3600, " s"), {"levels": ("classroom",)}),
     ),
     *_concern(
         "shell_env",

@@ -575,12 +575,13 @@ SYNTAX_ERROR_EXIT = 65  # EX_DATAERR
 
 
 def build_script(
-    workspace_dir: str, distro: str, colcon_args: list[str], stamp: str, python_paths=(),
+    workspace_dir: str, distro: str, colcon_args: list[str], stamp: str, python_paths=(), underlays=(),
 ) -> str:
     """The bash script that builds the workspace, keeping its log, stamping success.
 
     `python_paths` (relative to the workspace) are compiled first: a syntax error there
     fails the build with file and line, before colcon runs, and leaves no stamp.
+    `underlays`: setup.bash files sourced after the distro's (the underlay of deploy/sources.py).
     """
     state_dir = posixpath.join(workspace_dir, STATE_DIR_NAME)
     build_stamp = posixpath.join(state_dir, "build.sha256")
@@ -603,6 +604,7 @@ def build_script(
             # No stamp while building: an interrupted build is retried on the next run.
             f"rm -f {shlex.quote(build_stamp)}",
             f"source /opt/ros/{shlex.quote(distro)}/setup.bash || exit 1",
+            *(f"source {shlex.quote(setup)} || exit 1" for setup in underlays),
             *syntax_check,
             f"if {colcon} > {log} 2>&1; then",
             f"  {_write_stamp(build_stamp, stamp)}",
@@ -619,7 +621,7 @@ def build_script(
 
 @operation()
 def built(
-    workspace_dir: str, distro: str, colcon_args: list[str], sources_hash: str, python_paths=(),
+    workspace_dir: str, distro: str, colcon_args: list[str], sources_hash: str, python_paths=(), underlays=(),
 ):
     """
     Build a colcon workspace when its sources changed since the last successful build.
@@ -630,6 +632,7 @@ def built(
     + sources_hash: hash of the sources roslab manages
     + python_paths: directories (relative to the workspace) whose ``.py`` files must
       compile before colcon runs (roslab's packages)
+    + underlays: setup.bash files of underlay workspaces, sourced after the distro's
 
     Run it as the workspace's owner (``_sudo_user``). The build's output goes to
     ``log/roslab-build.log`` in the workspace; when the build fails its tail is the
@@ -644,7 +647,7 @@ def built(
     if stamps.get("build") == stamp and stamps.get("installed"):
         host.noop(f"{workspace_dir} is built from these sources already")
         return
-    script = build_script(workspace_dir, distro, colcon_args, stamp, python_paths)
+    script = build_script(workspace_dir, distro, colcon_args, stamp, python_paths, underlays)
     yield StringCommand("bash", "-c", shlex.quote(script))
 
 

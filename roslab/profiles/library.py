@@ -28,7 +28,8 @@ def builtin_profiles() -> dict[str, Profile]:
     for path in builtin_files():
         report = Report(path)
         mapping = load_yaml(path, report)
-        profile = read_profile(mapping, report, path.stem, "built-in") if isinstance(mapping, dict) else None
+        profile = read_profile(mapping, report, path.stem, "built-in", base_dir=path.parent) \
+            if isinstance(mapping, dict) else None
         if profile is not None and profile.name != path.stem:
             report.error(f"the file of profile {profile.name!r} must be named {profile.name}.yaml")
         problems += report.errors
@@ -39,8 +40,10 @@ def builtin_profiles() -> dict[str, Profile]:
     return profiles
 
 
-def roster_profiles(mapping, report: Report) -> dict[str, Profile]:
-    """Every profile the roster can name: the built-in ones and its own under `profiles:`."""
+def roster_profiles(mapping, report: Report, roster_dir: Path | None = None) -> dict[str, Profile]:
+    """Every profile the roster can name: the built-in ones and its own under `profiles:`.
+
+    `roster_dir`: the folder a roster profile's `sources:` are relative to."""
     profiles = dict(builtin_profiles())
     if mapping is None:
         return profiles
@@ -71,7 +74,7 @@ def roster_profiles(mapping, report: Report) -> dict[str, Profile]:
         with_name = Mapping(spec)
         with_name.line, with_name.key_lines = getattr(spec, "line", None), getattr(spec, "key_lines", {})
         with_name.setdefault("profile", name)
-        profile = read_profile(with_name, report, prefix, "the roster", base)
+        profile = read_profile(with_name, report, prefix, "the roster", base, base_dir=roster_dir)
         if profile is not None:
             profiles[name] = profile
     return profiles

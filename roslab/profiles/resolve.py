@@ -162,4 +162,7 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         "discovery": profile.discovery,
         "checklist": [fill(item, values) for item in merged.checklist],
         "os_tweaks": dict(side.os_tweaks),
+        # the side's .repos files' repositories: filled by the roster loader (roslab/sources.py),
+        # which reads the files; here only for hand-made data
+        "sources": [],
     }, []

@@ -9,6 +9,7 @@ from __future__ import annotations
 import difflib
 import re
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from roslab import formats, settings
 from roslab.distro import DISTRO_RELEASES
@@ -31,7 +32,7 @@ TOP_KEYS = ("profile", "extends", "description", "distros", "boards", "discovery
             "settings", *SIDES)
 SETTING_KEYS = ("doc", "allowed", "pattern", "required", "default")
 SIDE_KEYS = ("variant", "ros_packages", "apt_packages", "environment", "groups", "udev_rules", "launch",
-             "checklist", "os_tweaks", "when")
+             "checklist", "os_tweaks", "sources", "when")
 WHEN_KEYS = ("if", "ros_packages", "apt_packages", "environment", "groups", "udev_rules", "checklist")
 RULE_KEYS = ("rule", "comment")
 # Opt-in OS changes a robot's maker recommends (applied when the roster sets profile_os_tweaks).
@@ -80,6 +81,9 @@ class Side:
     variant: str | None = None  # ros-<distro>-<variant>: desktop, ros-base...
     checklist: list[str] = field(default_factory=list)
     os_tweaks: dict = field(default_factory=dict)  # OS_TWEAK_KEYS
+    # vcstool .repos files filling the login user's underlay (roslab/sources.py), as
+    # (folder, name): beside a built-in profile's YAML, or relative to the roster
+    sources: list[tuple[Path, str]] = field(default_factory=list)
     when: list[dict] = field(default_factory=list)  # {"if": {...}, and the list/env keys above}
 
 
@@ -111,9 +115,10 @@ def placeholders(text: str) -> list[str]:
 class ProfileReader:
     """Checks one profile mapping; problems go to `report` with `field` prefixed by `prefix`."""
 
-    def __init__(self, report: Report, prefix: str):
+    def __init__(self, report: Report, prefix: str, base_dir: Path | None = None):
         self.report = report
         self.prefix = prefix
+        self.base_dir = base_dir  # where its .repos files are (sources:)
         self.ok = True
 
     def error(self, message: str, mapping, key=None, path: str = "") -> None:
@@ -273,6 +278,23 @@ class ProfileReader:
             tweaks[key] = number
         return tweaks
 
+    def read_sources(self, mapping, side: str) -> list[tuple[Path, str]]:
+        """The side's .repos files (checked to exist where they are relative to; their content
+        is read by the roster loader, for the hosts that use the profile)."""
+        from roslab.sources import name_problem
+
+        names = self.string_list(mapping, "sources", f"{side}.sources")
+        if self.base_dir is None:
+            return [(Path("."), name) for name in names]
+        result = []
+        for name in names:
+            problem = name_problem(name, self.base_dir)
+            if problem:
+                self.error(problem, mapping, "sources", f"{side}.sources")
+            else:
+                result.append((self.base_dir, name))
+        return result
+
     def read_side(self, mapping, name: str, known: set[str]) -> Side | None:
         value = mapping.get(name)
         if value is None:
@@ -298,6 +320,7 @@ class ProfileReader:
             else:
                 side.variant = variant
         side.os_tweaks = self.read_os_tweaks(value, name)
+        side.sources = self.read_sources(value, name)
         blocks = value.get("when") or []
         if not isinstance(blocks, list):
             self.error("must be a list of {if: {setting: value}, ...}", value, "when", f"{name}.when")
@@ -329,9 +352,12 @@ def variable_problem(name, value) -> str | None:
     return formats.variable(name, value)
 
 
-def read_profile(mapping, report: Report, prefix: str, source: str, base: Profile | None = None) -> Profile | None:
-    """A checked Profile from a mapping (extending `base` if given), or None with problems reported."""
-    reader = ProfileReader(report, prefix)
+def read_profile(mapping, report: Report, prefix: str, source: str, base: Profile | None = None,
+                 base_dir: Path | None = None) -> Profile | None:
+    """A checked Profile from a mapping (extending `base` if given), or None with problems reported.
+
+    `base_dir`: the folder its `sources:` (.repos files) are relative to."""
+    reader = ProfileReader(report, prefix, base_dir)
     reader.unknown_keys(mapping, TOP_KEYS, "")
     name = mapping.get("profile", prefix.rsplit(".", 1)[-1])
     if not isinstance(name, str) or not _NAME.fullmatch(name):
@@ -395,5 +421,6 @@ def merged_side(base: Side, own: Side) -> Side:
         variant=own.variant or base.variant,
         checklist=[*base.checklist, *own.checklist],
         os_tweaks={**base.os_tweaks, **own.os_tweaks},
+        sources=list(dict.fromkeys([*base.sources, *own.sources])),
         when=[*base.when, *own.when],
     )

@@ -66,6 +66,12 @@ class Report:
     def error(self, message: str, **where) -> None:
         self._add(self.errors, message, where)
 
+    def add(self, problem: Problem) -> None:
+        """An error found in another file the roster names (a .repos file), with its own path."""
+        if problem not in self._seen:
+            self._seen.add(problem)
+            self.errors.append(problem)
+
     def warning(self, message: str, **where) -> None:
         self._add(self.warnings, message, where)
 

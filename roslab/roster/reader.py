@@ -31,7 +31,7 @@ from roslab.roster.loading import (
     without,
 )
 from roslab.roster.model import Classroom, Host, Team
-from roslab.roster.problems import Report, display_path
+from roslab.roster.problems import Problem, Report, display_path
 
 TOP_LEVEL_KEYS = ("classroom", "teams", "profiles")
 # Role-named keys kept as aliases of the role-free ones (a warning says which to set instead).
@@ -241,7 +241,7 @@ class RosterReader:
 
         from roslab.profiles.library import profile_setting_names, roster_profiles  # profiles read rosters' YAML
 
-        self.profiles = roster_profiles(roster.get("profiles"), self.report)
+        self.profiles = roster_profiles(roster.get("profiles"), self.report, self.path.parent)
         self.profile_settings = profile_setting_names(self.profiles)
         classroom_map = roster.get("classroom") or Mapping()
         if not isinstance(classroom_map, dict):
@@ -398,6 +398,7 @@ class RosterReader:
                                     line=lines.get(old_key), team=team.name)
         set_here = {key for level in (*outer[1:], own) for key in level}  # team and host, not classroom
         self.apply_profile(data, resolved, set_here, lines, line, where)
+        self.apply_sources(data, lines, line, where)
         variant = data["ros_variant"] or variant
         return Host(name, team.name, role, address, release, expected, variant,
                     team.ros_domain_id, data, line, lines)
@@ -465,6 +466,33 @@ class RosterReader:
                 self._key_files[entry] = formats.public_key_lines(text) or []
             keys.extend(self._key_files[entry])
         return keys
+
+    def apply_sources(self, data: dict, lines: dict, line, where: dict) -> None:
+        """Read the host's .repos files (its profile side's `sources`, the roster's
+        `workspace_sources`) into `roslab_profile["sources"]` and `roslab_sources`; a problem
+        names the .repos file and line, the host and the field."""
+        from roslab import sources
+
+        if not hasattr(self, "_repos_files"):
+            self._repos_files = sources.ReposFiles()
+        profile = data.get("roslab_profile")
+        side = None
+        if profile is not None:
+            definition = self.profiles.get(profile["name"])
+            side = definition.sides.get(data["roslab_role"]) if definition else None
+        profile_sources = list(side.sources) if side else []
+        own, every, problems = sources.host_sources(data, profile_sources, self.path.parent, self._repos_files)
+        for field, problem in problems:
+            if isinstance(problem, str):
+                self.report.error(problem, field=field, line=lines.get(field) or lines.get("robot_profile")
+                                  or line, **where)
+            else:
+                inner = f"{field}: {problem.field}" if problem.field else field
+                self.report.add(Problem(problem.path, problem.message, problem.line,
+                                        where.get("team"), where.get("host"), inner))
+        if profile is not None:
+            profile["sources"] = own
+        data["roslab_sources"] = every
 
     def apply_profile(self, data: dict, resolved: dict, set_here: set, lines: dict, line, where: dict) -> None:
         """Resolve the host's robot profile into `data["roslab_profile"]` (problems reported)."""

@@ -42,7 +42,7 @@ import yaml
 from roslab.distro import PLATFORMS
 from roslab.distro import ROS_APT_SOURCE_VERSION as ROS_APT_SOURCE_PIN
 
-from . import image, ros_runtime
+from . import git_standins, image, ros_runtime
 from .system import SandboxError, file_lock, log, pid_alive, run, terminate, write_file
 
 # Bump when the archives' layout or the stand-ins change: part of the cache keys.
@@ -717,6 +717,8 @@ class Upstream:
             # An apt cache (apt_cache_host) may fetch from the upstream's port, as from a
             # classroom's local mirror on a port other than 80.
             "apt_cache_upstream_ports": [int(self.url.rsplit(":", 1)[1])],
+            # The stand-in git server (git_standins.py): the class fetches .repos repositories here.
+            "source_url_rewrites": git_standins.rewrites(self.url),
             **self.middleware_settings(),
         }
 
@@ -752,6 +754,9 @@ def build(serve_dir: Path, url: str, rootfs: Path, nodes_dir: Path | None = None
         write_file(serve_dir / path, content)
     write_file(serve_dir / "keys/ros.asc", ros_key().armored.read_bytes())
     write_file(serve_dir / "keys/ubuntu.asc", ubuntu_key().armored.read_bytes())
+    # Stand-in git repositories for the built-in profiles' .repos files (git_standins.py).
+    git_standins.from_repos_files(serve_dir, sorted(Path(__file__).resolve().parent.parent.joinpath(
+        "profiles", "data").glob("*.repos")))
     ros = {distro: "stand-in" for distro in ROS_DISTROS.values()} | runtime.describe()
     return Upstream(url=url, ros_apt_source_sha256=sums, ros=ros)
 

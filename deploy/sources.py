@@ -1,0 +1,137 @@
+"""The host's source repositories built in the login user's underlay workspace.
+
+The repositories of the host's .repos files (its robot profile's `sources`, the roster's
+`workspace_sources`: host data `roslab_sources`, read and checked by the roster loader) are
+fetched by the controller, once per class and pinned (roslab/source_fetch.py), and copied
+here as archives: a Pi never clones. `rosdep install` and `colcon build` run only when the
+set of archives changed; a failed build fails this host with the package and its first error
+line and leaves the last good install in use (roslab/underlay.py). The student's workspace
+(deploy/workspace.py), the ~/.bashrc block (deploy/shell_env.py) and the nodes' unit source the
+underlay's install before the workspace's own.
+"""
+
+from __future__ import annotations
+
+import posixpath
+from pathlib import Path
+
+from pyinfra import host
+from pyinfra.api import deploy
+
+from deploy.common import (
+    as_login_user,
+    existing_login_home,
+    host_distro,
+    login_home,
+    login_user,
+    should_run,
+    stop_host,
+    where,
+)
+from roslab import probe, settings, source_fetch
+from roslab import underlay as underlay_ops
+from roslab import workspace as ws_ops
+
+DEFAULTS = settings.defaults("sources")
+
+
+def repositories() -> list[dict]:
+    """The host's repositories (the roster loader's `roslab_sources`), none when switched off."""
+    if not host.data.get("sources_enabled", True):
+        return []
+    return list(host.data.get("roslab_sources") or [])
+
+
+def underlay_dir(home: str) -> str:
+    return ws_ops.workspace_path(home, host.data.get("sources_underlay_dir") or DEFAULTS["sources_underlay_dir"])
+
+
+def underlay_setup(home: str) -> str | None:
+    """The underlay's setup.bash the student's workspace sources first, or None (no sources)."""
+    if not repositories():
+        return None
+    return posixpath.join(underlay_dir(home), "install", "setup.bash")
+
+
+def underlay_identity() -> str:
+    """What the underlay is built from, as the roster says it (for the workspace's build stamp:
+    a changed pin rebuilds the overlay too). A moved tag fails the host before any build."""
+    return "\n".join(f"{repo['path']} {repo['url']} {repo['version']}" for repo in repositories())
+
+
+@deploy("The host's source repositories are built in the login user's underlay workspace",
+        data_defaults=DEFAULTS)
+def sources():
+    """Copy the host's pinned repositories into the underlay, install their dependencies, build it.
+
+    Reads host.data: sources_enabled, roslab_sources, sources_underlay_dir, sources_cache_dir,
+    source_url_rewrites, sources_fetch_timeout, sources_rosdep_install, offline,
+    workspace_colcon_args, login_user, ssh_user, ros_distro.
+    """
+    if not should_run("sources_enabled"):
+        return
+    wanted = repositories()
+    home = existing_login_home()
+    if not wanted:
+        # Repositories roslab put there before are removed (a host whose profile lost its sources).
+        if home is not None and host.get_fact(underlay_ops.UnderlaySources,
+                                              underlay_dir=underlay_dir(home))["recorded"]:
+            underlay_ops.sources(name="Ensure the underlay holds no repositories (none in the .repos files)",
+                                 underlay_dir=underlay_dir(home), repositories=[], user=login_user())
+        return
+    user = login_user()
+    home = login_home()
+    if home is None:  # the login user does not exist: login_home() stopped this host
+        return
+    fetched = []
+    for repo in wanted:
+        try:
+            fetched.append(source_fetch.fetched(
+                repo, Path(host.data.sources_cache_dir).expanduser(),
+                rewrites=host.data.get("source_url_rewrites") or {}, offline=bool(host.data.get("offline")),
+                timeout=host.data.get("sources_fetch_timeout") or DEFAULTS["sources_fetch_timeout"]))
+        except source_fetch.SourceError as error:
+            stop_host(f"{where()}: sources: {error}; nothing was changed on it")
+            return
+    distro = host_distro()
+    directory = underlay_dir(home)
+    digests = {item.path: item.sha256 for item in fetched}
+    underlay_ops.sources(
+        name=f"Ensure {directory}/src holds the pinned repositories ({', '.join(sorted(digests))})",
+        underlay_dir=directory,
+        repositories=[{"path": item.path, "sha256": item.sha256, "archive": item.archive} for item in fetched],
+        user=user,
+    )
+    colcon_args = list(host.data.get("workspace_colcon_args") or [])
+    stamp = underlay_ops.build_stamp(digests, distro, colcon_args)
+    if host.data.get("sources_rosdep_install", True):
+        ws_ops.dependencies(
+            name="Ensure the underlay's system dependencies are installed (rosdep)",
+            workspace_dir=directory,
+            packages=sorted(digests),
+            distro=distro,
+            packages_hash=stamp,
+            user=user,
+            ros_home=posixpath.join(home, ".ros"),
+        )
+    underlay_ops.built(
+        name=f"Ensure {directory} is built from these sources (colcon)",
+        underlay_dir=directory,
+        distro=distro,
+        colcon_args=colcon_args,
+        stamp=stamp,
+        **as_login_user(user),
+    )
+
+
+@probe.reader
+def sources_reads() -> list:
+    """What the underlay's operations read on a host that needs no change."""
+    home = existing_login_home() if should_run("sources_enabled") else None
+    if home is None:
+        return []
+    directory = underlay_dir(home)
+    reads = [probe.read(underlay_ops.UnderlaySources, underlay_dir=directory)]
+    if repositories():
+        reads.append(probe.read(ws_ops.WorkspaceStamps, workspace_dir=directory))
+    return reads

@@ -1,0 +1,231 @@
+"""The controller fetches each repository of the class once, pinned, and keeps it.
+
+A Pi never clones: the machine running pyinfra keeps a bare mirror of each repository
+under `sources_cache_dir` (`git/<digest of the URL>.git`), resolves the version to a commit
+and hands each host `git archive` of that commit (a tar: deterministic for a commit, so an
+unchanged repository is a no-op on the hosts). The lock file beside the mirrors
+(`sources.lock.json`) records, per URL as the .repos file gives it, each tag's commit and
+each commit's sha256 (of its archive), the first time they are seen:
+
+- a tag that now resolves to another commit, or a commit whose archive has another
+  sha256, is a `SourceError` naming the repository: the hosts that need it fail, the others
+  carry on (delete the repository's entry from the lock file to accept the new commit);
+- a version that upstream has as a branch (not a tag) is refused, naming the .repos file,
+  the repository and its `version` field;
+- an unreachable repository fails the hosts that need it, naming it (a pinned commit that
+  the mirror already holds needs no network at all);
+- `offline`: no network; tags resolve through the lock file, commits come from the mirrors.
+
+Each repository is asked once per run (threads share one result, a failure included), so a
+classroom of 30 Pis fetches it once. `source_url_rewrites` (like git's insteadOf) points a
+URL at a local mirror; the lock and messages keep the URL as given.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import subprocess
+import tempfile
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+from roslab.sources import COMMIT, rewritten
+
+LOCK_NAME = "sources.lock.json"
+GIT_ENV = {
+    "GIT_TERMINAL_PROMPT": "0",  # never wait for a password
+    "GIT_ASKPASS": "true",
+    "GIT_CONFIG_NOSYSTEM": "1",
+    "GIT_CONFIG_GLOBAL": os.devnull,  # the teacher's own git config (insteadOf, hooks) does not apply
+    "LC_ALL": "C",
+}
+
+_lock = threading.Lock()
+_results: dict[tuple, "Fetched | SourceError"] = {}
+_repo_locks: dict[str, threading.Lock] = {}
+
+
+class SourceError(Exception):
+    """A repository that cannot be fetched or verified (the message names it)."""
+
+
+@dataclass(frozen=True)
+class Fetched:
+    path: str
+    url: str
+    version: str
+    commit: str
+    sha256: str  # of `archive`
+    archive: bytes  # `git archive --format=tar <commit>`
+
+
+def reset() -> None:
+    """Forget this run's results (tests; pyinfra runs once per process)."""
+    with _lock:
+        _results.clear()
+
+
+def _named(repo: dict) -> str:
+    return f"repository {repo['path']!r} ({repo['url']} {repo['version']}, {repo['file']})"
+
+
+def _git(args: list[str], timeout: float, cwd: Path | None = None) -> bytes:
+    env = {**os.environ, **GIT_ENV}
+    try:
+        done = subprocess.run(["git", *args], cwd=cwd, env=env, capture_output=True, timeout=timeout,
+                              stdin=subprocess.DEVNULL)
+    except subprocess.TimeoutExpired:
+        raise SourceError(f"git {args[0]} did not finish in {timeout:g} s") from None
+    except OSError as error:
+        raise SourceError(f"cannot run git on this machine: {error.strerror or error}") from None
+    if done.returncode != 0:
+        lines = [line for line in done.stderr.decode("utf-8", "replace").splitlines() if line.strip()]
+        reason = lines[-1].strip() if lines else f"exit {done.returncode}"
+        raise SourceError(f"git {args[0]}: {reason}")
+    return done.stdout
+
+
+def mirror_path(cache_dir: Path, url: str) -> Path:
+    base = re.sub(r"[^A-Za-z0-9_.-]", "_", url.rstrip("/").rsplit("/", 1)[-1])[:60] or "repo"
+    return Path(cache_dir) / "git" / f"{hashlib.sha256(url.encode()).hexdigest()[:16]}-{base}"
+
+
+def _has_commit(mirror: Path, commit: str, timeout: float) -> bool:
+    if not (mirror / "HEAD").is_file():
+        return False
+    try:
+        _git(["cat-file", "-e", f"{commit}^{{commit}}"], timeout, cwd=mirror)
+        return True
+    except SourceError:
+        return False
+
+
+def remote_refs(url: str, version: str, timeout: float) -> tuple[str | None, bool]:
+    """(the commit of tag `version` upstream or None, whether upstream has a branch `version`)."""
+    out = _git(["ls-remote", "--", url, f"refs/tags/{version}", f"refs/tags/{version}^{{}}",
+                f"refs/heads/{version}"], timeout).decode("utf-8", "replace")
+    refs = {}
+    for line in out.splitlines():
+        sha, _, ref = line.partition("\t")
+        refs[ref.strip()] = sha.strip()
+    tag = refs.get(f"refs/tags/{version}^{{}}") or refs.get(f"refs/tags/{version}")
+    return tag, f"refs/heads/{version}" in refs
+
+
+def _fetch_into(mirror: Path, url: str, what: list[str], timeout: float) -> None:
+    if not (mirror / "HEAD").is_file():
+        mirror.parent.mkdir(parents=True, exist_ok=True)
+        _git(["init", "--quiet", "--bare", str(mirror)], timeout)
+    _git(["fetch", "--quiet", "--no-tags", "--", url, *what], timeout, cwd=mirror)
+
+
+def read_lock(cache_dir: Path) -> dict:
+    try:
+        data = json.loads((Path(cache_dir) / LOCK_NAME).read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def _record(cache_dir: Path, url: str, tag: str | None, commit: str, sha256: str) -> None:
+    """Add what was seen to the lock file (atomically; entries never change once written)."""
+    path = Path(cache_dir) / LOCK_NAME
+    data = read_lock(cache_dir)
+    entry = data.setdefault(url, {})
+    entry.setdefault("tags", {})
+    entry.setdefault("commits", {})
+    changed = False
+    if tag is not None and tag not in entry["tags"]:
+        entry["tags"][tag], changed = commit, True
+    if commit not in entry["commits"]:
+        entry["commits"][commit], changed = sha256, True
+    if not changed:
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temp = tempfile.mkstemp(dir=path.parent, prefix=".lock-")
+    with os.fdopen(handle, "w") as out:
+        json.dump(data, out, indent=2, sort_keys=True)
+        out.write("\n")
+    os.replace(temp, path)
+
+
+def fetched(repo: dict, cache_dir: Path, *, rewrites: dict | None = None, offline: bool = False,
+            timeout: float = 300) -> Fetched:
+    """The repository's pinned commit and archive (SourceError naming it), once per run."""
+    cache_dir = Path(cache_dir).expanduser()
+    key = (repo["url"], repo["version"], str(cache_dir), offline, tuple(sorted((rewrites or {}).items())))
+    with _lock:
+        known = _results.get(key)
+        repo_lock = _repo_locks.setdefault(repo["url"], threading.Lock())
+    if known is None:
+        with repo_lock:  # hosts planned in threads wait for one fetch of the same repository
+            with _lock:
+                known = _results.get(key)
+            if known is None:
+                try:
+                    known = _fetch(repo, cache_dir, rewritten(repo["url"], rewrites), offline, timeout)
+                except SourceError as error:
+                    known = SourceError(f"{_named(repo)}: {error}")
+                with _lock:
+                    _results[key] = known
+    if isinstance(known, SourceError):
+        raise known
+    # the same repository under another path in another host's .repos file
+    return Fetched(repo["path"], known.url, known.version, known.commit, known.sha256, known.archive)
+
+
+def _fetch(repo: dict, cache_dir: Path, fetch_url: str, offline: bool, timeout: float) -> Fetched:
+    url, version = repo["url"], repo["version"]
+    mirror = mirror_path(cache_dir, url)
+    lock = read_lock(cache_dir).get(url, {})
+    tag = None
+    if COMMIT.fullmatch(version):
+        commit = version
+        if not _has_commit(mirror, commit, timeout):
+            if offline:
+                raise SourceError("offline, and the controller's cache does not hold this commit "
+                                  f"({mirror}): run once with the network")
+            try:
+                _fetch_into(mirror, fetch_url, [commit], timeout)
+            except SourceError:
+                # a server that does not serve single commits (git's dumb HTTP): everything
+                _fetch_into(mirror, fetch_url, ["+refs/heads/*:refs/heads/*", "+refs/tags/*:refs/tags/*"], timeout)
+            if not _has_commit(mirror, commit, timeout):
+                raise SourceError(f"upstream has no commit {commit}")
+    else:
+        tag = version
+        recorded = (lock.get("tags") or {}).get(tag)
+        if offline:
+            if not recorded or not _has_commit(mirror, recorded, timeout):
+                raise SourceError(f"offline, and the controller's cache has no commit for tag {tag!r} "
+                                  f"({Path(cache_dir) / LOCK_NAME}): run once with the network")
+            commit = recorded
+        else:
+            commit, is_branch = remote_refs(fetch_url, tag, timeout)
+            if commit is None and is_branch:
+                raise SourceError(f"field 'version': {tag!r} is a branch upstream, not a tag: pin a commit "
+                                  "(40 hex digits) or a tag in the .repos file")
+            if commit is None:
+                raise SourceError(f"upstream has no tag {tag!r}")
+            if recorded and recorded != commit:
+                raise SourceError(f"tag {tag!r} now resolves to {commit}, but the class recorded {recorded} "
+                                  f"in {Path(cache_dir) / LOCK_NAME}: someone moved the tag; pin the commit "
+                                  "you want (or delete the repository's entry from the lock file to accept it)")
+            if not _has_commit(mirror, commit, timeout):
+                _fetch_into(mirror, fetch_url, [f"+refs/tags/{tag}:refs/tags/{tag}"], timeout)
+                if not _has_commit(mirror, commit, timeout):
+                    raise SourceError(f"tag {tag!r} ({commit}) did not arrive from upstream")
+    archive = _git(["archive", "--format=tar", commit], timeout, cwd=mirror)
+    digest = hashlib.sha256(archive).hexdigest()
+    recorded_digest = (lock.get("commits") or {}).get(commit)
+    if recorded_digest and recorded_digest != digest:
+        raise SourceError(f"commit {commit} now has sha256 {digest}, but the class recorded {recorded_digest} "
+                          f"in {Path(cache_dir) / LOCK_NAME}: the sources differ from what was verified "
+                          "before; nothing of it is copied")
+    with _lock:
+        _record(cache_dir, url, tag, commit, digest)
+    return Fetched(repo["path"], url, version, commit, digest, archive)

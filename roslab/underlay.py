@@ -1,0 +1,210 @@
+"""pyinfra facts and operations for the login user's underlay workspace (deploy/sources.py).
+
+The underlay holds the third-party repositories of the host's .repos files, each extracted
+from the archive the controller made of its pinned commit (roslab/source_fetch.py) into
+`src/<path>`; `.roslab/sources.json` records the sha256 of each extracted archive, so only a
+changed repository is copied again, and a repository that left the .repos files is removed
+(folders of `src/` that roslab did not put there are never touched).
+
+The build keeps the last good install usable: colcon builds into one of two install trees
+(`install-a`, `install-b`), the one `install` does not point to, and `install` is switched to
+it (one rename) only when the whole build succeeded. A failed build leaves `install` where it
+was, and the host fails with the package and its first error line. The build stamp (the
+sha256 of every repository's archive, the distro and colcon's arguments) is written only
+then, so an interrupted or failed build is tried again on the next run.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import posixpath
+import shlex
+
+from pyinfra import host
+from pyinfra.api import FactBase, FileUploadCommand, StringCommand, operation
+
+from roslab.sources import REPO_PATH
+from roslab.workspace import STATE_DIR_NAME, WorkspaceStamps, _write_stamp
+
+MANIFEST = f"{STATE_DIR_NAME}/sources.json"
+# Where the archives wait (root's) between their upload and their extraction by the user.
+ARCHIVE_DIR = "/var/lib/roslab/sources"
+BUILD_LOG = "log/roslab-underlay-build.log"
+SLOTS = ("install-a", "install-b")
+
+
+def _checked_paths(paths) -> list[str]:
+    paths = list(paths)
+    for path in paths:
+        if not REPO_PATH.fullmatch(path) or ".." in path.split("/"):
+            raise ValueError(f"not a repository path: {path!r}")
+    return list(paths)
+
+
+class UnderlaySources(FactBase):
+    """
+    The repositories roslab extracted into an underlay's ``src/``.
+
+    Returns ``{"recorded": {path: sha256}, "present": [recorded paths whose folder exists]}``;
+    empty when there is no underlay yet.
+    """
+
+    @staticmethod
+    def default():
+        return {"recorded": {}, "present": []}
+
+    def command(self, underlay_dir: str) -> str:
+        manifest = shlex.quote(posixpath.join(underlay_dir, MANIFEST))
+        src = shlex.quote(posixpath.join(underlay_dir, "src"))
+        # The paths in the manifest were checked when it was written; sed keeps only safe ones.
+        return (f"[ -f {manifest} ] || exit 0; echo '## manifest'; cat {manifest}; echo; echo '## present'; "
+                f"sed -n 's/^  \"\\([A-Za-z0-9_][A-Za-z0-9_.+/-]*\\)\": .*/\\1/p' {manifest} | "
+                f"while read -r p; do [ -d {src}/\"$p\" ] && echo \"$p\"; done; true")
+
+    def process(self, output):
+        section, manifest, present = None, [], []
+        for line in output:
+            if line.startswith("## "):
+                section = line[3:].strip()
+            elif section == "manifest":
+                manifest.append(line)
+            elif section == "present" and line.strip():
+                present.append(line.strip())
+        try:
+            recorded = json.loads("\n".join(manifest) or "{}")
+        except ValueError:
+            recorded = {}
+        if not isinstance(recorded, dict):
+            recorded = {}
+        return {"recorded": {str(k): str(v) for k, v in recorded.items()}, "present": present}
+
+
+def manifest_text(digests: dict[str, str]) -> str:
+    """One `  "path": "sha256"` per line (the fact's sed reads the paths back)."""
+    return json.dumps(dict(sorted(digests.items())), indent=2) + "\n"
+
+
+def _as_user(user: str, script: str) -> StringCommand:
+    return StringCommand(f"runuser -u {shlex.quote(user)} -- sh -c {shlex.quote(script)}")
+
+
+@operation()
+def sources(underlay_dir: str, repositories: list[dict], user: str):
+    """
+    Make an underlay's ``src/`` hold exactly these repositories, each as its archive has it.
+
+    + underlay_dir: the underlay workspace on the host (absolute)
+    + repositories: ``{"path", "sha256", "archive"}`` each (archive: the tar's bytes)
+    + user: the login user, who owns the underlay (extraction runs as them)
+
+    A repository is copied (its folder replaced whole) when its sha256 differs from the one
+    recorded or its folder is gone; one recorded but no longer wanted is removed.
+    """
+    state = host.get_fact(UnderlaySources, underlay_dir=underlay_dir)
+    recorded, present = state["recorded"], set(state["present"])
+    wanted = {repo["path"]: repo for repo in repositories}
+    _checked_paths(wanted)
+    changed = sorted(path for path, repo in wanted.items()
+                     if recorded.get(path) != repo["sha256"] or path not in present)
+    removed = sorted(_checked_paths(path for path in recorded if path not in wanted
+                                    and REPO_PATH.fullmatch(path) and ".." not in path.split("/")))
+    digests = {path: repo["sha256"] for path, repo in wanted.items()}
+    if not changed and not removed and recorded == digests:
+        host.noop(f"{underlay_dir}/src holds {', '.join(sorted(wanted)) or 'no repositories'} at their pins")
+        return
+    ws = shlex.quote(underlay_dir)
+    yield StringCommand("install", "-d", "-m", "755", ARCHIVE_DIR)
+    for path in changed:
+        repo = wanted[path]
+        archive = f"{ARCHIVE_DIR}/{repo['sha256']}.tar"
+        yield FileUploadCommand(io.BytesIO(repo["archive"]), archive,
+                                remote_temp_filename=host.get_temp_filename(archive))
+        target = shlex.quote(f"src/{path}")
+        fresh = shlex.quote(f"src/{path}.roslab-new")
+        yield _as_user(user, " && ".join([
+            f"mkdir -p {ws}", f"cd {ws}", f"mkdir -p {shlex.quote(posixpath.dirname(f'src/{path}'))} "
+            f"{shlex.quote(STATE_DIR_NAME)}",
+            f"rm -rf {fresh}", f"mkdir {fresh}",
+            f"tar -xf {shlex.quote(archive)} --no-same-owner -C {fresh}",
+            f"rm -rf {target}", f"mv {fresh} {target}",
+        ]))
+        yield StringCommand("rm", "-f", shlex.quote(archive))
+    for path in removed:
+        yield _as_user(user, f"cd {ws} && rm -rf {shlex.quote(f'src/{path}')}")
+    manifest = shlex.quote(MANIFEST)
+    yield _as_user(user, f"mkdir -p {ws}/{shlex.quote(STATE_DIR_NAME)} && cd {ws} && "
+                         f"printf '%s' {shlex.quote(manifest_text(digests))} > {manifest}.new && "
+                         f"mv {manifest}.new {manifest}")
+
+
+def build_stamp(digests: dict[str, str], distro: str, colcon_args: list[str]) -> str:
+    """What a build is of: every repository's archive, the distro, colcon's arguments."""
+    import hashlib
+
+    text = "\0".join([*(f"{path}={sha}" for path, sha in sorted(digests.items())), distro, *colcon_args])
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def build_script(underlay_dir: str, distro: str, colcon_args: list[str], stamp: str) -> str:
+    """Build into the install tree not in use; switch `install` to it only on success."""
+    state_dir = STATE_DIR_NAME
+    stamp_file = posixpath.join(state_dir, "build.sha256")
+    colcon = " ".join(shlex.quote(arg) for arg in ["colcon", "build", *colcon_args])
+    a, b = SLOTS
+    return "\n".join([
+        f"cd {shlex.quote(underlay_dir)} || exit 1",
+        f"mkdir -p log {state_dir}",
+        f"rm -f {stamp_file}",  # no stamp while building: an interrupted build is tried again
+        f'if [ "$(readlink install 2>/dev/null)" = {a} ]; then slot={b}; else slot={a}; fi',
+        'rm -rf "$slot" "build-$slot"',
+        f"source /opt/ros/{shlex.quote(distro)}/setup.bash || exit 1",
+        f'if {colcon} --base-paths src --build-base "build-$slot" --install-base "$slot" > {BUILD_LOG} 2>&1; then',
+        # a real folder left by a hand-made build is replaced by the link (the link: one rename)
+        '  if [ -e install ] && [ ! -L install ]; then rm -rf install; fi',
+        '  ln -sfn "$slot" install.roslab-new && mv -T install.roslab-new install',
+        f'  other={a}; [ "$slot" = {a} ] && other={b}',
+        '  rm -rf "$other" "build-$other"',
+        f"  {_write_stamp(stamp_file, stamp)}",
+        "else",
+        "  status=$?",
+        f"  failed=$(sed -n 's/^Failed *<<< \\([^ ]*\\) .*/\\1/p' {BUILD_LOG} | head -n 1)",
+        '  first=""',
+        '  if [ -n "$failed" ]; then',
+        # the line that says most: a tool's "error:" (compilers, setuptools, CMake), else a
+        # Python exception's last line, else any line with an error word
+        '    for f in log/latest_build/"$failed"/stderr.log log/latest_build/"$failed"/stdout_stderr.log; do',
+        '      [ -f "$f" ] || continue',
+        """      [ -z "$first" ] && first=$(grep -m 1 -E '(^|[^A-Za-z])(error|ERROR|fatal error):|CMake Error' "$f")""",
+        """      [ -z "$first" ] && first=$(grep -E '^[A-Za-z_.]*(Error|Exception): ' "$f" | tail -n 1)""",
+        """      [ -z "$first" ] && first=$(grep -m 1 -iE 'error|failed|not found' "$f")""",
+        '    done',
+        "  else",
+        f'    first=$(grep -m 1 -iE "error" {BUILD_LOG})',
+        "  fi",
+        f"  tail -n 20 {BUILD_LOG} >&2",
+        '  echo "roslab: underlay: package ${failed:-?} failed to build: ${first:-see '
+        f'{posixpath.join(underlay_dir, BUILD_LOG)}}}; the last good install stays in use" >&2',
+        "  exit $status",
+        "fi",
+    ])
+
+
+@operation()
+def built(underlay_dir: str, distro: str, colcon_args: list[str], stamp: str):
+    """
+    Build an underlay (colcon) when its sources changed since the last successful build.
+
+    + underlay_dir: the underlay on the host (absolute)
+    + distro: ROS 2 distro whose ``/opt/ros/<distro>/setup.bash`` is sourced for the build
+    + colcon_args: arguments after ``colcon build``
+    + stamp: ``build_stamp(...)`` of what is to be built
+
+    Run it as the underlay's owner (``_sudo_user``). A failed build leaves the last good
+    install in use and fails with the package and its first error line.
+    """
+    stamps = host.get_fact(WorkspaceStamps, workspace_dir=underlay_dir)
+    if stamps.get("build") == stamp and stamps.get("installed"):
+        host.noop(f"{underlay_dir} is built from these sources already")
+        return
+    yield StringCommand("bash", "-c", shlex.quote(build_script(underlay_dir, distro, colcon_args, stamp)))
