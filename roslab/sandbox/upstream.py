@@ -17,6 +17,8 @@ Served over HTTP on the instance's bridge address (hosts reach nothing else):
   /rosdep/          rosdep's sources list and rules for the keys the demo nodes use.
   /rosdistro/       a rosdistro index listing the stand-in ROS packages.
   /keys/            the public keys, for the mirror mode (key file + mirror URL).
+  /pypi/            a STAND-IN Python package index (roslab/sandbox/pypi.py) for the
+                    profiles' python_packages.
 
 The two archives do not depend on the instance and are cached under the cache
 directory; everything that embeds the instance's URL is rebuilt per instance.
@@ -42,7 +44,7 @@ import yaml
 from roslab.distro import PLATFORMS
 from roslab.distro import ROS_APT_SOURCE_VERSION as ROS_APT_SOURCE_PIN
 
-from . import image, ros_runtime
+from . import image, pypi, ros_runtime
 from .system import SandboxError, file_lock, log, pid_alive, run, terminate, write_file
 
 # Bump when the archives' layout or the stand-ins change: part of the cache keys.
@@ -79,7 +81,9 @@ SYSTEM_ROSDEP_KEYS = {
 # Real Debian packages the universe component offers besides ros-dev-tools' and the
 # rosdep keys' packages (udev: the jammy install docs upgrade systemd and udev first;
 # apt-cacher-ng: the classroom's apt cache, which Ubuntu has in universe).
-EXTRA_UNIVERSE_PACKAGES = ("udev", "apt-cacher-ng")
+EXTRA_UNIVERSE_PACKAGES = ("udev", "apt-cacher-ng",
+                           # a profile's Python venv (deploy/python_env.py), and building an sdist in it
+                           "python3-venv", "python3-dev", "gcc")
 
 # ROS packages every distro gets a stand-in for (rosdep keys, underscores);
 # those the demo nodes' package.xml files declare are added.
@@ -717,6 +721,7 @@ class Upstream:
             # An apt cache (apt_cache_host) may fetch from the upstream's port, as from a
             # classroom's local mirror on a port other than 80.
             "apt_cache_upstream_ports": [int(self.url.rsplit(":", 1)[1])],
+            "python_index_url": f"{self.url}/pypi/simple",  # the stand-in index (sandbox/pypi.py)
             **self.middleware_settings(),
         }
 
@@ -752,6 +757,7 @@ def build(serve_dir: Path, url: str, rootfs: Path, nodes_dir: Path | None = None
         write_file(serve_dir / path, content)
     write_file(serve_dir / "keys/ros.asc", ros_key().armored.read_bytes())
     write_file(serve_dir / "keys/ubuntu.asc", ubuntu_key().armored.read_bytes())
+    pypi.build_index(serve_dir)  # the stand-in Python index, for the profiles' python_packages
     ros = {distro: "stand-in" for distro in ROS_DISTROS.values()} | runtime.describe()
     return Upstream(url=url, ros_apt_source_sha256=sums, ros=ros)
 
