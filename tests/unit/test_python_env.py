@@ -135,6 +135,9 @@ def test_the_download_is_for_the_hosts_platform_not_the_controllers(tmp_path):
     assert "--only-binary=:all: --platform manylinux_2_39_aarch64 --platform linux_aarch64" in text
     assert "--implementation cp --python-version 3.12" in text
     assert command[-1] == "ina260==0.0.3"
+    assert "--trusted-host" not in command  # https: pip checks the certificate
+    mirror = wheelhouse.pip_download_command(PI, "http://10.0.0.5:3141/root/pypi/+simple", tmp_path, ["x==1"])
+    assert mirror[mirror.index("--trusted-host") + 1] == "10.0.0.5:3141"  # the teacher's http mirror
     sdist = wheelhouse.pip_download_command(PI, "https://pypi.org/simple", tmp_path, ["smbus==1.1.post2"], sdist=True)
     assert "--no-binary=:all:" in sdist and "--no-deps" in sdist and "--platform" not in sdist
 
@@ -413,3 +416,10 @@ def test_the_stand_in_index_serves_what_the_controller_downloads_and_a_venv_inst
     shown = subprocess.run([str(venv / "bin/python"), "-c", "import adafruit_servokit, ina260, RPi.GPIO, smbus; "
                             "print(RPi.GPIO.STANDIN, smbus.__version__)"], capture_output=True, text=True, check=True)
     assert shown.stdout == "True 1.1.post2\n"
+
+
+def test_a_venv_that_would_hold_the_workspace_is_refused(tmp_path):
+    errors = errors_of(roster(tmp_path, "python_venv: ros2_ws"))  # the default workspace_dir
+    assert "puts its Python venv in ~/ros2_ws, which holds the workspace" in errors[0]
+    errors = errors_of(roster(tmp_path, "python_venv: labs", extra="  workspace_dir: ~/labs/ros2_ws"))
+    assert "which holds the workspace (workspace_dir ~/labs/ros2_ws)" in errors[0]
