@@ -45,12 +45,16 @@ def python_of(data) -> dict:
 def python_env_packages(data, codename) -> list[str]:
     """What this step installs (roslab.probe.installs): python3-venv where the profile has a venv,
     and python_sdist_build_packages where the host's wheelhouse holds an sdist (known once the
-    controller has it: the deploy notes it in `_roslab_python_sdist`)."""
+    controller has it: kept from an earlier run, or noted by this run's plan in
+    `_roslab_python_sdist`; the class's apt cache is filled before this step plans, so on a
+    class's very first run those packages reach the hosts through the cache as a proxy)."""
     python = python_of(data)
     if not data.get("python_env_enabled") or not python["venv"]:
         return []
     packages = ["python3-venv"]
-    if python["requirements"] and data.get("_roslab_python_sdist"):
+    if python["requirements"] and (data.get("_roslab_python_sdist") or any(
+            kept.has_sdist for kept in wheelhouse.kept_for_any_target(
+                python["requirements"], data.get("python_index_url"), data.get("python_wheelhouse_dir")))):
         packages += [name for name in data.get("python_sdist_build_packages") or [] if name not in packages]
     return packages
 

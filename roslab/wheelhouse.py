@@ -144,7 +144,9 @@ def set_dir(cache_dir: Path, target: Target, requirements: list[str], index_url:
 
 def kept_for_any_target(requirements: list[str], index_url: str, cache_dir: Path) -> list[Wheelhouse]:
     """The complete wheelhouses of `requirements` kept for any target (their manifests only)."""
-    found = []
+    found: list[Wheelhouse] = []
+    if not cache_dir or not index_url:
+        return found
     key = _set_key(requirements, index_url)
     try:
         targets = sorted(Path(cache_dir).expanduser().iterdir())

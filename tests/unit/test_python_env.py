@@ -423,3 +423,13 @@ def test_a_venv_that_would_hold_the_workspace_is_refused(tmp_path):
     assert "puts its Python venv in ~/ros2_ws, which holds the workspace" in errors[0]
     errors = errors_of(roster(tmp_path, "python_venv: labs", extra="  workspace_dir: ~/labs/ros2_ws"))
     assert "which holds the workspace (workspace_dir ~/labs/ros2_ws)" in errors[0]
+
+
+def test_the_class_cache_learns_the_build_packages_from_a_kept_wheelhouse(tmp_path, monkeypatch):
+    monkeypatch.setattr(wheelhouse, "_run_pip", FakePip())
+    data = host_data(tmp_path)
+    assert deploy_python.python_env_packages(data, "noble") == ["python3-venv"]  # nothing known yet
+    wheelhouse.wheelhouse(data["roslab_profile"]["python"]["requirements"], PI, data["python_index_url"],
+                          data["python_wheelhouse_dir"])
+    assert deploy_python.python_env_packages(data, "noble") == ["python3-venv", "python3-dev", "gcc"]
+    assert deploy_python.python_env_packages({**data, "python_env_enabled": False}, "noble") == []
