@@ -13,6 +13,7 @@ from deploy.common import supported_host
 from deploy.discovery import discovery_in_place
 from deploy.locale import system_locale
 from deploy.network import network
+from deploy.python_env import python_env
 from deploy.robot_profile import robot_profile
 from deploy.ros_apt_source import ros_apt_source
 from deploy.ros_install import ros_install
@@ -41,6 +42,7 @@ if supported_host():
     ros_install()
     robot_profile()  # udev rules and groups (its packages are ros_install's)
     rosdep()
+    python_env()  # the profile's venv, from the class's wheelhouse (before any workspace build)
     shell_env()
     discovery_in_place()  # the middleware's files, the team's discovery server or router (on its main)
     ssh_identity()

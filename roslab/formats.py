@@ -742,6 +742,55 @@ def package_template(value: str, context: Context | None = None) -> str | None:
     return None
 
 
+# A pip requirement pinned to one release: PEP 508's name (letters, digits, . _ -, starting and
+# ending with a letter or digit) and `==` with a PEP 440 version (no wildcard, no local
+# `+label`, no environment marker, no extras, no URL): a class installs exactly what was
+# downloaded once for it, and each part is a plain word in a pip command and a requirements file.
+_PYPI_NAME = re.compile(r"[A-Za-z0-9]|[A-Za-z0-9][A-Za-z0-9._-]*[A-Za-z0-9]", re.ASCII)
+_PEP440_VERSION = re.compile(
+    r"([0-9]+!)?[0-9]+(\.[0-9]+)*((a|b|rc)[0-9]+)?(\.post[0-9]+)?(\.dev[0-9]+)?", re.ASCII)
+
+
+def pinned_requirement(value: str, context: Context | None = None) -> str | None:
+    """A pip requirement pinned to one version: name==version (e.g. RPi.GPIO==0.7.1)."""
+    problem = single_line(value) or ascii_text(value)
+    if problem:
+        return problem
+    name, separator, version = value.partition("==")
+    name, version = name.strip(), version.strip()
+    if not _PYPI_NAME.fullmatch(name) or len(name) > 100:
+        return (f"{value!r} does not start with a Python package name (letters, digits, . _ -, "
+                "starting and ending with a letter or digit; no extras, URLs or markers)")
+    if not separator:
+        return (f"{value!r} is not pinned: write {name}==<version> (the class installs exactly the "
+                "release the controller downloaded once)")
+    if not _PEP440_VERSION.fullmatch(version) or len(version) > 64:
+        return (f"{value!r}: {version!r} is not one exact release (like 1.3.17, 0.7.1, 1.1.post2; "
+                "no ranges, wildcards, local versions or markers)")
+    return None
+
+
+def requirement_name(requirement: str) -> str:
+    """The normalized project name (PEP 503) of a checked `name==version`."""
+    return re.sub(r"[-_.]+", "-", requirement.partition("==")[0].strip()).lower()
+
+
+def venv_dir(value: str, context: Context | None = None) -> str | None:
+    """A directory inside the login user's home, given relative to it (like osr_venv)."""
+    problem = single_line(value) or ascii_text(value)
+    if problem:
+        return problem
+    relative = value[2:] if value.startswith("~/") else value
+    components = relative.split("/")
+    if not relative or value.startswith("/") or any(not part for part in components[:-1]):
+        return f"{value!r} must be a directory inside the login user's home, like osr_venv"
+    for part in (part for part in components if part):
+        if part in (".", "..") or not _PATH_COMPONENT.fullmatch(part):
+            return (f"{value!r}: {part!r} is not a plain directory name "
+                    "(letters, digits, _ . + -, not starting with . or -)")
+    return None
+
+
 def sha256_pins(value: dict, context: Context | None = None) -> str | None:
     """Ubuntu codename -> sha256."""
     codenames = set(distros.UBUNTU_CODENAMES.values())

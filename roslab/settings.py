@@ -321,6 +321,27 @@ SCHEMA: list[Setting] = [
          f.int_range(5, 3600, " s"), {"levels": ("classroom",)}),
     ),
     *_concern(
+        "python_env",
+        _enabled("python_env",
+                 "Install the robot profile's Python requirements (python_packages) into its venv "
+                 "(python_venv, with the system's site packages, so ROS's Python is seen): downloaded "
+                 "once per class by the controller into its wheelhouse and copied to the hosts, which "
+                 "install from those files only."),
+        ("python_index_url", "https://pypi.org/simple", str,
+         "The package index (PEP 503 simple API) the controller downloads the requirements from: "
+         "PyPI, or a classroom's mirror (devpi, a piwheels mirror...). The hosts never use it.",
+         f.http_url, {"levels": ("classroom",)}),
+        ("python_wheelhouse_dir", "~/.cache/roslab/wheelhouse", str,
+         "Where the controller keeps the downloaded wheels and sdists, one folder per host "
+         "platform (machine, glibc, Python) and requirement set (on the machine running pyinfra): "
+         "a folder of its own inside the home directory, the roster's folder or the temporary "
+         "directory. offline: true installs from it alone.", f.cache_dir, {"levels": ("classroom",)}),
+        ("python_sdist_build_packages", ["python3-dev", "gcc"], list,
+         "apt packages a host needs to build a requirement the index has no wheel for (RPi.GPIO and "
+         "smbus are sdists only): installed only where the wheelhouse holds an sdist.",
+         f.debian_package, {"item": str, "allowed": "Debian package names"}),
+    ),
+    *_concern(
         "shell_env",
         _enabled("shell_env", "Write the ROS 2 environment block into the login user's ~/.bashrc."),
         ("ros_domain_id", None, int,

@@ -165,4 +165,18 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         # the side's .repos files' repositories: filled by the roster loader (roslab/sources.py),
         # which reads the files; here only for hand-made data
         "sources": [],
+        "python": python_data(profile, side),
     }, []
+
+
+def python_data(profile: Profile, side: Side) -> dict:
+    """The side's Python requirements and their venv (deploy/python_env.py).
+
+    {"venv": directory relative to the login user's home, "requirements": ["name==version", ...]};
+    no requirements and no python_venv: nothing to do (requirements empty, venv None).
+    """
+    requirements = list(side.python_packages)
+    venv = side.python_venv
+    if venv is None and requirements:
+        venv = f"{profile.name}_venv"
+    return {"venv": venv, "requirements": requirements}

@@ -32,7 +32,7 @@ TOP_KEYS = ("profile", "extends", "description", "distros", "boards", "discovery
             "settings", *SIDES)
 SETTING_KEYS = ("doc", "allowed", "pattern", "required", "default")
 SIDE_KEYS = ("variant", "ros_packages", "apt_packages", "environment", "groups", "udev_rules", "launch",
-             "checklist", "os_tweaks", "sources", "when")
+             "checklist", "os_tweaks", "sources", "when", "python_packages", "python_venv")
 WHEN_KEYS = ("if", "ros_packages", "apt_packages", "environment", "groups", "udev_rules", "checklist")
 RULE_KEYS = ("rule", "comment")
 # Opt-in OS changes a robot's maker recommends (applied when the roster sets profile_os_tweaks).
@@ -85,6 +85,10 @@ class Side:
     # (folder, name): beside a built-in profile's YAML, or relative to the roster
     sources: list[tuple[Path, str]] = field(default_factory=list)
     when: list[dict] = field(default_factory=list)  # {"if": {...}, and the list/env keys above}
+    # pip requirements pinned `name==version` (deploy/python_env.py), and the venv they go into:
+    # a directory relative to the login user's home (None: `<profile>_venv`).
+    python_packages: list[str] = field(default_factory=list)
+    python_venv: str | None = None
 
 
 @dataclass
@@ -294,6 +298,25 @@ class ProfileReader:
             else:
                 result.append((self.base_dir, name))
         return result
+    def read_python_packages(self, mapping, side: str) -> list[str]:
+        """A side's `python_packages`: each pinned `name==version`, each project named once."""
+        path = f"{side}.python_packages"
+        packages = self.string_list(mapping, "python_packages", path, formats.pinned_requirement)
+        if len(packages) > settings.MAX_ITEMS:
+            self.error(f"has {len(packages)} entries; at most {settings.MAX_ITEMS} are allowed",
+                       mapping, "python_packages", path)
+            return []
+        result: dict[str, str] = {}
+        for item in packages:
+            if formats.pinned_requirement(item):
+                continue  # reported by string_list
+            name = formats.requirement_name(item)
+            if name in result:
+                self.error(f"names {name!r} twice ({result[name]}, {item}): pin one version",
+                           mapping, "python_packages", path)
+                continue
+            result[name] = canonical_requirement(item)
+        return list(result.values())
 
     def read_side(self, mapping, name: str, known: set[str]) -> Side | None:
         value = mapping.get(name)
@@ -321,6 +344,14 @@ class ProfileReader:
                 side.variant = variant
         side.os_tweaks = self.read_os_tweaks(value, name)
         side.sources = self.read_sources(value, name)
+        side.python_packages = self.read_python_packages(value, name)
+        venv = value.get("python_venv")
+        if venv is not None:
+            problem = formats.venv_dir(venv) if isinstance(venv, str) else "must be a string"
+            if problem:
+                self.error(problem, value, "python_venv", f"{name}.python_venv")
+            else:
+                side.python_venv = venv[2:] if venv.startswith("~/") else venv.rstrip("/")
         blocks = value.get("when") or []
         if not isinstance(blocks, list):
             self.error("must be a list of {if: {setting: value}, ...}", value, "when", f"{name}.when")
@@ -345,6 +376,19 @@ class ProfileReader:
             self.read_parts(block, path, known, part, when_ok=False)
             side.when.append({"if": dict(block["if"]), "side": part})
         return side
+
+
+def canonical_requirement(requirement: str) -> str:
+    """`name==version` without spaces (a checked requirement)."""
+    name, _, version = requirement.partition("==")
+    return f"{name.strip()}=={version.strip()}"
+
+
+def merged_requirements(base: list[str], own: list[str]) -> list[str]:
+    """`base`'s requirements with `own`'s added; a project both name takes `own`'s version."""
+    merged = {formats.requirement_name(item): item for item in base}
+    merged.update({formats.requirement_name(item): item for item in own})
+    return list(merged.values())
 
 
 def variable_problem(name, value) -> str | None:
@@ -423,4 +467,6 @@ def merged_side(base: Side, own: Side) -> Side:
         os_tweaks={**base.os_tweaks, **own.os_tweaks},
         sources=list(dict.fromkeys([*base.sources, *own.sources])),
         when=[*base.when, *own.when],
+        python_packages=merged_requirements(base.python_packages, own.python_packages),
+        python_venv=own.python_venv or base.python_venv,
     )

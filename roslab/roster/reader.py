@@ -537,6 +537,13 @@ class RosterReader:
                 data[key] = data[old_key]
             elif data.get(key) is None:
                 data[key] = profile_value or data.get(old_key)
+        venv = (result.get("python") or {}).get("venv")
+        workspace = str(data.get("workspace_dir") or "")[2:].rstrip("/")
+        if venv and workspace and (workspace == venv or workspace.startswith(venv + "/")):
+            # The venv's COLCON_IGNORE (and a venv made anew) would take the workspace with it.
+            error(f"profile {name!r} puts its Python venv in ~/{venv}, which holds the workspace "
+                  f"(workspace_dir ~/{workspace}): give the profile's python_venv another directory",
+                  "workspace_dir")
         if data.get("nodes_verify_topic") is None:
             data["nodes_verify_topic"] = result["verify_topic"]
         if data.get("nodes_verify_type") is None:

@@ -17,6 +17,8 @@ Served over HTTP on the instance's bridge address (hosts reach nothing else):
   /rosdep/          rosdep's sources list and rules for the keys the demo nodes use.
   /rosdistro/       a rosdistro index listing the stand-in ROS packages.
   /keys/            the public keys, for the mirror mode (key file + mirror URL).
+  /pypi/            a STAND-IN Python package index (roslab/sandbox/pypi.py) for the
+                    profiles' python_packages.
 
 The two archives do not depend on the instance and are cached under the cache
 directory; everything that embeds the instance's URL is rebuilt per instance.
@@ -42,7 +44,7 @@ import yaml
 from roslab.distro import PLATFORMS
 from roslab.distro import ROS_APT_SOURCE_VERSION as ROS_APT_SOURCE_PIN
 
-from . import git_standins, image, ros_runtime
+from . import git_standins, image, pypi, ros_runtime
 from .system import SandboxError, file_lock, log, pid_alive, run, terminate, write_file
 
 # Bump when the archives' layout or the stand-ins change: part of the cache keys.
@@ -79,7 +81,9 @@ SYSTEM_ROSDEP_KEYS = {
 # Real Debian packages the universe component offers besides ros-dev-tools' and the
 # rosdep keys' packages (udev: the jammy install docs upgrade systemd and udev first;
 # apt-cacher-ng: the classroom's apt cache, which Ubuntu has in universe).
-EXTRA_UNIVERSE_PACKAGES = ("udev", "apt-cacher-ng")
+EXTRA_UNIVERSE_PACKAGES = ("udev", "apt-cacher-ng",
+                           # a profile's Python venv (deploy/python_env.py), and building an sdist in it
+                           "python3-venv", "python3-dev", "gcc")
 
 # ROS packages every distro gets a stand-in for (rosdep keys, underscores);
 # those the demo nodes' package.xml files declare are added.
@@ -719,6 +723,7 @@ class Upstream:
             "apt_cache_upstream_ports": [int(self.url.rsplit(":", 1)[1])],
             # The stand-in git server (git_standins.py): the class fetches .repos repositories here.
             "source_url_rewrites": git_standins.rewrites(self.url),
+            "python_index_url": f"{self.url}/pypi/simple",  # the stand-in index (sandbox/pypi.py)
             **self.middleware_settings(),
         }
 
@@ -757,6 +762,7 @@ def build(serve_dir: Path, url: str, rootfs: Path, nodes_dir: Path | None = None
     # Stand-in git repositories for the built-in profiles' .repos files (git_standins.py).
     git_standins.from_repos_files(serve_dir, sorted(Path(__file__).resolve().parent.parent.joinpath(
         "profiles", "data").glob("*.repos")))
+    pypi.build_index(serve_dir)  # the stand-in Python index, for the profiles' python_packages
     ros = {distro: "stand-in" for distro in ROS_DISTROS.values()} | runtime.describe()
     return Upstream(url=url, ros_apt_source_sha256=sums, ros=ros)
 

@@ -142,6 +142,7 @@ def test_host_data_holds_identity_connection_and_every_setting_with_its_default(
             "environment": {}, "groups": [], "udev_rules": "", "launch": "roslab_bringup main.launch.py",
             "variant": "desktop", "verify_topic": "/chatter", "verify_type": "std_msgs/msg/String", "discovery": None, "checklist": [], "os_tweaks": {},
             "sources": [],
+            "python": {"venv": None, "requirements": []},
         },
         "roslab_sources": [],  # the repositories of its .repos files (roslab.sources): none
     }
@@ -185,6 +186,7 @@ def test_every_deploy_setting_is_accepted_with_its_default(tmp_path):
     settings["ros_apt_source_cache_dir"] = str(Path(settings["ros_apt_source_cache_dir"]).expanduser())
     settings["rosdep_cache_dir"] = str(Path(settings["rosdep_cache_dir"]).expanduser())  # set: a path here
     settings["sources_cache_dir"] = str(Path(settings["sources_cache_dir"]).expanduser())
+    settings["python_wheelhouse_dir"] = str(Path(settings["python_wheelhouse_dir"]).expanduser())
     # None means "the robot profile's": the demo profile's main launch, variant and topic.
     settings["nodes_launch"] = "roslab_bringup main.launch.py"
     settings["ros_variant"] = "desktop"

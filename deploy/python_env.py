@@ -1,0 +1,160 @@
+"""The robot profile's Python requirements in its venv, from the class's wheelhouse.
+
+The controller downloads each requirement set once per class and host platform
+(roslab/wheelhouse.py: wheels for the host's machine, glibc and Python, sdists where the
+index has no wheel) and copies the files to WHEELHOUSE on each host that needs them (only
+files that changed); the host installs from those alone (`pip install --no-index`), into a
+venv with the system's site packages (ROS's Python stays importable) and a COLCON_IGNORE.
+pip runs only when the requirement set or its files changed (a stamp in the venv).
+"""
+
+from __future__ import annotations
+
+import posixpath
+from io import StringIO
+
+from pyinfra import host
+from pyinfra.api import deploy
+from pyinfra.operations import apt, files, server
+from pyinfra.operations.util import any_changed
+
+from deploy.common import as_login_user, existing_login_home, login_home, login_user, should_run, stop_host, where
+from roslab import probe, settings, wheelhouse
+from roslab.operations import apt_install_options
+from roslab.python_venv import (
+    PythonTarget,
+    python_target_reads,
+    venv_requirements_installed,
+    venv_requirements_installed_reads,
+)
+from roslab.quoting import shell_word
+
+DEFAULTS = settings.defaults("python_env")
+
+WHEELHOUSE = "/var/cache/roslab/wheelhouse"  # on the host: root's, readable by the login user
+REQUIREMENTS = f"{WHEELHOUSE}/requirements.txt"
+
+
+def python_of(data) -> dict:
+    """The profile's {"venv", "requirements"} (roslab/profiles/resolve.py), or an empty one."""
+    profile = data.get("roslab_profile") or {}
+    return profile.get("python") or {"venv": None, "requirements": []}
+
+
+@probe.installs
+def python_env_packages(data, codename) -> list[str]:
+    """What this step installs (roslab.probe.installs): python3-venv where the profile has a venv,
+    and python_sdist_build_packages where the host's wheelhouse holds an sdist (known once the
+    controller has it: kept from an earlier run, or noted by this run's plan in
+    `_roslab_python_sdist`; the class's apt cache is filled before this step plans, so on a
+    class's very first run those packages reach the hosts through the cache as a proxy)."""
+    python = python_of(data)
+    if not data.get("python_env_enabled") or not python["venv"]:
+        return []
+    packages = ["python3-venv"]
+    if python["requirements"] and (data.get("_roslab_python_sdist") or any(
+            kept.has_sdist for kept in wheelhouse.kept_for_any_target(
+                python["requirements"], data.get("python_index_url"), data.get("python_wheelhouse_dir")))):
+        packages += [name for name in data.get("python_sdist_build_packages") or [] if name not in packages]
+    return packages
+
+
+@deploy("The robot profile's Python requirements are installed in its venv", data_defaults=DEFAULTS)
+def python_env():
+    """Make the profile's venv and install its pinned requirements from the class's wheelhouse.
+
+    Reads host.data: python_env_enabled, roslab_profile (its "python": venv, requirements),
+    python_index_url, python_wheelhouse_dir, python_sdist_build_packages, offline, login_user,
+    apt_lock_timeout.
+    """
+    if not should_run("python_env_enabled"):
+        return
+    python = python_of(host.data)
+    if not python["venv"]:  # the profile has no Python requirements or venv: nothing to do
+        return
+    user, home = login_user(), login_home()
+    if home is None:
+        return
+    target = wheelhouse.Target(**host.get_fact(PythonTarget))
+    if target.problem():
+        stop_host(f"{where()}: python_packages: {target.problem()}; nothing was changed on it")
+        return
+    house = None
+    if python["requirements"]:
+        try:
+            house = wheelhouse.wheelhouse(python["requirements"], target, host.data.python_index_url,
+                                          host.data.python_wheelhouse_dir, offline=bool(host.data.get("offline")))
+        except wheelhouse.WheelhouseError as error:
+            stop_host(f"{where()}: python_packages: {error}; nothing was changed on it")
+            return
+        host.data._roslab_python_sdist = house.has_sdist
+
+    apt.packages(
+        name="Ensure Python's venv module is installed"
+             + (" (and what building an sdist needs)" if house and house.has_sdist else ""),
+        packages=python_env_packages(host.data, None),
+        extra_install_args=apt_install_options(host.data.apt_lock_timeout),
+    )
+    venv = posixpath.join(home, python["venv"])
+    if house is None:
+        venv_requirements_installed(name=f"Ensure the venv {venv} exists", venv=venv, python=target.python,
+                                    **as_login_user(user))
+        return
+    pushed = [
+        files.put(name=f"Ensure {item.name} (from the class's wheelhouse) is on the host",
+                  src=str(house.path / item.name), dest=f"{WHEELHOUSE}/{item.name}", mode="644")
+        for item in house.files
+    ]
+    pushed.append(files.put(name="Ensure the pinned requirements are on the host",
+                            src=StringIO(house.requirements_text), dest=REQUIREMENTS, mode="644"))
+    keep = [item.name for item in house.files] + [posixpath.basename(REQUIREMENTS)]
+    server.shell(
+        name=f"Ensure {WHEELHOUSE} holds only this wheelhouse's files",
+        commands=[remove_others_command(WHEELHOUSE, keep)],
+        _if=any_changed(*pushed),
+    )
+    venv_requirements_installed(
+        name=f"Ensure {', '.join(python['requirements'])} are installed in {venv}",
+        venv=venv, python=target.python, wheelhouse=WHEELHOUSE, requirements_file=REQUIREMENTS,
+        stamp=house.digest, **as_login_user(user),
+    )
+
+
+def remove_others_command(folder: str, keep: list[str]) -> str:
+    """Removes the files in `folder` not named in `keep` (a requirement set that changed)."""
+    patterns = "|".join(shell_word(name) for name in keep)
+    return (f"cd {shell_word(folder)} && for f in * .[!.]*; do [ -e \"$f\" ] || continue; "
+            f"case \"$f\" in {patterns}) ;; *) rm -rf -- \"$f\" ;; esac; done")
+
+
+@probe.reader
+def python_env_reads() -> list:
+    """What python_env's operations read on a host that needs no change."""
+    if not should_run("python_env_enabled"):
+        return []
+    python = python_of(host.data)
+    home = existing_login_home()
+    if not python["venv"] or home is None:
+        return []
+    reads = [*python_target_reads(), *probe.packages_reads(),
+             *venv_requirements_installed_reads(posixpath.join(home, python["venv"]))]
+    if python["requirements"]:
+        # The files are known once the controller has the wheelhouse; its folder and the
+        # requirements file always, the wheels through their names in a kept wheelhouse.
+        reads += probe.put_reads(REQUIREMENTS)
+        for name in _kept_file_names(python["requirements"]):
+            reads += probe.put_reads(f"{WHEELHOUSE}/{name}")
+    return reads
+
+
+def _kept_file_names(requirements: list[str]) -> list[str]:
+    """The files this host will get, when the controller already holds its wheelhouse.
+
+    The probe runs before the host's platform is read, so the kept wheelhouses of these
+    requirements for every platform are looked at (a name read in vain costs a line of the probe).
+    """
+    names: list[str] = []
+    for kept in wheelhouse.kept_for_any_target(requirements, host.data.python_index_url,
+                                               host.data.python_wheelhouse_dir):
+        names += [item.name for item in kept.files if item.name not in names]
+    return names
