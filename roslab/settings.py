@@ -250,6 +250,12 @@ SCHEMA: list[Setting] = [
          "distro's rosdistro file (from rosdistro_index_url; offline: the controller's copy)."),
     ),
     *_concern(
+        "profile_services",
+        _enabled("profile_services",
+                 "Install the robot profile's own services (osr_startup, micro_ros_agent) and run those "
+                 "whose settings say so (osr_calibrated, esp32_present)."),
+    ),
+    *_concern(
         "rosdep",
         _enabled("rosdep", "Initialise rosdep and keep the login user's rosdep cache fresh."),
         ("rosdep_package", "python3-rosdep", str,
