@@ -20,6 +20,7 @@ from pyinfra.operations import files, systemd
 from deploy.common import existing_login_home, host_distro, login_user, should_run, stop_host, where
 from roslab import probe, settings
 from roslab import workspace as ws_ops
+from roslab.profiles.host import service_installed_not_running
 from roslab.quoting import shell_word, systemd_assignment, systemd_value, systemd_word
 from roslab.ros_env import host_environment
 from roslab.templating import render
@@ -111,9 +112,9 @@ def profile_services_in_place():
             systemd.service(name=f"Ensure {unit_name} runs its current unit", service=unit_name,
                             restarted=True, _if=unit.did_change)
         else:
-            host.noop(f"{unit_name} is installed but not enabled because {service['disabled_because']}")
-            systemd.service(name=f"Ensure {unit_name} is stopped and disabled ({service['disabled_because']})",
-                            service=unit_name, enabled=False, running=False)
+            service_installed_not_running(
+                name=f"Ensure {unit_name} is stopped and disabled ({service['disabled_because']})",
+                service=unit_name, because=service["disabled_because"])
 
 
 @probe.reader

@@ -30,6 +30,7 @@ from roslab.profiles.host import (
     SwapFile,
     UnitsMasked,
     cmdline_words_absent,
+    config_txt_block,
     reboot_needed_recorded,
     reboot_pending,
     reboot_record_current,
@@ -96,12 +97,6 @@ def robot_profile():
         os_tweaks_applied(name, tweaks)
 
 
-def config_block(lines: list[str]) -> str:
-    """The config.txt block: `[all]` first, so that a conditional section ([pi4], [cm4]) above
-    it does not swallow the lines."""
-    return "\n".join(["[all]", *lines])
-
-
 def boot_config_kept(name: str, boot: dict) -> None:
     """The profile's boot config on a Pi's boot partition; a change is recorded as "reboot
     needed" (the run summary and `roslab status` say so until the host has rebooted)."""
@@ -112,36 +107,22 @@ def boot_config_kept(name: str, boot: dict) -> None:
     if record["exists"] and not reboot_pending(record):
         reboot_record_current(name="Ensure a reboot record from before the last reboot is gone")
     changes, reasons = [], []
-    if host.get_fact(File, path=CONFIG_TXT) is None:
-        # A PC, or the sandbox: no firmware reads a config.txt here; creating one would help nobody.
-        changes.append(noop_operation(f"{CONFIG_TXT} does not exist (not a Raspberry Pi's boot partition): "
-                                      f"robot profile {name}'s boot config is not written"))
-    else:
-        if lines:
-            changes.append(managed_block(
-                name=f"Ensure {CONFIG_TXT} holds robot profile {name}'s boot config ({', '.join(lines)})",
-                path=CONFIG_TXT, content=config_block(lines), label=BOOT_CONFIG_LABEL))
-            reasons.append(f"{CONFIG_TXT} ({', '.join(lines)})")
-        if words:
-            changes.append(cmdline_words_absent(
-                name=f"Ensure {CMDLINE_TXT} holds none of {', '.join(words)} (robot profile {name})",
-                path=CMDLINE_TXT, words=words, backup_suffix=BACKUP_SUFFIX))
-            reasons.append(f"{CMDLINE_TXT} (without {', '.join(words)})")
-    changes = [change for change in changes if change is not None]
-    if not reasons:
-        return
+    if lines:
+        changes.append(config_txt_block(
+            name=f"Ensure {CONFIG_TXT} holds robot profile {name}'s boot config ({', '.join(lines)})",
+            path=CONFIG_TXT, lines=lines, label=BOOT_CONFIG_LABEL))
+        reasons.append(f"{CONFIG_TXT} ({', '.join(lines)})")
+    if words:
+        changes.append(cmdline_words_absent(
+            name=f"Ensure {CMDLINE_TXT} holds none of {', '.join(words)} (robot profile {name})",
+            path=CMDLINE_TXT, words=words, backup_suffix=BACKUP_SUFFIX))
+        reasons.append(f"{CMDLINE_TXT} (without {', '.join(words)})")
+    reasons = [f"boot config changed: {reason}" for reason in reasons]
     reboot_needed_recorded(
         name="Ensure the host records that the boot config waits for a reboot",
-        reasons=[f"boot config changed: {reason}" for reason in reasons],
-        _if=lambda: any(change.did_change() for change in changes),
+        reasons=reasons, _if=lambda: any(change.did_change() for change in changes),
     )
-    summary.record_reboot([f"boot config changed: {reason}" for reason in reasons],
-                          record["reasons"] if reboot_pending(record) else [], changes)
-
-
-def noop_operation(message: str):
-    host.noop(message)
-    return None
+    summary.record_reboot(reasons, record["reasons"] if reboot_pending(record) else [], changes)
 
 
 def os_tweaks() -> dict:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from pyinfra import host
 from pyinfra.api import FactBase, operation
+from pyinfra.facts.files import File
 
 from roslab.quoting import shell_word
 
@@ -200,6 +201,25 @@ class CmdlineText(FactBase):
 
 
 @operation()
+def config_txt_block(path: str, lines: list[str], label: str):
+    """A Pi's config.txt holds `lines` in a roslab-marked block (roslab.operations.managed_block),
+    or, where the file does not exist (a PC, a container), nothing is created: no firmware here
+    reads it.
+
+    + path: the file (/boot/firmware/config.txt)
+    + lines: its lines (the block starts with [all], so no conditional section above swallows them)
+    + label: names the block in its markers
+    """
+    from roslab.operations import managed_block
+
+    if host.get_fact(File, path=path) is None:
+        host.noop(f"{path} does not exist (not a Raspberry Pi's boot partition): the boot config "
+                  f"({', '.join(lines)}) is not written")
+        return
+    yield from managed_block._inner(path=path, content="\n".join(["[all]", *lines]), label=label)
+
+
+@operation()
 def cmdline_words_absent(path: str, words: list[str], backup_suffix: str):
     """The kernel command line file holds none of `words` (the serial console, for a UART a
     robot talks on); the file is copied to `<path><backup_suffix>` before it changes.
@@ -287,3 +307,24 @@ def reboot_record_current():
         host.noop(f"a reboot is still needed ({'; '.join(record['reasons'])}): roslab never reboots a host")
         return
     yield f"rm -f -- {shell_word(REBOOT_RECORD)}"
+
+
+@operation()
+def service_installed_not_running(service: str, because: str):
+    """A unit is stopped and not enabled, for `because` (a setting says it must not run yet:
+    the rover before calibration, a board not yet present); it stays installed.
+
+    + service: the unit (``osr_startup.service``)
+    + because: why, for the no-op line and the operation's name
+    """
+    from pyinfra.facts.systemd import SystemdEnabled, SystemdStatus
+
+    running = (host.get_fact(SystemdStatus, services=[service]) or {}).get(service)
+    enabled = (host.get_fact(SystemdEnabled, services=[service]) or {}).get(service)
+    if not running and not enabled:
+        host.noop(f"{service} is installed but not enabled because {because}")
+        return
+    if running:
+        yield f"systemctl stop {shell_word(service)}"
+    if enabled:
+        yield f"systemctl disable {shell_word(service)}"

@@ -338,8 +338,8 @@ class ProfileReader:
                 ok = False
             else:
                 self.check_text(command, known | set(COMMAND_PLACEHOLDERS), spec, "command", f"{here}.command")
-            description = spec.get("description", "")
-            if not isinstance(description, str) or formats.single_line(description):
+            description = spec.get("description") or ""
+            if not isinstance(description, str) or (description and formats.single_line(description)):
                 self.error("must be one line of text", spec, "description", f"{here}.description")
                 ok = False
             else:
