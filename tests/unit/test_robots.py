@@ -6,7 +6,6 @@ operations and deploys on fake hosts (facts in, commands out, no-op paths)."""
 from __future__ import annotations
 
 import shlex
-import textwrap
 
 import pytest
 from fixtures.fake_host import plan
@@ -29,7 +28,7 @@ from roslab.profiles.host import (
 )
 from roslab.profiles.library import builtin_profiles
 from roslab.profiles.resolve import resolve_host
-from roslab.roster import RosterError, load_roster
+from roslab.roster import load_roster
 from roslab.roster.problems import Report
 from roslab.profiles.schema import read_profile
 
