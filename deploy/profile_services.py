@@ -15,6 +15,7 @@ from io import StringIO
 
 from pyinfra import host
 from pyinfra.api import deploy
+from pyinfra.facts.files import File, FileContents
 from pyinfra.operations import files, systemd
 
 from deploy.common import existing_login_home, host_distro, login_user, should_run, stop_host, where
@@ -98,6 +99,12 @@ def profile_services_in_place():
     except ValueError as error:
         stop_host(f"{where()}: profile services: {error}; nothing was changed by this step")
         return
+    foreign = [service["name"] for service in services if not ours_to_write(service["name"])]
+    if foreign:
+        stop_host(f"{where()}: profile services: {', '.join(f'{name}.service' for name in foreign)} is a unit "
+                  f"of this host that roslab did not write (a package's, or someone's own): robot profile {name} "
+                  "will not replace it; rename the profile's service; nothing was changed by this step")
+        return
     for service in services:
         unit_name = f"{service['name']}.service"
         unit = files.put(
@@ -117,6 +124,19 @@ def profile_services_in_place():
                 service=unit_name, because=service["disabled_because"])
 
 
+MANAGED_MARK = "# managed by roslab (deploy/profile_services.py)"
+PACKAGE_UNIT_DIRS = ("/usr/lib/systemd/system", "/lib/systemd/system")
+
+
+def ours_to_write(name: str) -> bool:
+    """Whether roslab may write `<name>.service` in /etc/systemd/system: no package ships a unit
+    of that name, and the file there is missing or one roslab wrote."""
+    if any(host.get_fact(File, path=posixpath.join(folder, f"{name}.service")) for folder in PACKAGE_UNIT_DIRS):
+        return False
+    current = host.get_fact(FileContents, path=unit_path(name))
+    return current is None or bool(current) and current[0].startswith(MANAGED_MARK)
+
+
 @probe.reader
 def profile_services_reads() -> list:
     """What profile_services_in_place's operations read on a host that needs no change."""
@@ -125,5 +145,8 @@ def profile_services_reads() -> list:
         return []
     reads = []
     for service in services:
-        reads += [*probe.put_reads(unit_path(service["name"])), *probe.service_reads(f"{service['name']}.service")]
+        reads += [*probe.put_reads(unit_path(service["name"])), *probe.service_reads(f"{service['name']}.service"),
+                  probe.read(FileContents, path=unit_path(service["name"])),
+                  *(probe.read(File, path=posixpath.join(folder, f"{service['name']}.service"))
+                    for folder in PACKAGE_UNIT_DIRS)]
     return reads

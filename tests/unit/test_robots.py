@@ -299,12 +299,16 @@ def service_data(profile):
             "ros_middleware": "rmw_fastrtps_cpp", "discovery_enabled": False}
 
 
-def service_facts(unit=None, running=False, enabled=False):
+def service_facts(unit=None, running=False, enabled=False, foreign=None, contents=None):
     from pyinfra.facts.server import Home, LinuxDistribution
     return {
         Home: "/home/ubuntu",
-        File: lambda path: ({"user": "root", "group": "root", "mode": 644} if unit else None),
+        File: lambda path: ({"user": "root", "group": "root", "mode": 644}
+                            if (unit and path.startswith("/etc/")) or path in (foreign or ()) else None),
         Directory: lambda path: None,
+        FileContents: lambda path: (contents if contents is not None else
+                                    ["# managed by roslab (deploy/profile_services.py) for robot profile osr"]
+                                    if unit else None),
         SystemdStatus: lambda services, **_: {name: running for name in services},
         SystemdEnabled: lambda services, **_: {name: enabled for name in services},
         LinuxDistribution: {"name": "Ubuntu", "major": 24, "minor": 4, "release_meta": {"VERSION_CODENAME": "noble"}},
@@ -350,6 +354,18 @@ def test_a_rover_whose_calibration_was_withdrawn_gets_its_service_stopped_and_di
                    data=service_data(resolved("osr", board="pi4"))).changing()
     (stop,) = [commands for name, commands in changes.items() if "stopped and disabled" in name]
     assert stop == ["systemctl stop osr_startup.service", "systemctl disable osr_startup.service"]
+
+
+@pytest.mark.parametrize("facts", [
+    {"foreign": ["/usr/lib/systemd/system/osr_startup.service"]},  # a package's unit of that name
+    {"unit": True, "contents": ["[Unit]", "Description=someone's own"]},  # a unit roslab did not write
+])
+def test_a_unit_roslab_did_not_write_is_never_replaced_and_stops_the_host(monkeypatch, facts):
+    monkeypatch.setattr("deploy.profile_services.host_environment", lambda data, distro: {})
+    monkeypatch.setattr("deploy.profile_services.host_distro", lambda: "jazzy")
+    result = plan(profile_services_in_place, service_facts(**facts), data=service_data(resolved("osr", board="pi4")))
+    assert result.failed and result.changing() == {}
+    assert any("osr_startup.service is a unit of this host that roslab did not write" in e for e in result.errors)
 
 
 def test_a_calibrated_rover_gets_its_service_enabled_and_started(monkeypatch):
