@@ -1,4 +1,6 @@
-"""The robot profile's host changes: its udev rules, the login user's groups, and (opt-in,
+"""The robot profile's host changes: its udev rules, the login user's groups, apt packages it
+removes (brltty, which grabs USB-serial adapters), its boot configuration (a Pi's config.txt
+block and cmdline.txt words, recorded as "reboot needed": roslab never reboots), and (opt-in,
 `profile_os_tweaks`) the OS changes its maker recommends: masked units, a swap file.
 
 The profile's packages are ros_install's (deploy/ros_install.py `ros_packages`), its variables
@@ -14,15 +16,24 @@ from io import StringIO
 from pyinfra import host
 from pyinfra.api import deploy
 from pyinfra.facts.files import File
-from pyinfra.operations import files
+from pyinfra.operations import apt, files
 
 from deploy.common import existing_login_home, login_user, should_run
-from roslab import probe, settings
-from roslab.operations import managed_block, managed_block_reads
+from roslab import probe, settings, summary
+from roslab.operations import BACKUP_SUFFIX, managed_block, managed_block_reads
 from roslab.profiles.host import (
+    CMDLINE_TXT,
+    CONFIG_TXT,
+    CmdlineText,
     MemoryTotal,
+    RebootRecord,
     SwapFile,
     UnitsMasked,
+    cmdline_words_absent,
+    config_txt_block,
+    reboot_needed_recorded,
+    reboot_pending,
+    reboot_record_current,
     swap_file_on,
     udev_reloaded,
     units_masked,
@@ -35,23 +46,31 @@ DEFAULTS = settings.defaults("robot_profile")
 SWAP_FILE = "/swapfile"
 FSTAB = "/etc/fstab"
 FSTAB_LABEL = "robot profile swap file"
+BOOT_CONFIG_LABEL = "robot profile boot config"
 
 
 def profile() -> dict:
     return host.data.get("roslab_profile") or {}
 
 
-@deploy("The robot profile's udev rules, groups and opted-in OS tweaks are in place", data_defaults=DEFAULTS)
+@deploy("The robot profile's udev rules, groups, removed packages, boot config and opted-in OS tweaks "
+        "are in place", data_defaults=DEFAULTS)
 def robot_profile():
-    """Write the profile's udev rules (and reload udev), put the login user in its groups and,
-    where the roster opts in, apply the profile's OS tweaks.
+    """Write the profile's udev rules (and reload udev), put the login user in its groups,
+    remove the apt packages it removes, keep its boot config (a reboot it needs is recorded and
+    reported, never done) and, where the roster opts in, apply the profile's OS tweaks.
 
-    Reads host.data: robot_profile_enabled, roslab_profile (udev_rules, groups, name, os_tweaks),
-    profile_os_tweaks, login_user, ssh_user.
+    Reads host.data: robot_profile_enabled, roslab_profile (udev_rules, groups, name, os_tweaks,
+    remove_apt_packages, boot_config), profile_os_tweaks, login_user, ssh_user.
     """
     if not should_run("robot_profile_enabled"):
         return
     name = profile().get("name") or "demo"
+    removed = profile().get("remove_apt_packages") or []
+    if removed:
+        # Before the udev rules: brltty's own rules claim CP210x and CH340 adapters.
+        apt.packages(name=f"Ensure {', '.join(removed)} is not installed (robot profile {name})",
+                     packages=removed, present=False)
     rules = profile().get("udev_rules") or ""
     if rules:
         written = files.put(
@@ -72,9 +91,38 @@ def robot_profile():
         user = login_user()
         user_in_groups(name=f"Ensure {user} is in {', '.join(groups)} (robot profile {name})",
                        user=user, groups=groups)
+    boot_config_kept(name, profile().get("boot_config") or {})
     tweaks = os_tweaks()
     if tweaks:
         os_tweaks_applied(name, tweaks)
+
+
+def boot_config_kept(name: str, boot: dict) -> None:
+    """The profile's boot config on a Pi's boot partition; a change is recorded as "reboot
+    needed" (the run summary and `roslab status` say so until the host has rebooted)."""
+    lines, words = boot.get("config_txt") or [], boot.get("cmdline_remove") or []
+    if not lines and not words:
+        return
+    record = host.get_fact(RebootRecord)
+    if record["exists"] and not reboot_pending(record):
+        reboot_record_current(name="Ensure a reboot record from before the last reboot is gone")
+    changes, reasons = [], []
+    if lines:
+        changes.append(config_txt_block(
+            name=f"Ensure {CONFIG_TXT} holds robot profile {name}'s boot config ({', '.join(lines)})",
+            path=CONFIG_TXT, lines=lines, label=BOOT_CONFIG_LABEL))
+        reasons.append(f"{CONFIG_TXT} ({', '.join(lines)})")
+    if words:
+        changes.append(cmdline_words_absent(
+            name=f"Ensure {CMDLINE_TXT} holds none of {', '.join(words)} (robot profile {name})",
+            path=CMDLINE_TXT, words=words, backup_suffix=BACKUP_SUFFIX))
+        reasons.append(f"{CMDLINE_TXT} (without {', '.join(words)})")
+    reasons = [f"boot config changed: {reason}" for reason in reasons]
+    reboot_needed_recorded(
+        name="Ensure the host records that the boot config waits for a reboot",
+        reasons=reasons, _if=lambda: any(change.did_change() for change in changes),
+    )
+    summary.record_reboot(reasons, record["reasons"] if reboot_pending(record) else [], changes)
 
 
 def os_tweaks() -> dict:
@@ -113,6 +161,15 @@ def robot_profile_reads() -> list:
         [probe.read(File, path=UDEV_RULES_PATH)]
     if profile().get("groups") and existing_login_home() is not None:
         reads += user_in_groups_reads(login_user())
+    if profile().get("remove_apt_packages"):
+        reads += probe.packages_reads()
+    boot = profile().get("boot_config") or {}
+    if boot:
+        reads += [probe.read(RebootRecord), probe.read(File, path=CONFIG_TXT)]
+        if boot.get("config_txt"):
+            reads += managed_block_reads(CONFIG_TXT)
+        if boot.get("cmdline_remove"):
+            reads.append(probe.read(CmdlineText, path=CMDLINE_TXT))
     tweaks = os_tweaks()
     if tweaks.get("mask_units"):
         reads.append(probe.read(UnitsMasked, units=tweaks["mask_units"]))

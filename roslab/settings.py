@@ -245,10 +245,11 @@ SCHEMA: list[Setting] = [
         _enabled("robot_profile", "Apply the robot profile's udev rules and the login user's groups."),
         ("robot_profile", "demo", str,
          "What the team's hosts run (roslab/profiles/data, or the roster's own `profiles:`): demo "
-         "(roslab's talker/listener), turtlebot3 (robot + its main), sim (Gazebo on the main). "
+         "(roslab's talker/listener), turtlebot3 (robot + its main), sim (Gazebo on the main), osr "
+         "(JPL Open Source Rover), esp32_microros (an ESP32 board through micro-ROS). "
          "Its settings (e.g. turtlebot3_model, lds_model) are set beside it; see README, Robots.",
          f.pattern(r"[a-z][a-z0-9_]{0,62}", "a profile name"),
-         {"allowed": "demo, turtlebot3, sim, or a roster's profile"}),
+         {"allowed": "demo, turtlebot3, sim, osr, esp32_microros, or a roster's profile"}),
         ("board", None, str,
          "The board the host is: pi3b+, pi4, pi5 or pc; None: not said (nothing is checked). "
          "Ubuntu 22.04 has no image for a Pi 5.", f.choice("pi3b+", "pi4", "pi5", "pc"),
@@ -265,6 +266,12 @@ SCHEMA: list[Setting] = [
         ("ros_packages_check", True, bool,
          "Before connecting, check every ROS package the roster or a profile names against the "
          "distro's rosdistro file (from rosdistro_index_url; offline: the controller's copy)."),
+    ),
+    *_concern(
+        "profile_services",
+        _enabled("profile_services",
+                 "Install the robot profile's own services (osr_startup, micro_ros_agent) and run those "
+                 "whose settings say so (osr_calibrated, esp32_present)."),
     ),
     *_concern(
         "rosdep",

@@ -37,6 +37,7 @@ import yaml
 from pyinfra.api import FactBase
 
 from roslab.roster import Classroom, RosterError, display_path, inventory_groups
+from roslab.profiles.host import RebootRecord, parse_reboot_record, reboot_pending
 from roslab.runs import RunRecord, now_utc, read_runs, runs_path
 from roslab.verify import CHATTER_TYPE, TeamResult, check_bound, hear, parse_check_output, service_state
 from roslab.workspace import NODES_SERVICE
@@ -86,9 +87,15 @@ def probe_script(service: str = NODES_SERVICE) -> str:
         "echo '## unit'",
         "systemctl show --property=LoadState,ActiveState,SubState,Result,Environment "
         f"{shlex.quote(service)} 2>/dev/null",
+        "echo '## reboot'",
+        REBOOT_RECORD_COMMAND,
         "echo '## end'",
         "exit 0",
     ])
+
+
+# The host's "reboot needed" record (roslab.profiles.host), readable without sudo.
+REBOOT_RECORD_COMMAND = RebootRecord().command()
 
 
 def parse_os_release(lines) -> dict[str, str]:
@@ -134,6 +141,7 @@ def parse_probe(lines) -> dict:
         "os": parse_os_release(sections.get("os-release", [])),
         "ros": sorted({os.path.basename(line.strip()) for line in sections.get("ros", []) if line.strip()}),
         "unit": unit,
+        "reboot": parse_reboot_record(sections.get("reboot", [])),
     }
 
 
@@ -174,6 +182,14 @@ class HostStatus:
     @property
     def is_ubuntu(self) -> bool:
         return self.probe["os"].get("ID") == "ubuntu"
+
+    @property
+    def reboot_needed(self) -> str | None:
+        """Why the host waits for a reboot (a change recorded in its current boot), or None."""
+        record = self.probe.get("reboot") or {}
+        if not (self.reachable and self.probe["probed"] and reboot_pending(record)):
+            return None
+        return "; ".join(record["reasons"]) or "a change waits for a reboot"
 
     @property
     def distros(self) -> list[str]:
@@ -314,9 +330,12 @@ def host_cells(host: HostStatus, now: datetime) -> dict[str, Cell]:
         cells["LAST SUCCESS"] = Cell("never", "warn" if run is not None and run.last_run else "muted")
     else:
         cells["LAST SUCCESS"] = Cell(when(run.last_success, now), "ok")
+    if host.reboot_needed:
+        notes.append(f"reboot needed: {host.reboot_needed}")
     if host.listen_error:
         notes.append(host.listen_error)
-    cells["NOTE"] = Cell("; ".join(notes), "bad" if not host.reachable or last_run_failed(host) else "plain")
+    level = "bad" if not host.reachable or last_run_failed(host) else "warn" if host.reboot_needed else "plain"
+    cells["NOTE"] = Cell("; ".join(notes), level)
     return cells
 
 
@@ -512,7 +531,8 @@ def host_box(host: HostStatus, x: int, y: int) -> dict:
     ]
     return {
         "x": x, "y": y, "width": BOX_WIDTH, "height": BOX_HEIGHT, "level": box_level(host),
-        "title": f"{host.name} ({host.role}, team {host.team})",
+        "title": f"{host.name} ({host.role}, team {host.team})"
+                 + (f": reboot needed ({host.reboot_needed})" if host.reboot_needed else ""),
         "host": host.name,
         "lines": [{**line, "x": x + 12, "y": y + 22 + index * 19} for index, line in enumerate(lines)],
     }

@@ -175,6 +175,9 @@ class RunSummary(BaseStateCallback):
         self.ended_by: str | None = None
         self.signal_name: str | None = None
         self._dry_changes: dict | None = None  # --dry: host name -> would change
+        # host name -> (reasons of this run's changes, reasons still pending from an earlier run
+        # in the same boot, the changes): the "reboot needed" lines (deploy/robot_profile.py).
+        self.reboots: dict[str, tuple[list[str], list[str], list]] = {}
 
     def end(self, exit_status: int, why: str, signal_name: str | None = None) -> None:
         """Note that the run is ended by roslab with `exit_status` (the first end counts)."""
@@ -206,6 +209,29 @@ class RunSummary(BaseStateCallback):
 
     def mark_planned(self, name: str) -> None:
         self.planned.add(name)
+
+    def record_reboot(self, name: str, reasons: list[str], pending: list[str], changes: list) -> None:
+        self.reboots[name] = (list(reasons), list(pending), list(changes))
+
+    def reboot_lines(self, state: State) -> list[str]:
+        """One line per host that needs a reboot: a change made now, or one still waiting from an
+        earlier run in the same boot. --dry: the hosts whose change would need one."""
+        lines = []
+        for host in state.inventory:
+            entry = self.reboots.get(host.name)
+            if entry is None or not state.is_host_in_limit(host) or host_failed(state, host):
+                continue
+            reasons, pending, changes = entry
+            if state.is_executing:
+                changed = any(meta.is_complete() and meta.did_change() for meta in changes)
+            else:
+                changed = self.would_change(state, host) and bool(changes)
+            if changed or pending:
+                shown = list(dict.fromkeys([*pending, *(reasons if changed else [])]))
+                verb = "needs" if state.is_executing or pending else "would need"
+                lines.append(f"    {host.name} {verb} a reboot: {'; '.join(shown)} (roslab never reboots "
+                             "during a run: reboot it when the class allows, e.g. `sudo reboot`)")
+        return lines
 
     # the summary
 
@@ -372,6 +398,9 @@ class RunSummary(BaseStateCallback):
         else:
             stopped = ""
         out.append(f"    exit code {code}: {stopped}{tally} ({len(rows)} host{'s' if len(rows) != 1 else ''})")
+        reboots = self.reboot_lines(state) if self.run_finished(state) else []
+        if reboots:
+            out += ["--> reboot needed", *(mask(line, secrets) for line in reboots)]
         return out
 
     def write(self, state: State, stream: TextIO | None = None) -> None:
@@ -698,6 +727,17 @@ def record_stop(host, message: str) -> None:
         step = op_name(state, op_hash, host)
     step = step or getattr(host, "current_deploy_name", None)
     summary.record_stop(_host_name(host), step, message)
+
+
+def record_reboot(reasons: list[str], pending: list[str], changes: list, host=None) -> None:
+    """Note that this host needs a reboot for `reasons` when one of `changes` (operation results)
+    changes it, or already does (`pending`): the summary says so once per host."""
+    host = host if host is not None else ctx_host.get()
+    if host is None:
+        return
+    summary = summary_for(getattr(host, "state", None) or ctx_state.get())
+    if summary is not None:
+        summary.record_reboot(_host_name(host), reasons, pending, changes)
 
 
 def mark_planned(host=None) -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from pyinfra import host
 from pyinfra.api import FactBase, operation
+from pyinfra.facts.files import File
 
 from roslab.quoting import shell_word
 
@@ -168,3 +169,162 @@ def swap_file_on(path: str, size_mb: int):
     yield (f"rm -f {word} && (umask 077 && (fallocate -l {size_mb}M {word} || dd if=/dev/zero of={word} "
            f"bs=1M count={size_mb} status=none)) && chmod 600 {word} && mkswap {word} >/dev/null && "
            f"swapon {word}")
+
+
+# --- boot configuration and "reboot needed" (profile `boot_config`) ------------------------
+
+# Where a Pi's boot partition is on Ubuntu (and Raspberry Pi OS since bookworm).
+BOOT_DIR = "/boot/firmware"
+CONFIG_TXT = f"{BOOT_DIR}/config.txt"
+CMDLINE_TXT = f"{BOOT_DIR}/cmdline.txt"
+# The host's record that a change waits for a reboot: `boot_id=...` (the boot it was made in)
+# and `reason=...` lines. World-readable: `roslab status` reads it without sudo.
+REBOOT_RECORD = "/var/lib/roslab/reboot-needed"
+BOOT_ID = "/proc/sys/kernel/random/boot_id"
+
+
+def cmdline_without(text: str, words: list[str]) -> str:
+    """cmdline.txt's one line without `words` (whole words only; the others keep their order)."""
+    return " ".join(word for word in text.split() if word not in words)
+
+
+class CmdlineText(FactBase):
+    """The text of `path` (the kernel's command line file: one line), or None when it is missing."""
+
+    def command(self, path: str) -> str:
+        quoted = shell_word(path)
+        return f"if [ -f {quoted} ]; then cat {quoted}; else echo '#no-such-file'; fi"
+
+    def process(self, output):
+        text = "\n".join(output)
+        return None if text.strip() == "#no-such-file" else text
+
+
+@operation()
+def config_txt_block(path: str, lines: list[str], label: str):
+    """A Pi's config.txt holds `lines` in a roslab-marked block (roslab.operations.managed_block),
+    or, where the file does not exist (a PC, a container), nothing is created: no firmware here
+    reads it.
+
+    + path: the file (/boot/firmware/config.txt)
+    + lines: its lines (the block starts with [all], so no conditional section above swallows them)
+    + label: names the block in its markers
+    """
+    from roslab.operations import managed_block
+
+    if host.get_fact(File, path=path) is None:
+        host.noop(f"{path} does not exist (not a Raspberry Pi's boot partition): the boot config "
+                  f"({', '.join(lines)}) is not written")
+        return
+    yield from managed_block._inner(path=path, content="\n".join(["[all]", *lines]), label=label)
+
+
+@operation()
+def cmdline_words_absent(path: str, words: list[str], backup_suffix: str):
+    """The kernel command line file holds none of `words` (the serial console, for a UART a
+    robot talks on); the file is copied to `<path><backup_suffix>` before it changes.
+
+    + path: the file (/boot/firmware/cmdline.txt)
+    + words: whole words to take out (``console=serial0,115200``)
+    + backup_suffix: the backup's suffix (``.roslab-<date>-<time>``)
+    """
+    current = host.get_fact(CmdlineText, path=path)
+    if current is None:
+        host.noop(f"{path} does not exist (not a Raspberry Pi's boot partition): nothing to take out")
+        return
+    wanted = cmdline_without(current, words)
+    if wanted == " ".join(current.split()):
+        host.noop(f"{path} holds none of {', '.join(words)}")
+        return
+    quoted = shell_word(path)
+    # One line, written beside the file and renamed over it: the firmware never reads half a file.
+    yield (f"cp -p -- {quoted} {shell_word(path + backup_suffix)} && "
+           f"printf '%s\\n' {shell_word(wanted)} > {shell_word(path + '.roslab-new')} && "
+           f"mv -f -- {shell_word(path + '.roslab-new')} {quoted}")
+
+
+class RebootRecord(FactBase):
+    """The host's reboot record and its current boot:
+    ``{"current_boot": id, "boot_id": id or None, "reasons": [...], "exists": bool}``."""
+
+    def command(self) -> str:
+        return (f"echo \"current_boot=$(cat {BOOT_ID} 2>/dev/null)\"; "
+                f"if [ -f {REBOOT_RECORD} ]; then echo '#record'; cat {REBOOT_RECORD}; fi")
+
+    def process(self, output):
+        return parse_reboot_record(output)
+
+
+def parse_reboot_record(lines) -> dict:
+    """RebootRecord's output (also `roslab status`'s): the current boot and the record."""
+    result = {"current_boot": None, "boot_id": None, "reasons": [], "exists": False}
+    for line in lines:
+        key, sep, value = line.strip().partition("=")
+        if line.strip() == "#record":
+            result["exists"] = True
+        elif sep and key == "current_boot":
+            result["current_boot"] = value or None
+        elif sep and key == "boot_id":
+            result["boot_id"] = value or None
+        elif sep and key == "reason" and value and value not in result["reasons"]:
+            result["reasons"].append(value)
+    return result
+
+
+def reboot_pending(record: dict) -> bool:
+    """Whether the record names a change that still waits for a reboot (made in this boot)."""
+    return bool(record.get("exists") and record.get("boot_id")
+                and record.get("boot_id") == record.get("current_boot"))
+
+
+@operation(is_idempotent=False)
+def reboot_needed_recorded(reasons: list[str]):
+    """The host records that it needs a reboot for `reasons`, in this boot (run it with `_if=`
+    the change that needs it). roslab never reboots: the teacher does, when the class allows.
+
+    + reasons: one line each (``/boot/firmware/config.txt changed``); kept with the reasons of an
+      earlier change in the same boot
+    """
+    record = host.get_fact(RebootRecord)
+    kept = record["reasons"] if reboot_pending(record) else []
+    lines = [*kept, *(reason for reason in reasons if reason not in kept)]
+    new = REBOOT_RECORD + ".roslab-new"
+    yield (f"mkdir -p {shell_word(REBOOT_RECORD.rsplit('/', 1)[0])} && "
+           f"{{ printf 'boot_id=%s\\n' \"$(cat {BOOT_ID})\"; "
+           f"printf 'reason=%s\\n' {' '.join(shell_word(line) for line in lines)}; }}"
+           f" > {shell_word(new)} && chmod 644 {shell_word(new)} && mv -f -- {shell_word(new)} "
+           f"{shell_word(REBOOT_RECORD)}")
+
+
+@operation()
+def reboot_record_current():
+    """A reboot record left from an earlier boot is gone: the host has rebooted since the change."""
+    record = host.get_fact(RebootRecord)
+    if not record["exists"]:
+        host.noop("no change waits for a reboot")
+        return
+    if reboot_pending(record):
+        host.noop(f"a reboot is still needed ({'; '.join(record['reasons'])}): roslab never reboots a host")
+        return
+    yield f"rm -f -- {shell_word(REBOOT_RECORD)}"
+
+
+@operation()
+def service_installed_not_running(service: str, because: str):
+    """A unit is stopped and not enabled, for `because` (a setting says it must not run yet:
+    the rover before calibration, a board not yet present); it stays installed.
+
+    + service: the unit (``osr_startup.service``)
+    + because: why, for the no-op line and the operation's name
+    """
+    from pyinfra.facts.systemd import SystemdEnabled, SystemdStatus
+
+    running = (host.get_fact(SystemdStatus, services=[service]) or {}).get(service)
+    enabled = (host.get_fact(SystemdEnabled, services=[service]) or {}).get(service)
+    if not running and not enabled:
+        host.noop(f"{service} is installed but not enabled because {because}")
+        return
+    if running:
+        yield f"systemctl stop {shell_word(service)}"
+    if enabled:
+        yield f"systemctl disable {shell_word(service)}"

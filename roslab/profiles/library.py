@@ -104,3 +104,14 @@ def builtin_ros_packages(distro: str) -> set[str]:
     """Every ROS package a built-in profile can install on `distro` (the sandbox's stand-ins)."""
     return {name for profile in builtin_profiles().values() if distro in profile.distros
             for name in every_ros_package(profile, distro)}
+
+
+def builtin_debian_packages() -> set[str]:
+    """Every apt package a built-in profile installs that is not a ROS one (python3-serial,
+    i2c-tools): the sandbox's Ubuntu-layout archive carries the real Debian packages."""
+    names: set[str] = set()
+    for profile in builtin_profiles().values():
+        for side in profile.sides.values():
+            for part in [side, *(block["side"] for block in side.when)]:
+                names |= {name for name in part.apt_packages if "{distro}" not in name}
+    return names

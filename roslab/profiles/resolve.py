@@ -12,7 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from roslab.distro import DISTRO_RELEASES, PLATFORMS
-from roslab.profiles.schema import PLACEHOLDER, Profile, Side
+from roslab.profiles.schema import BOOT_CONFIG_KEYS, PLACEHOLDER, Profile, Side
+from roslab.quoting import shell_word
 
 UDEV_RULES_PATH = "/etc/udev/rules.d/60-roslab-profile.rules"
 
@@ -56,7 +57,10 @@ def used_settings(side: Side | None) -> set[str]:
     if side is None:
         return set()
     texts = [*side.environment.values(), *(rule["rule"] for rule in side.udev_rules), *side.checklist]
+    for service in side.services:
+        texts += [service["command"], *service["environment"].values()]
     names = {name for text in texts for name in PLACEHOLDER.findall(text)}
+    names |= {name for service in side.services for name in service["enabled_if"]}
     for block in side.when:
         names |= set(block["if"]) | used_settings(block["side"])
     return names
@@ -99,6 +103,13 @@ def resolve(profile: Profile, given: dict, *, distro: str, role: str, board: str
     return data
 
 
+def side_parts(side: Side, values: dict, distro: str, board: str | None) -> list[Side]:
+    """The side and those of its `when` blocks whose conditions hold for these setting values,
+    distro and board: what a host of this side gets, in order."""
+    conditions = {**values, "distro": distro, "board": board}
+    return [side, *(block["side"] for block in side.when if _matches(block["if"], conditions))]
+
+
 def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
                  board: str | None = None) -> tuple[dict | None, list[ResolveError]]:
     problems: list[ResolveError] = []
@@ -110,11 +121,12 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         problems.append(ResolveError(
             "robot_profile", f"profile {profile.name!r} supports {', '.join(profile.distros)}, not {distro} "
                              f"(this host's distro): set ubuntu_release to {works}, or another robot_profile"))
-    if board is not None and board not in profile.boards:
-        problems.append(ResolveError(
-            "board", f"profile {profile.name!r} does not run on a {board} (it runs on: "
-                     f"{', '.join(profile.boards)})"))
     side = profile.sides.get(role)
+    boards = (side.boards if side is not None and side.boards else None) or profile.boards
+    if board is not None and board not in boards:
+        whose = f"profile {profile.name!r}" if boards == profile.boards else f"the {role} of profile {profile.name!r}"
+        problems.append(ResolveError(
+            "board", f"{whose} does not run on a {board} (it runs on: {', '.join(boards)})"))
     if side is None:
         has = " and ".join(profile.sides)
         problems.append(ResolveError(
@@ -125,8 +137,7 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
     if problems or distro not in DISTRO_RELEASES:
         return None, problems
 
-    conditions = {**values, "distro": distro, "board": board}
-    parts = [side, *(block["side"] for block in side.when if _matches(block["if"], conditions))]
+    parts = side_parts(side, values, distro, board)
     merged = Side()
     for part in parts:
         merged.ros_packages += [p for p in part.ros_packages if p not in merged.ros_packages]
@@ -135,6 +146,12 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         merged.groups += [g for g in part.groups if g not in merged.groups]
         merged.udev_rules += part.udev_rules
         merged.checklist += part.checklist
+        merged.remove_apt_packages += [p for p in part.remove_apt_packages if p not in merged.remove_apt_packages]
+        for key in BOOT_CONFIG_KEYS:
+            items = merged.boot_config.setdefault(key, [])
+            items += [item for item in part.boot_config.get(key, []) if item not in items]
+        merged.services = [s for s in merged.services if s["name"] not in {p["name"] for p in part.services}]
+        merged.services += part.services
     ros_packages = [fill(name, {"gazebo": gazebo_package(distro)}) for name in merged.ros_packages]
     rules = ""
     if merged.udev_rules:
@@ -157,7 +174,7 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         "udev_rules": rules,
         "launch": side.launch,
         "variant": side.variant,
-        "verify_topic": profile.verify_topic,
+        "verify_topic": profile.verify_topic if _matches(profile.verify_if, values) else None,
         "verify_type": profile.verify_type,
         "discovery": profile.discovery,
         "checklist": [fill(item, values) for item in merged.checklist],
@@ -166,6 +183,9 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         # which reads the files; here only for hand-made data
         "sources": [],
         "python": python_data(profile, side),
+        "remove_apt_packages": merged.remove_apt_packages,
+        "boot_config": {key: items for key, items in merged.boot_config.items() if items},
+        "services": [resolved_service(service, values, distro, profile.name) for service in merged.services],
     }, []
 
 
@@ -180,3 +200,24 @@ def python_data(profile: Profile, side: Side) -> dict:
     if venv is None and requirements:
         venv = f"{profile.name}_venv"
     return {"venv": venv, "requirements": requirements}
+
+
+def resolved_service(service: dict, values: dict, distro: str, profile_name: str) -> dict:
+    """A profile's service for one host: its command with ${distro} and the settings filled in
+    (each value one shell word), its environment filled in, and whether it is enabled here
+    (its `enabled_if` settings have the values it names) and, if not, why."""
+    words = {name: shell_word(str(value)) for name, value in values.items()}
+    words["distro"] = shell_word(distro)
+    missing = []
+    for name, wanted in service["enabled_if"].items():
+        allowed = wanted if isinstance(wanted, list) else [wanted]
+        if values.get(name) not in allowed:
+            missing.append(f"{name} is {values.get(name) or 'unset'} (it runs when {name}: {' or '.join(allowed)})")
+    return {
+        "name": service["name"],
+        "description": fill(service["description"], values) or f"{service['name']} (robot profile {profile_name})",
+        "command": fill(service["command"], words),
+        "environment": {name: fill(text, values) for name, text in service["environment"].items()},
+        "enabled": not missing,
+        "disabled_because": "; ".join(missing),
+    }

@@ -28,12 +28,30 @@ _ROS_PACKAGE = re.compile(r"[a-z][a-z0-9_]*|\$\{gazebo\}")
 # Conditions a `when` block may test besides the profile's settings.
 BUILTIN_CONDITIONS = ("distro", "board")
 
-TOP_KEYS = ("profile", "extends", "description", "distros", "boards", "discovery", "verify_topic", "verify_type",
-            "settings", *SIDES)
+TOP_KEYS = ("profile", "extends", "description", "distros", "boards", "middlewares", "discovery", "verify_topic",
+            "verify_type", "verify_if", "settings", *SIDES)
 SETTING_KEYS = ("doc", "allowed", "pattern", "required", "default")
-SIDE_KEYS = ("variant", "ros_packages", "apt_packages", "environment", "groups", "udev_rules", "launch",
-             "checklist", "os_tweaks", "sources", "when", "python_packages", "python_venv")
-WHEN_KEYS = ("if", "ros_packages", "apt_packages", "environment", "groups", "udev_rules", "checklist")
+SIDE_KEYS = ("variant", "boards", "ros_packages", "apt_packages", "remove_apt_packages", "environment", "groups",
+             "udev_rules", "boot_config", "services", "launch", "checklist", "os_tweaks", "sources",
+             "python_packages", "python_venv", "when")
+WHEN_KEYS = ("if", "ros_packages", "apt_packages", "remove_apt_packages", "environment", "groups", "udev_rules",
+             "boot_config", "services", "sources", "checklist")
+# The middlewares a class may run (roslab.settings ros_middleware); a profile may allow fewer.
+MIDDLEWARES = ("rmw_fastrtps_cpp", "rmw_cyclonedds_cpp", "rmw_zenoh_cpp")
+# A Pi's boot configuration (deploy/profile_extras.py): lines kept in a marked block of
+# config.txt, words taken out of cmdline.txt. Both are read by the firmware and the kernel,
+# which know no quoting: a line or a word is plain ASCII without spaces or comments.
+BOOT_CONFIG_KEYS = ("config_txt", "cmdline_remove")
+_CONFIG_LINE = re.compile(r"\[[a-z0-9_]{1,30}\]|[A-Za-z0-9_][A-Za-z0-9_.,:=+-]{0,119}", re.ASCII)
+_CMDLINE_WORD = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.,:=/+-]{0,119}", re.ASCII)
+# A profile's own services (deploy/profile_extras.py): one unit per entry.
+SERVICE_KEYS = ("name", "description", "command", "environment", "enabled_if")
+_SERVICE_NAME = re.compile(r"[a-z][a-z0-9_-]{0,62}", re.ASCII)
+# Names of units roslab itself writes: a profile's service cannot take them over.
+RESERVED_SERVICES = ("roslab-nodes", "roslab-discovery", "roslab-network-rollback", "ssh", "sshd",
+                     "systemd-udevd", "systemd-networkd", "NetworkManager")
+# What a service's command may name besides the profile's settings.
+COMMAND_PLACEHOLDERS = ("distro",)
 RULE_KEYS = ("rule", "comment")
 # Opt-in OS changes a robot's maker recommends (applied when the roster sets profile_os_tweaks).
 OS_TWEAK_KEYS = ("mask_units", "swap_mb", "swap_if_memory_mb_at_most")
@@ -89,6 +107,10 @@ class Side:
     # a directory relative to the login user's home (None: `<profile>_venv`).
     python_packages: list[str] = field(default_factory=list)
     python_venv: str | None = None
+    boards: tuple[str, ...] | None = None  # this side's boards, when narrower than the profile's
+    remove_apt_packages: list[str] = field(default_factory=list)  # removed where installed (brltty)
+    boot_config: dict = field(default_factory=dict)  # {"config_txt": [...], "cmdline_remove": [...]}
+    services: list[dict] = field(default_factory=list)  # SERVICE_KEYS
 
 
 @dataclass
@@ -97,9 +119,11 @@ class Profile:
     description: str = ""
     distros: tuple[str, ...] = ()
     boards: tuple[str, ...] = BOARDS
+    middlewares: tuple[str, ...] = MIDDLEWARES
     discovery: str | None = None
     verify_topic: str | None = None
     verify_type: str = "std_msgs/msg/String"  # a greeting (roslab's talker), else any message passes
+    verify_if: dict = field(default_factory=dict)  # setting -> value: verify only then (a board is present)
     settings: dict[str, ProfileSetting] = field(default_factory=dict)
     sides: dict[str, Side] = field(default_factory=dict)
     source: str = ""  # where it was defined, for messages ("built-in", "the roster")
@@ -253,8 +277,112 @@ class ProfileReader:
                 self.error("a profile's udev rule may not run programs (RUN, PROGRAM, IMPORT{program})",
                            rule, "rule", f"{path}.udev_rules")
             side.udev_rules.append({"rule": rule["rule"], "comment": str(rule.get("comment") or "")})
+        side.remove_apt_packages += self.string_list(mapping, "remove_apt_packages", f"{path}.remove_apt_packages",
+                                                     formats.debian_package)
+        kept = set(side.apt_packages) & set(side.remove_apt_packages)
+        if kept:
+            self.error(f"{', '.join(sorted(kept))} is both installed and removed", mapping,
+                       "remove_apt_packages", f"{path}.remove_apt_packages")
+        self.read_boot_config(mapping, path, side)
+        self.read_services(mapping, path, known, side)
         if not when_ok and "when" in mapping:
             self.error("a when block cannot hold another", mapping, "when", f"{path}.when")
+
+    def read_boot_config(self, mapping, path: str, side: Side) -> None:
+        """`boot_config`: config.txt lines (a marked block) and cmdline.txt words to remove."""
+        value = mapping.get("boot_config")
+        if value is None:
+            return
+        where = f"{path}.boot_config"
+        if not isinstance(value, dict):
+            self.error(f"must be a mapping ({', '.join(BOOT_CONFIG_KEYS)})", mapping, "boot_config", where)
+            return
+        self.unknown_keys(value, BOOT_CONFIG_KEYS, where)
+        lines = self.string_list(
+            value, "config_txt", f"{where}.config_txt",
+            lambda line: None if _CONFIG_LINE.fullmatch(line) else
+            f"{line!r} is not a config.txt line roslab writes (key=value or [section]: ASCII letters, digits, "
+            "_ . , : = + -, no spaces or comments)")
+        words = self.string_list(
+            value, "cmdline_remove", f"{where}.cmdline_remove",
+            lambda word: None if _CMDLINE_WORD.fullmatch(word) else
+            f"{word!r} is not one word of cmdline.txt (ASCII letters, digits, _ . , : = / + -)")
+        for key, items in (("config_txt", lines), ("cmdline_remove", words)):
+            known_items = side.boot_config.setdefault(key, [])
+            known_items += [item for item in items if item not in known_items]
+        side.boot_config = {key: items for key, items in side.boot_config.items() if items}
+
+    def read_services(self, mapping, path: str, known: set[str], side: Side) -> None:
+        """`services`: units the profile runs besides the nodes' service (the rover's, an agent)."""
+        value = mapping.get("services")
+        if value is None:
+            return
+        where = f"{path}.services"
+        if not isinstance(value, list):
+            self.error("must be a list of {name, description, command, environment, enabled_if}", mapping,
+                       "services", where)
+            return
+        for index, spec in enumerate(value, 1):
+            here = f"{where}[{index}]"
+            if not isinstance(spec, dict):
+                self.error("each service is a mapping (name, description, command, environment, enabled_if)",
+                           mapping, "services", here)
+                continue
+            self.unknown_keys(spec, SERVICE_KEYS, here)
+            name = spec.get("name")
+            if not isinstance(name, str) or not _SERVICE_NAME.fullmatch(name):
+                self.error("a service's name is lower-case letters, digits, _ and - (the unit is <name>.service)",
+                           spec, "name", f"{here}.name")
+                continue
+            if name in RESERVED_SERVICES or name.startswith("roslab"):
+                self.error(f"{name!r} is a unit roslab or the system owns: give the service a name of its own",
+                           spec, "name", f"{here}.name")
+                continue
+            ok = True
+            command = spec.get("command")
+            problem = formats.ascii_text(command) if isinstance(command, str) and command.strip() else \
+                "must be a command line (one line of text)"
+            problem = problem or (formats.single_line(command) if isinstance(command, str) else None)
+            if problem:
+                self.error(problem, spec, "command", f"{here}.command")
+                ok = False
+            else:
+                self.check_text(command, known | set(COMMAND_PLACEHOLDERS), spec, "command", f"{here}.command")
+            description = spec.get("description") or ""
+            if not isinstance(description, str) or (description and formats.single_line(description)):
+                self.error("must be one line of text", spec, "description", f"{here}.description")
+                ok = False
+            else:
+                self.check_text(description, known, spec, "description", f"{here}.description")
+            env = spec.get("environment") or {}
+            if not isinstance(env, dict):
+                self.error("must be a mapping of VARIABLE -> value", spec, "environment", f"{here}.environment")
+                env, ok = {}, False
+            for variable, text in env.items():
+                problem = variable_problem(variable, text)
+                if problem:
+                    self.error(problem, env, variable, f"{here}.environment.{variable}")
+                    ok = False
+                else:
+                    self.check_text(text, known, env, variable, f"{here}.environment.{variable}")
+            condition = spec.get("enabled_if") or {}
+            if not isinstance(condition, dict) or not all(
+                    isinstance(wanted, str) or (isinstance(wanted, list) and all(isinstance(w, str) for w in wanted))
+                    for wanted in condition.values()):
+                self.error("must be a mapping of setting -> value (or list of values)", spec, "enabled_if",
+                           f"{here}.enabled_if")
+                condition, ok = {}, False
+            for setting in condition:
+                if setting not in known:
+                    self.error(f"tests {setting!r}, which is not a setting of this profile", condition, setting,
+                               f"{here}.enabled_if")
+                    ok = False
+            if any(service["name"] == name for service in side.services):
+                self.error(f"a second service named {name!r}", spec, "name", f"{here}.name")
+                ok = False
+            if ok:
+                side.services.append({"name": name, "description": description or "", "command": command,
+                                      "environment": dict(env), "enabled_if": dict(condition)})
 
     def read_os_tweaks(self, mapping, side: str) -> dict:
         """A side's `os_tweaks`: units to mask, a swap file and the memory below which it is made."""
@@ -352,6 +480,12 @@ class ProfileReader:
                 self.error(problem, value, "python_venv", f"{name}.python_venv")
             else:
                 side.python_venv = venv[2:] if venv.startswith("~/") else venv.rstrip("/")
+        boards = value.get("boards")
+        if boards is not None:
+            if not isinstance(boards, list) or not boards or not all(b in BOARDS for b in boards):
+                self.error(f"must be a list of boards ({', '.join(BOARDS)})", value, "boards", f"{name}.boards")
+            else:
+                side.boards = tuple(boards)
         blocks = value.get("when") or []
         if not isinstance(blocks, list):
             self.error("must be a list of {if: {setting: value}, ...}", value, "when", f"{name}.when")
@@ -374,6 +508,7 @@ class ProfileReader:
                                block["if"], setting, f"{path}.if")
             part = Side()
             self.read_parts(block, path, known, part, when_ok=False)
+            part.sources = self.read_sources(block, path)
             side.when.append({"if": dict(block["if"]), "side": part})
         return side
 
@@ -419,6 +554,11 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
     if not isinstance(boards, list) or not all(b in BOARDS for b in boards):
         reader.error(f"must be a list of boards ({', '.join(BOARDS)})", mapping, "boards", "boards")
         boards = list(BOARDS)
+    middlewares = mapping.get("middlewares", list(base.middlewares) if base else list(MIDDLEWARES))
+    if not isinstance(middlewares, list) or not middlewares or not all(m in MIDDLEWARES for m in middlewares):
+        reader.error(f"must be a list of middlewares ({', '.join(MIDDLEWARES)})", mapping, "middlewares",
+                     "middlewares")
+        middlewares = list(MIDDLEWARES)
     discovery = mapping.get("discovery", base.discovery if base else None)
     if discovery is not None and discovery not in DISCOVERY:
         reader.error(f"must be {', '.join(DISCOVERY)} or absent", mapping, "discovery", "discovery")
@@ -430,6 +570,14 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
     if not isinstance(message_type, str) or formats.ros_message_type(message_type):
         reader.error("must be a ROS message type (like sensor_msgs/msg/LaserScan)", mapping, "verify_type",
                      "verify_type")
+    verify_if = mapping.get("verify_if", dict(base.verify_if) if base else {})
+    if not isinstance(verify_if, dict) or not all(isinstance(v, str) for v in verify_if.values()):
+        reader.error("must be a mapping of setting -> value", mapping, "verify_if", "verify_if")
+        verify_if = {}
+    for setting in verify_if:
+        if setting not in known:
+            reader.error(f"tests {setting!r}, which is not a setting of this profile", verify_if, setting,
+                         "verify_if")
     sides = {}
     for side_name in SIDES:
         own = reader.read_side(mapping, side_name, known)
@@ -447,8 +595,8 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
     description = mapping.get("description", base.description if base else "")
     if not reader.ok:
         return None
-    return Profile(name, str(description or ""), tuple(distros), tuple(boards), discovery, topic,
-                   message_type, settings, sides, source, line_of(mapping))
+    return Profile(name, str(description or ""), tuple(distros), tuple(boards), tuple(middlewares), discovery,
+                   topic, message_type, dict(verify_if), settings, sides, source, line_of(mapping))
 
 
 def merged_side(base: Side, own: Side) -> Side:
@@ -469,4 +617,10 @@ def merged_side(base: Side, own: Side) -> Side:
         when=[*base.when, *own.when],
         python_packages=merged_requirements(base.python_packages, own.python_packages),
         python_venv=own.python_venv or base.python_venv,
+        boards=own.boards or base.boards,
+        remove_apt_packages=union(base.remove_apt_packages, own.remove_apt_packages),
+        boot_config={key: union(base.boot_config.get(key, []), own.boot_config.get(key, []))
+                     for key in BOOT_CONFIG_KEYS if base.boot_config.get(key) or own.boot_config.get(key)},
+        services=[*(s for s in base.services if s["name"] not in {o["name"] for o in own.services}),
+                  *own.services],
     )

@@ -119,7 +119,9 @@ class RosterReader:
             setting = allowed.get(key)
             if setting is None and key in self.profile_settings:
                 # A profile's own setting (lds_model...): checked against the host's profile once
-                # its profile is known (read_host); here only its type.
+                # its profile is known (read_host); here only its type. YAML's true/false and
+                # whole numbers (osr_calibrated: true, a port) are their words.
+                value = profile_setting_word(value)
                 if not isinstance(value, str):
                     self.report.error(settings.type_problem(value, str) or "must be a string",
                                       line=line, field=key, **where)
@@ -414,6 +416,7 @@ class RosterReader:
             if option == "--data" and key in self.profile_settings and key not in settings.SETTINGS:
                 # A profile's own setting (lds_model...): checked against each host's profile like
                 # a roster value (apply_profile); here only its type.
+                value = profile_setting_word(value)
                 if isinstance(value, str):
                     valid[key] = Value(value, None)
                 else:
@@ -472,6 +475,7 @@ class RosterReader:
         `workspace_sources`) into `roslab_profile["sources"]` and `roslab_sources`; a problem
         names the .repos file and line, the host and the field."""
         from roslab import sources
+        from roslab.profiles.resolve import side_parts
 
         if not hasattr(self, "_repos_files"):
             self._repos_files = sources.ReposFiles()
@@ -480,7 +484,9 @@ class RosterReader:
         if profile is not None:
             definition = self.profiles.get(profile["name"])
             side = definition.sides.get(data["roslab_role"]) if definition else None
-        profile_sources = list(side.sources) if side else []
+        # the side's own .repos files and those of its when blocks that hold for this host
+        parts = side_parts(side, profile["settings"], profile["distro"], data.get("board")) if side else []
+        profile_sources = list(dict.fromkeys(item for part in parts for item in part.sources))
         own, every, problems = sources.host_sources(data, profile_sources, self.path.parent, self._repos_files)
         for field, problem in problems:
             if isinstance(problem, str):
@@ -525,6 +531,12 @@ class RosterReader:
                                         board=data.get("board"))
         for problem in problems:
             error(problem.message, problem.field)
+        middleware = data.get("ros_middleware")
+        if middleware and middleware not in profile.middlewares:
+            error(f"profile {name!r} does not work with {middleware} (it works with: "
+                  f"{', '.join(profile.middlewares)}): set ros_middleware to one of them, or another robot_profile",
+                  "ros_middleware")
+            data["roslab_profile"] = result = None
         data["roslab_profile"] = result
         if result is None:
             return
@@ -553,3 +565,13 @@ class RosterReader:
             # The profile keeps discovery on the host (sim) unless the team or host chose a mode.
             data["ros_discovery_mode"] = "localhost"
             data["ros_automatic_discovery_range"] = "LOCALHOST"
+
+
+def profile_setting_word(value):
+    """A profile setting's value as the word a profile compares: YAML's true/false as "true"/
+    "false", a whole number as its digits; anything else as it is (checked by the caller)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    return value

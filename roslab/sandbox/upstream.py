@@ -429,8 +429,10 @@ def _cached_build(kind: str, key: str, build) -> Path:
 # -- the Ubuntu-layout archive of real Debian packages -----------------------------------
 
 def universe_packages(system_keys: dict[str, str], runtime_packages=()) -> list[str]:
+    from roslab.profiles.library import builtin_debian_packages  # the robot profiles' own debs
+
     return sorted(set(ROS_DEV_TOOLS_DEPENDS) | set(system_keys.values()) | set(EXTRA_UNIVERSE_PACKAGES)
-                  | set(runtime_packages))
+                  | set(runtime_packages) | builtin_debian_packages())
 
 
 def _download_closure(rootfs: Path, packages: list[str], workdir: Path, debs: Path) -> None:

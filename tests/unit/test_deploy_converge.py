@@ -181,3 +181,44 @@ def test_an_opted_in_2_gb_robot_gets_the_e_manuals_tweaks_once_and_a_noop_reads_
     second = plan(run_deploy_py, host.facts(), data)
     assert second.changing() == {}
     assert second.facts_asked == ["HostProbe", "HostProbe"]
+
+
+def osr_robot_data(tmp_path, **given):
+    from roslab.profiles.library import builtin_profiles
+    from roslab.profiles.resolve import resolve_host
+
+    profile, problems = resolve_host(builtin_profiles()["osr"], given, distro="jazzy", role="robot", board="pi4")
+    assert not problems
+    return host_data(tmp_path, "noble", "robot", roslab_profile=profile,
+                     nodes_launch=profile["launch"], ros_variant=profile["variant"])
+
+
+def test_an_osr_robot_gets_its_boot_config_once_records_the_reboot_and_then_nothing(tmp_path):
+    from roslab.profiles.host import CMDLINE_TXT, CONFIG_TXT, REBOOT_RECORD
+
+    host = with_stand_in_deb(FakeUbuntu())
+    host.files[CONFIG_TXT] = ["[pi4]", "max_framebuffers=2", "[all]", "arm_64bit=1"]
+    host.files[CMDLINE_TXT] = ["console=serial0,115200 console=tty1 root=LABEL=writable rootwait"]
+    first = plan(run_deploy_py, host.facts(), osr_robot_data(tmp_path))
+    assert not first.failed, first.errors
+    names = [name.split(" | ")[1] for name in first.changing()]
+    assert "Ensure the host records that the boot config waits for a reboot" in names
+    assert "Ensure /etc/systemd/system/osr_startup.service exists" not in names
+    assert first.uploads()["/etc/systemd/system/osr_startup.service"].count("Restart=always") == 1
+    host.apply(first)
+    assert host.files[CONFIG_TXT][:4] == ["[pi4]", "max_framebuffers=2", "[all]", "arm_64bit=1"]
+    assert "enable_uart=1" in host.files[CONFIG_TXT]
+    assert host.files[CMDLINE_TXT] == ["console=tty1 root=LABEL=writable rootwait"]
+    assert host.files[REBOOT_RECORD][0] == "boot_id=boot-1"
+    assert {"tty", "dialout", "input"} <= set(host.groups["student"])
+
+    second = plan(run_deploy_py, host.facts(), osr_robot_data(tmp_path))
+    assert second.changing() == {}
+    assert second.facts_asked == ["HostProbe", "HostProbe"]
+    assert any("osr_startup.service is installed but not enabled because osr_calibrated is false" in noop
+               for noop in second.noops)
+
+    host.boot_id = "boot-2"  # the teacher rebooted the rover
+    third = plan(run_deploy_py, host.facts(), osr_robot_data(tmp_path))
+    assert [name.split(" | ")[1] for name in third.changing()] == [
+        "Ensure a reboot record from before the last reboot is gone"]

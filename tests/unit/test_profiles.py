@@ -103,7 +103,7 @@ def test_the_built_in_profiles_load():
 @pytest.mark.parametrize("name", sorted(builtin_profiles()))
 def test_every_built_in_profile_installs_only_packages_its_distros_have(name):
     profile = builtin_profiles()[name]
-    values_per_setting = {key: list(s.allowed) or ["x1"] for key, s in profile.settings.items()}
+    values_per_setting = {key: list(s.allowed) or [s.default or "x1"] for key, s in profile.settings.items()}
     checked = 0
     for distro in profile.distros:
         for role in profile.sides:
@@ -251,7 +251,7 @@ def test_a_profile_naming_an_unknown_setting_is_refused_where_it_is_defined(tmp_
     assert errors[0] == ("lab.yaml:9: field 'profiles.mybot.robot.environment.MYBOT_ARM': names ${arm_modle}, "
                          "which is not a setting of this profile")
     assert errors[1] == ("lab.yaml:12: team 't1', host 't1-robot', field 'robot_profile': 'mybot' is not a robot "
-                         "profile (known: demo, sim, turtlebot3)")
+                         "profile (known: demo, esp32_microros, osr, sim, turtlebot3)")
 
 
 def test_a_roster_profile_extends_a_built_in_one(tmp_path, rosdistro_url):

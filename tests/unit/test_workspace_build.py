@@ -629,7 +629,7 @@ def test_a_fresh_host_gets_every_step_as_the_login_user():
     build = result.operation("is built from these sources")
     assert build.arguments.get("_sudo_user") == "student"
     (script,) = build.text()
-    assert "src/roslab_bringup src/roslab_demo; then" in script  # the syntax check, then colcon
+    assert "src/roslab_bringup src/roslab_demo src/roslab_esp32; then" in script  # the syntax check, then colcon
     assert result.operation("runs the current build and unit").text() == [
         "systemctl reset-failed roslab-nodes.service 2>/dev/null; systemctl restart roslab-nodes.service"
     ]
@@ -762,7 +762,8 @@ def test_synced_workspace_builds_with_real_colcon_and_rebuilds_only_on_change(tm
 
     talker = ws / "install" / "roslab_demo" / "lib" / "roslab_demo" / "talker"
     assert os.access(talker, os.X_OK)
-    assert "Summary: 2 packages finished" in (ws / "log" / "roslab-build.log").read_text()
+    assert "Summary: 3 packages finished" in (ws / "log" / "roslab-build.log").read_text()
+    assert os.access(ws / "install" / "roslab_esp32" / "lib" / "roslab_esp32" / "servo_follower", os.X_OK)
     assert build_commands() == []  # built from these sources already
 
     # As `ros2 run roslab_demo talker` would: with the workspace's environment.
