@@ -83,7 +83,15 @@ def _url_rewrites(value, context=None):
     return rewrites_problem(value, context)
 
 
+def _source_pins(value, context=None):
+    """Repository path -> a commit or a tag."""
+    from roslab.sources import pins_problem
+
+    return pins_problem(value, context)
+
+
 _repos_file.allowed = "a .repos file, relative to the roster"
+_source_pins.allowed = "repository path: commit (40 hex) or tag"
 _url_rewrites.allowed = "URL prefix: replacement prefix (http, https, file)"
 
 SECONDS_PER_DAY = 24 * 3600
@@ -312,6 +320,10 @@ SCHEMA: list[Setting] = [
          "{\"https://github.com/\": \"http://mirror.lab/git/github.com/\"} (the longest matching prefix wins); "
          "the lock file and every message keep the URL the .repos file gives.", _url_rewrites,
          {"levels": ("classroom",)}),
+        ("source_pins", {}, dict,
+         "Repository path (as its .repos file names it) -> the commit (40 hex digits) or tag to build "
+         "instead of the file's: moves a robot profile's pin without editing the profile (a newer "
+         "release, a lab mirror's own tag).", _source_pins),
         ("sources_cache_dir", "~/.cache/roslab/sources", str,
          "Where the controller keeps a bare mirror of each repository and the lock file (tag -> commit, "
          "commit -> sha256 of its archive); offline: true builds from it alone. A folder of its own inside "

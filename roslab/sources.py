@@ -274,6 +274,28 @@ def repos_file_problem(value, context=None) -> str | None:
 repos_file_problem.allowed = "a .repos file, relative to the roster"
 
 
+def pins_problem(value, _context=None) -> str | None:
+    """Why `value` is not a mapping of repository path -> pin (a commit or a tag), or None."""
+    if not isinstance(value, dict):
+        return "must be a mapping of repository path (as in its .repos file) to a commit or a tag"
+    if len(value) > MAX_REPOSITORIES:
+        return f"has {len(value)} entries; at most {MAX_REPOSITORIES} are allowed"
+    for path, version in value.items():
+        if not isinstance(path, str) or not REPO_PATH.fullmatch(path) or ".." in path.split("/"):
+            return f"{path!r} is not a repository's path (relative, letters, digits and _ . + -)"
+        problem = version_problem(version)
+        if problem:
+            return f"{path}: {problem}"
+    return None
+
+
+def pinned(repositories: list[dict], pins: dict | None) -> list[dict]:
+    """The repositories with the roster's `source_pins` in place of their files' versions (a
+    teacher moves a pin, or a lab builds its mirror's tag, without editing a profile)."""
+    return [{**repo, "version": pins[repo["path"]], "file": "source_pins", "line": None}
+            if pins and repo["path"] in pins else repo for repo in repositories]
+
+
 def host_sources(data: dict, profile_sources: list[tuple[Path, str]], roster_dir: Path,
                  files: ReposFiles) -> tuple[list[dict], list[dict], list[tuple[str, Problem | str]]]:
     """(the profile's repositories, every repository of the host, problems as (field, Problem or text)).
@@ -300,4 +322,5 @@ def host_sources(data: dict, profile_sources: list[tuple[Path, str]], roster_dir
     problems += [("sources", text) for text in conflicts]
     every, conflicts = merged([("sources", profile_merged), ("workspace_sources", roster_repos)])
     problems += [("workspace_sources", text) for text in conflicts]
-    return profile_merged, every, problems
+    pins = data.get("source_pins")
+    return pinned(profile_merged, pins), pinned(every, pins), problems

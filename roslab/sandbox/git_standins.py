@@ -10,8 +10,8 @@ points `https://github.com/` there, as a classroom would point it at a local git
 Each stand-in holds one ament_python package (named from the repository's path, or as
 given) with a console script that prints what it is and exits: no real robot code. Its
 README says it is a stand-in. A tag the .repos file pins is made on its commit; a pinned
-commit cannot be made (its hash is the real history's), so only tag pins of the built-in
-profiles' .repos files can be served.
+commit cannot be made (its hash is the real history's): such a stand-in carries the tag
+STANDIN_TAG, and the sandbox roster's `source_pins` (a setting a teacher has too) builds it.
 """
 
 from __future__ import annotations
@@ -150,19 +150,42 @@ def rewrites(upstream_url: str, hosts=("github.com", "gitlab.com", "bitbucket.or
     return {f"https://{name}/": f"{upstream_url}/{GIT_ROOT}/{name}/" for name in hosts}
 
 
-def from_repos_files(serve_dir: Path, repos_files) -> list[str]:
-    """Stand-ins for every repository the .repos files name with a tag (the built-in profiles');
-    returns the URLs served. A commit pin is skipped (it cannot be made: see the module doc)."""
+# A commit pin cannot be made: its stand-in carries this tag instead, and the sandbox roster
+# pins the repository to it with `source_pins` (the setting a teacher uses to move a pin).
+STANDIN_TAG = "roslab-sandbox-standin"
+# What the built-in profiles run from their repositories, so that the stand-in has it:
+# {repository path: {package: [executables]}} (default: one package named from the path).
+STANDIN_PACKAGES = {
+    "micro-ROS-Agent": {"micro_ros_agent": ["micro_ros_agent"]},
+    "Micro-XRCE-DDS-Agent": {"microxrcedds_agent": ["MicroXRCEAgent"]},
+    "osr-rover-code": {"osr_bringup": ["osr_bringup"]},
+}
+
+
+def _repositories(repos_files):
     import yaml
 
-    served = []
     for path in repos_files:
         data = yaml.safe_load(Path(path).read_text()) or {}
         for repo_path, spec in (data.get("repositories") or {}).items():
-            version = str(spec.get("version", ""))
             url = spec.get("url", "")
-            if not url.startswith(("http://", "https://")) or re.fullmatch(r"[0-9a-f]{40}", version):
-                continue
-            standin_repository(serve_dir, url, repo_path, tags=[version] if version else [])
-            served.append(url)
+            if url.startswith(("http://", "https://")):
+                yield repo_path, url, str(spec.get("version", ""))
+
+
+def from_repos_files(serve_dir: Path, repos_files) -> list[str]:
+    """Stand-ins for every repository the .repos files name (the built-in profiles'); returns
+    the URLs served. A tag pin is made on the stand-in's commit; a commit pin cannot be made
+    (see the module doc), so such a stand-in carries STANDIN_TAG (see `commit_pins`)."""
+    served = []
+    for repo_path, url, version in _repositories(repos_files):
+        tags = [STANDIN_TAG] if re.fullmatch(r"[0-9a-f]{40}", version) else [version] if version else []
+        standin_repository(serve_dir, url, repo_path, tags=tags, packages=STANDIN_PACKAGES.get(repo_path))
+        served.append(url)
     return served
+
+
+def commit_pins(repos_files) -> dict[str, str]:
+    """`source_pins` for the sandbox roster: each commit-pinned repository to its stand-in's tag."""
+    return {repo_path: STANDIN_TAG for repo_path, _, version in _repositories(repos_files)
+            if re.fullmatch(r"[0-9a-f]{40}", version)}

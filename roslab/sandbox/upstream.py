@@ -725,6 +725,8 @@ class Upstream:
             "apt_cache_upstream_ports": [int(self.url.rsplit(":", 1)[1])],
             # The stand-in git server (git_standins.py): the class fetches .repos repositories here.
             "source_url_rewrites": git_standins.rewrites(self.url),
+            # The built-in profiles' commit pins cannot be stood in: their stand-ins' tag instead.
+            "source_pins": git_standins.commit_pins(builtin_repos_files()),
             "python_index_url": f"{self.url}/pypi/simple",  # the stand-in index (sandbox/pypi.py)
             **self.middleware_settings(),
         }
@@ -739,6 +741,11 @@ class Upstream:
 
     def mirror_settings(self, key_file: Path) -> dict:
         return {"ros_apt_mirror_url": f"{self.url}/ros2/ubuntu", "ros_apt_mirror_key_file": str(key_file)}
+
+
+def builtin_repos_files() -> list[Path]:
+    """The built-in robot profiles' .repos files (roslab/profiles/data)."""
+    return sorted(Path(__file__).resolve().parent.parent.joinpath("profiles", "data").glob("*.repos"))
 
 
 def build(serve_dir: Path, url: str, rootfs: Path, nodes_dir: Path | None = None,
@@ -762,8 +769,7 @@ def build(serve_dir: Path, url: str, rootfs: Path, nodes_dir: Path | None = None
     write_file(serve_dir / "keys/ros.asc", ros_key().armored.read_bytes())
     write_file(serve_dir / "keys/ubuntu.asc", ubuntu_key().armored.read_bytes())
     # Stand-in git repositories for the built-in profiles' .repos files (git_standins.py).
-    git_standins.from_repos_files(serve_dir, sorted(Path(__file__).resolve().parent.parent.joinpath(
-        "profiles", "data").glob("*.repos")))
+    git_standins.from_repos_files(serve_dir, builtin_repos_files())
     pypi.build_index(serve_dir)  # the stand-in Python index, for the profiles' python_packages
     ros = {distro: "stand-in" for distro in ROS_DISTROS.values()} | runtime.describe()
     return Upstream(url=url, ros_apt_source_sha256=sums, ros=ros)

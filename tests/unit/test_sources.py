@@ -457,3 +457,30 @@ def test_the_student_workspace_the_shell_and_the_unit_source_the_underlay_first(
     assert "roslab_underlay" not in render_ros_environment("jazzy", 11)
     built = build_script("/home/u/ros2_ws", "jazzy", [], "s", underlays=["/home/u/roslab_underlay/install/setup.bash"])
     assert "source /home/u/roslab_underlay/install/setup.bash || exit 1" in built
+
+
+def test_source_pins_move_a_profiles_pin_and_name_themselves_as_its_origin(tmp_path):
+    from roslab.sources import ReposFiles, host_sources
+
+    (tmp_path / "robot.repos").write_text(
+        "repositories:\n  agent:\n    type: git\n    url: https://github.com/o/agent.git\n"
+        "    version: 08525169cfc35c398b140a3b2df56a96a30aba98\n"
+        "  msgs:\n    type: git\n    url: https://github.com/o/msgs.git\n    version: v1.0.0\n")
+    data = {"workspace_sources": [], "source_pins": {"agent": "v2.4.3"}}
+    own, every, problems = host_sources(data, [(tmp_path, "robot.repos")], tmp_path, ReposFiles())
+    assert problems == []
+    assert [(r["path"], r["version"], r["file"]) for r in every] == [
+        ("agent", "v2.4.3", "source_pins"), ("msgs", "v1.0.0", every[1]["file"])]
+    assert own == every
+
+
+def test_the_sandbox_stands_in_for_every_builtin_commit_pin_with_a_tag_its_roster_pins():
+    from roslab.sandbox import git_standins
+    from roslab.sandbox.upstream import builtin_repos_files
+    from roslab.sources import version_problem
+
+    files = builtin_repos_files()
+    pins = git_standins.commit_pins(files)
+    commit_pinned = {path for path, _, version in git_standins._repositories(files) if len(version) == 40}
+    assert commit_pinned and set(pins) == commit_pinned
+    assert all(version_problem(tag) is None for tag in pins.values())
