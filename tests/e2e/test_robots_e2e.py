@@ -8,10 +8,12 @@ Ubuntu 24.04 (Jazzy):
 
 The robot's boot partition: a sandbox host has no /boot/firmware, so before the first run the
 test writes STAND-INS of a Pi's config.txt and cmdline.txt there (Ubuntu 24.04's for a Pi,
-abridged), as the Pi image has them. The micro-ROS agent's binary comes from the source
-workspace (helper A's underlay), which this module does not build: `esp32_present: false`
-keeps the agent from starting, and the checks read the agent's unit from systemd (its
-RMW_IMPLEMENTATION and its transport arguments), not a running agent.
+abridged), as the Pi image has them. The rover's and the agent's sources are the sandbox's
+stand-in repositories (roslab/sandbox/git_standins.py, pinned by the sandbox roster's
+source_pins), built in each host's underlay; the rover's venv holds the stand-in index's
+packages. The stand-in agent prints what it is and exits, as the real one does without its
+board: `esp32_present: false` keeps it from starting, and the checks read the agent's unit from
+systemd (its RMW_IMPLEMENTATION and its transport arguments), not a running agent.
 """
 
 from __future__ import annotations
@@ -141,6 +143,22 @@ def test_the_agent_unit_runs_the_serial_transport_with_fast_dds(sandbox, first_r
     assert 'ATTRS{serial}=="0001A2B3"' in rules and 'SYMLINK+="esp32"' in rules
     assert "dialout" in sandbox.ssh(BOARD_HOST, "id -nG ubuntu", check=True).stdout.split()
     assert sandbox.ssh(BOARD_HOST, "dpkg-query -W brltty 2>/dev/null | grep -q .").returncode != 0
+
+
+def test_the_rover_and_the_boards_host_build_their_pinned_sources_and_the_rover_has_its_venv(sandbox, first_run):
+    """osr.repos on the rover, esp32_microros.repos only on the host the board is plugged into
+    (the sandbox's stand-in repositories, pinned by the sandbox roster's source_pins)."""
+    underlay = "/home/ubuntu/roslab_underlay/install"
+    built = {host: sandbox.ssh(host, f"ls {underlay} 2>/dev/null").stdout.split()
+             for host in (ROVER, "team1-main", "team2-main")}
+    assert "osr_bringup" in built[ROVER], built
+    assert {"micro_ros_agent", "microxrcedds_agent"} <= set(built["team2-main"]), built
+    assert built["team1-main"] == [], built
+    agent = sandbox.ssh("team2-main", f"{underlay}/micro_ros_agent/lib/micro_ros_agent/micro_ros_agent", check=True)
+    assert "roslab sandbox stand-in: micro_ros_agent" in agent.stdout
+    imports = sandbox.ssh(ROVER, "~/osr_venv/bin/python -c 'import adafruit_servokit, ina260, RPi.GPIO, smbus'")
+    assert imports.returncode == 0, imports.stderr
+    assert sandbox.ssh(ROVER, "test -f ~/osr_venv/COLCON_IGNORE").returncode == 0
 
 
 def test_a_rerun_changes_nothing_and_still_says_the_rover_waits_for_a_reboot(sandbox, roster, first_run):
