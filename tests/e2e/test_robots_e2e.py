@@ -154,7 +154,8 @@ def test_the_rover_and_the_boards_host_build_their_pinned_sources_and_the_rover_
     assert "osr_bringup" in built[ROVER], built
     assert {"micro_ros_agent", "microxrcedds_agent"} <= set(built["team2-main"]), built
     assert built["team1-main"] == [], built
-    agent = sandbox.ssh("team2-main", f"{underlay}/micro_ros_agent/lib/micro_ros_agent/micro_ros_agent", check=True)
+    agent = sandbox.ssh("team2-main", f"bash -c 'source {underlay}/setup.bash && "
+                                      f"{underlay}/micro_ros_agent/lib/micro_ros_agent/micro_ros_agent'", check=True)
     assert "roslab sandbox stand-in: micro_ros_agent" in agent.stdout
     imports = sandbox.ssh(ROVER, "~/osr_venv/bin/python -c 'import adafruit_servokit, ina260, RPi.GPIO, smbus'")
     assert imports.returncode == 0, imports.stderr
