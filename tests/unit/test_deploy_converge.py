@@ -189,7 +189,9 @@ def osr_robot_data(tmp_path, **given):
 
     profile, problems = resolve_host(builtin_profiles()["osr"], given, distro="jazzy", role="robot", board="pi4")
     assert not problems
-    return host_data(tmp_path, "noble", "robot", roslab_profile=profile,
+    # The rover's venv and sources have their own converge tests (test_python_env.py,
+    # test_sources.py): this host is about its boot config, services and groups.
+    return host_data(tmp_path, "noble", "robot", roslab_profile=profile, python_env_enabled=False,
                      nodes_launch=profile["launch"], ros_variant=profile["variant"])
 
 
