@@ -272,7 +272,7 @@ def test_an_installed_roslab_run_from_an_init_folder_heals_the_class(converged, 
     assert rows[FRESH] == f"{FRESH} changed"
     assert last == "exit code 0: 0 failed, 1 changed, 3 ok (4 hosts)"
     listed = converged.ssh(FRESH, "ls ~/ros2_ws/src; systemctl is-active roslab-nodes")
-    assert listed.stdout.split() == ["roslab_bringup", "roslab_demo", "active"], listed
+    assert listed.stdout.split() == ["roslab_bringup", "roslab_demo", "roslab_esp32", "active"], listed
     after = subprocess.run([str(venv / "bin/roslab"), "status"], cwd=folder, env=clean_env,
                            capture_output=True, text=True, timeout=120)
     assert after.returncode == 0, after.stdout + after.stderr

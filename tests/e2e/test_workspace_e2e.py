@@ -185,7 +185,7 @@ def test_workspace_is_synced_and_owned_by_the_login_user(classroom, sandbox, fir
         foreign = sandbox.sudo(host, f"find {WORKSPACE} ! -user {LOGIN_USER}")
         assert foreign.stdout == "", f"{host}: not owned by {LOGIN_USER}: {foreign.stdout}"
         manifest = sandbox.ssh(host, "cat ~/ros2_ws/src/.roslab-manifest").stdout
-        assert manifest.splitlines()[-2:] == ["roslab_bringup", "roslab_demo"]
+        assert manifest.splitlines()[-len(packages):] == sorted(package.name for package in packages)
         # The syntax check wrote no byte-code into src/ (it would be synced away every run).
         assert sandbox.ssh(host, "find ~/ros2_ws/src -name __pycache__").stdout == "", host
 

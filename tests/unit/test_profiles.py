@@ -468,3 +468,17 @@ def test_a_profiles_apt_packages_get_the_distro_filled_in_and_checked(tmp_path, 
     (error,) = errors_of(roster)
     assert "ros-jazzy-ld08-drivr is not a package of ROS 2 jazzy" in error, error
     assert "did you mean ros-jazzy-ld08-driver?" in error
+
+
+def test_every_file_of_the_builtin_profiles_is_in_the_installed_package():
+    """An installed roslab (the wheel) reads its profiles' .repos files as the checkout does:
+    pyproject's package data must name every kind of file in profiles/data."""
+    import fnmatch
+    import tomllib
+
+    root = Path(__file__).resolve().parents[2]
+    patterns = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["roslab"]
+    data = root / "roslab" / "profiles" / "data"
+    missing = [path.name for path in data.iterdir()
+               if not any(fnmatch.fnmatch(f"profiles/data/{path.name}", pattern) for pattern in patterns)]
+    assert missing == []
