@@ -12,7 +12,8 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Follow the ESP32 board's potentiometer with its servo (seed 000's circuit).
+"""
+Follow the ESP32 board's potentiometer with its servo (seed 000's circuit).
 
 Subscribes /esp32/potentiometer (std_msgs/Int32, the raw 12-bit reading the board's firmware
 publishes) and publishes /esp32/servo_angle (std_msgs/Int32, 0-180), which the firmware
