@@ -22,6 +22,7 @@ from deploy.common import existing_login_home, host_distro, login_user, should_r
 from roslab import probe, settings
 from roslab import workspace as ws_ops
 from roslab.profiles.host import service_installed_not_running
+from roslab.python_venv import venv_on_pythonpath
 from roslab.quoting import shell_word, systemd_assignment, systemd_value, systemd_word
 from roslab.ros_env import host_environment
 from roslab.templating import render
@@ -41,21 +42,32 @@ def profile_services() -> list[dict]:
     return (host.data.get("roslab_profile") or {}).get("services") or []
 
 
-def exec_script(*, distro: str, workspace_dir: str, command: str) -> str:
+def exec_script(*, distro: str, workspace_dir: str, command: str, venv_dir: str | None = None) -> str:
     """The bash script the unit runs: the distro's setup, the workspace's (which overlays the
-    profile's underlay) when it was built, then the command (its settings already shell words)."""
+    profile's underlay) when it was built, the profile's venv on PYTHONPATH (`venv_dir`,
+    absolute, or None), then the command (its settings already shell words)."""
     setup = posixpath.join(workspace_dir, "install", "setup.bash")
     return " && ".join([
         f"source {shell_word(f'/opt/ros/{distro}/setup.bash')}",
         f"if [ -f {shell_word(setup)} ]; then source {shell_word(setup)}; fi",
+        *([f"{{ {venv_on_pythonpath(shell_word(venv_dir))}; }}"] if venv_dir else []),
         f"exec {command}",
     ])
 
 
+def profile_venv(home: str) -> str | None:
+    """The profile's venv (absolute) when the python step fills it, else None."""
+    venv = ((host.data.get("roslab_profile") or {}).get("python") or {}).get("venv")
+    if not venv or not host.data.get("python_env_enabled", True):
+        return None
+    return posixpath.join(home, venv)
+
+
 def unit_text(*, service: dict, profile: str, user: str, home: str, workspace_dir: str, distro: str,
-              environment: dict[str, str]) -> str:
+              environment: dict[str, str], venv_dir: str | None = None) -> str:
     """templates/profile-service.service.j2 with every value written for systemd."""
-    script = exec_script(distro=distro, workspace_dir=workspace_dir, command=service["command"])
+    script = exec_script(distro=distro, workspace_dir=workspace_dir, command=service["command"],
+                         venv_dir=venv_dir)
     merged = {**environment, **service["environment"]}
     return render(
         "profile-service.service.j2",
@@ -78,8 +90,9 @@ def profile_services_in_place():
     """Write each service of the host's profile side as a unit; enable and start it when its
     `enabled_if` holds, else stop and disable it (saying why).
 
-    Reads host.data: profile_services_enabled, roslab_profile (name, services), workspace_dir,
-    login_user, ssh_user, ros_distro and what roslab.ros_env.host_environment reads.
+    Reads host.data: profile_services_enabled, roslab_profile (name, services, python),
+    python_env_enabled, workspace_dir, login_user, ssh_user, ros_distro and what
+    roslab.ros_env.host_environment reads.
     """
     services = profile_services()
     if not services or not should_run("profile_services_enabled"):
@@ -95,7 +108,7 @@ def profile_services_in_place():
     try:  # before any change: a value a unit cannot carry stops this host only
         units = {service["name"]: unit_text(
             service=service, profile=name, user=user, home=home, workspace_dir=workspace_dir, distro=distro,
-            environment=host_environment(host.data, distro)) for service in services}
+            environment=host_environment(host.data, distro), venv_dir=profile_venv(home)) for service in services}
     except ValueError as error:
         stop_host(f"{where()}: profile services: {error}; nothing was changed by this step")
         return

@@ -23,6 +23,7 @@ from roslab import probe, settings
 from roslab.operations import managed_block, managed_block_reads
 from roslab.quoting import shell_home_path, shell_word
 from deploy.sources import repositories
+from roslab.python_venv import venv_on_pythonpath
 from roslab.ros_env import host_environment, ros_variables
 from roslab.templating import render
 
@@ -41,6 +42,7 @@ def render_ros_environment(
     extra: dict[str, str] | None = None,
     variables: dict[str, str] | None = None,
     underlay_dir: str | None = None,
+    venv_dir: str | None = None,
 ) -> str:
     """The text of the ~/.bashrc block for these (schema-checked) settings.
 
@@ -48,6 +50,7 @@ def render_ros_environment(
     `variables`: every variable, as `roslab.ros_env.host_environment(data, distro, shell=True)` gives
     them (domain, middleware, discovery mode, extras); then the other value arguments are unused.
     `underlay_dir`: the underlay workspace (deploy/sources.py) sourced before the workspace, or None.
+    `venv_dir`: the robot profile's venv (`~/...`), whose site-packages go first on PYTHONPATH, or None.
     """
     if variables is None:
         variables = {**ros_variables(distro, domain_id, discovery_range, static_peers), **(extra or {})}
@@ -60,7 +63,16 @@ def render_ros_environment(
         underlay_setup=shell_home_path(underlay_dir.rstrip("/") + "/install/setup.bash") if underlay_dir else None,
         ros_variables={name: shell_word(value) for name, value in variables.items()},
         rosdistro_index_url=shell_word(rosdistro_index_url) if rosdistro_index_url else None,
+        venv_pythonpath=venv_on_pythonpath(shell_home_path(venv_dir.rstrip("/"))) if venv_dir else None,
     )
+
+
+def profile_venv_dir() -> str | None:
+    """The robot profile's venv as `~/...` when the python step fills it, else None."""
+    venv = ((host.data.get("roslab_profile") or {}).get("python") or {}).get("venv")
+    if not venv or not host.data.get("python_env_enabled", True):
+        return None
+    return f"~/{venv}"
 
 
 @deploy(
@@ -74,7 +86,8 @@ def shell_env():
     ros_static_peers, ros_middleware, ros_discovery_mode, ros_discovery_server_port,
     ros_zenoh_router_port, roslab_team_hosts, roslab_hostname, roslab_role, ros_distro,
     workspace_dir, rosdistro_index_url, login_user, ssh_user, roslab_profile (its environment),
-    ros_environment, roslab_sources and sources_underlay_dir (the underlay, sourced before the workspace).
+    ros_environment, roslab_sources and sources_underlay_dir (the underlay, sourced before the workspace),
+    python_env_enabled and roslab_profile's python venv (first on PYTHONPATH).
     """
     if not should_run("shell_env_enabled"):
         return
@@ -91,6 +104,7 @@ def shell_env():
             rosdistro_index_url=host.data.rosdistro_index_url,
             variables=host_environment(host.data, distro, shell=True),
             underlay_dir=host.data.get("sources_underlay_dir") if repositories() else None,
+            venv_dir=profile_venv_dir(),
         )
     except ValueError as error:  # a value no shell word can carry (only `--data` skips the schema)
         stop_host(f"{where()}: shell_env: {error}; nothing was changed by this step")

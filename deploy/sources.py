@@ -66,7 +66,7 @@ def sources():
 
     Reads host.data: sources_enabled, roslab_sources, sources_underlay_dir, sources_cache_dir,
     source_url_rewrites, sources_fetch_timeout, sources_rosdep_install, offline,
-    workspace_colcon_args, login_user, ssh_user, ros_distro.
+    workspace_colcon_args, roslab_profile (cmake_args), login_user, ssh_user, ros_distro.
     """
     if not should_run("sources_enabled"):
         return
@@ -103,7 +103,9 @@ def sources():
         user=user,
     )
     colcon_args = list(host.data.get("workspace_colcon_args") or [])
-    stamp = underlay_ops.build_stamp(digests, distro, colcon_args)
+    # the profile's CMake settings per package (the micro-ROS agent's superbuild off, say)
+    cmake_args = (host.data.get("roslab_profile") or {}).get("cmake_args") or {}
+    stamp = underlay_ops.build_stamp(digests, distro, colcon_args, cmake_args)
     if host.data.get("sources_rosdep_install", True):
         ws_ops.dependencies(
             name="Ensure the underlay's system dependencies are installed (rosdep)",
@@ -120,6 +122,7 @@ def sources():
         distro=distro,
         colcon_args=colcon_args,
         stamp=stamp,
+        cmake_args=cmake_args,
         **as_login_user(user),
     )
 

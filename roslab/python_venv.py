@@ -3,6 +3,7 @@
     PythonTarget                  the host's machine, glibc and python3 (what the wheelhouse is for)
     VenvState                     a venv's Python, its COLCON_IGNORE and its requirements stamp
     venv_requirements_installed   the venv exists and holds exactly the wheelhouse's requirements
+    venv_on_pythonpath            shell: the venv's site-packages first on PYTHONPATH
 """
 
 from __future__ import annotations
@@ -13,6 +14,22 @@ from pyinfra.api import FactBase, operation
 from roslab.quoting import shell_word
 
 STAMP = ".roslab-requirements"  # in the venv: the digest of the requirement set installed last
+
+
+def venv_on_pythonpath(venv_word: str) -> str:
+    """Shell that puts a venv's site-packages first on PYTHONPATH, if the venv is there.
+
+    `venv_word`: the venv's directory as one shell word (`shell_word`, `shell_home_path`).
+    ROS runs Python nodes with the interpreter of their shebang (/usr/bin/python3), never the
+    venv's, so activating the venv would not reach them: PYTHONPATH does, for `ros2 run`,
+    `ros2 launch` and plain `python3` alike. A glob (the venv's one python3.X), not a Python
+    call: a shell on a Pi 3 starts no interpreter for it.
+    """
+    # once: a nested shell sources ~/.bashrc again
+    return (f"for roslab_site in {venv_word}/lib/python3*/site-packages; do "
+            'case ":${PYTHONPATH:-}:" in *":$roslab_site:"*) ;; *) if [ -d "$roslab_site" ]; then '
+            'export PYTHONPATH="$roslab_site${PYTHONPATH:+:$PYTHONPATH}"; fi ;; esac; '
+            "done; unset roslab_site")
 
 
 class PythonTarget(FactBase):

@@ -31,6 +31,9 @@ MANIFEST = f"{STATE_DIR_NAME}/sources.json"
 # Where the archives wait (root's) between their upload and their extraction by the user.
 ARCHIVE_DIR = "/var/lib/roslab/sources"
 BUILD_LOG = "log/roslab-underlay-build.log"
+# The profile's CMake settings per package, as colcon-metadata reads them (`--metas`); in
+# roslab's own folder, so a colcon.meta the user keeps beside src/ is never touched.
+COLCON_META = f"{STATE_DIR_NAME}/colcon.meta"
 SLOTS = ("install-a", "install-b")
 
 
@@ -138,24 +141,39 @@ def sources(underlay_dir: str, repositories: list[dict], user: str):
                          f"mv {manifest}.new {manifest}")
 
 
-def build_stamp(digests: dict[str, str], distro: str, colcon_args: list[str]) -> str:
-    """What a build is of: every repository's archive, the distro, colcon's arguments."""
+def colcon_meta(cmake_args: dict[str, list[str]]) -> str:
+    """colcon.meta text giving each package its CMake settings ("" when there are none)."""
+    names = {package: {"cmake-args": list(args)} for package, args in sorted(cmake_args.items()) if args}
+    return json.dumps({"names": names}, indent=2, sort_keys=True) + "\n" if names else ""
+
+
+def build_stamp(digests: dict[str, str], distro: str, colcon_args: list[str],
+                cmake_args: dict[str, list[str]] | None = None) -> str:
+    """What a build is of: every repository's archive, the distro, colcon's arguments and the
+    packages' CMake settings."""
     import hashlib
 
-    text = "\0".join([*(f"{path}={sha}" for path, sha in sorted(digests.items())), distro, *colcon_args])
+    text = "\0".join([*(f"{path}={sha}" for path, sha in sorted(digests.items())), distro, *colcon_args,
+                      colcon_meta(cmake_args or {})])
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def build_script(underlay_dir: str, distro: str, colcon_args: list[str], stamp: str) -> str:
+def build_script(underlay_dir: str, distro: str, colcon_args: list[str], stamp: str,
+                 cmake_args: dict[str, list[str]] | None = None) -> str:
     """Build into the install tree not in use; switch `install` to it only on success."""
     state_dir = STATE_DIR_NAME
     stamp_file = posixpath.join(state_dir, "build.sha256")
-    colcon = " ".join(shlex.quote(arg) for arg in ["colcon", "build", *colcon_args])
+    meta = colcon_meta(cmake_args or {})
+    # colcon reads the packages' CMake settings only from a meta file it is pointed at
+    metas = ["--metas", COLCON_META] if meta else []
+    colcon = " ".join(shlex.quote(arg) for arg in ["colcon", "build", *colcon_args, *metas])
     a, b = SLOTS
+    write_meta = (f"printf '%s' {shlex.quote(meta)} > {COLCON_META}" if meta else f"rm -f {COLCON_META}")
     return "\n".join([
         f"cd {shlex.quote(underlay_dir)} || exit 1",
         f"mkdir -p log {state_dir}",
         f"rm -f {stamp_file}",  # no stamp while building: an interrupted build is tried again
+        write_meta,
         f'if [ "$(readlink install 2>/dev/null)" = {a} ]; then slot={b}; else slot={a}; fi',
         'rm -rf "$slot" "build-$slot"',
         f"source /opt/ros/{shlex.quote(distro)}/setup.bash || exit 1",
@@ -191,7 +209,8 @@ def build_script(underlay_dir: str, distro: str, colcon_args: list[str], stamp: 
 
 
 @operation()
-def built(underlay_dir: str, distro: str, colcon_args: list[str], stamp: str):
+def built(underlay_dir: str, distro: str, colcon_args: list[str], stamp: str,
+          cmake_args: dict[str, list[str]] | None = None):
     """
     Build an underlay (colcon) when its sources changed since the last successful build.
 
@@ -199,6 +218,8 @@ def built(underlay_dir: str, distro: str, colcon_args: list[str], stamp: str):
     + distro: ROS 2 distro whose ``/opt/ros/<distro>/setup.bash`` is sourced for the build
     + colcon_args: arguments after ``colcon build``
     + stamp: ``build_stamp(...)`` of what is to be built
+    + cmake_args: CMake settings per package (``{package: ["-DNAME=value"]}``), written to
+      ``.roslab/colcon.meta`` and given to colcon with ``--metas``
 
     Run it as the underlay's owner (``_sudo_user``). A failed build leaves the last good
     install in use and fails with the package and its first error line.
@@ -207,4 +228,5 @@ def built(underlay_dir: str, distro: str, colcon_args: list[str], stamp: str):
     if stamps.get("build") == stamp and stamps.get("installed"):
         host.noop(f"{underlay_dir} is built from these sources already")
         return
-    yield StringCommand("bash", "-c", shlex.quote(build_script(underlay_dir, distro, colcon_args, stamp)))
+    yield StringCommand("bash", "-c", shlex.quote(build_script(underlay_dir, distro, colcon_args, stamp,
+                                                               cmake_args)))

@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from roslab.distro import DISTRO_RELEASES, PLATFORMS
-from roslab.profiles.schema import BOOT_CONFIG_KEYS, PLACEHOLDER, Profile, Side
+from roslab.profiles.schema import BOOT_CONFIG_KEYS, PLACEHOLDER, Profile, Side, merged_cmake_args
 from roslab.quoting import shell_word
 
 UDEV_RULES_PATH = "/etc/udev/rules.d/60-roslab-profile.rules"
@@ -182,6 +182,8 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         # the side's .repos files' repositories: filled by the roster loader (roslab/sources.py),
         # which reads the files; here only for hand-made data
         "sources": [],
+        # {package: ["-DNAME=value", ...]} for the underlay's build (deploy/sources.py)
+        "cmake_args": merged_cmake_args([part.cmake_args for part in parts]),
         "python": python_data(profile, side),
         "remove_apt_packages": merged.remove_apt_packages,
         "boot_config": {key: items for key, items in merged.boot_config.items() if items},

@@ -33,9 +33,13 @@ TOP_KEYS = ("profile", "extends", "description", "distros", "boards", "middlewar
 SETTING_KEYS = ("doc", "allowed", "pattern", "required", "default")
 SIDE_KEYS = ("variant", "boards", "ros_packages", "apt_packages", "remove_apt_packages", "environment", "groups",
              "udev_rules", "boot_config", "services", "launch", "checklist", "os_tweaks", "sources",
-             "python_packages", "python_venv", "when")
+             "cmake_args", "python_packages", "python_venv", "when")
 WHEN_KEYS = ("if", "ros_packages", "apt_packages", "remove_apt_packages", "environment", "groups", "udev_rules",
-             "boot_config", "services", "sources", "checklist")
+             "boot_config", "services", "sources", "cmake_args", "checklist")
+# `cmake_args`: CMake cache settings for one package of the underlay (colcon.meta's
+# "cmake-args"), each `-DNAME=value` or `-DNAME:TYPE=value`, plain ASCII, one shell word.
+_CMAKE_ARG = re.compile(r"-D[A-Za-z_][A-Za-z0-9_]{0,63}(:(BOOL|STRING|PATH|FILEPATH))?=[A-Za-z0-9_.,/+:@%-]{0,200}",
+                        re.ASCII)
 # The middlewares a class may run (roslab.settings ros_middleware); a profile may allow fewer.
 MIDDLEWARES = ("rmw_fastrtps_cpp", "rmw_cyclonedds_cpp", "rmw_zenoh_cpp")
 # A Pi's boot configuration (deploy/profile_extras.py): lines kept in a marked block of
@@ -102,6 +106,9 @@ class Side:
     # vcstool .repos files filling the login user's underlay (roslab/sources.py), as
     # (folder, name): beside a built-in profile's YAML, or relative to the roster
     sources: list[tuple[Path, str]] = field(default_factory=list)
+    # CMake cache settings per underlay package ({package: ["-DNAME=value", ...]}), given to
+    # colcon in a colcon.meta: the micro-ROS agent's superbuild switched off, say
+    cmake_args: dict[str, list[str]] = field(default_factory=dict)
     when: list[dict] = field(default_factory=list)  # {"if": {...}, and the list/env keys above}
     # pip requirements pinned `name==version` (deploy/python_env.py), and the venv they go into:
     # a directory relative to the login user's home (None: `<profile>_venv`).
@@ -285,8 +292,32 @@ class ProfileReader:
                        "remove_apt_packages", f"{path}.remove_apt_packages")
         self.read_boot_config(mapping, path, side)
         self.read_services(mapping, path, known, side)
+        self.read_cmake_args(mapping, path, side)
         if not when_ok and "when" in mapping:
             self.error("a when block cannot hold another", mapping, "when", f"{path}.when")
+
+    def read_cmake_args(self, mapping, path: str, side: Side) -> None:
+        """`cmake_args`: {ROS package name: ["-DNAME=value", ...]} for the underlay's build."""
+        value = mapping.get("cmake_args")
+        if value is None:
+            return
+        where = f"{path}.cmake_args"
+        if not isinstance(value, dict):
+            self.error("must be a mapping of ROS package -> list of -DNAME=value", mapping, "cmake_args", where)
+            return
+        for package, args in value.items():
+            if not isinstance(package, str) or not re.fullmatch(r"[a-z][a-z0-9_]{0,99}", package, re.ASCII):
+                self.error(f"{package!r} is not a ROS package name (lower-case letters, digits, _)",
+                           value, package, where)
+                continue
+            items = self.string_list(
+                value, package, f"{where}.{package}",
+                lambda arg: None if _CMAKE_ARG.fullmatch(arg) else
+                f"{arg!r} is not a CMake cache setting: -DNAME=value or -DNAME:TYPE=value "
+                "(ASCII letters, digits and _ . , / + : @ % - in the value)")
+            if items and all(_CMAKE_ARG.fullmatch(arg) for arg in items):
+                merged = side.cmake_args.setdefault(package, [])
+                merged += [arg for arg in items if arg not in merged]
 
     def read_boot_config(self, mapping, path: str, side: Side) -> None:
         """`boot_config`: config.txt lines (a marked block) and cmdline.txt words to remove."""
@@ -513,6 +544,18 @@ class ProfileReader:
         return side
 
 
+def merged_cmake_args(parts: list[dict[str, list[str]]]) -> dict[str, list[str]]:
+    """Each package's CMake settings from every part, in order; a later `-DNAME=` replaces
+    an earlier one for the same NAME."""
+    merged: dict[str, dict[str, str]] = {}
+    for part in parts:
+        for package, args in part.items():
+            settings_of = merged.setdefault(package, {})
+            for arg in args:
+                settings_of[arg.split("=", 1)[0].split(":", 1)[0]] = arg
+    return {package: list(args.values()) for package, args in merged.items() if args}
+
+
 def canonical_requirement(requirement: str) -> str:
     """`name==version` without spaces (a checked requirement)."""
     name, _, version = requirement.partition("==")
@@ -614,6 +657,7 @@ def merged_side(base: Side, own: Side) -> Side:
         checklist=[*base.checklist, *own.checklist],
         os_tweaks={**base.os_tweaks, **own.os_tweaks},
         sources=list(dict.fromkeys([*base.sources, *own.sources])),
+        cmake_args=merged_cmake_args([base.cmake_args, own.cmake_args]),
         when=[*base.when, *own.when],
         python_packages=merged_requirements(base.python_packages, own.python_packages),
         python_venv=own.python_venv or base.python_venv,

@@ -482,3 +482,40 @@ def test_every_file_of_the_builtin_profiles_is_in_the_installed_package():
     missing = [path.name for path in data.iterdir()
                if not any(fnmatch.fnmatch(f"profiles/data/{path.name}", pattern) for pattern in patterns)]
     assert missing == []
+
+
+def test_the_boards_host_gets_the_agents_cmake_args_and_a_bad_one_is_refused_where_defined(
+        tmp_path, rosdistro_url):
+    from roslab.profiles import library
+    from roslab.profiles.resolve import resolve_host
+
+    esp32 = library.builtin_profiles()["esp32_microros"]
+    board = {"esp32_usb_serial": "0001A2B3", "esp32_attached_to": "main"}
+    main, _ = resolve_host(esp32, board, distro="jazzy", role="main")
+    robot, _ = resolve_host(esp32, board, distro="jazzy", role="robot")
+    assert main["cmake_args"]["micro_ros_agent"] == ["-DMICROROSAGENT_SUPERBUILD=OFF"]
+    assert "-DUAGENT_USE_SYSTEM_FASTDDS=ON" in main["cmake_args"]["microxrcedds_agent"]
+    assert robot["cmake_args"] == {}  # the board is not plugged into the robot
+
+    path = write(tmp_path, f"""\
+        classroom:
+          ssh_user: ubuntu
+          rosdistro_index_url: {rosdistro_url}
+        profiles:
+          mybot:
+            extends: demo
+            robot:
+              cmake_args:
+                my_driver: ["-DX=1; rm -rf ~"]
+                My-Driver: [-DX=1]
+        teams:
+          t1:
+            robot_profile: mybot
+            hosts:
+              t1-robot: {{role: robot}}
+        """)
+    errors = errors_of(path)
+    assert any("field 'profiles.mybot.robot.cmake_args.my_driver': '-DX=1; rm -rf ~' is not a CMake cache "
+               "setting" in error for error in errors), errors
+    assert any("field 'profiles.mybot.robot.cmake_args': 'My-Driver' is not a ROS package name" in error
+               for error in errors), errors

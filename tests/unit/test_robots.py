@@ -432,3 +432,43 @@ def test_the_status_probe_reads_the_record_without_sudo():
 
     script = probe_script()
     assert "## reboot" in script and REBOOT_RECORD in script and "sudo" not in script
+
+
+def test_the_rovers_service_sees_its_venvs_packages_through_pythonpath(tmp_path):
+    """ROS starts the rover's Python nodes with /usr/bin/python3 (their shebang), not the venv's
+    interpreter: the unit puts the venv's site-packages first on PYTHONPATH, as the student's
+    ~/.bashrc block does, once however often it is sourced."""
+    import subprocess
+
+    from deploy.profile_services import exec_script
+    from deploy.shell_env import render_ros_environment
+
+    home = tmp_path / "home"
+    site = home / "osr_venv/lib/python3.12/site-packages"
+    site.mkdir(parents=True)
+    (site / "adafruit_servokit.py").write_text("NAME = 'from the venv'\n")
+    ros = tmp_path / "opt/ros/jazzy"
+    ros.mkdir(parents=True)
+    (ros / "setup.bash").write_text("export PYTHONPATH=/opt/ros/jazzy/lib/python3.12/site-packages\n")
+    command = "python3 -c \"import adafruit_servokit, os; print(adafruit_servokit.NAME, os.environ['PYTHONPATH'])\""
+    script = exec_script(distro="jazzy", workspace_dir=str(home / "ros2_ws"), command=command,
+                         venv_dir=str(home / "osr_venv")).replace("/opt/ros/", f"{tmp_path}/opt/ros/")
+    done = subprocess.run(["bash", "-c", script], capture_output=True, text=True, env={"PATH": "/usr/bin:/bin"})
+    assert done.stdout.split() == ["from", "the", "venv", f"{site}:/opt/ros/jazzy/lib/python3.12/site-packages"], \
+        done.stderr
+
+    block = render_ros_environment("jazzy", 7, venv_dir="~/osr_venv").replace("/opt/ros/", f"{tmp_path}/opt/ros/")
+    twice = subprocess.run(["bash", "-c", f"{block}\n{block}\necho $PYTHONPATH"], capture_output=True, text=True,
+                           env={"PATH": "/usr/bin:/bin", "HOME": str(home)})
+    assert twice.stdout.strip() == f"{site}:/opt/ros/jazzy/lib/python3.12/site-packages", twice.stderr
+    assert "osr_venv" not in render_ros_environment("jazzy", 7)
+
+
+def test_the_rovers_unit_names_its_venv_only_when_the_python_step_fills_it(monkeypatch):
+    monkeypatch.setattr("deploy.profile_services.host_environment", lambda data, distro: {})
+    monkeypatch.setattr("deploy.profile_services.host_distro", lambda: "jazzy")
+    for enabled in (True, False):
+        data = {**service_data(resolved("osr", board="pi4")), "python_env_enabled": enabled}
+        unit = plan(profile_services_in_place, service_facts(), data=data).uploads()[
+            "/etc/systemd/system/osr_startup.service"]
+        assert ("/home/ubuntu/osr_venv/lib/python3*/site-packages" in unit) is enabled, unit

@@ -484,3 +484,40 @@ def test_the_sandbox_stands_in_for_every_builtin_commit_pin_with_a_tag_its_roste
     commit_pinned = {path for path, _, version in git_standins._repositories(files) if len(version) == 40}
     assert commit_pinned and set(pins) == commit_pinned
     assert all(version_problem(tag) is None for tag in pins.values())
+
+
+def test_a_profiles_cmake_args_reach_colcon_through_a_meta_file_and_change_the_stamp(tmp_path):
+    """The micro-ROS agent's superbuild switch: colcon gives a package the `cmake-args` of a
+    colcon.meta it is pointed at (`--metas`), here roslab's own, beside its build stamp."""
+    import subprocess
+
+    args = {"micro_ros_agent": ["-DMICROROSAGENT_SUPERBUILD=OFF"]}
+    plain = underlay.build_stamp({"agent": "a" * 64}, "jazzy", [])
+    assert underlay.build_stamp({"agent": "a" * 64}, "jazzy", [], args) != plain
+    assert underlay.build_stamp({"agent": "a" * 64}, "jazzy", [], {}) == plain
+
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    # a colcon that records its arguments and the meta file it was pointed at
+    (bin_dir / "colcon").write_text('#!/bin/sh\necho "$@" > args.txt\ncp .roslab/colcon.meta seen.meta '
+                                    '2>/dev/null || true\nfor a; do last=$a; done; mkdir -p "$last"\n')
+    (bin_dir / "colcon").chmod(0o755)
+    (tmp_path / "opt/ros/jazzy").mkdir(parents=True)
+    (tmp_path / "opt/ros/jazzy/setup.bash").write_text("true\n")
+    ws = tmp_path / "ws"
+    ws.mkdir()
+
+    def build(cmake_args):
+        script = underlay.build_script(str(ws), "jazzy", ["--executor", "sequential"], "s", cmake_args)
+        done = subprocess.run(["bash", "-c", script.replace("/opt/ros/", f"{tmp_path}/opt/ros/")],
+                              capture_output=True, text=True, env={"PATH": f"{bin_dir}:/usr/bin:/bin"})
+        assert done.returncode == 0, done.stderr
+        return (ws / "args.txt").read_text().split()
+
+    called = build(args)
+    assert called[:4] == ["build", "--executor", "sequential", "--metas"] and called[4] == ".roslab/colcon.meta"
+    assert json.loads((ws / "seen.meta").read_text()) == {
+        "names": {"micro_ros_agent": {"cmake-args": ["-DMICROROSAGENT_SUPERBUILD=OFF"]}}}
+    (ws / "seen.meta").unlink()
+    assert "--metas" not in build({})
+    assert not (ws / ".roslab/colcon.meta").exists() and not (ws / "seen.meta").exists()
