@@ -76,7 +76,8 @@ _AMBIGUOUS = "tag:roslab,2026:ambiguous"
 _AMBIGUOUS_FORMS = (
     r"^(?:yes|Yes|YES|no|No|NO|on|On|ON|off|Off|OFF"
     r"|[-+]?0[0-9_]+"                                   # leading zero: octal in 1.1 (08: not even that)
-    r"|[-+]?0[xXbBoO][0-9a-fA-F_]*"                     # hex, binary, 1.2 octal
+    # hex, binary, 1.2 octal: only with the digits of their base (0ba5... is text to both)
+    r"|[-+]?0(?:[xX][0-9a-fA-F_]+|[bB][01_]+|[oO][0-7_]+)"
     r"|[-+]?[0-9][0-9_]*(?::[0-5]?[0-9])+(?:\.[0-9_]*)?"  # sexagesimal 1:30 (and 1:30.5)
     r"|[-+]?[0-9][0-9]*_[0-9_]*(?:\.[0-9_]*)?"          # digits with underscores
     r")$")

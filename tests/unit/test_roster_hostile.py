@@ -313,6 +313,26 @@ def test_a_value_yaml_reads_two_ways_is_refused_with_what_to_write(level, key, r
     assert "remove the quotes" not in err
 
 
+@pytest.mark.parametrize("raw", ["0x", "0o9", "0b2", "0xg1", "0b1a", "0o7z"])
+def test_text_that_only_starts_like_a_number_in_another_base_is_plain_text(raw):
+    """0b wants binary digits, 0o octal and 0x hex ones: anything else is text to every YAML reader."""
+    import yaml
+
+    from roslab.roster.loading import Ambiguous, StrictLoader
+
+    value = yaml.load(f"v: {raw}\n", Loader=StrictLoader)["v"]
+    assert value == raw and not isinstance(value, Ambiguous)
+    for number in ("0x1A", "0b101", "0o17"):
+        assert isinstance(yaml.load(f"v: {number}\n", Loader=StrictLoader)["v"], Ambiguous)
+
+
+def test_a_sha256_that_begins_with_0b_is_taken_as_written(classroom_dir, monkeypatch):
+    """The apt source's sha256 (64 hex digits) may begin 0b... or 0e...: text, as written."""
+    digest = "0ba59f19e2f4a5031f4125a4f2b0c2e866b86bd75c48ec1047b55e0f0d163eb1"
+    text = roster_text("classroom", "ros_apt_source_sha256", f"{{noble: {digest}}}", raw=True)
+    assert loads(classroom_dir, text, monkeypatch).hosts[0].data["ros_apt_source_sha256"]["noble"] == digest
+
+
 @pytest.mark.parametrize("where, name", [("team", "yes"), ("team", "null"), ("team", "on"), ("team", "~"),
                                          ("team", "true"), ("host", "yes"), ("host", "no"), ("host", "null"),
                                          ("host", "Off")])
