@@ -23,9 +23,10 @@ demo: setup
 demo-down: setup
 	$(BIN)/roslab sandbox down
 
-# Unit tests first (seconds), then end-to-end tests on sandbox hosts, in one pytest run.
+# Unit tests first (seconds), then end-to-end tests on sandbox hosts, in one pytest run;
+# the 25 slowest are listed at the end, so a test that grew slow shows in CI's log.
 test: setup
-	$(BIN)/pytest tests/unit tests/e2e
+	$(BIN)/pytest --durations=25 tests/unit tests/e2e
 
 unit: $(VENV)/.installed
 	$(BIN)/pytest tests/unit
