@@ -65,6 +65,13 @@ def _within(path: Path, folder: Path) -> bool:
     return path == folder or folder in path.parents
 
 
+def _url_text(text: str) -> bool:
+    """One line of printable ASCII without spaces, at most MAX_URL characters: what a URL or
+    a URL prefix is before its parts are looked at (git, logs and the lock file take it as is)."""
+    return (text.isascii() and len(text) <= MAX_URL
+            and not any(char.isspace() or ord(char) < 32 or char == "\x7f" for char in text))
+
+
 def url_problem(url, repos_dir: Path | None = None) -> str | None:
     """Why `url` cannot be a repository's URL, or None.
 
@@ -75,8 +82,7 @@ def url_problem(url, repos_dir: Path | None = None) -> str | None:
     """
     if not isinstance(url, str):
         return f"must be a URL (a string), not {url!r}"
-    if not url.isascii() or len(url) > MAX_URL or any(char.isspace() or ord(char) < 32 or char == "\x7f"
-                                                       for char in url):
+    if not _url_text(url):
         return f"{url!r} is not a URL (ASCII without spaces, at most {MAX_URL} characters)"
     parts = urlsplit(url)
     if parts.scheme not in URL_SCHEMES:
@@ -250,8 +256,8 @@ def rewrites_problem(value, _context=None) -> str | None:
         for text in (prefix, replacement):
             if not isinstance(text, str):
                 return f"{text!r} must be a URL prefix (a string)"
-            if not text.isascii() or any(char.isspace() or ord(char) < 32 for char in text) or len(text) > MAX_URL:
-                return f"{text!r} is not a URL prefix (ASCII without spaces)"
+            if not _url_text(text):
+                return f"{text!r} is not a URL prefix (ASCII without spaces, at most {MAX_URL} characters)"
             parts = urlsplit(text)
             if parts.scheme not in URL_SCHEMES:
                 return f"{text!r}: only http://, https:// and file:// prefixes"

@@ -114,6 +114,7 @@ def test_url_rewrites_take_the_longest_prefix_like_git_insteadof():
     assert sources.rewritten("https://gitlab.com/a/x.git", rewrites) == "https://gitlab.com/a/x.git"
     assert sources.rewrites_problem({"ssh://github.com/": "http://m/"})
     assert sources.rewrites_problem({"https://github.com/": "https://u:p@m/"})
+    assert sources.rewrites_problem({"https://github.com/": "http://mirror\x7f/"})  # DEL, as in a URL
 
 
 # --- the roster refuses, before connecting ---------------------------------------------
