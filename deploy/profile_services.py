@@ -19,6 +19,7 @@ from pyinfra.facts.files import File, FileContents
 from pyinfra.operations import files, systemd
 
 from deploy.common import existing_login_home, host_distro, login_user, should_run, stop_host, where
+from deploy.python_env import filled_venv
 from roslab import probe, settings
 from roslab import workspace as ws_ops
 from roslab.profiles.host import service_installed_not_running
@@ -53,14 +54,6 @@ def exec_script(*, distro: str, workspace_dir: str, command: str, venv_dir: str 
         *([f"{{ {venv_on_pythonpath(shell_word(venv_dir))}; }}"] if venv_dir else []),
         f"exec {command}",
     ])
-
-
-def profile_venv(home: str) -> str | None:
-    """The profile's venv (absolute) when the python step fills it, else None."""
-    venv = ((host.data.get("roslab_profile") or {}).get("python") or {}).get("venv")
-    if not venv or not host.data.get("python_env_enabled", True):
-        return None
-    return posixpath.join(home, venv)
 
 
 def unit_text(*, service: dict, profile: str, user: str, home: str, workspace_dir: str, distro: str,
@@ -108,7 +101,8 @@ def profile_services_in_place():
     try:  # before any change: a value a unit cannot carry stops this host only
         units = {service["name"]: unit_text(
             service=service, profile=name, user=user, home=home, workspace_dir=workspace_dir, distro=distro,
-            environment=host_environment(host.data, distro), venv_dir=profile_venv(home)) for service in services}
+            environment=host_environment(host.data, distro),
+            venv_dir=posixpath.join(home, filled_venv()) if filled_venv() else None) for service in services}
     except ValueError as error:
         stop_host(f"{where()}: profile services: {error}; nothing was changed by this step")
         return

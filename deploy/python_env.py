@@ -41,6 +41,13 @@ def python_of(data) -> dict:
     return profile.get("python") or {"venv": None, "requirements": []}
 
 
+def filled_venv() -> str | None:
+    """The profile's venv (relative to the login user's home) when this step fills it, else
+    None: what the ~/.bashrc block and the units put on PYTHONPATH."""
+    venv = python_of(host.data)["venv"]
+    return venv if venv and host.data.get("python_env_enabled", True) else None
+
+
 @probe.installs
 def python_env_packages(data, codename) -> list[str]:
     """What this step installs (roslab.probe.installs): python3-venv where the profile has a venv,

@@ -22,6 +22,7 @@ from deploy.common import (
 from roslab import probe, settings
 from roslab.operations import managed_block, managed_block_reads
 from roslab.quoting import shell_home_path, shell_word
+from deploy.python_env import filled_venv
 from deploy.sources import repositories
 from roslab.python_venv import venv_on_pythonpath
 from roslab.ros_env import host_environment, ros_variables
@@ -67,14 +68,6 @@ def render_ros_environment(
     )
 
 
-def profile_venv_dir() -> str | None:
-    """The robot profile's venv as `~/...` when the python step fills it, else None."""
-    venv = ((host.data.get("roslab_profile") or {}).get("python") or {}).get("venv")
-    if not venv or not host.data.get("python_env_enabled", True):
-        return None
-    return f"~/{venv}"
-
-
 @deploy(
     "The login user's shell sources ROS 2 with the team's domain and discovery settings",
     data_defaults=DEFAULTS,
@@ -104,7 +97,7 @@ def shell_env():
             rosdistro_index_url=host.data.rosdistro_index_url,
             variables=host_environment(host.data, distro, shell=True),
             underlay_dir=host.data.get("sources_underlay_dir") if repositories() else None,
-            venv_dir=profile_venv_dir(),
+            venv_dir=f"~/{filled_venv()}" if filled_venv() else None,
         )
     except ValueError as error:  # a value no shell word can carry (only `--data` skips the schema)
         stop_host(f"{where()}: shell_env: {error}; nothing was changed by this step")

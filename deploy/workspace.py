@@ -36,9 +36,11 @@ from deploy.common import (
     stop_host,
     where,
 )
+from deploy.python_env import filled_venv
 from deploy.sources import underlay_identity, underlay_setup
 from roslab import packaged, probe, settings
 from roslab import workspace as ws_ops
+from roslab.python_venv import venv_on_pythonpath
 from roslab.quoting import shell_word, systemd_assignment, systemd_value, systemd_word
 from roslab.profiles.library import DEFAULT_PROFILE, builtin_profiles
 from roslab.discovery import host_discovery
@@ -63,15 +65,18 @@ def nodes_dir() -> str:
     return str(Path(value) if value else packaged.nodes_dir())  # the checkout's or the installed nodes/
 
 
-def exec_script(*, distro: str, workspace_dir: str, launch: str, underlay_setup: str | None = None) -> str:
+def exec_script(*, distro: str, workspace_dir: str, launch: str, underlay_setup: str | None = None,
+                venv_dir: str | None = None) -> str:
     """The bash script the unit runs: the distro's, the underlay's (deploy/sources.py) and the
-    workspace's setup, then the launch."""
+    workspace's setup, the profile's venv on PYTHONPATH (`venv_dir`, absolute, or None), then
+    the launch."""
     package, launch_file = launch.split(" ")
     return " && ".join(
         [
             f"source {shell_word(f'/opt/ros/{distro}/setup.bash')}",
             *([f"source {shell_word(underlay_setup)}"] if underlay_setup else []),
             f"source {shell_word(posixpath.join(workspace_dir, 'install', 'setup.bash'))}",
+            *([f"{{ {venv_on_pythonpath(shell_word(venv_dir))}; }}"] if venv_dir else []),
             f"exec ros2 launch {shell_word(package)} {shell_word(launch_file)}",
         ]
     )
@@ -80,7 +85,7 @@ def exec_script(*, distro: str, workspace_dir: str, launch: str, underlay_setup:
 def unit_text(
     *, role: str, user: str, home: str, workspace_dir: str, distro: str, launch: str,
     environment: dict[str, str], discovery_files: dict[str, str] | None = None,
-    underlay_setup: str | None = None,
+    underlay_setup: str | None = None, venv_dir: str | None = None,
 ) -> str:
     """templates/roslab-nodes.service.j2 with every value written for systemd.
 
@@ -89,7 +94,7 @@ def unit_text(
     the unit, so a changed file restarts the nodes, as a changed variable does.
     """
     script = exec_script(distro=distro, workspace_dir=workspace_dir, launch=launch,
-                         underlay_setup=underlay_setup)
+                         underlay_setup=underlay_setup, venv_dir=venv_dir)
     return render(
         "roslab-nodes.service.j2",
         role=systemd_value(role),
@@ -154,7 +159,8 @@ def workspace():
     ros_domain_id, ros_automatic_discovery_range, ros_static_peers, ros_middleware,
     ros_discovery_mode, ros_discovery_server_port, ros_zenoh_router_port, roslab_team_hosts,
     roslab_hostname, roslab_role, roslab_profile (its environment and name), ros_environment,
-    roslab_sources and sources_underlay_dir (the underlay it overlays, deploy/sources.py).
+    roslab_sources and sources_underlay_dir (the underlay it overlays, deploy/sources.py),
+    python_env_enabled and roslab_profile's python venv (first on the nodes' PYTHONPATH).
     """
     if not should_run("workspace_enabled"):
         return
@@ -180,6 +186,7 @@ def workspace():
             role=role, user=user, home=home, workspace_dir=workspace_dir, distro=distro,
             launch=launch, environment=host_environment(host.data, distro),
             discovery_files=discovery_files(distro), underlay_setup=underlay,
+            venv_dir=posixpath.join(home, filled_venv()) if filled_venv() else None,
         ) if launch else None
     except ValueError as error:  # e.g. a home directory whose name holds a newline
         stop_host(f"{where()}: workspace: {error}; nothing was changed by this step")

@@ -472,3 +472,14 @@ def test_the_rovers_unit_names_its_venv_only_when_the_python_step_fills_it(monke
         unit = plan(profile_services_in_place, service_facts(), data=data).uploads()[
             "/etc/systemd/system/osr_startup.service"]
         assert ("/home/ubuntu/osr_venv/lib/python3*/site-packages" in unit) is enabled, unit
+
+
+def test_a_profile_with_a_venv_and_a_launch_gives_its_nodes_unit_the_venv_too():
+    from deploy.workspace import exec_script
+
+    script = exec_script(distro="jazzy", workspace_dir="/home/u/ros2_ws", launch="roslab_bringup robot.launch.py",
+                         venv_dir="/home/u/mybot_venv")
+    assert script.index("ros2_ws/install/setup.bash") < script.index("/home/u/mybot_venv/lib/python3*")
+    assert script.index("/home/u/mybot_venv/lib/python3*") < script.index("exec ros2 launch")
+    assert "venv" not in exec_script(distro="jazzy", workspace_dir="/home/u/ros2_ws",
+                                     launch="roslab_bringup robot.launch.py")

@@ -142,6 +142,7 @@ def test_host_data_holds_identity_connection_and_every_setting_with_its_default(
             "environment": {}, "groups": [], "udev_rules": "", "launch": "roslab_bringup main.launch.py",
             "variant": "desktop", "verify_topic": "/chatter", "verify_type": "std_msgs/msg/String", "discovery": None, "checklist": [], "os_tweaks": {}, "remove_apt_packages": [], "boot_config": {}, "services": [],
             "sources": [],
+            "cmake_args": {},
             "python": {"venv": None, "requirements": []},
         },
         "roslab_sources": [],  # the repositories of its .repos files (roslab.sources): none
