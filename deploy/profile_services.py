@@ -51,7 +51,7 @@ def exec_script(*, distro: str, workspace_dir: str, command: str, venv_dir: str 
     return " && ".join([
         f"source {shell_word(f'/opt/ros/{distro}/setup.bash')}",
         f"if [ -f {shell_word(setup)} ]; then source {shell_word(setup)}; fi",
-        *([f"{{ {venv_on_pythonpath(shell_word(venv_dir))}; }}"] if venv_dir else []),
+        *([venv_on_pythonpath(shell_word(venv_dir))] if venv_dir else []),
         f"exec {command}",
     ])
 
@@ -102,7 +102,7 @@ def profile_services_in_place():
         units = {service["name"]: unit_text(
             service=service, profile=name, user=user, home=home, workspace_dir=workspace_dir, distro=distro,
             environment=host_environment(host.data, distro),
-            venv_dir=posixpath.join(home, filled_venv()) if filled_venv() else None) for service in services}
+            venv_dir=filled_venv(home)) for service in services}
     except ValueError as error:
         stop_host(f"{where()}: profile services: {error}; nothing was changed by this step")
         return

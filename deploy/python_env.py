@@ -41,11 +41,11 @@ def python_of(data) -> dict:
     return profile.get("python") or {"venv": None, "requirements": []}
 
 
-def filled_venv() -> str | None:
-    """The profile's venv (relative to the login user's home) when this step fills it, else
-    None: what the ~/.bashrc block and the units put on PYTHONPATH."""
+def filled_venv(home: str) -> str | None:
+    """The profile's venv under `home` (the login user's home, or "~") when this step fills
+    it, else None: what the ~/.bashrc block and the units put on PYTHONPATH."""
     venv = python_of(host.data)["venv"]
-    return venv if venv and host.data.get("python_env_enabled", True) else None
+    return posixpath.join(home, venv) if venv and host.data.get("python_env_enabled", True) else None
 
 
 @probe.installs

@@ -97,7 +97,7 @@ def shell_env():
             rosdistro_index_url=host.data.rosdistro_index_url,
             variables=host_environment(host.data, distro, shell=True),
             underlay_dir=host.data.get("sources_underlay_dir") if repositories() else None,
-            venv_dir=f"~/{filled_venv()}" if filled_venv() else None,
+            venv_dir=filled_venv("~"),
         )
     except ValueError as error:  # a value no shell word can carry (only `--data` skips the schema)
         stop_host(f"{where()}: shell_env: {error}; nothing was changed by this step")

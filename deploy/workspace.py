@@ -76,7 +76,7 @@ def exec_script(*, distro: str, workspace_dir: str, launch: str, underlay_setup:
             f"source {shell_word(f'/opt/ros/{distro}/setup.bash')}",
             *([f"source {shell_word(underlay_setup)}"] if underlay_setup else []),
             f"source {shell_word(posixpath.join(workspace_dir, 'install', 'setup.bash'))}",
-            *([f"{{ {venv_on_pythonpath(shell_word(venv_dir))}; }}"] if venv_dir else []),
+            *([venv_on_pythonpath(shell_word(venv_dir))] if venv_dir else []),
             f"exec ros2 launch {shell_word(package)} {shell_word(launch_file)}",
         ]
     )
@@ -186,7 +186,7 @@ def workspace():
             role=role, user=user, home=home, workspace_dir=workspace_dir, distro=distro,
             launch=launch, environment=host_environment(host.data, distro),
             discovery_files=discovery_files(distro), underlay_setup=underlay,
-            venv_dir=posixpath.join(home, filled_venv()) if filled_venv() else None,
+            venv_dir=filled_venv(home),
         ) if launch else None
     except ValueError as error:  # e.g. a home directory whose name holds a newline
         stop_host(f"{where()}: workspace: {error}; nothing was changed by this step")

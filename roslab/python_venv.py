@@ -25,11 +25,11 @@ def venv_on_pythonpath(venv_word: str) -> str:
     `ros2 launch` and plain `python3` alike. A glob (the venv's one python3.X), not a Python
     call: a shell on a Pi 3 starts no interpreter for it.
     """
-    # once: a nested shell sources ~/.bashrc again
-    return (f"for roslab_site in {venv_word}/lib/python3*/site-packages; do "
+    # once: a nested shell sources ~/.bashrc again; one { group }, so a unit can chain it with &&
+    return (f"{{ for roslab_site in {venv_word}/lib/python3*/site-packages; do "
             'case ":${PYTHONPATH:-}:" in *":$roslab_site:"*) ;; *) if [ -d "$roslab_site" ]; then '
             'export PYTHONPATH="$roslab_site${PYTHONPATH:+:$PYTHONPATH}"; fi ;; esac; '
-            "done; unset roslab_site")
+            "done; unset roslab_site; }")
 
 
 class PythonTarget(FactBase):
