@@ -66,7 +66,8 @@ def sources():
 
     Reads host.data: sources_enabled, roslab_sources, sources_underlay_dir, sources_cache_dir,
     source_url_rewrites, sources_fetch_timeout, sources_rosdep_install, offline,
-    workspace_colcon_args, roslab_profile (cmake_args), login_user, ssh_user, ros_distro.
+    workspace_colcon_args, roslab_profile (cmake_args, build_dependencies,
+    skip_packages), login_user, ssh_user, ros_distro.
     """
     if not should_run("sources_enabled"):
         return
@@ -83,13 +84,17 @@ def sources():
     home = login_home()
     if home is None:  # the login user does not exist: login_home() stopped this host
         return
+    profile = host.data.get("roslab_profile") or {}
+    cache_dir = Path(host.data.sources_cache_dir).expanduser()
+    timeout = host.data.get("sources_fetch_timeout") or DEFAULTS["sources_fetch_timeout"]
     fetched = []
     for repo in wanted:
         try:
-            fetched.append(source_fetch.fetched(
-                repo, Path(host.data.sources_cache_dir).expanduser(),
-                rewrites=host.data.get("source_url_rewrites") or {}, offline=bool(host.data.get("offline")),
-                timeout=host.data.get("sources_fetch_timeout") or DEFAULTS["sources_fetch_timeout"]))
+            item = source_fetch.fetched(
+                repo, cache_dir, rewrites=host.data.get("source_url_rewrites") or {},
+                offline=bool(host.data.get("offline")), timeout=timeout)
+            # the packages the profile does not build never reach the host (a ROS 1 leftover)
+            fetched.append(source_fetch.for_host(item, cache_dir, profile.get("skip_packages") or (), timeout))
         except source_fetch.SourceError as error:
             stop_host(f"{where()}: sources: {error}; nothing was changed on it")
             return
@@ -103,9 +108,11 @@ def sources():
         user=user,
     )
     colcon_args = list(host.data.get("workspace_colcon_args") or [])
-    # the profile's CMake settings per package (the micro-ROS agent's superbuild off, say)
-    cmake_args = (host.data.get("roslab_profile") or {}).get("cmake_args") or {}
-    stamp = underlay_ops.build_stamp(digests, distro, colcon_args, cmake_args)
+    # the profile's CMake settings per package (the micro-ROS agent's superbuild off, say) and
+    # the build-order edges the packages' manifests forget
+    cmake_args = profile.get("cmake_args") or {}
+    build_dependencies = profile.get("build_dependencies") or {}
+    stamp = underlay_ops.build_stamp(digests, distro, colcon_args, cmake_args, build_dependencies)
     if host.data.get("sources_rosdep_install", True):
         ws_ops.dependencies(
             name="Ensure the underlay's system dependencies are installed (rosdep)",
@@ -123,6 +130,7 @@ def sources():
         colcon_args=colcon_args,
         stamp=stamp,
         cmake_args=cmake_args,
+        build_dependencies=build_dependencies,
         **as_login_user(user),
     )
 

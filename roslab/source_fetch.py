@@ -67,6 +67,7 @@ def reset() -> None:
     """Forget this run's results (tests; pyinfra runs once per process)."""
     with _lock:
         _results.clear()
+        _selected.clear()
 
 
 def _named(repo: dict) -> str:
@@ -229,3 +230,108 @@ def _fetch(repo: dict, cache_dir: Path, fetch_url: str, offline: bool, timeout: 
     with _lock:
         _record(cache_dir, url, tag, commit, digest)
     return Fetched(repo["path"], url, version, commit, digest, archive)
+
+
+# -- what of a fetched repository a host gets -----------------------------------------------
+
+# Folders colcon (and rosdep, through catkin_pkg) do not look into.
+IGNORE_MARKERS = ("COLCON_IGNORE", "AMENT_IGNORE", "CATKIN_IGNORE")
+_selected: dict[tuple, "Fetched | SourceError"] = {}
+
+
+@dataclass(frozen=True)
+class SourcePackage:
+    """A package in a repository's tree: its folder (relative), name and colcon build type."""
+
+    folder: str
+    name: str
+    build_type: str  # "ament_cmake", "ament_python", "cmake", "catkin" (ROS 1)...
+
+
+def packages_in(mirror: Path, commit: str, timeout: float = 60) -> list[SourcePackage]:
+    """The packages colcon would find in `commit`: each package.xml (its <export><build_type>,
+    catkin when none is given, as colcon-ros reads it) and each colcon.pkg (its "type"), not
+    below a folder with an ignore marker, and not inside another package."""
+    import xml.etree.ElementTree as ElementTree
+
+    names = _git(["ls-tree", "-r", "--name-only", commit], timeout, cwd=mirror).decode("utf-8", "replace")
+    files = names.splitlines()
+    ignored = {posixpath_dirname(path) for path in files if path.rsplit("/", 1)[-1] in IGNORE_MARKERS}
+    found: dict[str, SourcePackage] = {}
+    for path in sorted(files, key=lambda p: (p.count("/"), p)):
+        base = path.rsplit("/", 1)[-1]
+        if base not in ("package.xml", "colcon.pkg"):
+            continue
+        folder = posixpath_dirname(path)
+        parents = _parents(folder)
+        if parents & ignored or any(parent in found for parent in parents - {folder}) or folder in found:
+            continue
+        text = _git(["cat-file", "blob", f"{commit}:{path}"], timeout, cwd=mirror)
+        if base == "package.xml":
+            try:
+                root = ElementTree.fromstring(text)
+            except ElementTree.ParseError as error:
+                raise SourceError(f"{path} is not a package manifest: {error}") from None
+            name = (root.findtext("name") or "").strip()
+            build_type = (root.findtext("export/build_type") or "catkin").strip()
+        else:
+            try:
+                spec = json.loads(text)
+            except ValueError as error:
+                raise SourceError(f"{path} is not colcon.pkg JSON: {error}") from None
+            name, build_type = str(spec.get("name") or folder.rsplit("/", 1)[-1]), str(spec.get("type") or "")
+        found[folder] = SourcePackage(folder, name, build_type)
+    return sorted(found.values(), key=lambda package: package.folder)
+
+
+def posixpath_dirname(path: str) -> str:
+    return path.rsplit("/", 1)[0] if "/" in path else ""
+
+
+def _parents(folder: str) -> set[str]:
+    """The folder and every folder above it ("" is the repository's top)."""
+    parts = folder.split("/") if folder else []
+    return {"/".join(parts[:i]) for i in range(len(parts) + 1)}
+
+
+def for_host(item: Fetched, cache_dir: Path, skip_packages=(), timeout: float = 300) -> Fetched:
+    """What a host gets of a fetched repository: its archive without the packages the profile
+    skips (`skip_packages`), once per run for each set of them.
+
+    A ROS 1 (catkin) package that would be built is a SourceError naming the repository and
+    the package: a ROS 2 underlay cannot build it, so the pin is wrong (or the package is to
+    be skipped). The lock keeps the sha256 of the whole commit's archive; the returned
+    Fetched carries the shipped archive and its own sha256.
+    """
+    skip = tuple(sorted(set(skip_packages)))
+    key = (item.url, item.commit, str(Path(cache_dir).expanduser()), skip)
+    with _lock:
+        known = _selected.get(key)
+    if known is None:
+        try:
+            known = _for_host(item, Path(cache_dir).expanduser(), skip, timeout)
+        except SourceError as error:
+            known = SourceError(f"repository {item.path!r} ({item.url} {item.version}): {error}")
+        with _lock:
+            _selected[key] = known
+    if isinstance(known, SourceError):
+        raise known
+    return Fetched(item.path, item.url, item.version, item.commit, known.sha256, known.archive)
+
+
+def _for_host(item: Fetched, cache_dir: Path, skip: tuple[str, ...], timeout: float) -> Fetched:
+    mirror = mirror_path(cache_dir, item.url)
+    packages = packages_in(mirror, item.commit, timeout)
+    ros1 = [package for package in packages if package.name not in skip and package.build_type == "catkin"]
+    if ros1:
+        package = ros1[0]
+        raise SourceError(
+            f"package {package.name} ({package.folder or '.'}/package.xml) is a ROS 1 (catkin) package, "
+            "which a ROS 2 underlay cannot build: pin the repository's ROS 2 code"
+            + (", or skip the package (skip_packages)" if len(packages) > 1 else ""))
+    excluded = [package.folder for package in packages if package.name in skip and package.folder]
+    if not excluded:
+        return item
+    archive = _git(["archive", "--format=tar", item.commit, "--", ".",
+                    *(f":(exclude){folder}" for folder in excluded)], timeout, cwd=mirror)
+    return Fetched(item.path, item.url, item.version, item.commit, hashlib.sha256(archive).hexdigest(), archive)

@@ -141,29 +141,39 @@ def sources(underlay_dir: str, repositories: list[dict], user: str):
                          f"mv {manifest}.new {manifest}")
 
 
-def colcon_meta(cmake_args: dict[str, list[str]]) -> str:
-    """colcon.meta text giving each package its CMake settings ("" when there are none)."""
-    names = {package: {"cmake-args": list(args)} for package, args in sorted(cmake_args.items()) if args}
+def colcon_meta(cmake_args: dict[str, list[str]], build_dependencies: dict[str, list[str]] | None = None) -> str:
+    """colcon.meta text giving each package its CMake settings and the build-order edges its
+    manifest lacks ("" when there are none)."""
+    names: dict[str, dict] = {}
+    for package, args in sorted(cmake_args.items()):
+        if args:
+            names.setdefault(package, {})["cmake-args"] = list(args)
+    for package, needs in sorted((build_dependencies or {}).items()):
+        if needs:
+            # colcon-metadata adds these to every category (build, run, test) of the package
+            names.setdefault(package, {})["dependencies"] = list(needs)
     return json.dumps({"names": names}, indent=2, sort_keys=True) + "\n" if names else ""
 
 
 def build_stamp(digests: dict[str, str], distro: str, colcon_args: list[str],
-                cmake_args: dict[str, list[str]] | None = None) -> str:
+                cmake_args: dict[str, list[str]] | None = None,
+                build_dependencies: dict[str, list[str]] | None = None) -> str:
     """What a build is of: every repository's archive, the distro, colcon's arguments and the
-    packages' CMake settings."""
+    packages' CMake settings and extra build-order edges."""
     import hashlib
 
     text = "\0".join([*(f"{path}={sha}" for path, sha in sorted(digests.items())), distro, *colcon_args,
-                      colcon_meta(cmake_args or {})])
+                      colcon_meta(cmake_args or {}, build_dependencies)])
     return hashlib.sha256(text.encode()).hexdigest()
 
 
 def build_script(underlay_dir: str, distro: str, colcon_args: list[str], stamp: str,
-                 cmake_args: dict[str, list[str]] | None = None) -> str:
+                 cmake_args: dict[str, list[str]] | None = None,
+                 build_dependencies: dict[str, list[str]] | None = None) -> str:
     """Build into the install tree not in use; switch `install` to it only on success."""
     state_dir = STATE_DIR_NAME
     stamp_file = posixpath.join(state_dir, "build.sha256")
-    meta = colcon_meta(cmake_args or {})
+    meta = colcon_meta(cmake_args or {}, build_dependencies)
     # colcon reads the packages' CMake settings only from a meta file it is pointed at
     metas = ["--metas", COLCON_META] if meta else []
     colcon = " ".join(shlex.quote(arg) for arg in ["colcon", "build", *colcon_args, *metas])
@@ -210,7 +220,8 @@ def build_script(underlay_dir: str, distro: str, colcon_args: list[str], stamp: 
 
 @operation()
 def built(underlay_dir: str, distro: str, colcon_args: list[str], stamp: str,
-          cmake_args: dict[str, list[str]] | None = None):
+          cmake_args: dict[str, list[str]] | None = None,
+          build_dependencies: dict[str, list[str]] | None = None):
     """
     Build an underlay (colcon) when its sources changed since the last successful build.
 
@@ -220,6 +231,8 @@ def built(underlay_dir: str, distro: str, colcon_args: list[str], stamp: str,
     + stamp: ``build_stamp(...)`` of what is to be built
     + cmake_args: CMake settings per package (``{package: ["-DNAME=value"]}``), written to
       ``.roslab/colcon.meta`` and given to colcon with ``--metas``
+    + build_dependencies: build-order edges per package (``{package: [built before it]}``),
+      in the same colcon.meta
 
     Run it as the underlay's owner (``_sudo_user``). A failed build leaves the last good
     install in use and fails with the package and its first error line.
@@ -229,4 +242,4 @@ def built(underlay_dir: str, distro: str, colcon_args: list[str], stamp: str,
         host.noop(f"{underlay_dir} is built from these sources already")
         return
     yield StringCommand("bash", "-c", shlex.quote(build_script(underlay_dir, distro, colcon_args, stamp,
-                                                               cmake_args)))
+                                                               cmake_args, build_dependencies)))

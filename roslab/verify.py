@@ -196,6 +196,8 @@ class TeamResult:
     # Hosts whose roster gives them no launch (a TurtleBot3's main: its profile runs nothing there),
     # so no roslab-nodes service is theirs to run.
     without_service: set = field(default_factory=set)
+    # what publishes the topic (the profile's verify_source), named when nothing was heard
+    source: str = ""
 
     def services_down(self) -> list[tuple[str, str]]:
         """(host, state) of the team's hosts whose nodes service is not active (running).
@@ -254,9 +256,10 @@ class TeamResult:
             return f"{self.topic} carries a message that is not a robot's greeting"
         if not heard["finished"]:
             return f"the check on {self.main} did not finish in time"
+        because = f": {self.source} publishes nothing" if self.source else ""
         if self.topic in heard["topics"]:
-            return f"{self.topic} listed but no message within {self.timeout} s"
-        return f"{self.main} does not see {self.topic}"
+            return f"{self.topic} listed but no message within {self.timeout} s{because}"
+        return f"{self.main} does not see {self.topic}{because}"
 
 
 def _service_cell(result: TeamResult, name: str | None) -> str:
@@ -386,6 +389,7 @@ def verify(state: State) -> list[TeamResult]:
             team.topic = host.data.get("nodes_verify_topic") or team.topic
             team.timeout = host.data.get("nodes_verify_timeout") or team.timeout
             team.message_type = host.data.get("nodes_verify_type") or team.message_type
+            team.source = host.data.get("roslab_verify_source") or ""
         else:
             team.robots.append(host.name)
         team.error = team.error or error

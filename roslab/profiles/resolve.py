@@ -12,7 +12,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from roslab.distro import DISTRO_RELEASES, PLATFORMS
-from roslab.profiles.schema import BOOT_CONFIG_KEYS, PLACEHOLDER, Profile, Side, merged_cmake_args
+from roslab.profiles.schema import (
+    BOOT_CONFIG_KEYS,
+    PLACEHOLDER,
+    Profile,
+    Side,
+    merged_build_dependencies,
+    merged_cmake_args,
+)
 from roslab.quoting import shell_word
 
 UDEV_RULES_PATH = "/etc/udev/rules.d/60-roslab-profile.rules"
@@ -176,6 +183,7 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         "variant": side.variant,
         "verify_topic": profile.verify_topic if _matches(profile.verify_if, values) else None,
         "verify_type": profile.verify_type,
+        "verify_source": fill(profile.verify_source, values),
         "discovery": profile.discovery,
         "checklist": [fill(item, values) for item in merged.checklist],
         "os_tweaks": dict(side.os_tweaks),
@@ -184,6 +192,9 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         "sources": [],
         # {package: ["-DNAME=value", ...]} for the underlay's build (deploy/sources.py)
         "cmake_args": merged_cmake_args([part.cmake_args for part in parts]),
+        # {package: [packages built before it]} and the packages not built (deploy/sources.py)
+        "build_dependencies": merged_build_dependencies([part.build_dependencies for part in parts]),
+        "skip_packages": list(dict.fromkeys(name for part in parts for name in part.skip_packages)),
         "python": python_data(profile, side),
         "remove_apt_packages": merged.remove_apt_packages,
         "boot_config": {key: items for key, items in merged.boot_config.items() if items},

@@ -29,13 +29,16 @@ _ROS_PACKAGE = re.compile(r"[a-z][a-z0-9_]*|\$\{gazebo\}")
 BUILTIN_CONDITIONS = ("distro", "board")
 
 TOP_KEYS = ("profile", "extends", "description", "distros", "boards", "middlewares", "discovery", "verify_topic",
-            "verify_type", "verify_if", "settings", *SIDES)
+            "verify_type", "verify_if", "verify_source", "settings", *SIDES)
 SETTING_KEYS = ("doc", "allowed", "pattern", "required", "default")
 SIDE_KEYS = ("variant", "boards", "ros_packages", "apt_packages", "remove_apt_packages", "environment", "groups",
              "udev_rules", "boot_config", "services", "launch", "checklist", "os_tweaks", "sources",
-             "cmake_args", "python_packages", "python_venv", "when")
+             "cmake_args", "build_dependencies", "skip_packages", "python_packages", "python_venv", "when")
 WHEN_KEYS = ("if", "ros_packages", "apt_packages", "remove_apt_packages", "environment", "groups", "udev_rules",
-             "boot_config", "services", "sources", "cmake_args", "checklist")
+             "boot_config", "services", "sources", "cmake_args", "build_dependencies", "skip_packages", "checklist")
+# An underlay package's name in `cmake_args`, `build_dependencies` and `skip_packages` (a ROS
+# package name, or a plain CMake package's as its colcon.pkg gives it).
+_UNDERLAY_PACKAGE = re.compile(r"[a-z][a-z0-9_]{0,99}", re.ASCII)
 # `cmake_args`: CMake cache settings for one package of the underlay (colcon.meta's
 # "cmake-args"), each `-DNAME=value` or `-DNAME:TYPE=value`, plain ASCII, one shell word.
 _CMAKE_ARG = re.compile(r"-D[A-Za-z_][A-Za-z0-9_]{0,63}(:(BOOL|STRING|PATH|FILEPATH))?=[A-Za-z0-9_.,/+:@%-]{0,200}",
@@ -109,6 +112,12 @@ class Side:
     # CMake cache settings per underlay package ({package: ["-DNAME=value", ...]}), given to
     # colcon in a colcon.meta: the micro-ROS agent's superbuild switched off, say
     cmake_args: dict[str, list[str]] = field(default_factory=dict)
+    # Build-order edges a package's own manifest forgets ({package: [packages it needs built
+    # first]}), colcon.meta's "dependencies": micro_ros_agent after microxrcedds_agent, say
+    build_dependencies: dict[str, list[str]] = field(default_factory=dict)
+    # Packages of the side's sources that are neither copied to the host nor built (a ROS 1
+    # leftover, a simulator package on a robot)
+    skip_packages: list[str] = field(default_factory=list)
     when: list[dict] = field(default_factory=list)  # {"if": {...}, and the list/env keys above}
     # pip requirements pinned `name==version` (deploy/python_env.py), and the venv they go into:
     # a directory relative to the login user's home (None: `<profile>_venv`).
@@ -135,6 +144,9 @@ class Profile:
     sides: dict[str, Side] = field(default_factory=dict)
     source: str = ""  # where it was defined, for messages ("built-in", "the roster")
     line: int | None = None
+    # What publishes the verify topic, named when the main hears nothing (one line of text; the
+    # profile's ${settings} filled): "the ESP32 board, through micro_ros_agent on ...".
+    verify_source: str = ""
 
 
 # A profile's text refers to its settings as ${name} (braces only: udev's own $attr{...} and
@@ -293,6 +305,12 @@ class ProfileReader:
         self.read_boot_config(mapping, path, side)
         self.read_services(mapping, path, known, side)
         self.read_cmake_args(mapping, path, side)
+        self.read_build_dependencies(mapping, path, side)
+        side.skip_packages += [name for name in self.string_list(
+            mapping, "skip_packages", f"{path}.skip_packages",
+            lambda name: None if _UNDERLAY_PACKAGE.fullmatch(name) else
+            f"{name!r} is not a package name (lower-case letters, digits, _)")
+            if _UNDERLAY_PACKAGE.fullmatch(name) and name not in side.skip_packages]
         if not when_ok and "when" in mapping:
             self.error("a when block cannot hold another", mapping, "when", f"{path}.when")
 
@@ -306,7 +324,7 @@ class ProfileReader:
             self.error("must be a mapping of ROS package -> list of -DNAME=value", mapping, "cmake_args", where)
             return
         for package, args in value.items():
-            if not isinstance(package, str) or not re.fullmatch(r"[a-z][a-z0-9_]{0,99}", package, re.ASCII):
+            if not isinstance(package, str) or not _UNDERLAY_PACKAGE.fullmatch(package):
                 self.error(f"{package!r} is not a ROS package name (lower-case letters, digits, _)",
                            value, package, where)
                 continue
@@ -318,6 +336,29 @@ class ProfileReader:
             if items and all(_CMAKE_ARG.fullmatch(arg) for arg in items):
                 merged = side.cmake_args.setdefault(package, [])
                 merged += [arg for arg in items if arg not in merged]
+
+    def read_build_dependencies(self, mapping, path: str, side: Side) -> None:
+        """`build_dependencies`: {package: [packages colcon must build before it]}."""
+        value = mapping.get("build_dependencies")
+        if value is None:
+            return
+        where = f"{path}.build_dependencies"
+        if not isinstance(value, dict):
+            self.error("must be a mapping of package -> list of the packages built before it", mapping,
+                       "build_dependencies", where)
+            return
+        for package, needs in value.items():
+            if not isinstance(package, str) or not _UNDERLAY_PACKAGE.fullmatch(package):
+                self.error(f"{package!r} is not a package name (lower-case letters, digits, _)", value, package,
+                           where)
+                continue
+            items = self.string_list(
+                value, package, f"{where}.{package}",
+                lambda name: None if _UNDERLAY_PACKAGE.fullmatch(name) and name != package else
+                f"{name!r} is not another package's name (lower-case letters, digits, _)")
+            if items and all(_UNDERLAY_PACKAGE.fullmatch(name) and name != package for name in items):
+                merged = side.build_dependencies.setdefault(package, [])
+                merged += [name for name in items if name not in merged]
 
     def read_boot_config(self, mapping, path: str, side: Side) -> None:
         """`boot_config`: config.txt lines (a marked block) and cmdline.txt words to remove."""
@@ -556,6 +597,15 @@ def merged_cmake_args(parts: list[dict[str, list[str]]]) -> dict[str, list[str]]
     return {package: list(args.values()) for package, args in merged.items() if args}
 
 
+def merged_build_dependencies(parts: list[dict[str, list[str]]]) -> dict[str, list[str]]:
+    """Each package's extra build dependencies from every part, in order, once each."""
+    merged: dict[str, list[str]] = {}
+    for part in parts:
+        for package, needs in part.items():
+            merged[package] = list(dict.fromkeys([*merged.get(package, []), *needs]))
+    return {package: needs for package, needs in merged.items() if needs}
+
+
 def canonical_requirement(requirement: str) -> str:
     """`name==version` without spaces (a checked requirement)."""
     name, _, version = requirement.partition("==")
@@ -621,6 +671,12 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
         if setting not in known:
             reader.error(f"tests {setting!r}, which is not a setting of this profile", verify_if, setting,
                          "verify_if")
+    verify_source = mapping.get("verify_source", base.verify_source if base else "")
+    if not isinstance(verify_source, str) or (verify_source and formats.single_line(verify_source)):
+        reader.error("must be one line of text", mapping, "verify_source", "verify_source")
+        verify_source = ""
+    elif verify_source:
+        reader.check_text(verify_source, known, mapping, "verify_source", "verify_source")
     sides = {}
     for side_name in SIDES:
         own = reader.read_side(mapping, side_name, known)
@@ -639,7 +695,8 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
     if not reader.ok:
         return None
     return Profile(name, str(description or ""), tuple(distros), tuple(boards), tuple(middlewares), discovery,
-                   topic, message_type, dict(verify_if), settings, sides, source, line_of(mapping))
+                   topic, message_type, dict(verify_if), settings, sides, source, line_of(mapping),
+                   verify_source=verify_source)
 
 
 def merged_side(base: Side, own: Side) -> Side:
@@ -658,6 +715,8 @@ def merged_side(base: Side, own: Side) -> Side:
         os_tweaks={**base.os_tweaks, **own.os_tweaks},
         sources=list(dict.fromkeys([*base.sources, *own.sources])),
         cmake_args=merged_cmake_args([base.cmake_args, own.cmake_args]),
+        build_dependencies=merged_build_dependencies([base.build_dependencies, own.build_dependencies]),
+        skip_packages=union(base.skip_packages, own.skip_packages),
         when=[*base.when, *own.when],
         python_packages=merged_requirements(base.python_packages, own.python_packages),
         python_venv=own.python_venv or base.python_venv,

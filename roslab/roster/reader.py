@@ -560,6 +560,9 @@ class RosterReader:
             data["nodes_verify_topic"] = result["verify_topic"]
         if data.get("nodes_verify_type") is None:
             data["nodes_verify_type"] = result["verify_type"]
+        # what publishes the profile's topic, for `roslab verify` to name when nothing comes
+        data["roslab_verify_source"] = result["verify_source"] if data["nodes_verify_topic"] == \
+            result["verify_topic"] else ""
         if result["discovery"] == "localhost" and "ros_automatic_discovery_range" not in resolved \
                 and "ros_discovery_mode" not in set_here:
             # The profile keeps discovery on the host (sim) unless the team or host chose a mode.

@@ -162,7 +162,8 @@ STANDIN_PACKAGES = {
 }
 
 
-def _repositories(repos_files):
+def repositories(repos_files):
+    """(repository path, URL, version) of each http(s) repository the .repos files name."""
     import yaml
 
     for path in repos_files:
@@ -173,19 +174,23 @@ def _repositories(repos_files):
                 yield repo_path, url, str(spec.get("version", ""))
 
 
-def from_repos_files(serve_dir: Path, repos_files) -> list[str]:
-    """Stand-ins for every repository the .repos files name (the built-in profiles'); returns
-    the URLs served. A tag pin is made on the stand-in's commit; a commit pin cannot be made
-    (see the module doc), so such a stand-in carries STANDIN_TAG (see `commit_pins`)."""
+def from_repos_files(serve_dir: Path, repos_files, skip=()) -> list[str]:
+    """Stand-ins for every repository the .repos files name (the built-in profiles'), but the
+    URLs in `skip` (served for real, real_sources.py); returns the URLs served. A tag pin is made
+    on the stand-in's commit; a commit pin cannot be made (see the module doc), so such a
+    stand-in carries STANDIN_TAG (see `commit_pins`)."""
     served = []
-    for repo_path, url, version in _repositories(repos_files):
+    for repo_path, url, version in repositories(repos_files):
+        if url in skip:
+            continue
         tags = [STANDIN_TAG] if re.fullmatch(r"[0-9a-f]{40}", version) else [version] if version else []
         standin_repository(serve_dir, url, repo_path, tags=tags, packages=STANDIN_PACKAGES.get(repo_path))
         served.append(url)
     return served
 
 
-def commit_pins(repos_files) -> dict[str, str]:
-    """`source_pins` for the sandbox roster: each commit-pinned repository to its stand-in's tag."""
-    return {repo_path: STANDIN_TAG for repo_path, _, version in _repositories(repos_files)
-            if re.fullmatch(r"[0-9a-f]{40}", version)}
+def commit_pins(repos_files, real=()) -> dict[str, str]:
+    """`source_pins` for the sandbox roster: each commit-pinned repository to its stand-in's tag
+    (a repository served for real, URL in `real`, keeps its real pin)."""
+    return {repo_path: STANDIN_TAG for repo_path, url, version in repositories(repos_files)
+            if re.fullmatch(r"[0-9a-f]{40}", version) and url not in real}

@@ -21,7 +21,7 @@ import yaml
 
 from roslab import identity
 
-from . import hosts, image, seeding, upstream
+from . import git_standins, hosts, image, seeding, upstream
 from .instance import STATE_ROOT, UPSTREAM_PORT, Instance, SandboxHost, releases_by_team
 from .system import SandboxError, announced, file_lock, log, run, write_file
 
@@ -136,13 +136,25 @@ def up(count: int | None = None, instance: Instance | None = None, desktop: list
             raise
 
 
-def _record_ros(instance: Instance, ros: dict[str, str]) -> None:
-    """Keep (in sandbox.json) and say which ROS each distro's archive serves: real or stand-ins."""
+def _record_ros(instance: Instance, ros: dict[str, str], real_repositories=()) -> None:
+    """Keep (in sandbox.json) and say which ROS each distro's archive serves: real or stand-ins,
+    and which of the robots' repositories its git upstream serves for real (real_sources.py)."""
     state = json.loads(_state_file(instance).read_text())
     state["ros"] = ros
+    state["real_repositories"] = list(real_repositories)
     write_file(_state_file(instance), json.dumps(state) + "\n")
     log.warning("sandbox %r serves ROS 2 %s", instance.name,
                 ", ".join(f"{distro}: {what}" for distro, what in sorted(ros.items())))
+    standins = [url for _, url, _ in git_standins.repositories(upstream.builtin_repos_files())
+                if url not in real_repositories]
+    log.warning("sandbox %r serves the robots' repositories: %s", instance.name,
+                "; ".join([*(f"{url}: REAL" for url in real_repositories),
+                           *(f"{url}: stand-in" for url in dict.fromkeys(standins))]))
+
+
+def real_repositories(instance: Instance) -> list[str]:
+    """The built-in profiles' repositories the running instance serves for real (not stand-ins)."""
+    return json.loads(_state_file(instance).read_text()).get("real_repositories", [])
 
 
 def ros_served(instance: Instance) -> dict[str, str]:
@@ -169,7 +181,7 @@ def _up_locked(instance: Instance, planned: list[SandboxHost]) -> Classroom:
     hosts.ensure_bridge(instance)
     with announced("building the stand-in upstream (Ubuntu-layout archive, stand-in ROS packages, rosdep data)"):
         published = upstream.build(instance.state_dir / "upstream", instance.upstream_url, rootfs)
-    _record_ros(instance, published.ros)
+    _record_ros(instance, published.ros, published.real_repositories)
     upstream.start_server(instance.state_dir / "upstream", instance.bridge_address, UPSTREAM_PORT,
                           instance.state_dir / "upstream.pid", instance.state_dir / "upstream.log")
     keyring = upstream.ubuntu_key().keyring.read_bytes()

@@ -44,7 +44,7 @@ import yaml
 from roslab.distro import PLATFORMS
 from roslab.distro import ROS_APT_SOURCE_VERSION as ROS_APT_SOURCE_PIN
 
-from . import git_standins, image, pypi, ros_runtime
+from . import git_standins, image, pypi, real_sources, ros_runtime
 from .system import SandboxError, file_lock, log, pid_alive, run, terminate, write_file
 
 # Bump when the archives' layout or the stand-ins change: part of the cache keys.
@@ -382,7 +382,7 @@ def _build_deb(workdir: Path, package: str, version: str, description: str,
     shutil.rmtree(root, ignore_errors=True)
     for path, content in (files or {}).items():
         write_file(root / path.lstrip("/"), content)
-        if "/bin/" in path:
+        if "/bin/" in path or (isinstance(content, str) and content.startswith("#!")):
             (root / path.lstrip("/")).chmod(0o755)
     for path, target in (links or {}).items():
         link = root / path.lstrip("/")
@@ -545,14 +545,17 @@ def ros_keys_for(extra_keys: set[str]) -> list[str]:
     return sorted(keys)
 
 
-def ros_archive(extra_keys: set[str], runtime: ros_runtime.Runtime | None = None) -> Path:
+def ros_archive(extra_keys: set[str], runtime: ros_runtime.Runtime | None = None,
+                bundles: real_sources.Bundles | None = None) -> Path:
     """The cached ROS archive (stand-ins for jazzy on noble, humble on jammy, ros-dev-tools on both).
 
-    A distro `runtime` holds a real tree for gets the real ros-core instead (ros_runtime).
+    A distro `runtime` holds a real tree for gets the real ros-core instead (ros_runtime), and
+    with the robots' real `bundles` (real_sources) the released packages built from them.
     """
     keys = ros_keys_for(extra_keys)
     signer = ros_key()
     runtime = runtime or ros_runtime.Runtime({})
+    bundles = bundles or real_sources.Bundles(None)
 
     def build(out: Path) -> None:
         work = out / "work"
@@ -566,7 +569,7 @@ def ros_archive(extra_keys: set[str], runtime: ros_runtime.Runtime | None = None
             pool = out / "pool/main" / codename
             distro_keys = sorted(set(keys) | profile_keys(distro))
             if runtime.is_real(distro):
-                _real_ros_packages(work, codename, distro, distro_keys, runtime, pool)
+                _real_ros_packages(work, codename, distro, distro_keys, runtime, pool, bundles)
                 keys_to_stand_in = []
             else:
                 keys_to_stand_in = distro_keys
@@ -600,11 +603,12 @@ def ros_archive(extra_keys: set[str], runtime: ros_runtime.Runtime | None = None
                 for distro in ROS_DISTROS.values()}
     return _cached_build("ros-archive", _cache_key(ARCHIVE_VERSION, keys, ROS_DEV_TOOLS_DEPENDS, profiles,
                                                    launches, SIMULATOR_STANDINS, signer.fingerprint,
-                                                   runtime.cache_key()), build)
+                                                   runtime.cache_key(), bundles.cache_key(),
+                                                   real_sources.BUILD_DEPENDS), build)
 
 
 def _real_ros_packages(work: Path, codename: str, distro: str, keys: list[str],
-                       runtime: ros_runtime.Runtime, pool: Path) -> None:
+                       runtime: ros_runtime.Runtime, pool: Path, bundles: real_sources.Bundles) -> None:
     """A distro on real ROS: the real ros-core from its tree, ros-base on it, stand-ins on them.
 
     A stand-in whose launch a profile's service runs (turtlebot3_bringup robot.launch.py)
@@ -614,9 +618,10 @@ def _real_ros_packages(work: Path, codename: str, distro: str, keys: list[str],
     version = f"0.0.0-1{codename}"
     core = debian_name(distro, "ros_core")
     ros_runtime.build_core_deb(work, runtime.trees[distro], distro, core, version, runtime.sums[distro], pool)
+    built_from_source = _released_from_bundles(work, distro, keys, runtime, bundles, version, pool)
     for key in keys:
         package = debian_name(distro, key)
-        if key == "ros_core":
+        if key == "ros_core" or key in built_from_source:
             continue
         if key == "ros_base":
             _build_deb(work, package, version, f"{ros_runtime.REAL_NOTE} {distro} ros-base: a metapackage on "
@@ -624,13 +629,49 @@ def _real_ros_packages(work: Path, codename: str, distro: str, keys: list[str],
             continue
         depends = [debian_name(distro, dep) for dep in VARIANT_DEPENDS.get(key, [])] or [core]
         depends += ros_runtime.LINTER_DEPENDS.get(key, ())
+        depends += real_sources.BUILD_DEPENDS.get(key, ())  # what Ubuntu's deb brings along
         if (distro, key) in SIMULATOR_OF:
             depends.append(SIMULATOR_OF[(distro, key)])
-        files = standin_launch_files(distro, key)
-        what = "a stand-in launch" if files else "no files of its own"
+        files = {**standin_launch_files(distro, key), **real_sources.standin_executable_files(distro, key)}
+        what = "stand-in launch files or executables" if files else "no files of its own"
         _build_deb(work, package, version, f"{STANDIN_NOTE}: {key} for ROS 2 {distro} ({what}; "
                    "the real code, where the runtime has it, is in ros-core)", files=files, depends=depends,
                    out_dir=pool)
+
+
+def _released_from_bundles(work: Path, distro: str, keys: list[str], runtime: ros_runtime.Runtime,
+                           bundles: real_sources.Bundles, version: str, pool: Path) -> set[str]:
+    """The released packages (real_sources.RELEASED_FROM_SOURCE) a profile installs on `distro`
+    that the bundles hold: built for real against the runtime's tree. Returns their keys."""
+    wanted = [key for key in keys if key in real_sources.RELEASED_FROM_SOURCE
+              and real_sources.RELEASED_FROM_SOURCE[key][0] in bundles.paths]
+    if not wanted:
+        return set()
+    tree = work / f"runtime-{distro}"
+    shutil.rmtree(tree, ignore_errors=True)
+    tree.mkdir(parents=True)
+    run("tar", "--zstd", "-xf", runtime.trees[distro], "-C", tree, "--no-same-owner")
+    for key in wanted:
+        real_sources.build_released_deb(bundles, key, distro, tree, version, pool, debian_name(distro, key))
+    shutil.rmtree(tree)
+    return set(wanted)
+
+
+def source_keys(bundles: real_sources.Bundles) -> tuple[set[str], dict[str, str]]:
+    """(ROS keys, system keys -> Debian package) the real trees of the built-in .repos files
+    declare at their pins: the sandbox's rosdep and archive resolve them as a real host's do."""
+    ros_keys: set[str] = set()
+    system: dict[str, str] = {}
+    for _, url, version in git_standins.repositories(builtin_repos_files()):
+        bundle = bundles.bundle_for(url)
+        if bundle is None or not version:
+            continue
+        for key in bundles.package_keys(bundle.name.removesuffix(".bundle"), version):
+            if key in SYSTEM_ROSDEP_KEYS or key.startswith("python3-"):
+                system[key] = SYSTEM_ROSDEP_KEYS.get(key, key)
+            else:
+                ros_keys.add(key)
+    return ros_keys, system
 
 
 # -- per-instance content ----------------------------------------------------------------
@@ -711,6 +752,8 @@ class Upstream:
     ros_apt_source_sha256: dict[str, str]
     # distro -> "stand-in", or "real (<tarball>, sha256 <12 hex>)" (ros_runtime.Runtime.describe)
     ros: dict[str, str] | None = None
+    # the built-in .repos repositories served from real bundles (real_sources), by URL
+    real_repositories: tuple[str, ...] = ()
 
     def roster_settings(self) -> dict:
         return {
@@ -726,7 +769,7 @@ class Upstream:
             # The stand-in git server (git_standins.py): the class fetches .repos repositories here.
             "source_url_rewrites": git_standins.rewrites(self.url),
             # The built-in profiles' commit pins cannot be stood in: their stand-ins' tag instead.
-            "source_pins": git_standins.commit_pins(builtin_repos_files()),
+            "source_pins": git_standins.commit_pins(builtin_repos_files(), real=self.real_repositories),
             "python_index_url": f"{self.url}/pypi/simple",  # the stand-in index (sandbox/pypi.py)
             **self.middleware_settings(),
         }
@@ -755,10 +798,15 @@ def build(serve_dir: Path, url: str, rootfs: Path, nodes_dir: Path | None = None
     `runtime`: the real ROS trees to serve (default: those ROSLAB_SANDBOX_ROS_RUNTIME names).
     """
     runtime = runtime if runtime is not None else ros_runtime.Runtime.from_env(ROS_DISTROS.values())
+    bundles = real_sources.Bundles.from_env() if runtime.trees else real_sources.Bundles(None)
     ros_keys, system_keys = node_dependencies(nodes_dir or default_nodes_dir())
-    system_keys = {**SYSTEM_ROSDEP_KEYS, **system_keys}
-    ubuntu = ubuntu_archive(rootfs, system_keys, runtime.debian_packages())
-    ros = ros_archive(ros_keys, runtime)
+    source_ros_keys, source_system_keys = source_keys(bundles)
+    ros_keys |= source_ros_keys
+    system_keys = {**SYSTEM_ROSDEP_KEYS, **system_keys, **source_system_keys}
+    build_tools = sorted({package for packages in real_sources.BUILD_DEPENDS.values() for package in packages}
+                         ) if bundles else []
+    ubuntu = ubuntu_archive(rootfs, system_keys, [*runtime.debian_packages(), *build_tools])
+    ros = ros_archive(ros_keys, runtime, bundles)
     shutil.rmtree(serve_dir, ignore_errors=True)
     (serve_dir / "ros2").mkdir(parents=True)
     (serve_dir / "ubuntu").symlink_to(ubuntu)
@@ -768,11 +816,17 @@ def build(serve_dir: Path, url: str, rootfs: Path, nodes_dir: Path | None = None
         write_file(serve_dir / path, content)
     write_file(serve_dir / "keys/ros.asc", ros_key().armored.read_bytes())
     write_file(serve_dir / "keys/ubuntu.asc", ubuntu_key().armored.read_bytes())
-    # Stand-in git repositories for the built-in profiles' .repos files (git_standins.py).
-    git_standins.from_repos_files(serve_dir, builtin_repos_files())
+    # The built-in profiles' .repos repositories: the real ones where a bundle holds them
+    # (real_sources.py), stand-ins for the rest (git_standins.py).
+    real = []
+    for _, url, _ in git_standins.repositories(builtin_repos_files()):
+        if bundles.bundle_for(url) is not None and url not in real:
+            bundles.serve(serve_dir / git_standins.served_path(url), url)
+            real.append(url)
+    git_standins.from_repos_files(serve_dir, builtin_repos_files(), skip=real)
     pypi.build_index(serve_dir)  # the stand-in Python index, for the profiles' python_packages
     ros = {distro: "stand-in" for distro in ROS_DISTROS.values()} | runtime.describe()
-    return Upstream(url=url, ros_apt_source_sha256=sums, ros=ros)
+    return Upstream(url=url, ros_apt_source_sha256=sums, ros=ros, real_repositories=tuple(real))
 
 
 # -- the HTTP server ------------------------------------------------------------------------

@@ -115,6 +115,12 @@ class SandboxClassroom:
         distros = {DEFAULT_DISTRO[UBUNTU_CODENAMES[host.release]] for host in self.hosts}
         return all(served.get(distro, "").startswith("real") for distro in distros)
 
+    @property
+    def real_repositories(self) -> list[str]:
+        """The robots' repositories this instance's git upstream serves for real (from the bundles
+        ROSLAB_SANDBOX_SOURCES names, roslab/sandbox/real_sources.py), not as stand-ins."""
+        return lifecycle.real_repositories(self.instance)
+
     def host(self, name: str) -> SandboxHost:
         return next(host for host in self.hosts if host.name == name)
 

@@ -24,13 +24,15 @@ def clone(tmp_path):
     shutil.copy2(CI_RUN, repo / ".ci/run")
     tools = tmp_path / "bin"
     tools.mkdir()
-    (tools / "make").write_text('#!/bin/sh\necho "make $* runtime=${ROSLAB_SANDBOX_ROS_RUNTIME-unset}"\n')
+    (tools / "make").write_text('#!/bin/sh\necho "make $* runtime=${ROSLAB_SANDBOX_ROS_RUNTIME-unset} '
+                               'sources=${ROSLAB_SANDBOX_SOURCES-unset}"\n')
     (tools / "make").chmod(0o755)
     return repo, tools
 
 
 def ci_run(repo: Path, tools: Path, **env: str) -> subprocess.CompletedProcess:
-    base = {key: value for key, value in os.environ.items() if key != "ROSLAB_SANDBOX_ROS_RUNTIME"}
+    base = {key: value for key, value in os.environ.items()
+            if key not in ("ROSLAB_SANDBOX_ROS_RUNTIME", "ROSLAB_SANDBOX_SOURCES")}
     return subprocess.run([str(repo / ".ci/run")], env={**base, "PATH": f"{tools}:{base['PATH']}", **env},
                           capture_output=True, text=True, check=True, timeout=30)
 
@@ -54,6 +56,20 @@ def test_without_the_shared_runtime_the_suite_runs_on_stand_ins_and_says_so(clon
 def test_a_value_set_by_the_user_wins_even_an_empty_one(clone, tmp_path):
     repo, tools = clone
     (repo.parent / "shared/ros-runtime").mkdir(parents=True)
-    assert "make test runtime=\n" in ci_run(repo, tools, ROSLAB_SANDBOX_ROS_RUNTIME="").stdout
+    assert "make test runtime= " in ci_run(repo, tools, ROSLAB_SANDBOX_ROS_RUNTIME="").stdout
     mine = tmp_path / "mine"
-    assert f"make test runtime={mine}" in ci_run(repo, tools, ROSLAB_SANDBOX_ROS_RUNTIME=str(mine)).stdout
+    assert f"make test runtime={mine} " in ci_run(repo, tools, ROSLAB_SANDBOX_ROS_RUNTIME=str(mine)).stdout
+
+
+def test_the_robots_real_repositories_beside_the_clone_are_used_and_named(clone):
+    repo, tools = clone
+    runtime, sources = repo.parent / "shared/ros-runtime", repo.parent / "shared/sources"
+    runtime.mkdir(parents=True)
+    sources.mkdir(parents=True)
+    out = ci_run(repo, tools).stdout
+    assert f"the robots' REAL repositories from ROSLAB_SANDBOX_SOURCES={sources}" in out
+    assert f"make test runtime={runtime} sources={sources}" in out
+    # without them (or without a real runtime to build them on): stand-ins, said so
+    sources.rmdir()
+    out = ci_run(repo, tools).stdout
+    assert "STAND-IN robot repositories" in out and "sources=unset" in out

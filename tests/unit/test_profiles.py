@@ -493,9 +493,16 @@ def test_the_boards_host_gets_the_agents_cmake_args_and_a_bad_one_is_refused_whe
     board = {"esp32_usb_serial": "0001A2B3", "esp32_attached_to": "main"}
     main, _ = resolve_host(esp32, board, distro="jazzy", role="main")
     robot, _ = resolve_host(esp32, board, distro="jazzy", role="robot")
-    assert main["cmake_args"]["micro_ros_agent"] == ["-DMICROROSAGENT_SUPERBUILD=OFF"]
-    assert "-DUAGENT_USE_SYSTEM_FASTDDS=ON" in main["cmake_args"]["microxrcedds_agent"]
-    assert robot["cmake_args"] == {}  # the board is not plugged into the robot
+    assert main["cmake_args"]["micro_ros_agent"] == ["-DMICROROSAGENT_SUPERBUILD=OFF",
+                                                     "-DCMAKE_CXX_FLAGS=-DFMT_DEPRECATED_OSTREAM"]
+    xrce = main["cmake_args"]["microxrcedds_agent"]
+    assert {"-DUAGENT_SUPERBUILD=OFF", "-DUAGENT_USE_SYSTEM_FASTDDS=ON", "-DUAGENT_USE_SYSTEM_LOGGER=ON",
+            "-DCMAKE_CXX_FLAGS=-DFMT_DEPRECATED_OSTREAM"} <= set(xrce), xrce
+    # the edge micro_ros_agent's package.xml forgets, and what the XRCE-DDS agent finds with CMake
+    assert main["build_dependencies"] == {"micro_ros_agent": ["microxrcedds_agent"]}
+    assert "ros-jazzy-foonathan-memory-vendor" in main["packages"] and "libspdlog-dev" in main["packages"]
+    assert robot["cmake_args"] == {} and robot["build_dependencies"] == {}  # the board is on the main
+    assert "libspdlog-dev" not in robot["packages"]
 
     path = write(tmp_path, f"""\
         classroom:
@@ -518,4 +525,42 @@ def test_the_boards_host_gets_the_agents_cmake_args_and_a_bad_one_is_refused_whe
     assert any("field 'profiles.mybot.robot.cmake_args.my_driver': '-DX=1; rm -rf ~' is not a CMake cache "
                "setting" in error for error in errors), errors
     assert any("field 'profiles.mybot.robot.cmake_args': 'My-Driver' is not a ROS package name" in error
+               for error in errors), errors
+
+
+def test_the_rover_skips_its_ros1_and_gazebo_packages_and_bad_package_lists_are_refused_where_defined(
+        tmp_path, rosdistro_url):
+    from roslab.profiles import library
+    from roslab.profiles.resolve import resolve_host
+
+    robot, _ = resolve_host(library.builtin_profiles()["osr"], {}, distro="jazzy", role="robot")
+    assert robot["skip_packages"] == ["led_screen", "osr_gazebo"]
+    # what the rover's code imports without declaring it (rosdep would miss them)
+    assert {"ros-jazzy-tf2-ros", "ros-jazzy-nav-msgs"} <= set(robot["packages"])
+
+    path = write(tmp_path, f"""\
+        classroom:
+          ssh_user: ubuntu
+          rosdistro_index_url: {rosdistro_url}
+        profiles:
+          mybot:
+            extends: demo
+            robot:
+              build_dependencies:
+                my_driver: [my_driver, "x; rm -rf ~"]
+                Bad-Name: [other]
+              skip_packages: [ok_name, "../../etc"]
+        teams:
+          t1:
+            robot_profile: mybot
+            hosts:
+              t1-robot: {{role: robot}}
+        """)
+    errors = errors_of(path)
+    assert any("field 'profiles.mybot.robot.build_dependencies.my_driver': 'my_driver' is not another "
+               "package's name" in error for error in errors), errors
+    assert any("'x; rm -rf ~' is not another package's name" in error for error in errors), errors
+    assert any("field 'profiles.mybot.robot.build_dependencies': 'Bad-Name' is not a package name" in error
+               for error in errors), errors
+    assert any("field 'profiles.mybot.robot.skip_packages': '../../etc' is not a package name" in error
                for error in errors), errors

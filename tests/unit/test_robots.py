@@ -200,9 +200,27 @@ def test_esp32_agent_runs_on_the_side_the_board_is_attached_to():
     assert on_main["services"][0]["description"] == "micro-ROS agent for the ESP32 board (UDP port 9000)"
 
 
-def test_esp32_verify_expects_the_servo_angle_only_with_a_board_present():
-    assert resolved("esp32_microros", esp32_usb_serial="A1")["verify_topic"] == "/esp32/servo_angle"
+def test_esp32_verify_expects_the_boards_reading_only_with_a_board_present_and_names_the_board():
+    # the board's own topic: the robot's servo angle goes on after the board stops (the demo
+    # node repeats its last angle), so only the potentiometer proves the board is there
+    present = resolved("esp32_microros", esp32_usb_serial="A1", esp32_transport="udp")
+    assert present["verify_topic"] == "/esp32/potentiometer"
+    assert present["verify_source"] == "the ESP32 board (through micro_ros_agent on the team's robot, udp)"
     assert resolved("esp32_microros", esp32_usb_serial="A1", esp32_present="false")["verify_topic"] is None
+
+
+def test_verify_names_what_publishes_the_topic_when_the_main_hears_nothing():
+    from roslab.verify import TeamResult, parse_check_output
+
+    team = TeamResult("team2", main="team2-main", robots=["team2-robot"], topic="/esp32/potentiometer",
+                      timeout=20, message_type="std_msgs/msg/Int32",
+                      services={"team2-main": "not installed", "team2-robot": "active (running)"},
+                      without_service={"team2-main"},
+                      source="the ESP32 board (through micro_ros_agent on the team's robot, udp)")
+    team.heard = {**parse_check_output([]), "ros": True, "finished": True, "topics": []}
+    assert not team.passed
+    assert team.verdict() == ("team2-main does not see /esp32/potentiometer: the ESP32 board (through "
+                              "micro_ros_agent on the team's robot, udp) publishes nothing")
 
 
 # --- boot config and the reboot record (operations, facts in, commands out) -------------------

@@ -482,7 +482,7 @@ def test_the_sandbox_stands_in_for_every_builtin_commit_pin_with_a_tag_its_roste
 
     files = builtin_repos_files()
     pins = git_standins.commit_pins(files)
-    commit_pinned = {path for path, _, version in git_standins._repositories(files) if len(version) == 40}
+    commit_pinned = {path for path, _, version in git_standins.repositories(files) if len(version) == 40}
     assert commit_pinned and set(pins) == commit_pinned
     assert all(version_problem(tag) is None for tag in pins.values())
 
