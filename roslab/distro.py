@@ -62,9 +62,9 @@ PLATFORMS: tuple[Platform, ...] = (
     Platform(
         release="26.04", codename="resolute", distro="lyrical", python="3.14",
         gazebo=Gazebo("Jetty", "ros_gz"),
-        # Not known here: GitHub (the release page) is unreachable from this project's
-        # machines. The roster check asks for ros_apt_source_sha256.resolute (or mirror mode).
-        ros_apt_source_sha256=None,
+        # As the official Docker images pin ros2-apt-source_1.2.0.resolute_all.deb
+        # (osrf/docker_images); 1.2.0 is the first release that supports resolute.
+        ros_apt_source_sha256="a275b9b819874e745a928e83e39c429fa4d607159285c4ef3ebcf75afa732ee3",
         pretty="Ubuntu 26.04 LTS", version_text="26.04 LTS (Resolute Raccoon)",
     ),
 )

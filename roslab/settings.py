@@ -205,8 +205,8 @@ SCHEMA: list[Setting] = [
         ("ros_apt_source_sha256", distros.ros_apt_source_pins(), dict,
          "Ubuntu codename -> sha256 of that release's .deb (roslab/distro.py's records). Pins set in a "
          "roster are added to these (for the default version; another version needs all its pins). "
-         "roslab knows none for 26.04 (resolute) yet: set it from the release page, or use mirror mode. "
-         "The known ones are copied from public install scripts; not verified from here: check once online.",
+         "resolute's is the one the official Docker images pin (osrf/docker_images); jammy's and noble's "
+         "are copied from public install scripts. None is verified from here: check once online.",
          f.sha256_pins, {"allowed": "codename: 64 hex digits"}),
         ("ros_apt_source_url",
          "https://github.com/ros-infrastructure/ros-apt-source/releases/download/"

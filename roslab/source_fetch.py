@@ -246,12 +246,13 @@ class SourcePackage:
     folder: str
     name: str
     build_type: str  # "ament_cmake", "ament_python", "cmake", "catkin" (ROS 1)...
+    ignored: bool = False  # below an ignore marker: colcon and rosdep do not look at it
 
 
 def packages_in(mirror: Path, commit: str, timeout: float = 60) -> list[SourcePackage]:
-    """The packages colcon would find in `commit`: each package.xml (its <export><build_type>,
-    catkin when none is given, as colcon-ros reads it) and each colcon.pkg (its "type"), not
-    below a folder with an ignore marker, and not inside another package."""
+    """The packages in `commit`: each package.xml (its <export><build_type>, catkin when none is
+    given, as colcon-ros reads it) and each colcon.pkg (its "type"), not inside another package;
+    those below a folder with an ignore marker (which colcon does not build) are `ignored`."""
     import xml.etree.ElementTree as ElementTree
 
     names = _git(["ls-tree", "-r", "--name-only", commit], timeout, cwd=mirror).decode("utf-8", "replace")
@@ -264,7 +265,7 @@ def packages_in(mirror: Path, commit: str, timeout: float = 60) -> list[SourcePa
             continue
         folder = posixpath_dirname(path)
         parents = _parents(folder)
-        if parents & ignored or any(parent in found for parent in parents - {folder}) or folder in found:
+        if any(parent in found for parent in parents - {folder}) or folder in found:
             continue
         text = _git(["cat-file", "blob", f"{commit}:{path}"], timeout, cwd=mirror)
         if base == "package.xml":
@@ -280,7 +281,7 @@ def packages_in(mirror: Path, commit: str, timeout: float = 60) -> list[SourcePa
             except ValueError as error:
                 raise SourceError(f"{path} is not colcon.pkg JSON: {error}") from None
             name, build_type = str(spec.get("name") or folder.rsplit("/", 1)[-1]), str(spec.get("type") or "")
-        found[folder] = SourcePackage(folder, name, build_type)
+        found[folder] = SourcePackage(folder, name, build_type, bool(parents & ignored))
     return sorted(found.values(), key=lambda package: package.folder)
 
 
@@ -322,7 +323,8 @@ def for_host(item: Fetched, cache_dir: Path, skip_packages=(), timeout: float = 
 def _for_host(item: Fetched, cache_dir: Path, skip: tuple[str, ...], timeout: float) -> Fetched:
     mirror = mirror_path(cache_dir, item.url)
     packages = packages_in(mirror, item.commit, timeout)
-    ros1 = [package for package in packages if package.name not in skip and package.build_type == "catkin"]
+    ros1 = [package for package in packages
+            if package.name not in skip and package.build_type == "catkin" and not package.ignored]
     if ros1:
         package = ros1[0]
         raise SourceError(

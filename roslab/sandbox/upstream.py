@@ -819,10 +819,10 @@ def build(serve_dir: Path, url: str, rootfs: Path, nodes_dir: Path | None = None
     # The built-in profiles' .repos repositories: the real ones where a bundle holds them
     # (real_sources.py), stand-ins for the rest (git_standins.py).
     real = []
-    for _, url, _ in git_standins.repositories(builtin_repos_files()):
-        if bundles.bundle_for(url) is not None and url not in real:
-            bundles.serve(serve_dir / git_standins.served_path(url), url)
-            real.append(url)
+    for _, repository_url, _ in git_standins.repositories(builtin_repos_files()):
+        if bundles.bundle_for(repository_url) is not None and repository_url not in real:
+            bundles.serve(serve_dir / git_standins.served_path(repository_url), repository_url)
+            real.append(repository_url)
     git_standins.from_repos_files(serve_dir, builtin_repos_files(), skip=real)
     pypi.build_index(serve_dir)  # the stand-in Python index, for the profiles' python_packages
     ros = {distro: "stand-in" for distro in ROS_DISTROS.values()} | runtime.describe()

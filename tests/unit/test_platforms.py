@@ -56,13 +56,24 @@ def test_the_schema_lists_the_records():
     assert settings.SETTINGS["ros_apt_source_sha256"].default == distro.ros_apt_source_pins()
 
 
-def test_26_04_without_a_known_pin_is_refused_naming_the_setting_to_set(tmp_path):
+def test_26_04_needs_no_teacher_pin_its_published_sha256_is_in_the_record(tmp_path):
+    classroom = load_roster(roster(tmp_path))
+    (host,) = classroom.hosts
+    assert host.distro == "lyrical"
+    assert host.data["ros_apt_source_sha256"]["resolute"] == (
+        "a275b9b819874e745a928e83e39c429fa4d607159285c4ef3ebcf75afa732ee3")  # osrf/docker_images' pin
+
+
+def test_a_release_without_a_known_pin_is_refused_naming_the_setting_to_set(tmp_path):
+    """Another ros2-apt-source version: roslab's pins are of 1.2.0, so each release needs the
+    roster's own."""
     with pytest.raises(RosterError) as raised:
-        load_roster(roster(tmp_path))
+        load_roster(roster(tmp_path, "ros_apt_source_version: 1.3.0\n"
+                                     f"ros_apt_source_sha256: {{noble: '{'ab' * 32}'}}\n"))
     (problem,) = [str(p) for p in raised.value.problems]
-    assert problem.startswith("lab.yaml:3: team 'team1', host 'team1-main', field 'ros_apt_source_sha256': ")
-    assert "roslab knows no sha256 of ros2-apt-source 1.2.0 for Ubuntu 26.04 (resolute)" in problem
-    assert "set ros_apt_source_sha256: {resolute: <sha256 of ros2-apt-source_1.2.0.resolute_all.deb>}" in problem
+    assert "team 'team1', host 'team1-main', field 'ros_apt_source_sha256': " in problem
+    assert "roslab knows no sha256 of ros2-apt-source 1.3.0 for Ubuntu 26.04 (resolute)" in problem
+    assert "set ros_apt_source_sha256: {resolute: <sha256 of ros2-apt-source_1.3.0.resolute_all.deb>}" in problem
     assert "ros_apt_source_mode: mirror" in problem
 
 
