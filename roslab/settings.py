@@ -265,8 +265,11 @@ SCHEMA: list[Setting] = [
         ("ros_environment", {}, dict,
          "Extra environment variables for the login user's shell (~/.bashrc block), the nodes' "
          "service and `roslab verify`, e.g. {RCUTILS_COLORIZED_OUTPUT: \"1\"}; each value is "
-         "written with the escaping its destination needs.", f.environment,
-         {"allowed": "VARIABLE: one line of text"}),
+         "written with the escaping its destination needs. Names are two or more words of capitals "
+         "and digits (LAB_ROBOT_NAME); ROS's and the middleware's (set by ros_middleware, "
+         "ros_domain_id, ros_discovery_mode...), the prompt's, the loader's and interpreters' are "
+         "refused (roslab.formats.variable).", f.environment,
+         {"allowed": "WORD_WORD: one line of text"}),
         ("profile_os_tweaks", False, bool,
          "Apply the OS changes the robot's maker recommends, as the profile lists them (turtlebot3, "
          "from ROBOTIS's e-Manual: mask systemd-networkd-wait-online and the sleep targets; a 2 GiB "
