@@ -580,8 +580,9 @@ def _home() -> Path:
 
 def cache_dir(value: str, context: Context | None = None) -> str | None:
     """A folder of its own for the controller's downloads: inside the home directory, the
-    roster's folder or the temporary directory (not one of them itself), never in ~/.ssh
-    or the classroom's .roslab-state."""
+    roster's folder or the temporary directory (not one of them itself), never in ~/.ssh,
+    ~/.gnupg or the classroom's .roslab-state, never a folder that holds the roster's.
+    (roslab.roster.checks: no two caches share a folder, none is in workspace_nodes_dir.)"""
     context = context or Context()
     problem = single_line(value)
     if problem:
@@ -591,9 +592,12 @@ def cache_dir(value: str, context: Context | None = None) -> str | None:
     if not any(_within(path, place) for place in places):
         return (f"{value!r} ({_real(path)}) is not a folder of its own inside your home directory, "
                 "the roster's folder or the temporary directory")
-    for private in (_home() / ".ssh", context.state_dir):
+    for private in (_home() / ".ssh", _home() / ".gnupg", context.state_dir):
         if _within(path, private, strictly=False):
             return f"{value!r} is inside {private}, which is not a cache"
+    if _within(context.roster_dir, path, strictly=False):
+        return (f"{value!r} ({_real(path)}) holds the roster's folder (its secrets and .roslab-state): "
+                "a cache is a folder of its own")
     return None
 
 
