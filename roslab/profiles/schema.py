@@ -309,6 +309,9 @@ class ProfileReader:
                 text = rule.get(key)
                 if text is not None and (not isinstance(text, str) or formats.single_line(text)):
                     self.error("must be one line of text", rule, key, f"{path}.udev_rules.{key}")
+                elif key == "comment" and text is not None and "\\" in text:
+                    self.error("holds a backslash: udev may join a line ending in \\ to the next one", rule, key,
+                               f"{path}.udev_rules.{key}")
             self.check_text(rule["rule"], known, rule, "rule", f"{path}.udev_rules")
             problem = udev.rule_problem(rule["rule"])
             if problem:

@@ -55,6 +55,20 @@ _ASSIGNMENT = re.compile(
 _PLACEHOLDER = re.compile(r"\$\{[A-Za-z0-9_]*\}")
 
 
+# Kernel names that are consoles or memory, whatever the subsystem says: never opened wider.
+_CONSOLES = re.compile(r"tty[0-9]*|console|ptmx|tty[0-9]+.*|mem|kmem|port|vcs.*", re.ASCII)
+
+
+def _names_devices(kernel: str) -> bool:
+    """Whether a KERNEL=="..." value names particular devices: each alternative (udev's `|`)
+    starts with at least four plain characters (ttyUSB*, i2c-1, ttyS0) and is not a console."""
+    for alternative in kernel.split("|"):
+        literal = re.split(r"[*?\[]", alternative, maxsplit=1)[0]
+        if len(literal) < 4 or _CONSOLES.fullmatch(literal):
+            return False
+    return True
+
+
 def rule_problem(rule: str) -> str | None:
     """Why `rule` (one rule line, ${settings} only inside values) is not a rule a profile may
     write, or None."""
@@ -80,6 +94,7 @@ def rule_problem(rule: str) -> str | None:
     if rule.rstrip().endswith(","):
         return "a rule does not end in a comma"
     matched_subsystems = []
+    names_the_device = False
     assigns_access = False
     for match in pairs:
         key, attribute, op, value = match.group("key", "attribute", "op", "value")
@@ -115,9 +130,16 @@ def rule_problem(rule: str) -> str | None:
             assigns_access = True
         if key == "SUBSYSTEM" and op == "==":
             matched_subsystems.append(value)
+        if attribute is not None and ".." in attribute.split("/"):
+            return f"{named}: an attribute is the device's own (no '..')"
+        if op == "==" and (key in ("ATTR", "ATTRS") and value.strip("*?[]|") or key in ("KERNEL", "KERNELS") and _names_devices(value)):
+            names_the_device = True
     if assigns_access and not (matched_subsystems and all(name in DEVICE_SUBSYSTEMS for name in matched_subsystems)):
         return (f"a rule that sets MODE or GROUP matches SUBSYSTEM==\"...\", one of {', '.join(DEVICE_SUBSYSTEMS)}"
                 " (never a disk, memory or a console)")
+    if assigns_access and not names_the_device:
+        return ("a rule that sets MODE or GROUP names its device too: ATTRS{idVendor}==, ATTRS{serial}== or "
+                "KERNEL==\"ttyUSB0\" (not every device of its subsystem)")
     return None
 
 

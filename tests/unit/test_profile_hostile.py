@@ -272,7 +272,21 @@ HOSTILE_RULES = [
     ('SUBSYSTEM=="tty", ${key}+="x"', "double quotes"),
     ('SUBSYSTEM=="tty", SYMLINK+="${key}"', "compared, not one that is set"),
     ('# a comment', "comment"),
+    ('SUBSYSTEM=="tty", MODE="0666"', "names its device too"),
+    ('SUBSYSTEM=="usb", MODE="0666"', "names its device too"),
+    ('SUBSYSTEM=="tty", KERNEL=="tty*", MODE="0666"', "names its device too"),
+    ('SUBSYSTEM=="tty", KERNEL=="tty1", GROUP="dialout"', "names its device too"),
+    ('SUBSYSTEM=="tty", KERNEL=="ttyUSB0|console", MODE="0666"', "names its device too"),
+    ('SUBSYSTEM=="usb", ATTRS{idVendor}=="*", MODE="0666"', "names its device too"),
+    ('SUBSYSTEM=="tty", ATTRS{../../idVendor}=="0483"', "no '..'"),
+    ('SUBSYSTEM=="tty|block", ATTRS{idVendor}=="0483", MODE="0666"', "never a disk"),
 ]
+
+
+def test_a_udev_comment_udev_could_join_to_the_next_line_is_refused(tmp_path, capsys, no_connections):
+    part = 'udev_rules: [{rule: \'SUBSYSTEM=="tty", SYMLINK+="x"\', comment: "ends in a backslash \\\\"}]'
+    errors = checked_errors(roster(tmp_path, part=part), capsys, no_connections)
+    one_error(errors, f"lab.yaml:{PART_LINE}: field 'profiles.mine.robot.udev_rules.comment': ", "backslash")
 
 
 @pytest.mark.parametrize("rule, words", HOSTILE_RULES)
