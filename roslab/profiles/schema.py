@@ -54,13 +54,17 @@ SERVICE_KEYS = ("name", "description", "command", "environment", "enabled_if")
 _SERVICE_NAME = re.compile(r"[a-z][a-z0-9_-]{0,62}", re.ASCII)
 # Names of units roslab itself writes, or the system has: a profile's service cannot take
 # them over (a service named like one would replace the system's unit in /etc/systemd/system).
-RESERVED_SERVICES = ("roslab-nodes", "roslab-discovery", "roslab-network-rollback", "ssh", "sshd",
-                     "systemd-udevd", "systemd-networkd", "NetworkManager", "dbus", "dbus-broker", "cron",
-                     "getty", "serial-getty", "console-getty", "rsyslog", "polkit", "sudo", "udev", "networking",
-                     "wpa_supplicant", "netplan", "cloud-init", "cloud-config", "cloud-final", "snapd",
-                     "apparmor", "ufw", "chrony", "ntp", "unattended-upgrades", "apt-daily", "apt-daily-upgrade",
-                     "avahi-daemon", "multipathd", "ModemManager", "init", "emergency", "rescue", "user",
-                     "login", "docker", "containerd")
+RESERVED_SERVICES = frozenset("""
+    roslab-nodes roslab-discovery roslab-network-rollback ssh sshd systemd systemd-udevd systemd-networkd
+    dbus dbus-broker udev polkit rsyslog cron atd anacron getty serial-getty console-getty container-getty
+    avahi-daemon bluetooth wpa_supplicant networking networkd-dispatcher netplan cloud-init cloud-config
+    cloud-final thermald irqbalance rng-tools haveged chrony ntp ntpsec unattended-upgrades snapd lxd docker
+    containerd apparmor ufw nftables iptables netfilter-persistent mdadm lvm2 multipathd fstrim e2scrub kmod
+    procps keyboard-setup console-setup setvtrgb plymouth emergency rescue reboot poweroff halt shutdown
+    kexec suspend hibernate sleep basic sysinit multi-user graphical default network network-online local-fs
+    remote-fs swap tmp dmesg finalrd pollinate motd-news apport whoopsie packagekit fwupd accounts-daemon
+    gdm gdm3 lightdm sddm display-manager user login sudo init apt-daily apt-daily-upgrade
+""".split())
 # Prefixes of system units (systemd-journald, dbus-org.freedesktop..., getty@, user@...).
 RESERVED_SERVICE_PREFIXES = ("roslab", "systemd-", "dbus", "getty", "serial-getty", "ssh", "cloud-", "snapd",
                              "apt-", "initrd-")
