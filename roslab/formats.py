@@ -631,7 +631,7 @@ _controller(secrets_file, "a .yaml file in the roster's folder")
 _controller(known_hosts_file, "a *known_hosts file, or /dev/null")
 _controller(private_key_file, "an SSH private key file")
 _controller(openpgp_key_file, "an OpenPGP public key file")
-_controller(cache_dir, "a folder in ~, the roster's folder or the temp dir")
+_controller(cache_dir, "a folder of its own (apart from the other caches) in ~, the roster's folder or the temp dir")
 _controller(nodes_dir, "a folder of ROS packages")
 
 
