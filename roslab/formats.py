@@ -692,7 +692,8 @@ REFUSED_VARIABLE_FAMILIES = tuple((re.compile(regex, re.ASCII), governs) for reg
     (r"LD_.*|GLIBC_.*|MALLOC_.*|GCONV_PATH|LOCPATH|NLSPATH|HOSTALIASES|LOCALDOMAIN|RES_OPTIONS|GETCONF_DIR",
      "the loader's and the C library's variables load code into (or change) every program"),
     (r"PYTHON.*|PIP_.*|VIRTUAL_ENV|CONDA_.*",
-     "Python's variables run code or move its library (a profile's `python_packages` and `python_venv` set up its Python)"),
+     "Python's variables run code or move its library (a profile's `python_packages` and `python_venv` "
+     "set up its Python)"),
     (r"PERL.*|RUBY(OPT|LIB|_.*)|GEM_.*|NODE_.*|NPM_.*|LUA_.*|JAVA_.*|JDK_.*|CLASSPATH|TCL(LIBPATH|_.*)",
      "an interpreter's variables run code or move its library"),
     (r"GIT_.*", "git's variables run commands (sources are set by source_url_rewrites and source_pins)"),
@@ -703,20 +704,16 @@ REFUSED_VARIABLE_FAMILIES = tuple((re.compile(regex, re.ASCII), governs) for reg
 ))
 
 
-def variable(name, value, owned_ok: tuple[str, ...] = ()) -> str | None:
+def variable(name, value) -> str | None:
     """One environment variable roslab may write: a name of the allowed form, not a family
-    that roslab's own settings govern or that runs code, and one line of text.
-
-    `owned_ok`: names of OWNED_VARIABLES this destination may set after all (a profile's own
-    service names its middleware: the micro-ROS agent runs on Fast DDS whatever the class's)."""
+    that roslab's own settings govern or that runs code, and one line of text."""
     if not isinstance(name, str) or not name.isascii():
         return f"{name!r} is not a variable name (plain ASCII capitals, digits and _)"
-    if name not in owned_ok:
-        if name in OWNED_VARIABLES:
-            return f"{name} is not set through an environment mapping: it is set by {OWNED_VARIABLES[name]}"
-        for family, governs in REFUSED_VARIABLE_FAMILIES:
-            if family.fullmatch(name):
-                return f"{name} is not set through an environment mapping: {governs}"
+    if name in OWNED_VARIABLES:
+        return f"{name} is not set through an environment mapping: it is set by {OWNED_VARIABLES[name]}"
+    for family, governs in REFUSED_VARIABLE_FAMILIES:
+        if family.fullmatch(name):
+            return f"{name} is not set through an environment mapping: {governs}"
     if not _VARIABLE_NAME.fullmatch(name) or len(name) > MAX_VARIABLE_NAME:
         return (f"{name!r} is not a variable name roslab sets: capitals and digits in at least two words "
                 f"joined by _ (like TURTLEBOT3_MODEL or LAB_ROBOT_NAME), at most {MAX_VARIABLE_NAME} "

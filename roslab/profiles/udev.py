@@ -132,7 +132,9 @@ def rule_problem(rule: str) -> str | None:
             matched_subsystems.append(value)
         if attribute is not None and ".." in attribute.split("/"):
             return f"{named}: an attribute is the device's own (no '..')"
-        if op == "==" and (key in ("ATTR", "ATTRS") and value.strip("*?[]|") or key in ("KERNEL", "KERNELS") and _names_devices(value)):
+        if op == "==" and key in ("ATTR", "ATTRS") and value.strip("*?[]|"):
+            names_the_device = True
+        if op == "==" and key in ("KERNEL", "KERNELS") and _names_devices(value):
             names_the_device = True
     if assigns_access and not (matched_subsystems and all(name in DEVICE_SUBSYSTEMS for name in matched_subsystems)):
         return (f"a rule that sets MODE or GROUP matches SUBSYSTEM==\"...\", one of {', '.join(DEVICE_SUBSYSTEMS)}"

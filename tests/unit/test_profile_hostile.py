@@ -369,7 +369,8 @@ def inventory_refused(tmp_path: Path, monkeypatch, capsys, argv: list[str], text
 @pytest.mark.parametrize("value", ["LDS-99", "x" * 200, "a b"])
 def test_a_hostile_profile_setting_from_data_is_blamed_on_data(value, tmp_path, monkeypatch, capsys, no_connections):
     text = ("classroom:\n  ssh_user: ubuntu\nteams:\n  team1:\n    robot_profile: turtlebot3\n"
-            "    turtlebot3_model: burger\n    lds_model: LDS-02\n    hosts:\n      team1-robot:\n        role: robot\n")
+            "    turtlebot3_model: burger\n    lds_model: LDS-02\n    hosts:\n"
+            "      team1-robot:\n        role: robot\n")
     err = inventory_refused(tmp_path, monkeypatch, capsys, ["--data", f"lds_model={value}"], text)
     lines = [line for line in err.splitlines() if "lds_model" in line and "roslab" not in line[:6]]
     assert lines and all(line.startswith("pyinfra's command line: team 'team1', host 'team1-robot', "
@@ -384,7 +385,8 @@ def test_an_extends_loop_is_named_as_a_loop(tmp_path, capsys, no_connections):
             "      team1-robot: {role: robot, robot_profile: first}\n")
     (tmp_path / "lab.yaml").write_text(text)
     errors = checked_errors(tmp_path / "lab.yaml", capsys, no_connections)
-    loop = one_error(errors, "lab.yaml:9: field 'profiles.third.extends': ", "a loop (first -> second -> third -> first)")
+    loop = one_error(errors, "lab.yaml:9: field 'profiles.third.extends': ",
+                     "a loop (first -> second -> third -> first)")
     assert "not a profile" not in loop
 
 
@@ -450,7 +452,8 @@ def test_a_file_rewrite_outside_the_rosters_folder_is_refused(tmp_path, capsys, 
     for bad in ("file:///etc/", f"file://{tmp_path}/../", f"file://{tmp_path}/.roslab-state/",
                 f"file://otherhost{tmp_path}/"):
         path = roster(tmp_path, classroom=f"source_url_rewrites: {{'https://github.com/': '{bad}'}}")
-        one_error(checked_errors(path, capsys, no_connections), f"lab.yaml:{CLASSROOM_LINE}: field 'source_url_rewrites': ")
+        one_error(checked_errors(path, capsys, no_connections),
+                  f"lab.yaml:{CLASSROOM_LINE}: field 'source_url_rewrites': ")
 
 
 def test_a_rewritten_url_that_climbs_out_of_the_rosters_folder_is_refused(tmp_path, capsys, no_connections):
@@ -468,7 +471,8 @@ def test_a_file_rewrite_into_the_rosters_folder_is_taken(tmp_path):
     (tmp_path / "lab.repos").write_text(REPOS.format(url="https://github.com/lab/driver.git"))
     path = roster(tmp_path, host="workspace_sources: [lab.repos]",
                   classroom=f"source_url_rewrites: {{'https://github.com/': 'file://{tmp_path}/mirror/'}}")
-    assert load_roster(path).hosts[0].data["source_url_rewrites"] == {"https://github.com/": f"file://{tmp_path}/mirror/"}
+    rewrites = load_roster(path).hosts[0].data["source_url_rewrites"]
+    assert rewrites == {"https://github.com/": f"file://{tmp_path}/mirror/"}
 
 
 @pytest.mark.parametrize("settings, line, field, words", [

@@ -133,7 +133,8 @@ def test_hand_made_host_data_gets_the_same_allow_lists_as_a_profile():
 
     profile = turtlebot3_robot()
     profile["udev_rules"] = ""
-    for changed, words in (({"os_tweaks": {"mask_units": ["ssh.service"]}, "groups": []}, "'ssh.service' is not a unit"),
+    for changed, words in (({"os_tweaks": {"mask_units": ["ssh.service"]}, "groups": []},
+                            "'ssh.service' is not a unit"),
                            ({"groups": ["sudo"]}, "'sudo' is not a hardware-access group")):
         with pytest.raises(OperationError, match=words):
             plan(robot_profile, {**facts(), User: "ubuntu", Home: lambda user: "/home/ubuntu",
