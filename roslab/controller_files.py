@@ -21,7 +21,7 @@ class UnreadableFile(Exception):
     """A file the loader refuses to read; the message is one line for the report."""
 
 
-def _kind_of(mode: int) -> str:
+def kind_of(mode: int) -> str:
     for test, what in ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
                        (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
                        (stat.S_ISSOCK, "a socket")):
@@ -47,7 +47,7 @@ def read_regular_file(path: Path | str, limit: int = MAX_SMALL_FILE_BYTES) -> by
     try:
         info = os.fstat(fd)
         if not stat.S_ISREG(info.st_mode):
-            raise UnreadableFile(f"is {_kind_of(info.st_mode)}, not a regular file")
+            raise UnreadableFile(f"is {kind_of(info.st_mode)}, not a regular file")
         if info.st_size > limit:
             raise UnreadableFile(f"the file is larger than {_size_text(limit)}; refusing to read it")
         chunks, total = [], 0
@@ -70,4 +70,4 @@ def _size_text(limit: int) -> str:
     return f"{limit // (1024 * 1024)} MiB" if limit >= 1024 * 1024 else f"{limit // 1024} KiB"
 
 
-__all__ = ["MAX_SMALL_FILE_BYTES", "UnreadableFile", "read_regular_file"]
+__all__ = ["MAX_SMALL_FILE_BYTES", "UnreadableFile", "kind_of", "read_regular_file"]

@@ -580,8 +580,9 @@ def _home() -> Path:
 
 def cache_dir(value: str, context: Context | None = None) -> str | None:
     """A folder of its own for the controller's downloads: inside the home directory, the
-    roster's folder or the temporary directory (not one of them itself), never in ~/.ssh
-    or the classroom's .roslab-state."""
+    roster's folder or the temporary directory (not one of them itself), never in ~/.ssh,
+    ~/.gnupg or the classroom's .roslab-state, never a folder that holds the roster's.
+    (roslab.roster.checks: no two caches share a folder, none is in workspace_nodes_dir.)"""
     context = context or Context()
     problem = single_line(value)
     if problem:
@@ -591,9 +592,12 @@ def cache_dir(value: str, context: Context | None = None) -> str | None:
     if not any(_within(path, place) for place in places):
         return (f"{value!r} ({_real(path)}) is not a folder of its own inside your home directory, "
                 "the roster's folder or the temporary directory")
-    for private in (_home() / ".ssh", context.state_dir):
+    for private in (_home() / ".ssh", _home() / ".gnupg", context.state_dir):
         if _within(path, private, strictly=False):
             return f"{value!r} is inside {private}, which is not a cache"
+    if _within(context.roster_dir, path, strictly=False):
+        return (f"{value!r} ({_real(path)}) holds the roster's folder (its secrets and .roslab-state): "
+                "a cache is a folder of its own")
     return None
 
 
@@ -627,28 +631,93 @@ _controller(secrets_file, "a .yaml file in the roster's folder")
 _controller(known_hosts_file, "a *known_hosts file, or /dev/null")
 _controller(private_key_file, "an SSH private key file")
 _controller(openpgp_key_file, "an OpenPGP public key file")
-_controller(cache_dir, "a folder in ~, the roster's folder or the temp dir")
+_controller(cache_dir, "a folder of its own (apart from the other caches) in ~, the roster's folder or the temp dir")
 _controller(nodes_dir, "a folder of ROS packages")
 
 
 # --- composite values ---------------------------------------------------------------------
 
-_VARIABLE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,127}")
-# Variables roslab writes from its own settings, or that would change what runs: never set
-# through an environment mapping.
-RESERVED_VARIABLES = frozenset({
-    "ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_STATIC_PEERS", "ROS_LOCALHOST_ONLY",
-    "ROSDISTRO_INDEX_URL", "HOME", "USER", "LOGNAME", "PATH", "SHELL", "LD_PRELOAD", "LD_LIBRARY_PATH",
-    "PYTHONPATH", "AMENT_PREFIX_PATH", "BASH_ENV", "ENV", "IFS", "PROMPT_COMMAND",
-})
+# An environment variable a roster or a profile may set: an allow-list. A name is words of
+# capitals and digits joined by `_`, at least two of them (TURTLEBOT3_MODEL, LDS_MODEL,
+# GAZEBO_MODEL_PATH, a lab's own LAB_ROBOT_COLOUR): every one-word name a shell, the C
+# library or a common tool reads (PATH, HOME, PS1, ENV, IFS, EDITOR, PAGER, TMPDIR, LANG, TZ,
+# PYTHONSTARTUP, PERL5OPT, LESSOPEN...) is left out by its form. The names roslab writes and
+# the families below are refused whatever their form, each naming what governs it instead: the
+# ROS/middleware variables roslab writes from its own settings, and whatever makes a shell, the
+# loader or an interpreter run code or look elsewhere for it.
+_VARIABLE_NAME = re.compile(r"[A-Z][A-Z0-9]*(_[A-Z0-9]+)+", re.ASCII)
+MAX_VARIABLE_NAME = 64
+# Names roslab writes, and the roster setting that governs each.
+OWNED_VARIABLES = {
+    "RMW_IMPLEMENTATION": "the class's `ros_middleware` setting",
+    "ROS_DOMAIN_ID": "the team's `ros_domain_id` setting",
+    "ROS_LOCALHOST_ONLY": "the `ros_discovery_mode` setting (localhost)",
+    "ROS_AUTOMATIC_DISCOVERY_RANGE": "the `ros_discovery_mode` setting",
+    "ROS_STATIC_PEERS": "the `ros_static_peers` setting",
+    "ROS_DISCOVERY_SERVER": "the `ros_discovery_mode` setting (discovery_server)",
+    "ROS_SUPER_CLIENT": "the `ros_discovery_mode` setting (discovery_server)",
+    "ROS_DISTRO": "the `ros_distro` setting",
+    "ROSDISTRO_INDEX_URL": "the `rosdistro_index_url` setting",
+    "ROSDEP_SOURCES_LIST": "the `rosdep_sources_list_url` setting",
+    "FASTRTPS_DEFAULT_PROFILES_FILE": "the `ros_discovery_mode` setting (roslab writes Fast DDS's profiles)",
+    "FASTDDS_DEFAULT_PROFILES_FILE": "the `ros_discovery_mode` setting (roslab writes Fast DDS's profiles)",
+    "CYCLONEDDS_URI": "the `ros_discovery_mode` setting (roslab writes Cyclone DDS's configuration)",
+    "ZENOH_CONFIG_OVERRIDE": "the `ros_discovery_mode` setting (roslab configures Zenoh)",
+    "ZENOH_ROUTER_CONFIG_URI": "the `ros_discovery_mode` setting (roslab configures Zenoh)",
+    "ZENOH_SESSION_CONFIG_URI": "the `ros_discovery_mode` setting (roslab configures Zenoh)",
+    "VIRTUAL_ENV": "the robot profile's `python_venv`",
+    "CMAKE_PREFIX_PATH": "the ROS setup roslab sources (the underlay and the workspace)",
+    "PKG_CONFIG_PATH": "the ROS setup roslab sources (the underlay and the workspace)",
+    "LIBRARY_PATH": "the ROS setup roslab sources (the underlay and the workspace)",
+}
+# Families, each a regular expression over the whole name and what governs it instead; the
+# first that matches says why. They run before the form, so PS1 or PYTHONHOME is named as what
+# it is, not only as a one-word name.
+_MIDDLEWARE = "the middleware's variables are set by the `ros_middleware` and `ros_discovery_mode` settings"
+_WORKSPACE = "the workspace's paths are set by the ROS setup roslab sources (the underlay and the workspace)"
+REFUSED_VARIABLE_FAMILIES = tuple((re.compile(regex, re.ASCII), governs) for regex, governs in (
+    (r"ROS_.*", "ROS 2's own variables are set by the roster's ROS settings (ros_distro, ros_domain_id, "
+                "ros_discovery_mode, ros_static_peers)"),
+    (r"RMW_.*", "the middleware's variables are set by the class's `ros_middleware` setting"),
+    (r"(FASTRTPS|FASTDDS|CYCLONEDDS|ZENOH|RTI|CONNEXTDDS|NDDS)_.*", _MIDDLEWARE),
+    (r"(AMENT|COLCON|CATKIN|CMAKE|PKG_CONFIG)_.*", _WORKSPACE),
+    (r"ROSDEP_.*", "rosdep's variables are set by the rosdep settings (rosdep_*)"),
+    (r"ROSDISTRO_.*", "it is set by the `rosdistro_index_url` setting"),
+    (r"PS[0-9]|PROMPT_.*", "the shell's prompt runs what it holds, in every student shell"),
+    (r"ENV|BASH|BASH_.*|BASHOPTS|SHELLOPTS|IFS|CDPATH|GLOBIGNORE|EXECIGNORE|FUNCNEST|INPUTRC|TMOUT|COMP_.*"
+     r"|HIST[A-Z]*|MAIL[A-Z]*|POSIXLY_CORRECT|TERM|TERMINFO|TERMCAP",
+     "the shell reads it to run code or to behave otherwise (the login shell is the student's)"),
+    (r"PATH|HOME|SHELL|USER|LOGNAME|PWD|OLDPWD|TMPDIR|EDITOR|VISUAL|PAGER|BROWSER|DISPLAY|XAUTHORITY",
+     "the system sets it for the login user's account"),
+    (r"LD_.*|GLIBC_.*|MALLOC_.*|GCONV_PATH|LOCPATH|NLSPATH|HOSTALIASES|LOCALDOMAIN|RES_OPTIONS|GETCONF_DIR",
+     "the loader's and the C library's variables load code into (or change) every program"),
+    (r"PYTHON.*|PIP_.*|VIRTUAL_ENV|CONDA_.*",
+     "Python's variables run code or move its library (a profile's `python_packages` and `python_venv` "
+     "set up its Python)"),
+    (r"PERL.*|RUBY(OPT|LIB|_.*)|GEM_.*|NODE_.*|NPM_.*|LUA_.*|JAVA_.*|JDK_.*|CLASSPATH|TCL(LIBPATH|_.*)",
+     "an interpreter's variables run code or move its library"),
+    (r"GIT_.*", "git's variables run commands (sources are set by source_url_rewrites and source_pins)"),
+    (r"SSH_.*|SUDO_.*|SYSTEMD_.*|DBUS_.*|XDG_.*|LESS(OPEN|CLOSE|KEY|SECURE|_.*)?|MAN(PAGER|PATH|OPT|_.*)",
+     "the login's tools run commands from these, or find the login's own files"),
+    (r"LC_.*|LANG|LANGUAGE", "it is set by the `locale` setting"),
+    (r"TZ|TZDIR", "it is set by the `timezone` setting"),
+))
 
 
 def variable(name, value) -> str | None:
-    """One environment variable roslab may write: a plain name, not roslab's own, one line of text."""
-    if not isinstance(name, str) or not _VARIABLE_NAME.fullmatch(name):
-        return f"{name!r} is not a variable name (letters, digits and _, not starting with a digit)"
-    if name in RESERVED_VARIABLES:
-        return f"{name} is not set through an environment mapping (roslab sets it from its own setting)"
+    """One environment variable roslab may write: a name of the allowed form, not a family
+    that roslab's own settings govern or that runs code, and one line of text."""
+    if not isinstance(name, str) or not name.isascii():
+        return f"{name!r} is not a variable name (plain ASCII capitals, digits and _)"
+    if name in OWNED_VARIABLES:
+        return f"{name} is not set through an environment mapping: it is set by {OWNED_VARIABLES[name]}"
+    for family, governs in REFUSED_VARIABLE_FAMILIES:
+        if family.fullmatch(name):
+            return f"{name} is not set through an environment mapping: {governs}"
+    if not _VARIABLE_NAME.fullmatch(name) or len(name) > MAX_VARIABLE_NAME:
+        return (f"{name!r} is not a variable name roslab sets: capitals and digits in at least two words "
+                f"joined by _ (like TURTLEBOT3_MODEL or LAB_ROBOT_NAME), at most {MAX_VARIABLE_NAME} "
+                "characters; one-word names (PATH, PS1, EDITOR...) belong to the shell and the system")
     if not isinstance(value, str):
         return f"the value of {name} must be a string (quote it), not {value!r}"
     problem = single_line(value)
@@ -656,7 +725,9 @@ def variable(name, value) -> str | None:
 
 
 def environment(value: dict, context: Context | None = None) -> str | None:
-    """VARIABLE: value, each value one line of text."""
+    """VARIABLE: value, each value one line of text; names like LAB_ROBOT_NAME (two or more
+    words of capitals and digits), not ROS's, the middleware's, the shell's, the loader's or an
+    interpreter's."""
     for name, text in value.items():
         problem = variable(name, text)
         if problem:

@@ -92,7 +92,7 @@ def _source_pins(value, context=None):
 
 _repos_file.allowed = "a .repos file, relative to the roster"
 _source_pins.allowed = "repository path: commit (40 hex) or tag"
-_url_rewrites.allowed = "URL prefix: replacement prefix (http, https, file)"
+_url_rewrites.allowed = "URL prefix: replacement prefix (http, https, file:// in the roster's folder)"
 
 SECONDS_PER_DAY = 24 * 3600
 SCHEMA: list[Setting] = [
@@ -265,8 +265,11 @@ SCHEMA: list[Setting] = [
         ("ros_environment", {}, dict,
          "Extra environment variables for the login user's shell (~/.bashrc block), the nodes' "
          "service and `roslab verify`, e.g. {RCUTILS_COLORIZED_OUTPUT: \"1\"}; each value is "
-         "written with the escaping its destination needs.", f.environment,
-         {"allowed": "VARIABLE: one line of text"}),
+         "written with the escaping its destination needs. Names are two or more words of capitals "
+         "and digits (LAB_ROBOT_NAME); ROS's and the middleware's (set by ros_middleware, "
+         "ros_domain_id, ros_discovery_mode...), the prompt's, the loader's and interpreters' are "
+         "refused (roslab.formats.variable).", f.environment,
+         {"allowed": "WORD_WORD: one line of text"}),
         ("profile_os_tweaks", False, bool,
          "Apply the OS changes the robot's maker recommends, as the profile lists them (turtlebot3, "
          "from ROBOTIS's e-Manual: mask systemd-networkd-wait-online and the sleep targets; a 2 GiB "
@@ -318,7 +321,9 @@ SCHEMA: list[Setting] = [
         ("source_url_rewrites", {}, dict,
          "Where the controller fetches a repository from instead, like git's url.<base>.insteadOf: "
          "{\"https://github.com/\": \"http://mirror.lab/git/github.com/\"} (the longest matching prefix wins); "
-         "the lock file and every message keep the URL the .repos file gives.", _url_rewrites,
+         "the lock file and every message keep the URL the .repos file gives. A file:// replacement (and "
+         "every URL it makes) leads inside the roster's folder, not .roslab-state, like a file:// source.",
+         _url_rewrites,
          {"levels": ("classroom",)}),
         ("source_pins", {}, dict,
          "Repository path (as its .repos file names it) -> the commit (40 hex digits) or tag to build "

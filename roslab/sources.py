@@ -24,9 +24,11 @@ from __future__ import annotations
 
 import os
 import re
+import stat
 from pathlib import Path
 from urllib.parse import unquote, urlsplit
 
+from roslab.controller_files import kind_of
 from roslab.roster.loading import line_of, load_yaml
 from roslab.roster.problems import Problem, Report, display_path
 
@@ -96,10 +98,8 @@ def url_problem(url, repos_dir: Path | None = None) -> str | None:
     if parts.scheme == "file":
         if parts.netloc not in ("", "localhost"):
             return f"{url!r}: a file:// URL names a path on this machine (file:///...)"
-        path = Path(unquote(parts.path))
-        if repos_dir is not None and not _within(path, repos_dir):
-            return (f"{url!r} leads outside the folder of its .repos file ({repos_dir}): what the "
-                    "controller fetches is copied to every Pi")
+        if repos_dir is not None:
+            return file_url_problem(url, repos_dir, "the folder of its .repos file")
     return None
 
 
@@ -217,8 +217,14 @@ def name_problem(name, base_dir: Path) -> str | None:
     path = base_dir / name
     if not _within(path, base_dir):
         return f"{name!r} leads outside {base_dir} (a link?)"
-    if not path.is_file():
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
         return f"{name!r}: no such file ({path})"
+    except OSError as exc:  # a symlink loop, a folder we may not enter
+        return f"{name!r}: cannot read it ({path}): {exc.strerror or exc}"
+    if not stat.S_ISREG(mode):
+        return f"{name!r} ({path}) is {kind_of(mode)}, not a regular file"
     return None
 
 
@@ -248,8 +254,13 @@ def rewritten(url: str, rewrites: dict[str, str] | None) -> str:
     return (rewrites[best] + url[len(best):]) if best else url
 
 
-def rewrites_problem(value, _context=None) -> str | None:
-    """A mapping of URL prefix -> URL prefix (http, https or file), each one line of ASCII."""
+def rewrites_problem(value, context=None) -> str | None:
+    """A mapping of URL prefix -> URL prefix (http, https or file), each one line of ASCII; a
+    file:// replacement leads inside the roster's folder (not .roslab-state), like a file://
+    source: what the controller fetches is copied to every Pi."""
+    from roslab.formats import Context
+
+    context = context or Context()
     if not isinstance(value, dict):
         return "must be a mapping of URL prefix -> replacement prefix"
     for prefix, replacement in value.items():
@@ -263,6 +274,28 @@ def rewrites_problem(value, _context=None) -> str | None:
                 return f"{text!r}: only http://, https:// and file:// prefixes"
             if "@" in parts.netloc:
                 return f"{text!r} holds a user name or password"
+        problem = file_url_problem(replacement, Path(context.roster_dir), "the roster's folder")
+        if problem:
+            return f"{prefix} -> {problem}"
+    return None
+
+
+def file_url_problem(url: str, folder: Path, named: str) -> str | None:
+    """Why a file:// `url` (a URL or a prefix) does not lead inside `folder` (the roster's, or
+    its .repos file's), or None; not a file:// URL: None. Never into .roslab-state."""
+    from roslab.formats import STATE_DIR
+
+    parts = urlsplit(url)
+    if parts.scheme != "file":
+        return None
+    if parts.netloc not in ("", "localhost") or parts.query or parts.fragment:
+        return f"{url!r}: a file:// URL names a path on this machine (file:///...)"
+    path = Path(unquote(parts.path))
+    if not path.is_absolute() or ".." in path.parts or "." in parts.path.split("/"):
+        return f"{url!r}: a file:// URL needs an absolute path without '..'"
+    if not _within(path, folder) or _within(path, folder / STATE_DIR):
+        return (f"{url!r} leads outside {named} ({os.path.realpath(folder)}): what the controller "
+                "fetches is copied to every Pi")
     return None
 
 
@@ -328,5 +361,12 @@ def host_sources(data: dict, profile_sources: list[tuple[Path, str]], roster_dir
     problems += [("sources", text) for text in conflicts]
     every, conflicts = merged([("sources", profile_merged), ("workspace_sources", roster_repos)])
     problems += [("workspace_sources", text) for text in conflicts]
+    rewrites = data.get("source_url_rewrites") or {}
+    for repo in every:
+        url = rewritten(repo["url"], rewrites)
+        problem = file_url_problem(url, roster_dir, "the roster's folder") if url != repo["url"] else None
+        if problem:
+            problems.append(("source_url_rewrites", f"repository {repo['path']!r} ({repo['url']}) is rewritten "
+                                                    f"to {problem}"))
     pins = data.get("source_pins")
     return pinned(profile_merged, pins), pinned(every, pins), problems

@@ -12,7 +12,8 @@ touched, and `resolve.py` turns a host's profile and settings into plain host da
 (`roslab_profile`) that the deploys read.
 
     schema.py    parse and check one profile mapping (problems with file:line)
-    library.py   the built-in profiles, a roster's own, `extends`
+    library.py   the built-in profiles, a roster's own, `extends` (in any order; loops named)
     resolve.py   a host's profile: packages, environment, udev rules... for its side and distro
+    udev.py      a profile's udev rules read as udev reads them, keys allow-listed
     packages.py  every ROS package a host will install, checked against rosdistro
 """

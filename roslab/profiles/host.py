@@ -7,7 +7,7 @@
 from __future__ import annotations
 
 from pyinfra import host
-from pyinfra.api import FactBase, operation
+from pyinfra.api import FactBase, OperationError, operation
 from pyinfra.facts.files import File
 
 from roslab.quoting import shell_word
@@ -35,6 +35,11 @@ def user_in_groups(user: str, groups: list[str]):
 
     Example: ``user_in_groups(name="...", user="ubuntu", groups=["dialout"])``
     """
+    from roslab.profiles.schema import login_group_problem
+
+    for group in groups:  # checked at load; hand-made host data gets the same allow-list
+        if login_group_problem(group):
+            raise OperationError(login_group_problem(group))
     current = host.get_fact(UserGroups, user=user)
     if current is None:
         raise_missing = f"user {user!r} does not exist"
@@ -116,6 +121,11 @@ def units_masked(units: list[str]):
     A unit this host does not have is masked all the same, so a later install cannot start it.
     Example: ``units_masked(name="...", units=["sleep.target", "suspend.target"])``
     """
+    from roslab.profiles.schema import maskable_unit_problem
+
+    for unit in units:  # checked at load; hand-made host data gets the same allow-list
+        if maskable_unit_problem(unit):
+            raise OperationError(maskable_unit_problem(unit))
     current = host.get_fact(UnitsMasked, units=units)
     missing = [unit for unit in units if not current.get(unit)]
     if not missing:

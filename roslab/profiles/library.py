@@ -9,7 +9,7 @@ from pathlib import Path
 
 from roslab.profiles.schema import Profile, read_profile
 from roslab.roster.loading import Mapping, line_of, load_yaml
-from roslab.roster.problems import Report, RosterError
+from roslab.roster.problems import Problem, Report, RosterError
 
 DATA = "roslab.profiles.data"
 DEFAULT_PROFILE = "demo"
@@ -22,35 +22,117 @@ def builtin_files() -> list[Path]:
 
 @functools.cache
 def builtin_profiles() -> dict[str, Profile]:
-    """roslab's own profiles, checked by the same schema as a roster's (a problem is a bug: it raises)."""
-    profiles: dict[str, Profile] = {}
+    """roslab's own profiles, checked by the same schema as a roster's (a problem is a bug: it raises).
+
+    A built-in profile may extend another built-in one (`extends:`), as a roster's may."""
+    specs: dict[str, tuple] = {}
     problems = []
     for path in builtin_files():
         report = Report(path)
         mapping = load_yaml(path, report)
-        profile = read_profile(mapping, report, path.stem, "built-in", base_dir=path.parent) \
-            if isinstance(mapping, dict) else None
-        if profile is not None and profile.name != path.stem:
-            report.error(f"the file of profile {profile.name!r} must be named {profile.name}.yaml")
         problems += report.errors
-        if profile is not None:
-            profiles[profile.name] = profile
+        if isinstance(mapping, dict):
+            specs[path.stem] = (mapping, report, path)
+        else:
+            problems.append(Problem(report.path, "a profile file holds a mapping (distros, settings, main, robot...)"))
+    profiles: dict[str, Profile] = {}
+
+    def read(name: str, spec, report: Report, base: Profile | None) -> Profile | None:
+        mapping, _report, path = specs[name]
+        profile = read_profile(mapping, report, name, "built-in", base, base_dir=path.parent)
+        if profile is not None and profile.name != name:
+            report.error(f"the file of profile {profile.name!r} must be named {profile.name}.yaml")
+            return None
+        return profile
+
+    _read_extending({name: spec[0] for name, spec in specs.items()}, profiles, {},
+                    lambda name: specs[name][1], read, "")
+    for _mapping, report, _path in specs.values():
+        problems += report.errors
     if problems:
-        raise RosterError(problems)
+        raise RosterError(list(dict.fromkeys(problems)))
     return profiles
+
+
+def _read_extending(specs: dict, profiles: dict[str, Profile], others: dict[str, Profile], report_of, read,
+                    prefix: str) -> None:
+    """Read every profile of `specs` (name -> mapping) into `profiles`, each after the one it
+    extends: another of `specs` (in any order), else one of `others` (a roster's profile that
+    extends its own name extends the built-in one). A loop is reported as one, naming the chain.
+
+    `read(name, mapping, report, base)` checks one mapping; `report_of(name)` is its Report."""
+    state: dict[str, str] = {}  # name -> "reading" | "done"
+
+    def field(name: str) -> str:
+        return f"{prefix}{name}.extends" if prefix else "extends"
+
+    def visit(name: str, chain: list[str]) -> Profile | None:
+        if state.get(name) == "done":
+            return profiles.get(name)
+        spec = specs[name]
+        report = report_of(name)
+        state[name] = "reading"
+        base = None
+        extends = spec.get("extends")
+        if extends is not None:
+            if not isinstance(extends, str):
+                report.error("must be the name of a profile", line=line_of(spec, "extends"), field=field(name))
+                state[name] = "done"
+                return None
+            if extends in specs and extends != name:
+                if state.get(extends) == "reading":
+                    loop = " -> ".join([*chain[chain.index(extends):], name, extends]) if extends in chain \
+                        else f"{name} -> {extends}"
+                    report.error(f"extends {extends!r}, which extends it in turn: a loop ({loop})",
+                                 line=line_of(spec, "extends"), field=field(name))
+                    state[name] = "done"
+                    return None
+                base = visit(extends, [*chain, name])
+                if base is None:
+                    report.error(f"extends {extends!r}, which has problems of its own (above)",
+                                 line=line_of(spec, "extends"), field=field(name))
+                    state[name] = "done"
+                    return None
+            elif extends == name and extends not in others:
+                report.error(f"extends itself: a loop ({name} -> {name})", line=line_of(spec, "extends"),
+                             field=field(name))
+                state[name] = "done"
+                return None
+            else:
+                base = others.get(extends)
+                if base is None:
+                    known = sorted({*specs, *others})
+                    close = difflib.get_close_matches(extends, known, n=1)
+                    hint = f" (did you mean {close[0]!r}?)" if close else ""
+                    report.error(f"extends {extends!r}, which is not a profile{hint}",
+                                 line=line_of(spec, "extends"), field=field(name))
+                    state[name] = "done"
+                    return None
+        profile = read(name, spec, report, base)
+        state[name] = "done"
+        if profile is not None:
+            profiles[name] = profile
+        return profile
+
+    for name in specs:
+        visit(name, [])
 
 
 def roster_profiles(mapping, report: Report, roster_dir: Path | None = None) -> dict[str, Profile]:
     """Every profile the roster can name: the built-in ones and its own under `profiles:`.
 
+    A roster's profile may extend a built-in one or another of the roster's (in any order;
+    one that extends its own name extends the built-in one it replaces).
     `roster_dir`: the folder a roster profile's `sources:` are relative to."""
-    profiles = dict(builtin_profiles())
+    builtin = builtin_profiles()
+    profiles = dict(builtin)
     if mapping is None:
         return profiles
     if not isinstance(mapping, dict):
         report.error("'profiles' must be a mapping of profile name -> profile", line=line_of(mapping),
                      field="profiles")
         return profiles
+    specs = {}
     for name, spec in mapping.items():
         prefix = f"profiles.{name}"
         if not isinstance(spec, dict):
@@ -61,22 +143,17 @@ def roster_profiles(mapping, report: Report, roster_dir: Path | None = None) -> 
             report.error(f"names itself {spec['profile']!r}, not {name!r}", line=line_of(spec, "profile"),
                          field=f"{prefix}.profile")
             continue
-        base = None
-        extends = spec.get("extends")
-        if extends is not None:
-            base = profiles.get(extends) if extends != name else builtin_profiles().get(extends)
-            if base is None:
-                close = difflib.get_close_matches(str(extends), sorted(profiles), n=1)
-                hint = f" (did you mean {close[0]!r}?)" if close else ""
-                report.error(f"extends {extends!r}, which is not a profile{hint}",
-                             line=line_of(spec, "extends"), field=f"{prefix}.extends")
-                continue
+        specs[name] = spec
+
+    def read(name, spec, _report, base):
         with_name = Mapping(spec)
         with_name.line, with_name.key_lines = getattr(spec, "line", None), getattr(spec, "key_lines", {})
         with_name.setdefault("profile", name)
-        profile = read_profile(with_name, report, prefix, "the roster", base, base_dir=roster_dir)
-        if profile is not None:
-            profiles[name] = profile
+        return read_profile(with_name, report, f"profiles.{name}", "the roster", base, base_dir=roster_dir)
+
+    own: dict[str, Profile] = {}
+    _read_extending(specs, own, builtin, lambda _name: report, read, "profiles.")
+    profiles.update(own)
     return profiles
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from roslab.distro import DISTRO_RELEASES, PLATFORMS
+from roslab.profiles import udev
 from roslab.profiles.schema import (
     BOOT_CONFIG_KEYS,
     PLACEHOLDER,
@@ -169,6 +170,11 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
                 lines.append(f"# {rule['comment']}")
             lines.append(fill(rule["rule"], values))
         rules = "\n".join(lines) + "\n"
+        # The file as udev will read it, settings filled in: each rule was checked as a
+        # template, and this is what is written.
+        problem = udev.file_problem(rules)
+        if problem:
+            return None, [ResolveError("udev_rules", f"profile {profile.name!r}'s udev rules: {problem}")]
     return {
         "name": profile.name,
         "distro": distro,

@@ -11,8 +11,11 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import re2
+
 from roslab import formats, settings
 from roslab.distro import DISTRO_RELEASES
+from roslab.profiles import udev
 from roslab.roster.loading import line_of
 from roslab.roster.problems import Report
 
@@ -22,8 +25,6 @@ DISCOVERY = ("localhost",)  # room for issue 20's modes (static, discovery_serve
 
 _NAME = re.compile(r"[a-z][a-z0-9_]{0,62}")
 _VALUE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.:+-]{0,127}")
-# udev keys that run programs: a profile's rules name and permit devices, they run nothing.
-_UDEV_RUNS = re.compile(r"\b(RUN|PROGRAM|IMPORT\{program\}|IMPORT\{builtin\})")
 _ROS_PACKAGE = re.compile(r"[a-z][a-z0-9_]*|\$\{gazebo\}")
 # Conditions a `when` block may test besides the profile's settings.
 BUILTIN_CONDITIONS = ("distro", "board")
@@ -54,15 +55,49 @@ _CMDLINE_WORD = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.,:=/+-]{0,119}", re.ASCII)
 # A profile's own services (deploy/profile_extras.py): one unit per entry.
 SERVICE_KEYS = ("name", "description", "command", "environment", "enabled_if")
 _SERVICE_NAME = re.compile(r"[a-z][a-z0-9_-]{0,62}", re.ASCII)
-# Names of units roslab itself writes: a profile's service cannot take them over.
-RESERVED_SERVICES = ("roslab-nodes", "roslab-discovery", "roslab-network-rollback", "ssh", "sshd",
-                     "systemd-udevd", "systemd-networkd", "NetworkManager")
+# Names of units roslab itself writes, or the system has: a profile's service cannot take
+# them over (a service named like one would replace the system's unit in /etc/systemd/system).
+RESERVED_SERVICES = frozenset("""
+    roslab-nodes roslab-discovery roslab-network-rollback ssh sshd systemd systemd-udevd systemd-networkd
+    dbus dbus-broker udev polkit rsyslog cron atd anacron getty serial-getty console-getty container-getty
+    avahi-daemon bluetooth wpa_supplicant networking networkd-dispatcher netplan cloud-init cloud-config
+    cloud-final thermald irqbalance rng-tools haveged chrony ntp ntpsec unattended-upgrades snapd lxd docker
+    containerd apparmor ufw nftables iptables netfilter-persistent mdadm lvm2 multipathd fstrim e2scrub kmod
+    procps keyboard-setup console-setup setvtrgb plymouth emergency rescue reboot poweroff halt shutdown
+    kexec suspend hibernate sleep basic sysinit multi-user graphical default network network-online local-fs
+    remote-fs swap tmp dmesg finalrd pollinate motd-news apport whoopsie packagekit fwupd accounts-daemon
+    gdm gdm3 lightdm sddm display-manager user login sudo init apt-daily apt-daily-upgrade
+""".split())
+# Prefixes of system units (systemd-journald, dbus-org.freedesktop..., getty@, user@...).
+RESERVED_SERVICE_PREFIXES = ("roslab", "systemd-", "dbus", "getty", "serial-getty", "ssh", "cloud-", "snapd",
+                             "apt-", "initrd-")
 # What a service's command may name besides the profile's settings.
 COMMAND_PLACEHOLDERS = ("distro",)
 RULE_KEYS = ("rule", "comment")
 # Opt-in OS changes a robot's maker recommends (applied when the roster sets profile_os_tweaks).
 OS_TWEAK_KEYS = ("mask_units", "swap_mb", "swap_if_memory_mb_at_most")
-_UNIT = re.compile(r"[A-Za-z0-9][A-Za-z0-9@_.:-]{0,120}\.(service|target|socket|timer|mount|path)", re.ASCII)
+# Units a tweak may mask: an allow-list of what a robot's maker turns off (ROBOTIS's e-Manual:
+# the wait for the network at boot, sleep; background updates, modem and printer daemons that
+# take serial ports or CPU). Nothing reaching the host needs is here: no ssh, systemd-* (but
+# the network's boot-time waits), dbus, network, getty, mount or other target.
+MASKABLE_UNITS = (
+    "systemd-networkd-wait-online.service", "NetworkManager-wait-online.service",
+    "sleep.target", "suspend.target", "hibernate.target", "hybrid-sleep.target", "suspend-then-hibernate.target",
+    "unattended-upgrades.service", "apt-daily.service", "apt-daily.timer", "apt-daily-upgrade.service",
+    "apt-daily-upgrade.timer", "motd-news.service", "motd-news.timer", "man-db.timer",
+    "ModemManager.service", "cups.service", "cups.socket", "cups.path", "cups-browsed.service",
+    "bluetooth.service", "snapd.service", "snapd.socket", "snapd.seeded.service", "packagekit.service",
+    "fwupd.service", "fwupd-refresh.timer", "apport.service", "whoopsie.service", "kerneloops.service",
+    "plymouth-quit-wait.service", "brltty.service", "brltty-udev.service",
+)
+# A swap file: at least 64 MiB, at most 8 GiB. A Pi has at most 16 GiB of memory and a 2 GiB one
+# needs 2 GiB (ROBOTIS); more is wear on the card and a card that fills up.
+SWAP_MB_RANGE = (64, 8192)
+# A setting's pattern runs on every value (at load, for every host): RE2, which matches in
+# time linear in the value whatever the pattern, and a bounded pattern.
+MAX_SETTING_PATTERN = 500
+_RE2_OPTIONS = re2.Options()
+_RE2_OPTIONS.log_errors = False  # a bad pattern is reported once, in the roster's words
 
 
 @dataclass(frozen=True)
@@ -88,7 +123,7 @@ class ProfileSetting:
             close = difflib.get_close_matches(value, self.allowed, n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
             return f"{value!r} is not one of {', '.join(self.allowed)}{hint}"
-        if self.pattern and not re.fullmatch(self.pattern, value):
+        if self.pattern and not setting_pattern(self.pattern).fullmatch(value):
             return f"{value!r} does not match {self.pattern}"
         return None
 
@@ -219,10 +254,9 @@ class ProfileReader:
             allowed = self.string_list(spec, "allowed", f"{path}.allowed")
             pattern = spec.get("pattern")
             if pattern is not None:
-                try:
-                    re.compile(pattern)
-                except (re.error, TypeError):
-                    self.error("is not a regular expression", spec, "pattern", f"{path}.pattern")
+                problem = pattern_problem(pattern)
+                if problem:
+                    self.error(problem, spec, "pattern", f"{path}.pattern")
                     pattern = None
             if allowed and pattern:
                 self.error("give allowed or pattern, not both", spec, "pattern", f"{path}.pattern")
@@ -260,7 +294,7 @@ class ProfileReader:
             f"{name!r} is not a ROS package name (lower-case letters, digits, _; or ${{gazebo}})")
         side.apt_packages += self.string_list(mapping, "apt_packages", f"{path}.apt_packages",
                                               formats.package_template)
-        side.groups += self.string_list(mapping, "groups", f"{path}.groups", formats.linux_user)
+        side.groups += self.string_list(mapping, "groups", f"{path}.groups", login_group_problem)
         side.checklist += self.string_list(mapping, "checklist", f"{path}.checklist", formats.single_line)
         for item in mapping.get("checklist") or []:
             if isinstance(item, str):
@@ -291,10 +325,14 @@ class ProfileReader:
                 text = rule.get(key)
                 if text is not None and (not isinstance(text, str) or formats.single_line(text)):
                     self.error("must be one line of text", rule, key, f"{path}.udev_rules.{key}")
+                elif key == "comment" and text is not None and "\\" in text:
+                    self.error("holds a backslash: udev may join a line ending in \\ to the next one", rule, key,
+                               f"{path}.udev_rules.{key}")
             self.check_text(rule["rule"], known, rule, "rule", f"{path}.udev_rules")
-            if _UDEV_RUNS.search(rule["rule"]):
-                self.error("a profile's udev rule may not run programs (RUN, PROGRAM, IMPORT{program})",
-                           rule, "rule", f"{path}.udev_rules")
+            problem = udev.rule_problem(rule["rule"])
+            if problem:
+                self.error(problem, rule, "rule", f"{path}.udev_rules")
+                continue
             side.udev_rules.append({"rule": rule["rule"], "comment": str(rule.get("comment") or "")})
         side.remove_apt_packages += self.string_list(mapping, "remove_apt_packages", f"{path}.remove_apt_packages",
                                                      formats.debian_package)
@@ -406,7 +444,7 @@ class ProfileReader:
                 self.error("a service's name is lower-case letters, digits, _ and - (the unit is <name>.service)",
                            spec, "name", f"{here}.name")
                 continue
-            if name in RESERVED_SERVICES or name.startswith("roslab"):
+            if name in RESERVED_SERVICES or name.startswith(RESERVED_SERVICE_PREFIXES):
                 self.error(f"{name!r} is a unit roslab or the system owns: give the service a name of its own",
                            spec, "name", f"{here}.name")
                 continue
@@ -431,7 +469,7 @@ class ProfileReader:
                 self.error("must be a mapping of VARIABLE -> value", spec, "environment", f"{here}.environment")
                 env, ok = {}, False
             for variable, text in env.items():
-                problem = variable_problem(variable, text)
+                problem = variable_problem(variable, text, service=True)
                 if problem:
                     self.error(problem, env, variable, f"{here}.environment.{variable}")
                     ok = False
@@ -467,12 +505,10 @@ class ProfileReader:
             return {}
         self.unknown_keys(value, OS_TWEAK_KEYS, path)
         tweaks: dict = {}
-        units = self.string_list(value, "mask_units", f"{path}.mask_units",
-                                 lambda unit: None if _UNIT.fullmatch(unit) else
-                                 f"{unit!r} is not a systemd unit name (name.service, name.target...)")
-        if units:
+        units = self.string_list(value, "mask_units", f"{path}.mask_units", maskable_unit_problem)
+        if units and not any(maskable_unit_problem(unit) for unit in units):
             tweaks["mask_units"] = units
-        for key, low, high in (("swap_mb", 64, 65536), ("swap_if_memory_mb_at_most", 256, 1048576)):
+        for key, low, high in (("swap_mb", *SWAP_MB_RANGE), ("swap_if_memory_mb_at_most", 256, 65536)):
             number = value.get(key)
             if number is None:
                 continue
@@ -619,9 +655,62 @@ def merged_requirements(base: list[str], own: list[str]) -> list[str]:
     return list(merged.values())
 
 
-def variable_problem(name, value) -> str | None:
-    """Why `name: value` cannot be an environment variable roslab writes, or None."""
+def variable_problem(name, value, service: bool = False) -> str | None:
+    """Why `name: value` cannot be an environment variable roslab writes, or None.
+
+    `service`: a profile's own service may name the middleware it runs on (the micro-ROS
+    agent is built on Fast DDS, whatever the class's middleware): one of MIDDLEWARES."""
+    if service and name == "RMW_IMPLEMENTATION":
+        if value not in MIDDLEWARES:
+            return f"RMW_IMPLEMENTATION of a service is one of {', '.join(MIDDLEWARES)}, not {value!r}"
+        return None
     return formats.variable(name, value)
+
+
+def login_group_problem(group: str) -> str | None:
+    """Why a profile may not put the login user (the students' account) in `group`, or None:
+    hardware-access groups only (udev.HARDWARE_GROUPS); sudo, adm, disk, shadow, docker, lxd
+    and the like would make every student root."""
+    problem = formats.linux_user(group)
+    if problem:
+        return problem
+    if group not in udev.HARDWARE_GROUPS:
+        return (f"{group!r} is not a hardware-access group a profile may give the login user "
+                f"({', '.join(udev.HARDWARE_GROUPS)})")
+    return None
+
+
+def maskable_unit_problem(unit: str) -> str | None:
+    """Why an OS tweak may not mask `unit`, or None (MASKABLE_UNITS)."""
+    if unit in MASKABLE_UNITS:
+        return None
+    return (f"{unit!r} is not a unit an OS tweak may mask ({', '.join(MASKABLE_UNITS)}): never what "
+            "reaching the host needs (ssh, systemd-*, dbus, the network, getty, targets)")
+
+
+def pattern_problem(pattern) -> str | None:
+    """Why `pattern` cannot be a setting's pattern, or None: a string RE2 compiles, bounded."""
+    if not isinstance(pattern, str):
+        return f"must be a regular expression (a string), not {pattern!r}"
+    if len(pattern) > MAX_SETTING_PATTERN or not pattern.isascii() or formats.single_line(pattern):
+        return f"must be one line of ASCII, at most {MAX_SETTING_PATTERN} characters"
+    try:
+        setting_pattern(pattern)
+    except re2.error as exc:
+        reason = exc.args[0].decode("utf-8", "replace") if exc.args and isinstance(exc.args[0], bytes) else exc
+        return (f"is not a regular expression roslab runs ({reason}): RE2's syntax, which matches in "
+                "linear time (no backreferences or lookaround)")
+    return None
+
+
+_patterns: dict[str, object] = {}
+
+
+def setting_pattern(pattern: str):
+    """`pattern` compiled by RE2 (re2.error if it does not compile), kept once compiled."""
+    if pattern not in _patterns:
+        _patterns[pattern] = re2.compile(pattern, options=_RE2_OPTIONS)
+    return _patterns[pattern]
 
 
 def read_profile(mapping, report: Report, prefix: str, source: str, base: Profile | None = None,

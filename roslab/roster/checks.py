@@ -51,8 +51,10 @@ def check_classroom(classroom: Classroom, report: Report) -> None:
     check_unique(classroom, report, "address", _address_key)
     check_unique(classroom, report, "network_address", _network_ip_key)
     check_apt_cache_host(classroom, report)
+    seen: set = set()
     for host in classroom.hosts:
         check_host(host, report)
+        check_controller_folders(host, report, seen)
 
 
 def check_host(host: Host, report: Report) -> None:
@@ -94,6 +96,41 @@ def check_host(host: Host, report: Report) -> None:
         report.error("roslab logs in as root, and ssh hardening (PermitRootLogin no) would lock it out: "
                      "log in as the lab user, or set ssh_permit_root_login: prohibit-password",
                      field="ssh_user", line=host.lines.get("ssh_user"), **where)
+
+
+# The controller's folders that roslab writes into and copies from, each with a purpose of its
+# own: a cache inside another (or two caches in one folder) would have one's healing (a damaged
+# mirror moved aside) touch the other's files; a cache inside the nodes folder would be copied
+# to every Pi with the students' packages.
+CACHE_SETTINGS = ("ros_apt_source_cache_dir", "rosdep_cache_dir", "sources_cache_dir", "python_wheelhouse_dir")
+
+
+def check_controller_folders(host: Host, report: Report, seen: set) -> None:
+    """The host's cache folders are apart from each other and from workspace_nodes_dir; each
+    clash is reported once (`seen`), at the first host that has it."""
+    import os
+
+    def real(value):
+        return os.path.realpath(os.path.expanduser(str(value)))
+
+    def inside(inner, outer):
+        return inner == outer or inner.startswith(outer.rstrip("/") + "/")
+
+    where = {"team": host.team, "host": host.name}
+    folders = [(key, real(host.data[key])) for key in CACHE_SETTINGS if host.data.get(key)]
+    for index, (key, folder) in enumerate(folders):
+        for other, other_folder in folders[:index]:
+            if (inside(folder, other_folder) or inside(other_folder, folder)) and \
+                    (key, folder, other, other_folder) not in seen:
+                seen.add((key, folder, other, other_folder))
+                report.error(f"{key} ({folder}) and {other} ({other_folder}) share a folder: each cache needs "
+                             "one of its own", field=key, line=host.lines.get(key) or host.lines.get(other), **where)
+        nodes = host.data.get("workspace_nodes_dir")
+        if nodes and (inside(folder, real(nodes)) or inside(real(nodes), folder)) and (key, folder, nodes) not in seen:
+            seen.add((key, folder, nodes))
+            report.error(f"{key} ({folder}) and workspace_nodes_dir ({real(nodes)}) overlap: the nodes folder is "
+                         "copied to every Pi, a cache is not", field=key,
+                         line=host.lines.get(key) or host.lines.get("workspace_nodes_dir"), **where)
 
 
 def check_apt_cache_host(classroom: Classroom, report: Report) -> None:

@@ -88,6 +88,7 @@ class RosterReader:
         # as the level that wins over every other (roslab.roster.overrides).
         self.command_line_data = list(command_line or [])
         self.command_line: dict[str, Value] = {}
+        self._command_line_shown: dict[str, tuple[str, str]] = {}  # key -> (option, text as given)
         self.context = formats.Context(self.path.parent, self.path)
         self.defaults = settings.defaults()
         self.secrets_file: Path | None = None
@@ -400,7 +401,7 @@ class RosterReader:
                                     line=lines.get(old_key), team=team.name)
         set_here = {key for level in (*outer[1:], own) for key in level}  # team and host, not classroom
         self.apply_profile(data, resolved, set_here, lines, line, where)
-        self.apply_sources(data, lines, line, where)
+        self.apply_sources(data, resolved, lines, line, where)
         variant = data["ros_variant"] or variant
         return Host(name, team.name, role, address, release, expected, variant,
                     team.ros_domain_id, data, line, lines)
@@ -470,7 +471,21 @@ class RosterReader:
             keys.extend(self._key_files[entry])
         return keys
 
-    def apply_sources(self, data: dict, lines: dict, line, where: dict) -> None:
+    def host_error(self, message: str, field: str, resolved: dict, lines: dict, line, where: dict) -> None:
+        """A host's problem with `field`: blamed on pyinfra's command line when the value came
+        from there (--data), else on the roster's line that sets it (or the host's profile)."""
+        item = resolved.get(field)
+        if item is not None and self.command_line.get(field) is item:
+            option, text = self._command_line_shown[field]
+            shown = f"{option} {field}={text}" if option == "--data" else f"{option} {text}"
+            report = Report(COMMAND_LINE)
+            report.error(f"{shown}: {message}", field=field, **where)
+            self.report.extend(report)
+            return
+        self.report.error(message, field=field, line=lines.get(field) or lines.get("robot_profile") or line,
+                          **where)
+
+    def apply_sources(self, data: dict, resolved: dict, lines: dict, line, where: dict) -> None:
         """Read the host's .repos files (its profile side's `sources`, the roster's
         `workspace_sources`) into `roslab_profile["sources"]` and `roslab_sources`; a problem
         names the .repos file and line, the host and the field."""
@@ -490,8 +505,7 @@ class RosterReader:
         own, every, problems = sources.host_sources(data, profile_sources, self.path.parent, self._repos_files)
         for field, problem in problems:
             if isinstance(problem, str):
-                self.report.error(problem, field=field, line=lines.get(field) or lines.get("robot_profile")
-                                  or line, **where)
+                self.host_error(problem, field, resolved, lines, line, where)
             else:
                 inner = f"{field}: {problem.field}" if problem.field else field
                 self.report.add(Problem(problem.path, problem.message, problem.line,
@@ -505,8 +519,7 @@ class RosterReader:
         from roslab.profiles.resolve import resolve_host
 
         def error(message, field):
-            self.report.error(message, field=field, line=lines.get(field) or lines.get("robot_profile") or line,
-                              **where)
+            self.host_error(message, field, resolved, lines, line, where)
 
         name = data["robot_profile"]
         profile = self.profiles.get(name)

@@ -120,3 +120,24 @@ def test_an_extending_profile_changes_one_tweak_and_keeps_the_others(tmp_path):
         text = ""
     assert "profiles.limitonly.robot.os_tweaks" in text and "no swap_mb" in text
     assert "bigswap" not in text
+
+
+def test_hand_made_host_data_gets_the_same_allow_lists_as_a_profile():
+    """The roster loader refuses these; host data written by hand (a group file, a test) meets the
+    same allow-list in the operation, before any command is planned."""
+    import pytest
+    from pyinfra.api import OperationError
+    from pyinfra.facts.server import Home, User
+
+    from roslab.profiles.host import UserGroups
+
+    profile = turtlebot3_robot()
+    profile["udev_rules"] = ""
+    for changed, words in (({"os_tweaks": {"mask_units": ["ssh.service"]}, "groups": []},
+                            "'ssh.service' is not a unit"),
+                           ({"groups": ["sudo"]}, "'sudo' is not a hardware-access group")):
+        with pytest.raises(OperationError, match=words):
+            plan(robot_profile, {**facts(), User: "ubuntu", Home: lambda user: "/home/ubuntu",
+                                 UserGroups: lambda user: ["ubuntu"]},
+                 data={"roslab_profile": {**profile, **changed}, "profile_os_tweaks": True,
+                       "robot_profile_enabled": True})

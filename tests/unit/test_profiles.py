@@ -352,8 +352,8 @@ def test_roslab_check_refuses_before_connecting(tmp_path, rosdistro_url, capsys)
     ({"ROS_DOMAIN_ID": "5"}, "ROS_DOMAIN_ID is not set through an environment mapping"),
     ({"LD_PRELOAD": "/tmp/x.so"}, "LD_PRELOAD is not set through an environment mapping"),
     ({"1BAD": "x"}, "'1BAD' is not a variable name"),
-    ({"GOOD": "two\nlines"}, "the value of GOOD must be a single line"),
-    ({"GOOD": 5}, "the value of GOOD must be a string"),
+    ({"LAB_GOOD": "two\nlines"}, "the value of LAB_GOOD must be a single line"),
+    ({"LAB_GOOD": 5}, "the value of LAB_GOOD must be a string"),
 ])
 def test_ros_environment_refuses_what_no_destination_can_carry(tmp_path, variables, problem):
     import yaml as _yaml
@@ -394,14 +394,15 @@ def test_opencr_update_refuses_a_host_that_is_not_a_turtlebot3_robot(tmp_path, r
 @pytest.mark.parametrize("profile_text, problem", [
     ("settings: {locale: {allowed: [a]}}", "'locale' is a roslab setting"),
     ("settings: {arm: {pattern: '.*', default: 'a b'}}", "'a b' is not a word"),
-    ("robot: {udev_rules: [{rule: 'KERNEL==\"ttyUSB0\", RUN+=\"/bin/sh -c id\"'}]}", "may not run programs"),
+    ("robot: {udev_rules: [{rule: 'KERNEL==\"ttyUSB0\", RUN+=\"/bin/sh -c id\"'}]}",
+     "RUN is not a key a profile's rule may use"),
     ("robot: {environment: {PATH: /tmp}}", "PATH is not set through an environment mapping"),
     ("robot: {ros_packages: [Nav2]}", "'Nav2' is not a ROS package name"),
     ("robot: {launhc: x y.launch.py}", "unknown key 'launhc' in a profile (did you mean 'launch'?)"),
     ("robot: {when: [{if: {lds_modle: LDS-01}, ros_packages: [x]}]}",
      "tests 'lds_modle', which is not a setting of this profile (did you mean 'lds_model'?)"),
     ("distros: [rolling]", "must list the distros the profile supports"),
-    ("robot: {os_tweaks: {mask_units: ['sleep.target; rm -rf /']}}", "is not a systemd unit name"),
+    ("robot: {os_tweaks: {mask_units: ['sleep.target; rm -rf /']}}", "is not a unit an OS tweak may mask"),
     ("robot: {os_tweaks: {swap_mb: 2G}}", "must be a whole number of MiB"),
     ("robot: {os_tweaks: {swap_mb: 1000000000}}", "must be a whole number of MiB"),
     ("robot: {os_tweaks: {reboot: true}}", "unknown key 'reboot'"),

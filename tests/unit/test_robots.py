@@ -174,7 +174,7 @@ def test_osr_robot_gets_serial_and_i2c_on_and_its_service_disabled_until_calibra
     assert robot["boot_config"] == {"config_txt": ["enable_uart=1", "dtparam=i2c_arm=on"],
                                     "cmdline_remove": ["console=serial0,115200"]}
     assert robot["groups"] == ["tty", "dialout", "input"]
-    assert 'KERNEL=="ttyS0", SYMLINK+="serial0", GROUP="tty", MODE="0660"' in robot["udev_rules"]
+    assert 'SUBSYSTEM=="tty", KERNEL=="ttyS0", SYMLINK+="serial0", GROUP="tty", MODE="0660"' in robot["udev_rules"]
     (service,) = robot["services"]
     assert service["command"] == "ros2 launch osr_bringup osr_launch.py"
     assert service["enabled"] is False and "osr_calibrated is false" in service["disabled_because"]
