@@ -237,15 +237,27 @@ class CmdlineText(FactBase):
         return None if text.strip() == "#no-such-file" else text
 
 
+def durably_renamed(new: str, path: str, *also_synced: str) -> str:
+    """Shell: `new` (and `also_synced`, a backup) reach the disk, `new` is renamed over `path`
+    and the rename reaches the disk too (the directory synced): a power cut at any moment
+    leaves the old file or the new one, never half of one, on a Pi's FAT partition as anywhere."""
+    directory = posixpath.dirname(path) or "/"
+    synced = " ".join(shell_word(each) for each in (new, *also_synced))
+    return (f"sync -- {synced} && mv -f -- {shell_word(new)} {shell_word(path)} && "
+            f"sync -- {shell_word(directory)}")
+
+
 @operation()
-def config_txt_block(path: str, lines: list[str], label: str):
+def config_txt_block(path: str, lines: list[str], label: str, backup_suffix: str):
     """A Pi's config.txt holds `lines` in a roslab-marked block (roslab.operations.managed_block),
     or, where the file does not exist (a PC, a container), nothing is created: no firmware here
-    reads it.
+    reads it. The file is copied to `<path><backup_suffix>` before it changes (the upload that
+    follows syncs the file and its directory: roslab.remote_files).
 
     + path: the file (/boot/firmware/config.txt)
     + lines: its lines (the block starts with [all], so no conditional section above swallows them)
     + label: names the block in its markers
+    + backup_suffix: the backup's suffix (``.roslab-<date>-<time>``)
     """
     from roslab.operations import managed_block
 
@@ -253,7 +265,13 @@ def config_txt_block(path: str, lines: list[str], label: str):
         host.noop(f"{path} does not exist (not a Raspberry Pi's boot partition): the boot config "
                   f"({', '.join(lines)}) is not written")
         return
-    yield from managed_block._inner(path=path, content="\n".join(["[all]", *lines]), label=label)
+    commands = list(managed_block._inner(path=path, content="\n".join(["[all]", *lines]), label=label))
+    if not commands:
+        return
+    backup = path + backup_suffix
+    if not any(backup in str(command) for command in commands):  # a marker repair copies it already
+        yield f"cp -p -- {shell_word(path)} {shell_word(backup)} && sync -- {shell_word(backup)}"
+    yield from commands
 
 
 @operation()
@@ -273,11 +291,10 @@ def cmdline_words_absent(path: str, words: list[str], backup_suffix: str):
     if wanted == " ".join(current.split()):
         host.noop(f"{path} holds none of {', '.join(words)}")
         return
-    quoted = shell_word(path)
+    quoted, new, backup = shell_word(path), path + ".roslab-new", path + backup_suffix
     # One line, written beside the file and renamed over it: the firmware never reads half a file.
-    yield (f"cp -p -- {quoted} {shell_word(path + backup_suffix)} && "
-           f"printf '%s\\n' {shell_word(wanted)} > {shell_word(path + '.roslab-new')} && "
-           f"mv -f -- {shell_word(path + '.roslab-new')} {quoted}")
+    yield (f"cp -p -- {quoted} {shell_word(backup)} && "
+           f"printf '%s\\n' {shell_word(wanted)} > {shell_word(new)} && {durably_renamed(new, path, backup)}")
 
 
 class RebootRecord(FactBase):
@@ -329,8 +346,7 @@ def reboot_needed_recorded(reasons: list[str]):
     yield (f"mkdir -p {shell_word(REBOOT_RECORD.rsplit('/', 1)[0])} && "
            f"{{ printf 'boot_id=%s\\n' \"$(cat {BOOT_ID})\"; "
            f"printf 'reason=%s\\n' {' '.join(shell_word(line) for line in lines)}; }}"
-           f" > {shell_word(new)} && chmod 644 {shell_word(new)} && mv -f -- {shell_word(new)} "
-           f"{shell_word(REBOOT_RECORD)}")
+           f" > {shell_word(new)} && chmod 644 {shell_word(new)} && {durably_renamed(new, REBOOT_RECORD)}")
 
 
 @operation()
