@@ -51,9 +51,11 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
+from roslab.controller_files import UnreadableFile, read_regular_file
 from roslab.sources import COMMIT, rewritten
 
 LOCK_NAME = "sources.lock.json"
+LOCK_MAX_BYTES = 16 * 1024 * 1024  # thousands of repositories' pins
 # The set of pins whose tags were last checked against upstream, and the tags checked with it.
 CHECKED_NAME = "sources.checked.json"
 GIT_ENV = {
@@ -170,7 +172,10 @@ def read_lock(cache_dir: Path) -> dict:
     """
     path = Path(cache_dir) / LOCK_NAME
     try:
-        text = path.read_text(encoding="utf-8")
+        if not os.path.lexists(path):
+            raise FileNotFoundError(path)
+        # bounded and never waiting: a FIFO or a device here must not hang the run
+        text = read_regular_file(path, LOCK_MAX_BYTES).decode("utf-8")
     except FileNotFoundError:
         if str(cache_dir) in _first_runs:
             return {}
@@ -181,9 +186,8 @@ def read_lock(cache_dir: Path) -> dict:
                 f"or, to take every pin as upstream has it today, delete {Path(cache_dir) / 'git'} too") from None
         _first_runs.add(str(cache_dir))
         return {}
-    except (OSError, UnicodeDecodeError) as error:
-        raise SourceError(f"the lock file {path} cannot be read ({getattr(error, 'strerror', None) or error}): "
-                          "restore it from a backup") from None
+    except (UnreadableFile, UnicodeDecodeError) as error:
+        raise SourceError(f"the lock file {path} cannot be read ({error}): restore it from a backup") from None
     try:
         data = json.loads(text)
     except ValueError as error:

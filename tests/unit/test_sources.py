@@ -282,7 +282,8 @@ def test_a_converged_class_asks_upstream_nothing_and_goes_on_with_one_note_when_
         source_fetch.fetched(repo_entry(tmp_path, bare, "v2"), cache)
 
 
-@pytest.mark.parametrize("damage", ["truncated", "empty", "not-an-object", "bad-commit", "deleted"])
+@pytest.mark.parametrize("damage", ["truncated", "empty", "not-an-object", "bad-commit", "deleted", "fifo",
+                                    "directory", "not-utf8"])
 def test_a_damaged_or_deleted_lock_is_never_rebuilt_from_upstream(tmp_path, damage):
     bare, made = upstream_repo(tmp_path)
     cache = tmp_path / "cache"
@@ -294,6 +295,12 @@ def test_a_damaged_or_deleted_lock_is_never_rebuilt_from_upstream(tmp_path, dama
                         move_tags=True)
     if damage == "deleted":
         lock.unlink()
+    elif damage in ("fifo", "directory"):
+        import os
+        lock.unlink()
+        os.mkfifo(lock) if damage == "fifo" else lock.mkdir()
+    elif damage == "not-utf8":
+        lock.write_bytes(b"\xff\xfe{}")
     else:
         lock.write_text({"truncated": text[: len(text) // 2], "empty": "", "not-an-object": "[]",
                          "bad-commit": text.replace(made, "HEAD~1" + made[6:])}[damage])
@@ -302,11 +309,15 @@ def test_a_damaged_or_deleted_lock_is_never_rebuilt_from_upstream(tmp_path, dama
         source_fetch.fetched(entry, cache)
     message = str(raised.value)
     assert "repository 'lidar'" in message and str(lock) in message, message
-    assert ("missing" if damage == "deleted" else "damaged") in message and "backup" in message
-    assert not lock.exists() or lock.read_text() != text  # nothing rewritten from upstream
+    words = {"deleted": "is missing", "fifo": "cannot be read", "directory": "cannot be read",
+             "not-utf8": "cannot be read"}.get(damage, "is damaged")
+    assert f"the lock file {lock} {words}" in message and "backup" in message, message
+    import shutil
+    if lock.is_dir():
+        lock.rmdir()
+    assert not lock.is_file() or lock.read_bytes() != text.encode()  # nothing rewritten from upstream
     # deleting the mirrors too is the teacher's way to take upstream as it is today
     lock.unlink(missing_ok=True)
-    import shutil
     shutil.rmtree(cache / "git")
     source_fetch.reset()
     assert source_fetch.fetched(entry, cache).commit != made
