@@ -35,12 +35,14 @@ def wanted_record(previous: dict, current_groups: list[str] | None) -> dict:
     if current_groups is not None:
         added |= {group for group in groups if group not in current_groups}
     python = profile().get("python") or {}
+    tweaks = (profile().get("os_tweaks") or {}) if host.data.get("profile_os_tweaks") else {}
     return {
         "profile": profile().get("name") or "demo",
         "groups_added": sorted(added),
         "boot_config": list((profile().get("boot_config") or {}).get("config_txt") or []),
         "venv": python.get("venv") if host.data.get("python_env_enabled", True) else None,
         "sources": bool((profile().get("sources") or [])),
+        "masked_units": sorted(tweaks.get("mask_units") or []),
     }
 
 
@@ -53,8 +55,12 @@ def kept_after_switch(previous: dict, record: dict) -> list[str]:
     if previous.get("venv") and previous["venv"] != record["venv"]:
         kept.append(f"its venv ~/{previous['venv']}: the login user's files; delete it by hand if unused")
     if previous.get("sources") and not record["sources"]:
-        kept.append("its underlay's last build (its repositories are removed): the student's workspace may "
-                    "still use it until the next build")
+        kept.append("its underlay's last build in sources_underlay_dir (its repositories are removed, the "
+                    "build is no longer sourced): delete it by hand")
+    unmasked = sorted(set(previous.get("masked_units") or []) - set(record["masked_units"]))
+    if unmasked:
+        kept.append(f"the units its OS tweaks masked ({', '.join(unmasked)}) and any swap file: an OS "
+                    "setting roslab never undoes (systemctl unmask, swapoff by hand)")
     return kept
 
 

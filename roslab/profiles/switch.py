@@ -2,7 +2,8 @@
 
 The host keeps a record (`/var/lib/roslab/profile.json`, written by the last run): the profile,
 the groups roslab added the login user to (not those it was in before), the boot config lines,
-the venv and whether it had sources. A team switching profile (osr -> demo) then loses what no
+the venv, whether it had sources and the units its OS tweaks masked. Groups added before a
+host had the record are not known as roslab's, so they stay. A team switching profile (osr -> demo) then loses what no
 profile of it names any more: the profile's units (each found by the mark on its first line, so
 a host converged before the record existed is cleaned too) are stopped, disabled and removed,
 and the login user leaves the groups roslab added for the old profile. What stays is said per
@@ -91,7 +92,7 @@ def profile_recorded(record: dict, mark: str):
     """The host's record of what roslab wrote for its profile is `record` (world-readable:
     no secret in it; written whole, synced, renamed).
 
-    + record: {"profile", "groups_added", "boot_config", "venv", "sources"}
+    + record: {"profile", "groups_added", "boot_config", "venv", "sources", "masked_units"}
     + mark: the profile units' first line (ProfileRecord's argument, read once for both)
     """
     current = host.get_fact(ProfileRecord, mark=mark)["record"]

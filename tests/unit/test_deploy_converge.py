@@ -261,3 +261,33 @@ def test_a_team_switching_from_osr_to_demo_loses_the_rovers_unit_and_groups_says
     again = plan(run_deploy_py, host.facts(), demo)
     assert again.changing() == {}
     assert again.facts_asked == ["HostProbe", "HostProbe"]
+
+
+def test_a_host_converged_before_the_record_existed_still_loses_the_old_profiles_unit(tmp_path, caplog):
+    from roslab.profiles.switch import PROFILE_RECORD
+
+    host = with_stand_in_deb(FakeUbuntu())
+    host.apply(plan(run_deploy_py, host.facts(), osr_robot_data(tmp_path, osr_calibrated="true")))
+    del host.files[PROFILE_RECORD]  # an older roslab wrote the unit and kept no record
+    switch = plan(run_deploy_py, host.facts(), host_data(tmp_path, "noble", "robot"))
+    names = [name.split(" | ")[1] for name in switch.changing()]
+    assert "Ensure osr_startup.service of an earlier robot profile is stopped, disabled and removed" in names
+    assert not [name for name in names if "no longer in" in name]  # whose groups: unknown, they stay
+    host.apply(switch)
+    assert plan(run_deploy_py, host.facts(), host_data(tmp_path, "noble", "robot")).changing() == {}
+
+
+def test_a_turtlebot3_team_switching_to_demo_is_told_its_masked_units_stay(tmp_path, caplog):
+    host = with_stand_in_deb(FakeUbuntu())
+    host.memory_mb = 1848
+    host.apply(plan(run_deploy_py, host.facts(), turtlebot3_robot_data(tmp_path, profile_os_tweaks=True)))
+    caplog.clear()
+    switch = plan(run_deploy_py, host.facts(), host_data(tmp_path, "noble", "robot", profile_os_tweaks=True))
+    said = [record.getMessage() for record in caplog.records if "robot profile turtlebot3 -> demo" in record.getMessage()]
+    assert len(said) == 1 and "removed student from groups dialout" in said[0], said
+    assert "the units its OS tweaks masked (hibernate.target" in said[0] and "systemctl unmask" in said[0]
+    host.apply(switch)
+    caplog.clear()
+    again = plan(run_deploy_py, host.facts(), host_data(tmp_path, "noble", "robot", profile_os_tweaks=True))
+    assert again.changing() == {}
+    assert not [record for record in caplog.records if "->" in record.getMessage()]
