@@ -243,8 +243,10 @@ def durably_renamed(new: str, path: str, *also_synced: str) -> str:
     leaves the old file or the new one, never half of one, on a Pi's FAT partition as anywhere."""
     directory = posixpath.dirname(path) or "/"
     synced = " ".join(shell_word(each) for each in (new, *also_synced))
+    # The folder's sync is best effort (a filesystem that cannot sync a folder has nothing more
+    # to give); the rename has happened by then, so it does not fail the step.
     return (f"sync -- {synced} && mv -f -- {shell_word(new)} {shell_word(path)} && "
-            f"sync -- {shell_word(directory)}")
+            f"{{ sync -- {shell_word(directory)} 2>/dev/null || true; }}")
 
 
 @operation()
