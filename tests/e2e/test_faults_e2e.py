@@ -10,7 +10,10 @@ What a teacher notices, checked here:
 - a converged class's re-run asks the git upstream nothing, and goes on when upstream is down;
 - a damaged mirror in the controller's cache is moved aside, named once, fetched afresh;
 - a truncated or deleted lock file stops the hosts that need sources, naming the file, and is
-  never rebuilt from what upstream says now (a tag moved meanwhile is not taken).
+  never rebuilt from what upstream says now (a tag moved meanwhile is not taken);
+- a team switching profile (the roster's own `faults_bot`, whose robot has a service and the
+  dialout group, to demo) loses the old profile's unit and group, is told so in one line per
+  host, and the next run is a no-op.
 """
 
 from __future__ import annotations
@@ -33,9 +36,14 @@ SUBNET = os.environ.get("ROSLAB_FAULTS_E2E_SUBNET", "10.213.151.0/24")
 HOSTS = 2
 TOOLS_URL = "https://github.com/roslab-standin/faults_tools.git"
 TAG = "v1.0.0"
+ROBOT = "team1-robot"
+SERVICE = "faults_bot_driver"
+# The team's first profile: the demo's, plus what a robot's driver brings (a unit, a group).
+FAULTS_BOT = {"extends": "demo", "robot": {"groups": ["dialout"], "services": [
+    {"name": SERVICE, "description": "a stand-in driver that only sleeps", "command": "sleep infinity"}]}}
 # The concerns these faults do not touch (each a teacher's own switch).
-SWITCHED_OFF = ("locale", "robot_profile", "rosdep", "python_env", "shell_env", "discovery", "ssh_identity",
-                "ssh_hardening", "network", "workspace", "profile_services")
+SWITCHED_OFF = ("locale", "rosdep", "python_env", "shell_env", "discovery", "ssh_identity", "ssh_hardening",
+                "network", "workspace")
 
 
 @pytest.fixture(scope="module")
@@ -57,6 +65,8 @@ def roster(sandbox, tmp_path_factory) -> Path:
     data["classroom"].update({f"{concern}_enabled": False for concern in SWITCHED_OFF})
     data["classroom"].update(sources_cache_dir=str(folder / "sources-cache"), workspace_sources=["class.repos"],
                              sources_rosdep_install=False)
+    data["profiles"] = {"faults_bot": FAULTS_BOT}
+    data["teams"]["team1"]["robot_profile"] = "faults_bot"
     path = folder / "roster.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
@@ -171,3 +181,23 @@ def test_a_truncated_or_deleted_lock_stops_the_hosts_naming_it_and_a_moved_tag_i
     finally:
         git_standins._git("--git-dir", bare, "tag", "-f", TAG, before)
         git_standins._git("--git-dir", bare, "update-server-info")
+
+
+def test_a_team_switching_profile_loses_the_old_units_and_groups_says_so_once_then_nothing(
+        sandbox, roster, converged):
+    assert sandbox.ssh(ROBOT, f"systemctl is-active {SERVICE}.service").stdout.strip() == "active"
+    assert "dialout" in sandbox.ssh(ROBOT, "id -nG ubuntu", check=True).stdout.split()
+    data = yaml.safe_load(roster.read_text())
+    data["teams"]["team1"]["robot_profile"] = "demo"
+    roster.write_text(yaml.safe_dump(data, sort_keys=False))
+    run = deploy(sandbox, roster)
+    assert run.returncode == 0, run.stderr[-3000:]
+    said = [line for line in run.stderr.splitlines() if "robot profile faults_bot -> demo" in line]
+    assert len(said) == 1 and ROBOT in said[0], said
+    assert f"removed {SERVICE}.service; ubuntu from groups dialout" in said[0], said
+    assert sandbox.ssh(ROBOT, f"test -e /etc/systemd/system/{SERVICE}.service").returncode != 0
+    assert sandbox.ssh(ROBOT, f"systemctl is-active {SERVICE}.service").stdout.strip() != "active"
+    assert "dialout" not in sandbox.ssh(ROBOT, "id -nG ubuntu", check=True).stdout.split()
+    again = deploy(sandbox, roster)
+    assert again.returncode == 0 and again.changed == {}, (again.changed, again.stderr[-3000:])
+    assert "faults_bot -> demo" not in again.stderr

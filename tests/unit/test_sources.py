@@ -649,3 +649,24 @@ def test_a_profiles_cmake_args_reach_colcon_through_a_meta_file_and_change_the_s
     (ws / "seen.meta").unlink()
     assert "--metas" not in build({})
     assert not (ws / ".roslab/colcon.meta").exists() and not (ws / "seen.meta").exists()
+
+
+def test_the_deploy_goes_on_from_the_lock_when_upstream_is_down_saying_so_in_one_line(tmp_path, caplog):
+    from fixtures.fake_ubuntu import FakeUbuntu
+
+    import deploy.sources as sources_module
+
+    bare, made = upstream_repo(tmp_path)
+    data = deploy_data(tmp_path, bare, "v1")
+    facts = {**FakeUbuntu().facts(), **underlay_facts()}
+    assert not plan(run_sources_deploy, facts, data).failed
+    (tmp_path / "upstream").rename(tmp_path / "gone")
+    source_fetch.reset()
+    sources_module._said.clear()
+    # another pin in the class makes this run check its tags: upstream cannot be reached
+    other = {**data["roslab_sources"][0], "path": "extra", "url": "file:///nowhere/extra.git", "version": "v9"}
+    caplog.clear()
+    result = plan(run_sources_deploy, facts, data, hosts_after=[("other-host", {**data, "roslab_sources": [other]})])
+    assert not result.failed, result.errors
+    said = [record.getMessage() for record in caplog.records if "cannot be reached" in record.getMessage()]
+    assert len(said) == 1 and f"tag 'v1' is taken as the lock records it ({made})" in said[0], said
