@@ -264,7 +264,7 @@ def test_a_rerun_changes_nothing_and_still_says_the_rover_waits_for_a_reboot(san
     again = deploy(sandbox, roster)
     assert again.returncode == 0, again.stderr[-3000:]
     assert again.changed == {}, again.changed
-    # a tag pin asks whether it moved (info/refs), and downloads nothing
+    # a converged class asks the git upstream nothing (tags are checked when the pins change)
     git = [r.path for r in requests_since(sandbox, start) if r.path.startswith("/git/")]
     assert not [path for path in git if "/objects/" in path], git
     lines = reboot_lines(again.stderr)
