@@ -141,6 +141,9 @@ class LogLine:
     step: str | None = None  # the deploy planning on the host when it was logged
 
 
+NO_ERROR_PRINTED = "the operation failed without printing an error"
+# pyinfra's words for a command whose connection broke (api/util.py log_host_command_error)
+_SOCKET_ERROR = re.compile(r"Command socket/SSH error|Socket is closed|EOFError|Connection reset", re.ASCII)
 LOST_CONNECTION = ("lost the connection to the host during this step (it stopped answering: powered off, "
                    "rebooted or off the network); run roslab again once it is back")
 
@@ -353,9 +356,12 @@ class RunSummary(BaseStateCallback):
             return step, stop_reason(message) or "roslab stopped it"
         op_hash = self.failed_op(state, host)
         if op_hash is not None:
+            reason = self.op_reason(state, host, op_hash)
             if events.lost:
-                return op_name(state, op_hash, host), LOST_CONNECTION
-            return op_name(state, op_hash, host), self.op_reason(state, host, op_hash)
+                # the step's own words, when it had any beyond pyinfra's socket error
+                said = "" if reason == NO_ERROR_PRINTED or _SOCKET_ERROR.search(reason) else f" ({reason})"
+                return op_name(state, op_hash, host), LOST_CONNECTION + said
+            return op_name(state, op_hash, host), reason
         if events.connect_error or host not in state.activated_hosts:
             # A refused host key: roslab.identity's line says what to run.
             reason = identity.refusal(host.name) or events.connect_error or most_useful_line(
@@ -402,7 +408,7 @@ class RunSummary(BaseStateCallback):
             reason = most_useful_line(lines)
             if reason:
                 return reason
-        return "the operation failed without printing an error"
+        return NO_ERROR_PRINTED
 
     def lines(self, state: State) -> list[str]:
         rows = self.rows(state)

@@ -616,3 +616,19 @@ def test_a_host_unreachable_after_a_killed_network_change_names_the_change_and_t
     network_state.record_address(roster, "team1-robot", "10.0.0.12")
     network_state.clear_pending(roster, "team1-robot")
     assert network_state.pending_changes(roster) == {}
+
+
+def test_a_lost_host_keeps_the_steps_own_words_when_it_had_any():
+    state, handler = classroom("team1-main", "team1-robot")
+    operation_on(state, "team1-main", "op-net", "Ensure the network", changed=True)
+    finished_run(state)
+    main = state.inventory.get_host("team1-main")
+    main.connector.client = _DroppedClient()
+    executed(state, handler, "team1-main", "op-net", success=False, output=[
+        ("stderr", "Network change not confirmed at 10.0.0.11, and the host does not answer at 10.0.0.200 either")])
+    state.fail_hosts({main})
+
+    line = " ".join(printed(state, handler)[2].split())
+    assert "lost the connection to the host during this step" in line
+    assert line.endswith("(Network change not confirmed at 10.0.0.11, and the host does not answer at 10.0.0.200 "
+                         "either)"), line
