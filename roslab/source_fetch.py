@@ -354,10 +354,21 @@ def _damage(mirror: Path, timeout: float) -> str | None:
     if not (mirror / "HEAD").is_file() or not (mirror / "objects").is_dir():
         return "not a git repository"
     try:
-        _git(["fsck", "--no-dangling", "--no-progress"], timeout, cwd=mirror)
-    except SourceError as error:
-        return str(error).removeprefix("git fsck: ")
-    return None
+        done = subprocess.run(["git", "fsck", "--no-dangling", "--no-progress"], cwd=mirror,
+                              env={**os.environ, **GIT_ENV}, capture_output=True, timeout=timeout,
+                              stdin=subprocess.DEVNULL)
+    except subprocess.TimeoutExpired:
+        return f"git fsck did not finish in {timeout:g} s"
+    except OSError as error:
+        raise SourceError(f"cannot run git on this machine: {error.strerror or error}") from None
+    if done.returncode == 0:
+        return None
+    # fsck says "missing tree ..." on stdout, "error: ..." on stderr
+    text = (done.stdout + b"\n" + done.stderr).decode("utf-8", "replace")
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    # the first line that says what is wrong (fsck ends with notices about HEAD)
+    telling = [line for line in lines if re.match(r"(error|fatal|missing|broken|bad)\b", line)]
+    return (telling or lines or [f"git fsck: exit {done.returncode}"])[0]
 
 
 def _fetch(repo: dict, cache_dir: Path, fetch_url: str, offline: bool, timeout: float, digest: str,

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shlex
 import textwrap
 from pathlib import Path
@@ -363,6 +364,8 @@ def test_a_damaged_mirror_is_moved_aside_named_once_and_fetched_afresh(tmp_path,
     aside = [p for p in mirror.parent.iterdir() if p.name.startswith(mirror.name + ".damaged-")]
     assert len(aside) == 1 and aside[0].is_dir()  # kept, for whoever wants to look
     assert len(got.notes) == 1 and str(aside[0]) in got.notes[0] and "fetched afresh" in got.notes[0]
+    # what git found wrong, not its closing notices
+    assert re.search(r"was damaged \((error|fatal|missing|broken|bad)\b", got.notes[0]), got.notes[0]
     source_fetch.reset()
     assert source_fetch.fetched(entry, cache).notes == ()  # healed: the next run says nothing
 
