@@ -10,7 +10,6 @@ record is then rewritten, so the next run is a no-op.
 
 from __future__ import annotations
 
-
 from pyinfra import host, logger
 from pyinfra.api import deploy
 

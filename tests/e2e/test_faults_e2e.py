@@ -19,7 +19,6 @@ What a teacher notices, checked here:
 from __future__ import annotations
 
 import os
-import shutil
 from pathlib import Path
 
 import pytest
