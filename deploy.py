@@ -14,6 +14,7 @@ from deploy.discovery import discovery_in_place
 from deploy.locale import system_locale
 from deploy.network import network
 from deploy.profile_services import profile_services_in_place
+from deploy.profile_switch import profile_switch_cleaned
 from deploy.python_env import python_env
 from deploy.robot_profile import robot_profile
 from deploy.ros_apt_source import ros_apt_source
@@ -54,5 +55,6 @@ if supported_host():
     sources()  # the underlay the workspace overlays (repositories fetched once by the controller)
     workspace()
     profile_services_in_place()  # the rover's service, the micro-ROS agent: after the build they run
+    profile_switch_cleaned()  # an earlier profile's units and groups gone, the profile recorded
 
 summary.mark_planned()  # this host's plan is complete (a run that stops before is reported so)

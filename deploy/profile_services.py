@@ -4,8 +4,9 @@ host's ROS environment and the service's own variables (RMW_IMPLEMENTATION for t
 
 A service whose `enabled_if` settings do not hold (the rover before `osr_calibrated: true`, a
 board not yet `esp32_present`) is installed, stopped and disabled, saying why. A service the
-profile no longer names is left alone: it is the teacher's to remove (`systemctl disable`).
-Runs after the workspace, whose build the commands use.
+profile no longer names (a team switched profile) is stopped, disabled and removed by
+deploy/profile_switch.py, which finds it by MANAGED_MARK. Runs after the workspace, whose build
+the commands use.
 """
 
 from __future__ import annotations

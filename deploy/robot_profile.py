@@ -110,7 +110,7 @@ def boot_config_kept(name: str, boot: dict) -> None:
     if lines:
         changes.append(config_txt_block(
             name=f"Ensure {CONFIG_TXT} holds robot profile {name}'s boot config ({', '.join(lines)})",
-            path=CONFIG_TXT, lines=lines, label=BOOT_CONFIG_LABEL))
+            path=CONFIG_TXT, lines=lines, label=BOOT_CONFIG_LABEL, backup_suffix=BACKUP_SUFFIX))
         reasons.append(f"{CONFIG_TXT} ({', '.join(lines)})")
     if words:
         changes.append(cmdline_words_absent(

@@ -13,9 +13,10 @@ underlay's install before the workspace's own.
 from __future__ import annotations
 
 import posixpath
+import threading
 from pathlib import Path
 
-from pyinfra import host
+from pyinfra import host, logger
 from pyinfra.api import deploy
 
 from deploy.common import (
@@ -33,6 +34,27 @@ from roslab import underlay as underlay_ops
 from roslab import workspace as ws_ops
 
 DEFAULTS = settings.defaults("sources")
+# The controller's warnings about the class's sources, each said once per run (not per host).
+_said_lock = threading.Lock()
+_said: set[str] = set()
+
+
+def say_once(note: str) -> None:
+    with _said_lock:
+        if note in _said:
+            return
+        _said.add(note)
+    logger.warning(f"roslab: sources: {note}")
+
+
+def class_pins() -> frozenset:
+    """Every (url, version) the roster's hosts build, this run's --limit or not: a changed set
+    is what makes the controller check the class's tags against upstream again."""
+    pins = set()
+    for each in host.state.inventory:
+        if each.data.get("sources_enabled", True):
+            pins.update((repo["url"], repo["version"]) for repo in each.data.get("roslab_sources") or [])
+    return frozenset(pins)
 
 
 def repositories() -> list[dict]:
@@ -88,16 +110,19 @@ def sources():
     cache_dir = Path(host.data.sources_cache_dir).expanduser()
     timeout = host.data.get("sources_fetch_timeout") or DEFAULTS["sources_fetch_timeout"]
     fetched = []
+    pins = class_pins()
     for repo in wanted:
         try:
             item = source_fetch.fetched(
                 repo, cache_dir, rewrites=host.data.get("source_url_rewrites") or {},
-                offline=bool(host.data.get("offline")), timeout=timeout)
+                offline=bool(host.data.get("offline")), timeout=timeout, pins=pins)
             # the packages the profile does not build never reach the host (a ROS 1 leftover)
             fetched.append(source_fetch.for_host(item, cache_dir, profile.get("skip_packages") or (), timeout))
         except source_fetch.SourceError as error:
             stop_host(f"{where()}: sources: {error}; nothing was changed on it")
             return
+        for note in fetched[-1].notes:
+            say_once(note)
     distro = host_distro()
     directory = underlay_dir(home)
     digests = {item.path: item.sha256 for item in fetched}

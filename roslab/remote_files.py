@@ -112,6 +112,16 @@ except BaseException:
     except OSError:
         pass
     raise
+# The rename itself reaches the disk (a power cut right after keeps the new file, on a Pi's FAT
+# boot partition too); a filesystem that cannot sync a directory has nothing more to give.
+try:
+    folder = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(folder)
+    finally:
+        os.close(folder)
+except OSError:
+    pass
 '''
 
 

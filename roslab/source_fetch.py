@@ -12,9 +12,25 @@ each commit's sha256 (of its archive), the first time they are seen:
   carry on (delete the repository's entry from the lock file to accept the new commit);
 - a version that upstream has as a branch (not a tag) is refused, naming the .repos file,
   the repository and its `version` field;
-- an unreachable repository fails the hosts that need it, naming it (a pinned commit that
-  the mirror already holds needs no network at all);
+- an unreachable repository fails the hosts that need it, naming it, unless the lock and the
+  mirror already hold its pin: then the run goes on with one warning line;
 - `offline`: no network; tags resolve through the lock file, commits come from the mirrors.
+
+When upstream is asked. A converged class asks nothing: a commit pin the mirror holds, and a
+tag that the lock records, whose commit the mirror holds and that was checked against
+upstream with the class's current set of pins, are served from the cache. A tag is checked
+(`git ls-remote`) when it is first locked, and in every run whose set of pins (every
+(URL, version) of every host of the roster) differs from the set of the last check (the
+record `sources.checked.json`): a teacher changing a pin re-checks every tag, and a tag moved
+upstream since is named then. Until then the lock wins: a moved tag is never taken silently.
+
+Damage. A lock file that is not valid JSON (truncated, edited) is never rebuilt from what
+upstream says now: the hosts that need sources stop, naming the file and what to do. A
+missing lock beside existing mirrors is the same (it was deleted); no lock and no mirrors is
+a class's first run. A mirror git cannot read (a corrupt loose object, a truncated pack,
+missing objects: `git fsck` fails after an operation failed) is moved aside, kept as
+`<mirror>.damaged-<time>` and named in one line, and fetched afresh once; if that fails too,
+the hosts that need it fail naming the repository and the folder.
 
 Each repository is asked once per run (threads share one result, a failure included), so a
 classroom of 30 Pis fetches it once. `source_url_rewrites` (like git's insteadOf) points a
@@ -23,6 +39,7 @@ URL at a local mirror; the lock and messages keep the URL as given.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -31,11 +48,16 @@ import subprocess
 import tempfile
 import threading
 from dataclasses import dataclass
+from datetime import datetime, timezone
 from pathlib import Path
 
+from roslab.controller_files import UnreadableFile, read_regular_file
 from roslab.sources import COMMIT, rewritten
 
 LOCK_NAME = "sources.lock.json"
+LOCK_MAX_BYTES = 16 * 1024 * 1024  # thousands of repositories' pins
+# The set of pins whose tags were last checked against upstream, and the tags checked with it.
+CHECKED_NAME = "sources.checked.json"
 GIT_ENV = {
     "GIT_TERMINAL_PROMPT": "0",  # never wait for a password
     "GIT_ASKPASS": "true",
@@ -46,11 +68,20 @@ GIT_ENV = {
 
 _lock = threading.Lock()
 _results: dict[tuple, "Fetched | SourceError"] = {}
+# Cache folders that had neither a lock nor mirrors when this run first read them (a first run:
+# the mirrors it makes before the lock is written are not a deleted lock).
+_first_runs: set[str] = set()
 _repo_locks: dict[str, threading.Lock] = {}
 
 
 class SourceError(Exception):
     """A repository that cannot be fetched or verified (the message names it)."""
+
+
+class _MirrorDamaged(SourceError):
+    def __init__(self, message: str, damage: str):
+        super().__init__(message)
+        self.damage = damage
 
 
 @dataclass(frozen=True)
@@ -61,6 +92,7 @@ class Fetched:
     commit: str
     sha256: str  # of `archive`
     archive: bytes  # `git archive --format=tar <commit>`
+    notes: tuple[str, ...] = ()  # warnings for the run (upstream unreachable, a mirror moved aside)
 
 
 def reset() -> None:
@@ -68,6 +100,7 @@ def reset() -> None:
     with _lock:
         _results.clear()
         _selected.clear()
+        _first_runs.clear()
 
 
 def _named(repo: dict) -> str:
@@ -124,12 +157,117 @@ def _fetch_into(mirror: Path, url: str, what: list[str], timeout: float) -> None
     _git(["fetch", "--quiet", "--no-tags", "--", url, *what], timeout, cwd=mirror)
 
 
-def read_lock(cache_dir: Path) -> dict:
+def _has_mirrors(cache_dir: Path) -> bool:
     try:
-        data = json.loads((Path(cache_dir) / LOCK_NAME).read_text())
+        return any((Path(cache_dir) / "git").iterdir())
+    except OSError:
+        return False
+
+
+def read_lock(cache_dir: Path) -> dict:
+    """The lock file's entries; {} on a class's first run (no lock, no mirrors).
+
+    A lock that cannot be read as roslab writes it, or a missing one beside the controller's
+    mirrors, is a SourceError naming the file: rebuilding it would take whatever upstream says
+    now as the truth.
+    """
+    path = Path(cache_dir) / LOCK_NAME
+    try:
+        if not os.path.lexists(path):
+            raise FileNotFoundError(path)
+        # bounded and never waiting: a FIFO or a device here must not hang the run
+        text = read_regular_file(path, LOCK_MAX_BYTES).decode("utf-8")
+    except FileNotFoundError:
+        if str(cache_dir) in _first_runs:
+            return {}
+        if _has_mirrors(cache_dir):
+            raise SourceError(
+                f"the lock file {path} is missing, but the controller's mirrors in {Path(cache_dir) / 'git'} "
+                "exist: the commits the class verified are unknown. Restore the lock file from a backup; "
+                f"or, to take every pin as upstream has it today, delete {Path(cache_dir) / 'git'} too") from None
+        _first_runs.add(str(cache_dir))
+        return {}
+    except (UnreadableFile, UnicodeDecodeError) as error:
+        raise SourceError(f"the lock file {path} cannot be read ({error}): restore it from a backup") from None
+    try:
+        data = json.loads(text)
+    except ValueError as error:
+        data, reason = None, f"not valid JSON: {error}"
+    else:
+        reason = _lock_shape_problem(data)
+    if reason:
+        raise SourceError(
+            f"the lock file {path} is damaged ({reason}): it is never rebuilt from what upstream says now. "
+            f"Restore it from a backup; or, to take every pin as upstream has it today, delete it and "
+            f"{Path(cache_dir) / 'git'}")
+    return data
+
+
+def _lock_shape_problem(data) -> str | None:
+    """What is wrong with a parsed lock file, or None: {url: {"tags": {tag: commit},
+    "commits": {commit: sha256}}}."""
+    if not isinstance(data, dict):
+        return "not a JSON object"
+    for url, entry in data.items():
+        if not isinstance(entry, dict):
+            return f"the entry of {url} is not an object"
+        tags, commits = entry.get("tags", {}), entry.get("commits", {})
+        if not isinstance(tags, dict) or not all(
+                isinstance(value, str) and COMMIT.fullmatch(value) for value in tags.values()):
+            return f"the tags of {url} are not tag: commit pairs"
+        if not isinstance(commits, dict) or not all(
+                COMMIT.fullmatch(key) and isinstance(value, str) and re.fullmatch(r"[0-9a-f]{64}", value)
+                for key, value in commits.items()):
+            return f"the commits of {url} are not commit: sha256 pairs"
+    return None
+
+
+def pins_digest(pins) -> str:
+    """A set of (url, version) pairs, as recorded in the checked record."""
+    return hashlib.sha256(json.dumps(sorted(map(list, pins))).encode()).hexdigest()
+
+
+def _read_checked(cache_dir: Path) -> dict:
+    """The record of the last check against upstream; {} when missing or unreadable (it only
+    saves upstream requests: a damaged record costs one check of every tag)."""
+    try:
+        data = json.loads((Path(cache_dir) / CHECKED_NAME).read_text())
     except (OSError, ValueError):
         return {}
-    return data if isinstance(data, dict) else {}
+    return data if isinstance(data, dict) and isinstance(data.get("checked"), dict) else {}
+
+
+def _tag_checked(cache_dir: Path, digest: str, url: str, tag: str) -> bool:
+    record = _read_checked(cache_dir)
+    return record.get("pins") == digest and tag in (record["checked"].get(url) or [])
+
+
+def _mark_checked(cache_dir: Path, digest: str, url: str, tag: str) -> None:
+    record = _read_checked(cache_dir)
+    if record.get("pins") != digest:
+        record = {"pins": digest, "checked": {}}
+    tags = record["checked"].setdefault(url, [])
+    if tag in tags:
+        return
+    tags.append(tag)
+    _write_json(Path(cache_dir) / CHECKED_NAME, record)
+
+
+def _write_json(path: Path, data: dict) -> None:
+    """Written beside and renamed into place, so a killed run leaves the old file or the new."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}-")
+    try:
+        with os.fdopen(handle, "w") as out:
+            json.dump(data, out, indent=2, sort_keys=True)
+            out.write("\n")
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(temp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(temp)
+        raise
 
 
 def _record(cache_dir: Path, url: str, tag: str | None, commit: str, sha256: str) -> None:
@@ -146,18 +284,19 @@ def _record(cache_dir: Path, url: str, tag: str | None, commit: str, sha256: str
         entry["commits"][commit], changed = sha256, True
     if not changed:
         return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temp = tempfile.mkstemp(dir=path.parent, prefix=".lock-")
-    with os.fdopen(handle, "w") as out:
-        json.dump(data, out, indent=2, sort_keys=True)
-        out.write("\n")
-    os.replace(temp, path)
+    _write_json(path, data)
 
 
 def fetched(repo: dict, cache_dir: Path, *, rewrites: dict | None = None, offline: bool = False,
-            timeout: float = 300) -> Fetched:
-    """The repository's pinned commit and archive (SourceError naming it), once per run."""
+            timeout: float = 300, pins=None) -> Fetched:
+    """The repository's pinned commit and archive (SourceError naming it), once per run.
+
+    `pins`: the class's set of (url, version) pairs (every host of the roster); a tag is
+    checked against upstream when the set differs from the last check's (None: this
+    repository's pin alone).
+    """
     cache_dir = Path(cache_dir).expanduser()
+    pins = frozenset(pins) if pins is not None else frozenset({(repo["url"], repo["version"])})
     key = (repo["url"], repo["version"], str(cache_dir), offline, tuple(sorted((rewrites or {}).items())))
     with _lock:
         known = _results.get(key)
@@ -168,7 +307,8 @@ def fetched(repo: dict, cache_dir: Path, *, rewrites: dict | None = None, offlin
                 known = _results.get(key)
             if known is None:
                 try:
-                    known = _fetch(repo, cache_dir, rewritten(repo["url"], rewrites), offline, timeout)
+                    known = _fetch_healing(repo, cache_dir, rewritten(repo["url"], rewrites), offline, timeout,
+                                           pins_digest(pins))
                 except SourceError as error:
                     known = SourceError(f"{_named(repo)}: {error}")
                 with _lock:
@@ -176,14 +316,76 @@ def fetched(repo: dict, cache_dir: Path, *, rewrites: dict | None = None, offlin
     if isinstance(known, SourceError):
         raise known
     # the same repository under another path in another host's .repos file
-    return Fetched(repo["path"], known.url, known.version, known.commit, known.sha256, known.archive)
+    return Fetched(repo["path"], known.url, known.version, known.commit, known.sha256, known.archive, known.notes)
 
 
-def _fetch(repo: dict, cache_dir: Path, fetch_url: str, offline: bool, timeout: float) -> Fetched:
+def _fetch_healing(repo: dict, cache_dir: Path, fetch_url: str, offline: bool, timeout: float,
+                   digest: str) -> Fetched:
+    """_fetch, and once more from a fresh mirror when the controller's copy is damaged."""
+    mirror = mirror_path(cache_dir, repo["url"])
+    try:
+        return _fetch(repo, cache_dir, fetch_url, offline, timeout, digest)
+    except SourceError as error:
+        damage = error.damage if isinstance(error, _MirrorDamaged) else _damage(mirror, timeout)
+        if damage is None:
+            raise
+        if offline:
+            raise SourceError(f"{error}; the controller's mirror {mirror} is damaged ({damage}) and, offline, "
+                              "cannot be fetched afresh: run once with the network") from None
+        aside = mirror.with_name(f"{mirror.name}.damaged-{datetime.now(timezone.utc):%Y%m%dT%H%M%S%fZ}")
+        try:
+            mirror.rename(aside)
+        except OSError as move_error:
+            raise SourceError(f"the controller's mirror {mirror} is damaged ({damage}) and cannot be moved aside "
+                              f"({move_error.strerror or move_error}): delete it") from None
+    note = (f"the controller's mirror of {repo['url']} was damaged ({damage}): moved aside to {aside}, "
+            "fetched afresh")
+    try:
+        got = _fetch(repo, cache_dir, fetch_url, offline, timeout, digest, fresh_mirror=True)
+    except SourceError as again:
+        raise SourceError(f"{again} (the controller's mirror {mirror} was damaged, moved aside to {aside} and "
+                          "fetched afresh, and that failed too)") from None
+    return Fetched(got.path, got.url, got.version, got.commit, got.sha256, got.archive, (*got.notes, note))
+
+
+def _damage(mirror: Path, timeout: float) -> str | None:
+    """Why git cannot read the mirror (`git fsck`'s first error), or None: absent or sound."""
+    if not mirror.exists():
+        return None
+    if not (mirror / "HEAD").is_file() or not (mirror / "objects").is_dir():
+        return "not a git repository"
+    try:
+        done = subprocess.run(["git", "fsck", "--no-dangling", "--no-progress"], cwd=mirror,
+                              env={**os.environ, **GIT_ENV}, capture_output=True, timeout=timeout,
+                              stdin=subprocess.DEVNULL)
+    except subprocess.TimeoutExpired:
+        return f"git fsck did not finish in {timeout:g} s"
+    except OSError as error:
+        raise SourceError(f"cannot run git on this machine: {error.strerror or error}") from None
+    if done.returncode == 0:
+        return None
+    # fsck says "missing tree ..." on stdout, "error: ..." on stderr
+    text = (done.stdout + b"\n" + done.stderr).decode("utf-8", "replace")
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    # the first line that says what is wrong (fsck ends with notices about HEAD)
+    telling = [line for line in lines if re.match(r"(error|fatal|missing|broken|bad)\b", line)]
+    return (telling or lines or [f"git fsck: exit {done.returncode}"])[0]
+
+
+def _fetch(repo: dict, cache_dir: Path, fetch_url: str, offline: bool, timeout: float, digest: str,
+           fresh_mirror: bool = False) -> Fetched:
     url, version = repo["url"], repo["version"]
     mirror = mirror_path(cache_dir, url)
     lock = read_lock(cache_dir).get(url, {})
-    tag = None
+    tag, notes = None, []
+    expected = version if COMMIT.fullmatch(version) else (lock.get("tags") or {}).get(version)
+    if (not fresh_mirror and expected and expected in (lock.get("commits") or {}) and mirror.exists()
+            and not _has_commit(mirror, expected, timeout)):
+        # The mirror held this commit once (the lock has its digest): fetching around a damaged
+        # object store would leave it damaged.
+        damage = _damage(mirror, timeout)
+        if damage:
+            raise _MirrorDamaged(f"the controller's mirror {mirror} lost commit {expected}: {damage}", damage)
     if COMMIT.fullmatch(version):
         commit = version
         if not _has_commit(mirror, commit, timeout):
@@ -200,13 +402,24 @@ def _fetch(repo: dict, cache_dir: Path, fetch_url: str, offline: bool, timeout: 
     else:
         tag = version
         recorded = (lock.get("tags") or {}).get(tag)
+        held = bool(recorded) and _has_commit(mirror, recorded, timeout)
         if offline:
-            if not recorded or not _has_commit(mirror, recorded, timeout):
+            if not held:
                 raise SourceError(f"offline, and the controller's cache has no commit for tag {tag!r} "
                                   f"({Path(cache_dir) / LOCK_NAME}): run once with the network")
             commit = recorded
+        elif held and not fresh_mirror and _tag_checked(cache_dir, digest, url, tag):
+            commit = recorded  # checked with this set of pins: upstream is not asked again
         else:
-            commit, is_branch = remote_refs(fetch_url, tag, timeout)
+            try:
+                commit, is_branch = remote_refs(fetch_url, tag, timeout)
+            except SourceError as error:
+                if not held:
+                    raise
+                # Upstream is down: the lock and the mirror hold the pin, checked when it was locked.
+                notes.append(f"upstream of {url} cannot be reached ({error}): tag {tag!r} is taken as the lock "
+                             f"records it ({recorded}), not checked against upstream in this run")
+                commit, is_branch = recorded, False
             if commit is None and is_branch:
                 raise SourceError(f"field 'version': {tag!r} is a branch upstream, not a tag: pin a commit "
                                   "(40 hex digits) or a tag in the .repos file")
@@ -221,15 +434,17 @@ def _fetch(repo: dict, cache_dir: Path, fetch_url: str, offline: bool, timeout: 
                 if not _has_commit(mirror, commit, timeout):
                     raise SourceError(f"tag {tag!r} ({commit}) did not arrive from upstream")
     archive = _git(["archive", "--format=tar", commit], timeout, cwd=mirror)
-    digest = hashlib.sha256(archive).hexdigest()
+    sha256 = hashlib.sha256(archive).hexdigest()
     recorded_digest = (lock.get("commits") or {}).get(commit)
-    if recorded_digest and recorded_digest != digest:
-        raise SourceError(f"commit {commit} now has sha256 {digest}, but the class recorded {recorded_digest} "
+    if recorded_digest and recorded_digest != sha256:
+        raise SourceError(f"commit {commit} now has sha256 {sha256}, but the class recorded {recorded_digest} "
                           f"in {Path(cache_dir) / LOCK_NAME}: the sources differ from what was verified "
                           "before; nothing of it is copied")
     with _lock:
-        _record(cache_dir, url, tag, commit, digest)
-    return Fetched(repo["path"], url, version, commit, digest, archive)
+        _record(cache_dir, url, tag, commit, sha256)
+        if tag is not None and not offline and not notes:
+            _mark_checked(cache_dir, digest, url, tag)
+    return Fetched(repo["path"], url, version, commit, sha256, archive, tuple(notes))
 
 
 # -- what of a fetched repository a host gets -----------------------------------------------
@@ -317,7 +532,7 @@ def for_host(item: Fetched, cache_dir: Path, skip_packages=(), timeout: float = 
             _selected[key] = known
     if isinstance(known, SourceError):
         raise known
-    return Fetched(item.path, item.url, item.version, item.commit, known.sha256, known.archive)
+    return Fetched(item.path, item.url, item.version, item.commit, known.sha256, known.archive, item.notes)
 
 
 def _for_host(item: Fetched, cache_dir: Path, skip: tuple[str, ...], timeout: float) -> Fetched:
@@ -336,4 +551,5 @@ def _for_host(item: Fetched, cache_dir: Path, skip: tuple[str, ...], timeout: fl
         return item
     archive = _git(["archive", "--format=tar", item.commit, "--", ".",
                     *(f":(exclude){folder}" for folder in excluded)], timeout, cwd=mirror)
-    return Fetched(item.path, item.url, item.version, item.commit, hashlib.sha256(archive).hexdigest(), archive)
+    return Fetched(item.path, item.url, item.version, item.commit, hashlib.sha256(archive).hexdigest(), archive,
+                   item.notes)

@@ -141,11 +141,44 @@ class LogLine:
     step: str | None = None  # the deploy planning on the host when it was logged
 
 
+NO_ERROR_PRINTED = "the operation failed without printing an error"
+# pyinfra's words for a command whose connection broke (api/util.py log_host_command_error)
+_SOCKET_ERROR = re.compile(r"Command socket/SSH error|Socket is closed|EOFError|Connection reset", re.ASCII)
+LOST_CONNECTION = ("lost the connection to the host during this step (it stopped answering: powered off, "
+                   "rebooted or off the network); run roslab again once it is back")
+
+
+def connection_lost(host) -> bool:
+    """Whether pyinfra's SSH connection to `host` was made and is closed now (the host lost
+    power, rebooted or left the network). False where it cannot tell (not SSH, never connected)."""
+    client = getattr(getattr(host, "connector", None), "client", None)
+    get_transport = getattr(client, "get_transport", None)
+    if get_transport is None:
+        return False
+    try:
+        transport = get_transport()
+        return transport is None or not transport.is_active()
+    except Exception:  # noqa: BLE001 - a half-closed client: nothing more to learn
+        return False
+
+
+def pending_network_change(host) -> str | None:
+    """The network change the controller started on `host` and did not see end, in words, or None."""
+    from roslab.network import state as network_state
+
+    roster_path = (getattr(host, "data", None) or {}).get("roslab_roster_path")
+    if not roster_path:
+        return None
+    entry = network_state.pending_changes(roster_path).get(host.name)
+    return network_state.pending_description(entry) if entry else None
+
+
 @dataclass
 class HostEvents:
     error_ops: list[str] = field(default_factory=list)  # op hashes, in the order they failed
     stop: tuple[str, str] | None = None  # (step, message) from record_stop
     connect_error: str | None = None
+    lost: bool = False  # the connection was found closed when a step failed
     log: deque = field(default_factory=lambda: deque(maxlen=MAX_LOG_LINES))
 
 
@@ -195,7 +228,9 @@ class RunSummary(BaseStateCallback):
 
     def operation_host_error(self, state: State, host, op_hash, retry_count: int = 0,
                              max_retries: int = 0) -> None:
-        self.host(host.name).error_ops.append(op_hash)
+        events = self.host(host.name)
+        events.error_ops.append(op_hash)
+        events.lost = events.lost or connection_lost(host)
 
     # roslab's own events
 
@@ -321,17 +356,29 @@ class RunSummary(BaseStateCallback):
             return step, stop_reason(message) or "roslab stopped it"
         op_hash = self.failed_op(state, host)
         if op_hash is not None:
-            return op_name(state, op_hash, host), self.op_reason(state, host, op_hash)
+            reason = self.op_reason(state, host, op_hash)
+            if events.lost:
+                # the step's own words, when it had any beyond pyinfra's socket error
+                said = "" if reason == NO_ERROR_PRINTED or _SOCKET_ERROR.search(reason) else f" ({reason})"
+                return op_name(state, op_hash, host), LOST_CONNECTION + said
+            return op_name(state, op_hash, host), reason
         if events.connect_error or host not in state.activated_hosts:
             # A refused host key: roslab.identity's line says what to run.
             reason = identity.refusal(host.name) or events.connect_error or most_useful_line(
                 line.text for line in events.log if line.level >= logging.ERROR
             )
-            return "connect", reason or "pyinfra could not connect to it (its message is above)"
+            reason = reason or "pyinfra could not connect to it (its message is above)"
+            pending = pending_network_change(host)
+            if pending and not identity.refusal(host.name):
+                tried = (getattr(host, "data", None) or {}).get("ssh_hostname") or host.name
+                reason = f"tried {tried}: {reason}; {pending}"
+            return "connect", reason
         # Planning failures no callback carries: a fact that could not load, stop_host's
         # own log line (most_useful_line prefers it).
         errors = [line for line in events.log if line.level >= logging.ERROR]
         reason = most_useful_line(line.text for line in errors)
+        if reason and events.lost:  # "could not load fact: ..." of a host that went away
+            reason = LOST_CONNECTION
         if reason:
             step = next((line.step for line in reversed(errors) if line.step), None)
             if step is None:
@@ -361,7 +408,7 @@ class RunSummary(BaseStateCallback):
             reason = most_useful_line(lines)
             if reason:
                 return reason
-        return "the operation failed without printing an error"
+        return NO_ERROR_PRINTED
 
     def lines(self, state: State) -> list[str]:
         rows = self.rows(state)
@@ -765,6 +812,10 @@ class _LogCapture(logging.Handler):
             host = ctx_host.get()
             if host is None or getattr(host, "name", None) != name:
                 host = None
+            if record.levelno >= logging.ERROR:
+                known = host or state.inventory.get_host(name, None)
+                if known is not None and connection_lost(known):
+                    summary.host(name).lost = True
             summary.record_log(name, LogLine(
                 record.levelno,
                 text,

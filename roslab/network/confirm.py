@@ -133,6 +133,16 @@ def _confirm_at_new_address(host, arguments: dict, token: str, new_address: str,
     return None
 
 
+def change_started(state, host, old_address: str, new_address: str, confirm_timeout: int,
+                   roster_path: str | None) -> bool:
+    """Runs on the controller just before the host is told to apply: the change is pending
+    until confirm_network_change sees it end (network_state.record_pending)."""
+    if roster_path:
+        started = time.strftime("%Y-%m-%d %H:%M:%S %Z")
+        network_state.record_pending(roster_path, host.name, old_address, new_address, confirm_timeout, started)
+    return True
+
+
 def confirm_network_change(
     state,
     host,
@@ -157,6 +167,7 @@ def confirm_network_change(
             old_client.close()
         if roster_path:
             network_state.record_address(roster_path, host.name, new_address)
+            network_state.clear_pending(roster_path, host.name)
         host.log_styled(
             f"Network change confirmed: reachable at {new_address}; "
             f"the previous files are kept in {status.backup}",
@@ -174,6 +185,8 @@ def confirm_network_change(
     if _connect_within(host, old_address, wait):
         status = _wait_for_final_status(host, arguments, token, wait=ROLLBACK_GRACE)
 
+    if status is not None and roster_path:  # it ended: rolled back or failed, the host says which
+        network_state.clear_pending(roster_path, host.name)
     if status is not None and status.state == STATE_ROLLED_BACK:
         host.log_styled(
             f"Network change rolled back: {status.message}. The host is reachable again at "

@@ -37,7 +37,7 @@ from roslab.network.apply import (
     STATE_DIR,
     Plan,
 )
-from roslab.network.confirm import confirm_network_change
+from roslab.network.confirm import change_started, confirm_network_change
 from roslab.network.render import (
     CLOUD_INIT_DISABLE_FILE,
     CLOUD_INIT_FILE,
@@ -260,6 +260,12 @@ def network_in_effect(
     # A validation failure shows the validator's message and stops here, nothing changed.
     yield StringCommand("python3", SCRIPT_PATH, "start", PLAN_PATH,
                         _stdin=SecretStdin(json.dumps(wanted.files)))
+    # Validated and launched (a refused change ends above): pending until confirmed or undone.
+    yield FunctionCommand(
+        change_started, (),
+        {"old_address": current_address, "new_address": reach_address,
+         "confirm_timeout": settings.confirm_timeout, "roster_path": roster_path},
+    )
     yield FunctionCommand(
         confirm_network_change,
         (),

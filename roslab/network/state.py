@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+import threading
 from pathlib import Path
 
 import yaml
@@ -62,3 +63,65 @@ def record_address(roster_path: str | os.PathLike, host: str, address: str) -> N
         out.write("# managed by roslab: where each host was last confirmed reachable.\n")
         yaml.safe_dump(dict(sorted(addresses.items())), out, default_flow_style=False)
     os.replace(temporary, path)
+
+
+# A change the controller started and has not seen end (confirmed, rolled back or failed):
+# written before the host is told to apply it, so a controller killed during the change
+# leaves a record the next run names when the host does not answer.
+PENDING_FILE = "pending-network.yaml"
+_pending_lock = threading.Lock()  # hosts' changes run in threads: one rewrite at a time
+
+
+def pending_path(roster_path: str | os.PathLike) -> Path:
+    return Path(roster_path).resolve().parent / STATE_DIR / PENDING_FILE
+
+
+def pending_changes(roster_path: str | os.PathLike) -> dict[str, dict]:
+    """host -> {"from", "to", "started", "confirm_timeout"}; {} when none or unreadable (this
+    record only makes a failure's message truer: it never stops a run)."""
+    path = pending_path(roster_path)
+    if not os.path.lexists(path):
+        return {}
+    try:
+        data = yaml.safe_load(read_regular_file(path, 1024 * 1024).decode("utf-8")) or {}
+    except (UnreadableFile, UnicodeDecodeError, yaml.YAMLError):
+        return {}
+    if not isinstance(data, dict):
+        return {}
+    return {str(name): entry for name, entry in data.items() if isinstance(entry, dict)}
+
+
+def _write_pending(path: Path, pending: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=".pending-")
+    with os.fdopen(fd, "w") as out:
+        out.write("# managed by roslab: network changes started and not yet seen to end.\n")
+        yaml.safe_dump(dict(sorted(pending.items())), out, default_flow_style=False)
+    os.replace(temporary, path)
+
+
+def record_pending(roster_path: str | os.PathLike, host: str, old_address: str, new_address: str,
+                   confirm_timeout: int, started: str) -> None:
+    """Note that `host` is being moved from `old_address` to `new_address` (until it ends)."""
+    with _pending_lock:
+        pending = pending_changes(roster_path)
+        pending[host] = {"from": old_address, "to": new_address, "started": started,
+                         "confirm_timeout": int(confirm_timeout)}
+        _write_pending(pending_path(roster_path), pending)
+
+
+def clear_pending(roster_path: str | os.PathLike, host: str) -> None:
+    """The change on `host` ended (confirmed, rolled back, failed): nothing pending."""
+    with _pending_lock:
+        pending = pending_changes(roster_path)
+        if host in pending:
+            del pending[host]
+            _write_pending(pending_path(roster_path), pending)
+
+
+def pending_description(entry: dict) -> str:
+    """One clause for a failure line: what was pending, where the host may answer."""
+    return (f"a network change started {entry.get('started', '?')} (from {entry.get('from', '?')} to "
+            f"{entry.get('to', '?')}) was not seen to end: the controller stopped during it; the host "
+            f"restores its previous settings by itself within {entry.get('confirm_timeout', '?')} s unless "
+            f"it was confirmed, so it answers at {entry.get('from', '?')} or at {entry.get('to', '?')}")

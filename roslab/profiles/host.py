@@ -6,6 +6,8 @@
 
 from __future__ import annotations
 
+import posixpath
+
 from pyinfra import host
 from pyinfra.api import FactBase, OperationError, operation
 from pyinfra.facts.files import File
@@ -134,51 +136,86 @@ def units_masked(units: list[str]):
     yield f"systemctl mask {' '.join(shell_word(unit) for unit in missing)}"
 
 
+# Room kept free beside a new swap file, so the card is never filled by it (logs, apt, the
+# student's builds still need space).
+SWAP_FREE_MARGIN_MB = 256
+
+
+def partial_swap_path(path: str) -> str:
+    """Where a swap file is made before it is complete (renamed into place only then)."""
+    return path + ".roslab-new"
+
+
 class SwapFile(FactBase):
-    """A swap file's size in bytes and whether it is in use: {"size": int | None, "active": bool}."""
+    """A swap file's size in bytes, whether it is in use, and whether a partial one from an
+    interrupted run is beside it: {"size": int | None, "active": bool, "partial": bool}."""
 
     def command(self, path: str) -> str:
         word = shell_word(path)
         return (f"if [ -f {word} ]; then stat -c 'size %s' {word}; else echo 'size none'; fi; "
                 f"if awk 'NR > 1 {{print $1}}' /proc/swaps | grep -qxF -- {word}; "
-                "then echo 'active yes'; else echo 'active no'; fi")
+                "then echo 'active yes'; else echo 'active no'; fi; "
+                f"if [ -e {shell_word(partial_swap_path(path))} ]; then echo 'partial yes'; fi")
 
     def process(self, output):
-        result = {"size": None, "active": False}
+        result = {"size": None, "active": False, "partial": False}
         for line in output:
             key, _, value = line.strip().partition(" ")
             if key == "size" and value.isdigit():
                 result["size"] = int(value)
-            elif key == "active":
-                result["active"] = value == "yes"
+            elif key in ("active", "partial"):
+                result[key] = value == "yes"
         return result
 
 
 @operation()
-def swap_file_on(path: str, size_mb: int):
+def swap_file_on(path: str, size_mb: int, margin_mb: int = SWAP_FREE_MARGIN_MB):
     """A swap file of `size_mb` MiB at `path` (mode 0600) is in use.
 
     + path: the swap file (``/swapfile``)
     + size_mb: its size in MiB; a file of another size is switched off and made anew
+    + margin_mb: room that must stay free on the file's filesystem beside it
 
+    The room is checked on the host when the file is made (free space plus the old file's):
+    too little is refused in one line naming what is needed and what is free, before the old
+    file is touched. The file is made under a temporary name (`fallocate`, never a `dd` that
+    fills the card), made swap, and renamed into place only when complete; a partial file of
+    an interrupted run is removed first.
     Only the running system: the /etc/fstab line that keeps it on after a reboot is a
     managed block of its own (deploy/robot_profile.py).
     Example: ``swap_file_on(name="...", path="/swapfile", size_mb=2048)``
     """
     current = host.get_fact(SwapFile, path=path)
-    word = shell_word(path)
+    word, partial = shell_word(path), shell_word(partial_swap_path(path))
     if current["size"] == size_mb * 1024 * 1024:
+        if current.get("partial"):
+            yield f"rm -f -- {partial}"
         if current["active"]:
-            host.noop(f"{path} ({size_mb} MiB) is already in use as swap")
+            if not current.get("partial"):
+                host.noop(f"{path} ({size_mb} MiB) is already in use as swap")
             return
         yield f"swapon {word}"
         return
-    if current["active"]:
-        yield f"swapoff {word}"
-    # umask 077: the file is never readable by others, not even while it is being made.
-    yield (f"rm -f {word} && (umask 077 && (fallocate -l {size_mb}M {word} || dd if=/dev/zero of={word} "
-           f"bs=1M count={size_mb} status=none)) && chmod 600 {word} && mkswap {word} >/dev/null && "
-           f"swapon {word}")
+    directory = shell_word(posixpath.dirname(path) or "/")
+    need_kib = (size_mb + margin_mb) * 1024
+    # Free space plus what the old file holds (it goes first); in KiB, as df -P and du give it.
+    room = (f"room=$(( $(df -Pk -- {directory} | awk 'NR == 2 {{print $4}}') + "
+            f"$(if [ -f {word} ]; then du -k -- {word} | cut -f1; else echo 0; fi) ))")
+    refuse = (f"echo \"roslab: not enough room for {path}: {size_mb} MiB and a margin of "
+              f"{margin_mb} MiB needed, $((room / 1024)) MiB free: nothing was changed\" >&2; exit 1")
+    failed = (f"{{ rm -f -- {partial}; echo \"roslab: could not make {path} ({size_mb} MiB): "
+              f"$step failed; the partial file was removed\" >&2; exit 1; }}")
+    yield " ".join([
+        f"rm -f -- {partial};",
+        f"{room};",
+        f"if [ \"$room\" -lt {need_kib} ]; then {refuse}; fi;",
+        *([f"swapoff {word} || exit 1;"] if current["active"] else []),
+        f"rm -f -- {word} || exit 1;",
+        # umask 077: the file is never readable by others, not even while it is being made.
+        f"step=fallocate; (umask 077 && fallocate -l {size_mb}M {partial}) || {failed};",
+        f"step=mkswap; chmod 600 {partial} && mkswap {partial} >/dev/null || {failed};",
+        f"mv -f -- {partial} {word} && swapon {word}",
+    ])
 
 
 # --- boot configuration and "reboot needed" (profile `boot_config`) ------------------------
@@ -210,15 +247,29 @@ class CmdlineText(FactBase):
         return None if text.strip() == "#no-such-file" else text
 
 
+def durably_renamed(new: str, path: str, *also_synced: str) -> str:
+    """Shell: `new` (and `also_synced`, a backup) reach the disk, `new` is renamed over `path`
+    and the rename reaches the disk too (the directory synced): a power cut at any moment
+    leaves the old file or the new one, never half of one, on a Pi's FAT partition as anywhere."""
+    directory = posixpath.dirname(path) or "/"
+    synced = " ".join(shell_word(each) for each in (new, *also_synced))
+    # The folder's sync is best effort (a filesystem that cannot sync a folder has nothing more
+    # to give); the rename has happened by then, so it does not fail the step.
+    return (f"sync -- {synced} && mv -f -- {shell_word(new)} {shell_word(path)} && "
+            f"{{ sync -- {shell_word(directory)} 2>/dev/null || true; }}")
+
+
 @operation()
-def config_txt_block(path: str, lines: list[str], label: str):
+def config_txt_block(path: str, lines: list[str], label: str, backup_suffix: str):
     """A Pi's config.txt holds `lines` in a roslab-marked block (roslab.operations.managed_block),
     or, where the file does not exist (a PC, a container), nothing is created: no firmware here
-    reads it.
+    reads it. The file is copied to `<path><backup_suffix>` before it changes (the upload that
+    follows syncs the file and its directory: roslab.remote_files).
 
     + path: the file (/boot/firmware/config.txt)
     + lines: its lines (the block starts with [all], so no conditional section above swallows them)
     + label: names the block in its markers
+    + backup_suffix: the backup's suffix (``.roslab-<date>-<time>``)
     """
     from roslab.operations import managed_block
 
@@ -226,7 +277,13 @@ def config_txt_block(path: str, lines: list[str], label: str):
         host.noop(f"{path} does not exist (not a Raspberry Pi's boot partition): the boot config "
                   f"({', '.join(lines)}) is not written")
         return
-    yield from managed_block._inner(path=path, content="\n".join(["[all]", *lines]), label=label)
+    commands = list(managed_block._inner(path=path, content="\n".join(["[all]", *lines]), label=label))
+    if not commands:
+        return
+    backup = path + backup_suffix
+    if not any(backup in str(command) for command in commands):  # a marker repair copies it already
+        yield f"cp -p -- {shell_word(path)} {shell_word(backup)} && sync -- {shell_word(backup)}"
+    yield from commands
 
 
 @operation()
@@ -246,11 +303,10 @@ def cmdline_words_absent(path: str, words: list[str], backup_suffix: str):
     if wanted == " ".join(current.split()):
         host.noop(f"{path} holds none of {', '.join(words)}")
         return
-    quoted = shell_word(path)
+    quoted, new, backup = shell_word(path), path + ".roslab-new", path + backup_suffix
     # One line, written beside the file and renamed over it: the firmware never reads half a file.
-    yield (f"cp -p -- {quoted} {shell_word(path + backup_suffix)} && "
-           f"printf '%s\\n' {shell_word(wanted)} > {shell_word(path + '.roslab-new')} && "
-           f"mv -f -- {shell_word(path + '.roslab-new')} {quoted}")
+    yield (f"cp -p -- {quoted} {shell_word(backup)} && "
+           f"printf '%s\\n' {shell_word(wanted)} > {shell_word(new)} && {durably_renamed(new, path, backup)}")
 
 
 class RebootRecord(FactBase):
@@ -302,8 +358,7 @@ def reboot_needed_recorded(reasons: list[str]):
     yield (f"mkdir -p {shell_word(REBOOT_RECORD.rsplit('/', 1)[0])} && "
            f"{{ printf 'boot_id=%s\\n' \"$(cat {BOOT_ID})\"; "
            f"printf 'reason=%s\\n' {' '.join(shell_word(line) for line in lines)}; }}"
-           f" > {shell_word(new)} && chmod 644 {shell_word(new)} && mv -f -- {shell_word(new)} "
-           f"{shell_word(REBOOT_RECORD)}")
+           f" > {shell_word(new)} && chmod 644 {shell_word(new)} && {durably_renamed(new, REBOOT_RECORD)}")
 
 
 @operation()

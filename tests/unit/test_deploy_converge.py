@@ -224,3 +224,70 @@ def test_an_osr_robot_gets_its_boot_config_once_records_the_reboot_and_then_noth
     third = plan(run_deploy_py, host.facts(), osr_robot_data(tmp_path))
     assert [name.split(" | ")[1] for name in third.changing()] == [
         "Ensure a reboot record from before the last reboot is gone"]
+
+
+def test_a_team_switching_from_osr_to_demo_loses_the_rovers_unit_and_groups_says_what_stays_then_nothing(
+        tmp_path, caplog):
+    from roslab.profiles.host import CONFIG_TXT
+    from roslab.profiles.switch import PROFILE_RECORD
+
+    host = with_stand_in_deb(FakeUbuntu())
+    host.files[CONFIG_TXT] = ["[all]", "arm_64bit=1"]
+    host.groups["student"] = ["student", "video"]  # video: the user's before roslab
+    osr = plan(run_deploy_py, host.facts(), osr_robot_data(tmp_path, osr_calibrated="true"))
+    assert not osr.failed, osr.errors
+    host.apply(osr)
+    assert "/etc/systemd/system/osr_startup.service" in host.files
+    assert {"tty", "dialout", "input"} <= set(host.groups["student"])
+    assert '"profile": "osr"' in host.files[PROFILE_RECORD][0]
+
+    demo = host_data(tmp_path, "noble", "robot")
+    caplog.clear()
+    switch = plan(run_deploy_py, host.facts(), demo)
+    assert not switch.failed, switch.errors
+    changes = switch.changing()
+    (gone,) = [commands for name, commands in changes.items() if "osr_startup.service of an earlier" in name]
+    assert gone[0].startswith("systemctl disable --now osr_startup.service") and gone[-1] == "systemctl daemon-reload"
+    (left,) = [commands for name, commands in changes.items() if "no longer in" in name]
+    assert left == ["gpasswd -d student dialout >/dev/null", "gpasswd -d student input >/dev/null",
+                    "gpasswd -d student tty >/dev/null"]
+    said = [record.getMessage() for record in caplog.records if "robot profile osr -> demo" in record.getMessage()]
+    assert len(said) == 1 and "removed osr_startup.service; student from groups dialout, input, tty" in said[0]
+    assert f"kept its boot config block in {CONFIG_TXT}" in said[0] and "needs a reboot" in said[0]
+    host.apply(switch)
+    assert "/etc/systemd/system/osr_startup.service" not in host.files
+    assert host.groups["student"] == ["student", "video"]  # the user's own group stays
+
+    again = plan(run_deploy_py, host.facts(), demo)
+    assert again.changing() == {}
+    assert again.facts_asked == ["HostProbe", "HostProbe"]
+
+
+def test_a_host_converged_before_the_record_existed_still_loses_the_old_profiles_unit(tmp_path, caplog):
+    from roslab.profiles.switch import PROFILE_RECORD
+
+    host = with_stand_in_deb(FakeUbuntu())
+    host.apply(plan(run_deploy_py, host.facts(), osr_robot_data(tmp_path, osr_calibrated="true")))
+    del host.files[PROFILE_RECORD]  # an older roslab wrote the unit and kept no record
+    switch = plan(run_deploy_py, host.facts(), host_data(tmp_path, "noble", "robot"))
+    names = [name.split(" | ")[1] for name in switch.changing()]
+    assert "Ensure osr_startup.service of an earlier robot profile is stopped, disabled and removed" in names
+    assert not [name for name in names if "no longer in" in name]  # whose groups: unknown, they stay
+    host.apply(switch)
+    assert plan(run_deploy_py, host.facts(), host_data(tmp_path, "noble", "robot")).changing() == {}
+
+
+def test_a_turtlebot3_team_switching_to_demo_is_told_its_masked_units_stay(tmp_path, caplog):
+    host = with_stand_in_deb(FakeUbuntu())
+    host.memory_mb = 1848
+    host.apply(plan(run_deploy_py, host.facts(), turtlebot3_robot_data(tmp_path, profile_os_tweaks=True)))
+    caplog.clear()
+    switch = plan(run_deploy_py, host.facts(), host_data(tmp_path, "noble", "robot", profile_os_tweaks=True))
+    said = [record.getMessage() for record in caplog.records if "robot profile turtlebot3 -> demo" in record.getMessage()]
+    assert len(said) == 1 and "removed student from groups dialout" in said[0], said
+    assert "the units its OS tweaks masked (hibernate.target" in said[0] and "systemctl unmask" in said[0]
+    host.apply(switch)
+    caplog.clear()
+    again = plan(run_deploy_py, host.facts(), host_data(tmp_path, "noble", "robot", profile_os_tweaks=True))
+    assert again.changing() == {}
+    assert not [record for record in caplog.records if "->" in record.getMessage()]

@@ -126,7 +126,11 @@ def test_first_run_stages_validates_and_launches_detached_apply():
     assert plan_file.superseded == (CLOUD_INIT,)
     assert plan_file.expect_address == "10.0.0.11/24" and plan_file.gateway == "10.0.0.1"
     # The change runs outside the SSH session, after everything is staged.
-    assert commands.index(start) == len(commands) - 2
+    # Then the controller notes the change as pending (a run killed now leaves the record the next
+    # run's failure names), and confirms it.
+    assert commands.index(start) == len(commands) - 3
+    pending = operation.commands[-2]
+    assert isinstance(pending, FunctionCommand) and pending.kwargs["new_address"] == "10.0.0.11"
     confirm = operation.commands[-1]
     assert isinstance(confirm, FunctionCommand)
     assert confirm.kwargs["new_address"] == "10.0.0.11"
@@ -391,3 +395,24 @@ def test_a_change_undone_at_boot_is_reported_once_in_one_printable_line(caplog):
     assert "\x1b[2J" not in line
     commands = text(the_operation(result))
     assert commands[0] == "rm -f /var/lib/roslab/network/recovered.json"
+
+
+def test_a_started_change_is_pending_until_it_ends_and_stays_pending_when_the_host_is_gone(quick, tmp_path):
+    roster = tmp_path / "roster.yaml"
+
+    def started():
+        network_confirm.change_started(None, FakeHost(None), old_address="10.0.0.200", new_address="10.0.0.11",
+                                       confirm_timeout=1, roster_path=str(roster))
+        assert network_state.pending_changes(roster)["team1-main"]["to"] == "10.0.0.11"
+
+    started()
+    gone = FakeHost(FakeConnector(lambda address: False, lambda address, commands: None))
+    assert confirm(gone, tmp_path) is False
+    assert "team1-main" in network_state.pending_changes(roster)  # the next run's failure names it
+
+    def rolled_back(address, commands):
+        return {"token": "t0k", "state": "rolled-back", "message": "not confirmed"}
+
+    started()
+    assert confirm(FakeHost(FakeConnector(lambda address: address == "10.0.0.200", rolled_back)), tmp_path) is False
+    assert network_state.pending_changes(roster) == {}

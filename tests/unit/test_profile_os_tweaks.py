@@ -63,8 +63,9 @@ def test_a_2_gb_robot_gets_the_units_masked_and_a_swap_file_kept_on_at_boot():
     (mask,) = [commands for name, commands in changes.items() if "masked" in name]
     assert mask == ["systemctl mask " + " ".join(UNITS)]
     (swap,) = [commands for name, commands in changes.items() if "in use as swap" in name]
-    assert "fallocate -l 2048M /swapfile" in swap[0] and "umask 077" in swap[0]
-    assert swap[0].endswith("swapon /swapfile")
+    assert "fallocate -l 2048M /swapfile.roslab-new" in swap[0] and "umask 077" in swap[0]
+    assert swap[0].endswith("mv -f -- /swapfile.roslab-new /swapfile && swapon /swapfile")
+    assert " dd " not in swap[0]
     (fstab,) = [name for name in changes if "/etc/fstab" in name]
     assert "upload /etc/fstab" in changes[fstab][-1]
 
@@ -94,10 +95,76 @@ def test_only_the_missing_masks_and_a_swapon_are_planned_after_a_reboot_without_
     assert swap == ["swapon /swapfile"]
 
 
-def test_a_swap_file_of_another_size_is_switched_off_and_made_anew():
+def test_a_swap_file_of_another_size_is_switched_off_and_made_anew_after_the_room_check():
     changes = run(facts(masked=UNITS, swap={"size": 1024 * 1024 * 1024, "active": True})).changing()
     (swap,) = [commands for name, commands in changes.items() if "in use as swap" in name]
-    assert swap[0] == "swapoff /swapfile" and "mkswap /swapfile" in swap[1]
+    (command,) = swap
+    assert command.index("not enough room") < command.index("swapoff /swapfile") < command.index("mkswap")
+
+
+def test_a_partial_file_left_beside_a_good_swap_file_is_removed_then_a_no_op():
+    changes = run(facts(masked=UNITS, swap={"size": TWO_GIB, "active": True, "partial": True})).changing()
+    (swap,) = [commands for name, commands in changes.items() if "in use as swap" in name]
+    assert swap == ["rm -f -- /swapfile.roslab-new"]
+
+
+def make_swap_locally(tmp_path, size_mb: int, margin_mb: int = 1, fallocate: str | None = None, old: bytes = b""):
+    """Run the planned command in a shell on this machine, in tmp_path: swapon, swapoff and
+    mkswap are stand-ins that log (the kernel's swap is not touched), df and fallocate are real
+    unless `fallocate` replaces it."""
+    import os
+    import subprocess
+
+    from fixtures.fake_host import plan as plan_op
+
+    from roslab.profiles.host import swap_file_on
+
+    target = tmp_path / "disk" / "swapfile"
+    target.parent.mkdir()
+    if old:
+        target.write_bytes(old)
+    stubs = tmp_path / "bin"
+    stubs.mkdir()
+    for name in ("swapon", "swapoff", "mkswap"):
+        (stubs / name).write_text(f"#!/bin/sh\necho {name} \"$@\" >> {tmp_path}/log\n")
+    if fallocate:
+        (stubs / "fallocate").write_text(fallocate)
+    for stub in stubs.iterdir():
+        stub.chmod(0o755)
+    result = plan_op(lambda: swap_file_on(name="swap", path=str(target), size_mb=size_mb, margin_mb=margin_mb),
+                     {SwapFile: lambda path: {"size": None, "active": False, "partial": False}}, {})
+    (command,) = [line for op in result.operations for line in op.text()]
+    done = subprocess.run(["sh", "-c", command], capture_output=True, text=True,
+                          env={**os.environ, "PATH": f"{stubs}:{os.environ['PATH']}"})
+    return done, target
+
+
+def test_a_swap_file_is_made_under_a_temporary_name_and_renamed_when_complete(tmp_path):
+    done, target = make_swap_locally(tmp_path, 2)
+    assert done.returncode == 0, done.stderr
+    assert target.stat().st_size == 2 * 1024 * 1024 and oct(target.stat().st_mode & 0o777) == "0o600"
+    assert sorted(p.name for p in target.parent.iterdir()) == ["swapfile"]
+    assert (tmp_path / "log").read_text().splitlines() == [
+        f"mkswap {target}.roslab-new", f"swapon {target}"]
+
+
+def test_too_little_room_is_refused_naming_needed_and_free_and_nothing_is_made(tmp_path):
+    done, target = make_swap_locally(tmp_path, 64 * 1024 * 1024, old=b"old swap")  # 64 TiB
+    assert done.returncode == 1
+    line = done.stderr.strip()
+    assert line.startswith(f"roslab: not enough room for {target}: 67108864 MiB and a margin of 1 MiB needed,")
+    assert "MiB free: nothing was changed" in line
+    assert target.read_bytes() == b"old swap"  # the old file is untouched
+    assert sorted(p.name for p in target.parent.iterdir()) == ["swapfile"]
+
+
+def test_a_failing_allocation_removes_its_partial_file(tmp_path):
+    # a disk that fills during the allocation: half the file written, then the error
+    fails = '#!/bin/sh\nhead -c 1024 /dev/zero > "$3"; echo "fallocate: No space left on device" >&2; exit 1\n'
+    done, target = make_swap_locally(tmp_path, 2, fallocate=fails)
+    assert done.returncode == 1
+    assert "could not make" in done.stderr and "fallocate failed; the partial file was removed" in done.stderr
+    assert list(target.parent.iterdir()) == []
 
 
 def test_an_extending_profile_changes_one_tweak_and_keeps_the_others(tmp_path):

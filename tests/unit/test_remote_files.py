@@ -188,3 +188,20 @@ def test_an_owned_upload_has_its_owner_and_mode_before_it_takes_the_name(tmp_pat
     info = bashrc.stat()
     assert (pwd.getpwuid(info.st_uid).pw_name, grp.getgrgid(info.st_gid).gr_name) == ("daemon", "daemon")
     assert stat.S_IMODE(info.st_mode) == 0o640
+
+
+def test_the_file_and_then_its_folder_reach_the_disk(tmp_path):
+    """A power cut after the upload keeps the new file (a Pi's boot partition): the script
+    fsyncs the file before the rename and the folder after it."""
+    prelude = ("import os, sys\nreal = os.fsync\nrenamed = os.rename\n"
+               "def fsync(fd):\n    print('fsync', os.readlink('/proc/self/fd/%d' % fd), file=sys.stderr)\n"
+               "    real(fd)\n"
+               "def rename(a, b):\n    print('rename', b, file=sys.stderr)\n    renamed(a, b)\n"
+               "os.fsync, os.rename = fsync, rename\n")
+    dest = tmp_path / "config.txt"
+    done = subprocess.run([sys.executable, "-c", prelude + remote_files.WRITE_SCRIPT, str(dest)],
+                          input=base64.b64encode(b"[all]\n"), capture_output=True)
+    assert done.returncode == 0, done.stderr
+    lines = done.stderr.decode().splitlines()
+    assert [line.split()[0] for line in lines] == ["fsync", "rename", "fsync"], lines
+    assert lines[1] == f"rename {dest}" and lines[2] == f"fsync {tmp_path}"

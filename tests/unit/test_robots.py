@@ -270,6 +270,47 @@ def test_a_pi_gets_the_block_the_cmdline_backed_up_and_a_reboot_recorded():
     assert "reason=%s" in reboot[0] and "'boot config changed: /boot/firmware/config.txt" in reboot[0]
 
 
+def test_config_txt_is_backed_up_before_its_block_changes():
+    changes = osr_plan(boot_facts()).changing()
+    (config,) = [commands for name, commands in changes.items() if CONFIG_TXT in name and "boot config" in name]
+    assert config[0].startswith(f"cp -p -- {CONFIG_TXT} {CONFIG_TXT}.roslab-") and "&& sync -- " in config[0]
+    assert config[1].startswith("upload ")  # the block's upload (fsynced file and folder: remote_files)
+
+
+def test_boot_files_and_the_reboot_record_are_renamed_durably(tmp_path):
+    """The cmdline's command, run here with `sync` a stand-in that logs: the new file and the
+    backup reach the disk before the rename, the folder after it."""
+    import os
+    import subprocess
+
+    from fixtures.fake_host import plan as plan_op
+
+    from roslab.profiles.host import cmdline_words_absent
+
+    boot = tmp_path / "firmware"
+    boot.mkdir()
+    cmdline = boot / "cmdline.txt"
+    cmdline.write_text(UBUNTU_CMDLINE)
+    stubs = tmp_path / "bin"
+    stubs.mkdir()
+    (stubs / "sync").write_text(f"#!/bin/sh\necho \"sync $* $(ls {boot} | tr '\\n' ' ')\" >> {tmp_path}/log\n")
+    (stubs / "sync").chmod(0o755)
+    result = plan_op(lambda: cmdline_words_absent(name="cmdline", path=str(cmdline),
+                                                  words=["console=serial0,115200"], backup_suffix=".roslab-x"),
+                     {CmdlineText: lambda path: UBUNTU_CMDLINE}, {})
+    (command,) = [line for op in result.operations for line in op.text()]
+    subprocess.run(["sh", "-c", command], check=True, env={**os.environ, "PATH": f"{stubs}:{os.environ['PATH']}"})
+    assert (tmp_path / "log").read_text().splitlines() == [
+        # before the rename: the new file and the backup, both beside the old one
+        f"sync -- {cmdline}.roslab-new {cmdline}.roslab-x cmdline.txt cmdline.txt.roslab-new cmdline.txt.roslab-x ",
+        f"sync -- {boot} cmdline.txt cmdline.txt.roslab-x ",  # after it: the folder
+    ]
+    assert cmdline.read_text() == UBUNTU_CMDLINE.replace("console=serial0,115200 ", "").strip() + "\n"
+    (reboot,) = [commands for name, commands in osr_plan(boot_facts()).changing().items() if "reboot" in name]
+    assert reboot[0].endswith(f"&& sync -- {REBOOT_RECORD}.roslab-new && mv -f -- {REBOOT_RECORD}.roslab-new "
+                              f"{REBOOT_RECORD} && {{ sync -- /var/lib/roslab 2>/dev/null || true; }}")
+
+
 def test_a_converged_pi_changes_nothing_and_records_no_reboot():
     block = ["[all]", "# BEGIN roslab managed block (robot profile boot config)", "[all]", "enable_uart=1",
              "dtparam=i2c_arm=on", "# END roslab managed block (robot profile boot config)"]

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shlex
 import textwrap
 from pathlib import Path
@@ -243,18 +244,147 @@ def test_a_commit_pin_in_the_mirror_needs_no_upstream(tmp_path):
     assert source_fetch.fetched(repo_entry(tmp_path, bare, made), cache).commit == made
 
 
-def test_a_moved_tag_fails_naming_the_repository_and_the_lock(tmp_path):
+def test_a_moved_tag_is_never_taken_and_is_named_when_the_class_changes_its_pins(tmp_path):
     bare, made = upstream_repo(tmp_path)
     cache = tmp_path / "cache"
-    source_fetch.fetched(repo_entry(tmp_path, bare, "v1"), cache)
+    entry = repo_entry(tmp_path, bare, "v1")
+    source_fetch.fetched(entry, cache)
     moved = git_standins.commit(bare, git_standins.package_files("lidar", ["lidar", "other"]), "second",
                                 ["v1"], move_tags=True)
+    # the same pins as the last check: the lock wins, upstream is not asked
+    source_fetch.reset()
+    assert source_fetch.fetched(entry, cache).commit == made
+    # a teacher changes a pin (another repository here): every tag is checked, the moved one named
     source_fetch.reset()
     with pytest.raises(source_fetch.SourceError) as raised:
-        source_fetch.fetched(repo_entry(tmp_path, bare, "v1"), cache)
+        source_fetch.fetched(entry, cache, pins={(entry["url"], "v1"), ("https://example.invalid/x.git", "v2")})
     message = str(raised.value)
     assert "repository 'lidar'" in message and "robot.repos" in message
     assert f"now resolves to {moved}" in message and made in message and "sources.lock.json" in message
+
+
+def test_a_converged_class_asks_upstream_nothing_and_goes_on_with_one_note_when_it_is_down(tmp_path):
+    bare, made = upstream_repo(tmp_path)
+    cache = tmp_path / "cache"
+    entry = repo_entry(tmp_path, bare, "v1")
+    first = source_fetch.fetched(entry, cache)
+    (tmp_path / "upstream").rename(tmp_path / "gone")  # any request to upstream now fails
+    source_fetch.reset()
+    again = source_fetch.fetched(entry, cache)
+    assert (again.commit, again.archive, again.notes) == (made, first.archive, ())
+    # a changed set of pins would check the tag: upstream down, the lock and mirror hold it
+    source_fetch.reset()
+    changed = source_fetch.fetched(entry, cache, pins={(entry["url"], "v1"), ("https://example.invalid/x", "v2")})
+    assert changed.commit == made
+    assert len(changed.notes) == 1 and "cannot be reached" in changed.notes[0] and made in changed.notes[0]
+    # a pin the lock does not hold still needs upstream: it fails naming the repository
+    source_fetch.reset()
+    with pytest.raises(source_fetch.SourceError, match="repository 'lidar'"):
+        source_fetch.fetched(repo_entry(tmp_path, bare, "v2"), cache)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "empty", "not-an-object", "bad-commit", "deleted", "fifo",
+                                    "directory", "not-utf8"])
+def test_a_damaged_or_deleted_lock_is_never_rebuilt_from_upstream(tmp_path, damage):
+    bare, made = upstream_repo(tmp_path)
+    cache = tmp_path / "cache"
+    entry = repo_entry(tmp_path, bare, "v1")
+    source_fetch.fetched(entry, cache)
+    lock = cache / source_fetch.LOCK_NAME
+    text = lock.read_text()
+    git_standins.commit(bare, git_standins.package_files("lidar", ["lidar", "other"]), "moved", ["v1"],
+                        move_tags=True)
+    if damage == "deleted":
+        lock.unlink()
+    elif damage in ("fifo", "directory"):
+        import os
+        lock.unlink()
+        os.mkfifo(lock) if damage == "fifo" else lock.mkdir()
+    elif damage == "not-utf8":
+        lock.write_bytes(b"\xff\xfe{}")
+    else:
+        lock.write_text({"truncated": text[: len(text) // 2], "empty": "", "not-an-object": "[]",
+                         "bad-commit": text.replace(made, "HEAD~1" + made[6:])}[damage])
+    source_fetch.reset()
+    with pytest.raises(source_fetch.SourceError) as raised:
+        source_fetch.fetched(entry, cache)
+    message = str(raised.value)
+    assert "repository 'lidar'" in message and str(lock) in message, message
+    words = {"deleted": "is missing", "fifo": "cannot be read", "directory": "cannot be read",
+             "not-utf8": "cannot be read"}.get(damage, "is damaged")
+    assert f"the lock file {lock} {words}" in message and "backup" in message, message
+    import shutil
+    if lock.is_dir():
+        lock.rmdir()
+    assert not lock.is_file() or lock.read_bytes() != text.encode()  # nothing rewritten from upstream
+    # deleting the mirrors too is the teacher's way to take upstream as it is today
+    lock.unlink(missing_ok=True)
+    shutil.rmtree(cache / "git")
+    source_fetch.reset()
+    assert source_fetch.fetched(entry, cache).commit != made
+
+
+def test_a_first_run_of_several_repositories_writes_the_lock_it_did_not_find(tmp_path):
+    one, _ = upstream_repo(tmp_path, "one")
+    two, _ = upstream_repo(tmp_path, "two")
+    cache = tmp_path / "cache"
+    source_fetch.fetched(repo_entry(tmp_path, one, "v1", path="one"), cache)
+    source_fetch.fetched(repo_entry(tmp_path, two, "v1", path="two"), cache)  # mirrors exist, lock written
+    assert len(json.loads((cache / source_fetch.LOCK_NAME).read_text())) == 2
+
+
+def loose_object(mirror: Path, sha: str) -> Path:
+    return mirror / "objects" / sha[:2] / sha[2:]
+
+
+@pytest.mark.parametrize("damage", ["corrupt-commit", "missing-tree", "truncated-pack"])
+def test_a_damaged_mirror_is_moved_aside_named_once_and_fetched_afresh(tmp_path, damage):
+    bare, made = upstream_repo(tmp_path)
+    cache = tmp_path / "cache"
+    entry = repo_entry(tmp_path, bare, "v1")
+    first = source_fetch.fetched(entry, cache)
+    mirror = source_fetch.mirror_path(cache, entry["url"])
+    if damage == "truncated-pack":
+        git_standins._git("--git-dir", mirror, "repack", "-a", "-d", "-q")
+        pack = next((mirror / "objects" / "pack").glob("*.pack"))
+        pack.chmod(0o644)
+        pack.write_bytes(pack.read_bytes()[: pack.stat().st_size // 2])
+    else:
+        sha = made if damage == "corrupt-commit" else git_standins._git(
+            "--git-dir", mirror, "rev-parse", f"{made}^{{tree}}").strip()
+        path = loose_object(mirror, sha)
+        path.chmod(0o644)
+        if damage == "corrupt-commit":
+            path.write_bytes(b"x\x01garbage")
+        else:
+            path.unlink()
+    source_fetch.reset()
+    got = source_fetch.fetched(entry, cache)
+    assert got.archive == first.archive
+    aside = [p for p in mirror.parent.iterdir() if p.name.startswith(mirror.name + ".damaged-")]
+    assert len(aside) == 1 and aside[0].is_dir()  # kept, for whoever wants to look
+    assert len(got.notes) == 1 and str(aside[0]) in got.notes[0] and "fetched afresh" in got.notes[0]
+    # what git found wrong, not its closing notices
+    assert re.search(r"was damaged \((error|fatal|missing|broken|bad)\b", got.notes[0]), got.notes[0]
+    source_fetch.reset()
+    assert source_fetch.fetched(entry, cache).notes == ()  # healed: the next run says nothing
+
+
+def test_a_damaged_mirror_that_cannot_be_fetched_afresh_fails_naming_repository_and_folder(tmp_path):
+    bare, made = upstream_repo(tmp_path)
+    cache = tmp_path / "cache"
+    entry = repo_entry(tmp_path, bare, made)
+    source_fetch.fetched(entry, cache)
+    mirror = source_fetch.mirror_path(cache, entry["url"])
+    path = loose_object(mirror, made)
+    path.chmod(0o644)
+    path.write_bytes(b"x\x01garbage")
+    (tmp_path / "upstream").rename(tmp_path / "gone")
+    source_fetch.reset()
+    with pytest.raises(source_fetch.SourceError) as raised:
+        source_fetch.fetched(entry, cache)
+    message = str(raised.value)
+    assert "repository 'lidar'" in message and str(mirror) in message and "moved aside" in message, message
 
 
 def test_a_changed_digest_fails_naming_the_repository(tmp_path):
@@ -522,3 +652,24 @@ def test_a_profiles_cmake_args_reach_colcon_through_a_meta_file_and_change_the_s
     (ws / "seen.meta").unlink()
     assert "--metas" not in build({})
     assert not (ws / ".roslab/colcon.meta").exists() and not (ws / "seen.meta").exists()
+
+
+def test_the_deploy_goes_on_from_the_lock_when_upstream_is_down_saying_so_in_one_line(tmp_path, caplog):
+    from fixtures.fake_ubuntu import FakeUbuntu
+
+    import deploy.sources as sources_module
+
+    bare, made = upstream_repo(tmp_path)
+    data = deploy_data(tmp_path, bare, "v1")
+    facts = {**FakeUbuntu().facts(), **underlay_facts()}
+    assert not plan(run_sources_deploy, facts, data).failed
+    (tmp_path / "upstream").rename(tmp_path / "gone")
+    source_fetch.reset()
+    sources_module._said.clear()
+    # another pin in the class makes this run check its tags: upstream cannot be reached
+    other = {**data["roslab_sources"][0], "path": "extra", "url": "file:///nowhere/extra.git", "version": "v9"}
+    caplog.clear()
+    result = plan(run_sources_deploy, facts, data, hosts_after=[("other-host", {**data, "roslab_sources": [other]})])
+    assert not result.failed, result.errors
+    said = [record.getMessage() for record in caplog.records if "cannot be reached" in record.getMessage()]
+    assert len(said) == 1 and f"tag 'v1' is taken as the lock records it ({made})" in said[0], said

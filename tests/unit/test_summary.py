@@ -545,3 +545,90 @@ def test_a_long_step_says_which_hosts_are_still_in_it():
     after = shown[shown.index("--> Starting operation: Ensure the locale") + 1:]
     assert after and all(line.startswith("    still running on team1-main, team1-robot, team2-main (")
                          for line in after), shown
+
+
+class _ClosedTransport:
+    def is_active(self) -> bool:
+        return False
+
+
+class _DroppedClient:
+    """paramiko's SSHClient after the host went away: its transport is no longer active."""
+
+    def get_transport(self):
+        return _ClosedTransport()
+
+
+def test_a_host_that_lost_power_during_a_step_is_named_as_lost_not_as_a_silent_failure():
+    state, handler = classroom("team1-main", "team1-robot")
+    for name in ("team1-main", "team1-robot"):
+        operation_on(state, name, "op-install", INSTALL, changed=True)
+    finished_run(state)
+    robot = state.inventory.get_host("team1-robot")
+    robot.connector.client = _DroppedClient()
+    executed(state, handler, "team1-main", "op-install", success=True)
+    executed(state, handler, "team1-robot", "op-install", success=False, commands=0)  # no output at all
+    state.fail_hosts({robot})
+
+    line = printed(state, handler)[3]
+    assert line.startswith(f'    team1-robot  failed   in "{INSTALL}": lost the connection to the host during '
+                           "this step"), line
+    assert "without printing an error" not in line
+
+
+def test_a_host_gone_while_roslab_read_it_is_named_as_lost_not_as_a_fact_with_85_commands():
+    state, handler = classroom("team1-main", "team1-robot")
+    robot = state.inventory.get_host("team1-robot")
+    robot.connector.client = _DroppedClient()
+    with ctx_state.use(state), ctx_host.use(robot):
+        robot.current_deploy_name = SUPPORTED
+        logger.error(f"{robot.print_prefix}Error: could not load fact: roslab.probe.HostProbe commands=<85 commands>")
+        robot.current_deploy_name = None
+    state.fail_hosts({robot})
+    summary.mark_planned(state.inventory.get_host("team1-main"))
+
+    line = printed(state, handler)[3]
+    assert line.startswith(f'    team1-robot  failed   in "{SUPPORTED}": lost the connection to the host'), line
+    assert "HostProbe" not in line
+
+
+def test_a_host_unreachable_after_a_killed_network_change_names_the_change_and_the_addresses(tmp_path):
+    from roslab.network import state as network_state
+
+    roster = tmp_path / "roster.yaml"
+    roster.write_text("")
+    network_state.record_pending(roster, "team1-robot", "10.0.0.200", "10.0.0.12", 90, "2026-11-26 18:02:00 UTC")
+    state, handler = classroom("team1-main", "team1-robot", data={
+        "team1-robot": {"roslab_roster_path": str(roster), "ssh_hostname": "10.0.0.200"}})
+    robot = state.inventory.get_host("team1-robot")
+    handler.host_connect_error(state, robot, Exception("Could not connect (timed out)"))
+    state.activated_hosts.discard(robot)
+    state.active_hosts.discard(robot)
+    state.fail_hosts({robot})
+    summary.mark_planned(state.inventory.get_host("team1-main"))
+
+    line = " ".join(printed(state, handler)[3].split())
+    assert line.startswith('team1-robot failed in "connect": tried 10.0.0.200: Could not connect (timed out); '
+                           "a network change started 2026-11-26 18:02:00 UTC (from 10.0.0.200 to 10.0.0.12) "
+                           "was not seen to end"), line
+    assert "within 90 s" in line
+    # once the change ends (confirmed here), nothing is pending any more
+    network_state.record_address(roster, "team1-robot", "10.0.0.12")
+    network_state.clear_pending(roster, "team1-robot")
+    assert network_state.pending_changes(roster) == {}
+
+
+def test_a_lost_host_keeps_the_steps_own_words_when_it_had_any():
+    state, handler = classroom("team1-main", "team1-robot")
+    operation_on(state, "team1-main", "op-net", "Ensure the network", changed=True)
+    finished_run(state)
+    main = state.inventory.get_host("team1-main")
+    main.connector.client = _DroppedClient()
+    executed(state, handler, "team1-main", "op-net", success=False, output=[
+        ("stderr", "Network change not confirmed at 10.0.0.11, and the host does not answer at 10.0.0.200 either")])
+    state.fail_hosts({main})
+
+    line = " ".join(printed(state, handler)[2].split())
+    assert "lost the connection to the host during this step" in line
+    assert line.endswith("(Network change not confirmed at 10.0.0.11, and the host does not answer at 10.0.0.200 "
+                         "either)"), line
