@@ -605,16 +605,20 @@ def test_source_pins_move_a_profiles_pin_and_name_themselves_as_its_origin(tmp_p
     assert own == every
 
 
-def test_the_sandbox_stands_in_for_every_builtin_commit_pin_with_a_tag_its_roster_pins():
+def test_the_sandbox_stands_in_for_a_commit_pin_with_a_tag_its_roster_pins_unless_served_for_real(tmp_path):
     from roslab.sandbox import git_standins
-    from roslab.sandbox.upstream import builtin_repos_files
     from roslab.sources import version_problem
 
-    files = builtin_repos_files()
-    pins = git_standins.commit_pins(files)
-    commit_pinned = {path for path, _, version in git_standins.repositories(files) if len(version) == 40}
-    assert commit_pinned and set(pins) == commit_pinned
+    # the built-in profiles pin tags (upstream has them); a roster's profile may pin a commit
+    repos = tmp_path / "mine.repos"
+    repos.write_text("repositories:\n  my_driver:\n    type: git\n    url: https://github.com/lab/my_driver.git\n"
+                     f"    version: {'ab' * 20}\n  tools:\n    type: git\n    url: https://github.com/lab/tools.git\n"
+                     "    version: v1.0.0\n")
+    pins = git_standins.commit_pins([repos])
+    assert pins == {"my_driver": git_standins.STANDIN_TAG}
     assert all(version_problem(tag) is None for tag in pins.values())
+    # a repository the sandbox serves from its real bundle keeps its real pin
+    assert git_standins.commit_pins([repos], real=("https://github.com/lab/my_driver.git",)) == {}
 
 
 def test_a_profiles_cmake_args_reach_colcon_through_a_meta_file_and_change_the_stamp(tmp_path):
