@@ -188,7 +188,7 @@ def check_domain_ids(classroom: Classroom, report: Report) -> None:
         line = team.domain_line or team.line
         if team.ros_domain_id is None:
             if not team.domain_set:
-                report.error(f"no free ROS_DOMAIN_ID is left for this team (roslab gives out 1 to 101): "
+                report.error("no free ROS_DOMAIN_ID is left for this team (roslab gives out 1 to 101): "
                              "set its ros_domain_id (215 to 232 also work on Linux)",
                              team=team.name, field="ros_domain_id", line=line)
             continue

@@ -24,7 +24,6 @@ archive (upstream.py):
 
 from __future__ import annotations
 
-import hashlib
 import os
 import re
 import shutil
@@ -32,7 +31,7 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-from .system import SandboxError, log, run
+from .system import SandboxError, file_sha256, folder_setting, log, run
 
 ENV = "ROSLAB_SANDBOX_SOURCES"
 REAL_NOTE = "roslab sandbox: REAL source"
@@ -88,13 +87,7 @@ _GIT_ENV = {"GIT_CONFIG_NOSYSTEM": "1", "GIT_CONFIG_GLOBAL": os.devnull, "LC_ALL
 
 def sources_dir() -> Path | None:
     """The folder `ROSLAB_SANDBOX_SOURCES` names, or None when it is unset or empty."""
-    value = os.environ.get(ENV, "").strip()
-    if not value:
-        return None
-    path = Path(value).expanduser()
-    if not path.is_dir():
-        raise SandboxError(f"{ENV}={value}: no such folder (it should hold <repository>.bundle files)")
-    return path.resolve()
+    return folder_setting(ENV, "<repository>.bundle files")
 
 
 def _git(*args, cwd: Path | None = None) -> str:
@@ -110,14 +103,6 @@ def repository_name(url: str) -> str:
     return url.rstrip("/").rsplit("/", 1)[-1].removesuffix(".git")
 
 
-def sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        while chunk := handle.read(1 << 20):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
 class Bundles:
     """The bundles of a folder: repository name -> bundle (and its sha256)."""
 
@@ -125,7 +110,7 @@ class Bundles:
         self.folder = folder
         self.paths = {path.name.removesuffix(".bundle"): path
                       for path in sorted(folder.glob("*.bundle"))} if folder else {}
-        self.sums = {name: sha256(path) for name, path in self.paths.items()}
+        self.sums = {name: file_sha256(path) for name, path in self.paths.items()}
 
     @classmethod
     def from_env(cls) -> "Bundles":

@@ -24,12 +24,11 @@ tarball's sha256, so a second `up` (or a second CI run) does not rebuild it.
 
 from __future__ import annotations
 
-import hashlib
 import os
 import shutil
 from pathlib import Path
 
-from .system import SandboxError, log, run, write_file
+from .system import SandboxError, file_sha256, folder_setting, log, run, write_file
 
 ENV = "ROSLAB_SANDBOX_ROS_RUNTIME"
 
@@ -59,13 +58,7 @@ REAL_NOTE = "roslab sandbox: REAL ROS 2"
 
 def runtime_dir() -> Path | None:
     """The folder `ROSLAB_SANDBOX_ROS_RUNTIME` names, or None when it is unset or empty."""
-    value = os.environ.get(ENV, "").strip()
-    if not value:
-        return None
-    path = Path(value).expanduser()
-    if not path.is_dir():
-        raise SandboxError(f"{ENV}={value}: no such folder (it should hold ros-<distro>-core-*.tar.zst)")
-    return path.resolve()
+    return folder_setting(ENV, "ros-<distro>-core-*.tar.zst")
 
 
 def tarballs(folder: Path, distros) -> dict[str, Path]:
@@ -84,12 +77,7 @@ def tarballs(folder: Path, distros) -> dict[str, Path]:
     return found
 
 
-def sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        while chunk := handle.read(1 << 20):
-            digest.update(chunk)
-    return digest.hexdigest()
+sha256 = file_sha256
 
 
 class Runtime:

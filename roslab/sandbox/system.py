@@ -30,6 +30,28 @@ def run(*argv: str | os.PathLike, check: bool = True, capture: bool = True, **kw
     return result
 
 
+def folder_setting(name: str, holds: str) -> Path | None:
+    """The folder environment variable `name` names (resolved), None when it is unset or empty;
+    a value that is no folder is an error naming the setting and what the folder `holds`."""
+    value = os.environ.get(name, "").strip()
+    if not value:
+        return None
+    path = Path(value).expanduser()
+    if not path.is_dir():
+        raise SandboxError(f"{name}={value}: no such folder (it should hold {holds})")
+    return path.resolve()
+
+
+def file_sha256(path: Path) -> str:
+    import hashlib
+
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        while chunk := handle.read(1 << 20):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
 @contextlib.contextmanager
 def file_lock(path: Path):
     """Hold an exclusive lock on `path` (created if missing) for the block."""

@@ -32,7 +32,6 @@ abridged), as the Pi image has them.
 from __future__ import annotations
 
 import os
-import shlex
 import shutil
 import subprocess
 import sys
