@@ -1,4 +1,4 @@
-"""roslab.op_order gives pyinfra's own operation order, on real deploy call stacks."""
+"""roslab.pyinfra_planning plans as pyinfra's own functions do: operation order, global arguments."""
 
 from __future__ import annotations
 
@@ -12,10 +12,12 @@ from fixtures.classroom import DEPLOY_PY, host_data, run_deploy_py, with_stand_i
 from fixtures.fake_host import fake_host, plan
 from fixtures.fake_ubuntu import FakeUbuntu
 from pyinfra.api import State
+from pyinfra.api import arguments as pyinfra_arguments
+from pyinfra.api import facts as pyinfra_facts
 from pyinfra.api import util as pyinfra_util
 from pyinfra.api.state import StateStage
 
-from roslab import op_order
+from roslab import pyinfra_planning, summary
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -59,10 +61,21 @@ outer()
 '''
 
 
+def restore_pyinfras_functions():
+    pyinfra_planning.pyinfra_operation.get_operation_order_from_stack = (
+        pyinfra_planning.pyinfra_get_operation_order_from_stack)
+    pyinfra_arguments.all_global_arguments = pyinfra_planning.pyinfra_all_global_arguments
+    pyinfra_facts.all_global_arguments = pyinfra_planning.pyinfra_all_global_arguments
+
+
 @pytest.fixture
 def cli_mode(monkeypatch):
-    """pyinfra as its CLI runs deploy files: operations ordered by their call stack."""
+    """pyinfra as its CLI runs deploy files: operations ordered by their call stack.
+
+    Without the CLI's exit summary and signal handlers (roslab.summary), which are for a run.
+    """
     monkeypatch.setattr(pyinfra, "is_cli", True)
+    monkeypatch.setattr(summary, "deploying_files", lambda: False)
     monkeypatch.setattr(State, "current_stage", StateStage.Prepare)
 
 
@@ -70,25 +83,24 @@ def cli_mode(monkeypatch):
 def both_orders(monkeypatch, cli_mode):
     """Make pyinfra call a recorder that asks both functions from the same frame.
 
-    deploy.py calls op_order.install(), which installs the recorder (it stands in for
+    deploy.py calls pyinfra_planning.install(), which installs the recorder (it stands in for
     roslab's function); a deploy file without install() gets it directly.
     """
-    monkeypatch.delenv(op_order.SWITCH, raising=False)
-    ours = op_order.get_operation_order_from_stack
+    monkeypatch.delenv(pyinfra_planning.SWITCH, raising=False)
+    ours = pyinfra_planning.get_operation_order_from_stack
     pairs: list[tuple[list[int], list[int]]] = []
 
     def recorder(state):
         # Both on one line: this frame (not pyinfra's) is on both stacks, at the same line.
-        pair = (op_order.pyinfra_get_operation_order_from_stack(state), ours(state))
+        pair = (pyinfra_planning.pyinfra_get_operation_order_from_stack(state), ours(state))
         pairs.append((list(pair[0]), pair[1]))  # pyinfra appends to the list it gets
         return pair[0]
 
-    monkeypatch.setattr(op_order, "get_operation_order_from_stack", recorder)
-    monkeypatch.setattr(op_order.pyinfra_operation, "get_operation_order_from_stack", recorder)
+    monkeypatch.setattr(pyinfra_planning, "get_operation_order_from_stack", recorder)
+    monkeypatch.setattr(pyinfra_planning.pyinfra_operation, "get_operation_order_from_stack", recorder)
     yield pairs
-    op_order.install()  # not the recorder: undo with the real function in place
     monkeypatch.undo()
-    op_order.pyinfra_operation.get_operation_order_from_stack = op_order.pyinfra_get_operation_order_from_stack
+    restore_pyinfras_functions()
 
 
 def test_nested_deploys_loops_and_repeated_lines_get_pyinfras_order(tmp_path, both_orders):
@@ -144,44 +156,54 @@ def test_a_converged_host_plans_the_same_operations_with_either_function(tmp_pat
     host.apply(plan(run_deploy_py, host.facts(), host_data(tmp_path)))
 
     plans = {}
-    for switch in ("", op_order.USE_PYINFRA):
-        monkeypatch.setenv(op_order.SWITCH, switch)
+    for switch in ("", pyinfra_planning.USE_PYINFRA):
+        monkeypatch.setenv(pyinfra_planning.SWITCH, switch)
         plans[switch] = plan(run_deploy_py, host.facts(), host_data(tmp_path))
-        assert (op_order.pyinfra_operation.get_operation_order_from_stack
-                is (op_order.get_operation_order_from_stack if not switch
-                    else op_order.pyinfra_get_operation_order_from_stack))
-    op_order.pyinfra_operation.get_operation_order_from_stack = op_order.pyinfra_get_operation_order_from_stack
+        assert installed_functions() == (PYINFRAS if switch else OURS)
+    restore_pyinfras_functions()
 
-    ours, theirs = plans[""], plans[op_order.USE_PYINFRA]
+    ours, theirs = plans[""], plans[pyinfra_planning.USE_PYINFRA]
     assert [op.name for op in ours.operations] == [op.name for op in theirs.operations]
     assert ours.changing() == theirs.changing() == {}
 
 
+def installed_functions():
+    return (pyinfra_planning.pyinfra_operation.get_operation_order_from_stack,
+            pyinfra_arguments.all_global_arguments, pyinfra_facts.all_global_arguments)
+
+
+OURS = (pyinfra_planning.get_operation_order_from_stack, pyinfra_planning.all_global_arguments,
+        pyinfra_planning.all_global_arguments)
+PYINFRAS = (pyinfra_util.get_operation_order_from_stack, pyinfra_arguments.all_global_arguments,
+            pyinfra_facts.all_global_arguments)
+
+
 def test_install_only_for_the_checked_pyinfra_and_without_the_switch(monkeypatch):
-    monkeypatch.delenv(op_order.SWITCH, raising=False)
+    monkeypatch.delenv(pyinfra_planning.SWITCH, raising=False)
     try:
-        assert op_order.install() is True
-        assert op_order.pyinfra_operation.get_operation_order_from_stack is op_order.get_operation_order_from_stack
-        assert op_order.install() is True  # idempotent
+        assert pyinfra_planning.install() is True
+        assert installed_functions() == OURS
+        assert pyinfra_planning.install() is True  # idempotent
+        assert installed_functions() == OURS
 
-        monkeypatch.setenv(op_order.SWITCH, "pyinfra")
-        assert op_order.install() is False
-        assert op_order.pyinfra_operation.get_operation_order_from_stack is op_order.pyinfra_get_operation_order_from_stack
+        monkeypatch.setenv(pyinfra_planning.SWITCH, "pyinfra")
+        assert pyinfra_planning.install() is False
+        assert installed_functions() == PYINFRAS
 
-        monkeypatch.delenv(op_order.SWITCH)
-        monkeypatch.setattr(op_order, "installed_pyinfra", lambda: "3.11.0")
-        assert op_order.install() is False
-        assert op_order.pyinfra_operation.get_operation_order_from_stack is op_order.pyinfra_get_operation_order_from_stack
+        monkeypatch.delenv(pyinfra_planning.SWITCH)
+        monkeypatch.setattr(pyinfra_planning, "installed_pyinfra", lambda: "3.11.0")
+        assert pyinfra_planning.install() is False
+        assert installed_functions() == PYINFRAS
     finally:
-        op_order.pyinfra_operation.get_operation_order_from_stack = op_order.pyinfra_get_operation_order_from_stack
+        restore_pyinfras_functions()
 
 
 def test_the_checked_version_is_the_pinned_and_installed_pyinfra():
     """Moving the pin means checking pyinfra's new function against this module again."""
     dependencies = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["dependencies"]
-    assert f"pyinfra=={op_order.CHECKED_PYINFRA}" in dependencies
-    assert op_order.installed_pyinfra() == op_order.CHECKED_PYINFRA
-    assert op_order.pyinfra_get_operation_order_from_stack is pyinfra_util.get_operation_order_from_stack
+    assert f"pyinfra=={pyinfra_planning.CHECKED_PYINFRA}" in dependencies
+    assert pyinfra_planning.installed_pyinfra() == pyinfra_planning.CHECKED_PYINFRA
+    assert pyinfra_planning.pyinfra_get_operation_order_from_stack is pyinfra_util.get_operation_order_from_stack
 
 
 def test_a_frame_of_sourceless_bytecode_is_read_by_inspect(tmp_path, both_orders):
@@ -196,3 +218,39 @@ def test_a_frame_of_sourceless_bytecode_is_read_by_inspect(tmp_path, both_orders
 
     assert both_orders and [ours for _, ours in both_orders] == [theirs for theirs, _ in both_orders]
     assert all(len(theirs) > 1 for theirs, _ in both_orders)  # inspect named the frame compiled.py
+
+
+def test_global_arguments_are_pyinfras_and_each_caller_gets_its_own_list():
+    ours = pyinfra_planning.all_global_arguments()
+    assert ours == pyinfra_planning.pyinfra_all_global_arguments()
+    assert ("_sudo", bool) in ours and ("_serial", bool) in ours
+    ours.clear()  # a caller changing its list changes nobody else's
+    assert pyinfra_planning.all_global_arguments() == pyinfra_planning.pyinfra_all_global_arguments()
+
+
+def test_operations_and_facts_get_pyinfras_global_arguments(tmp_path, monkeypatch, cli_mode):
+    """The same arguments reach every operation (_sudo, _serial, ...) with either function."""
+    monkeypatch.delenv(pyinfra_planning.SWITCH, raising=False)
+    host = with_stand_in_deb(FakeUbuntu())
+    host.apply(plan(run_deploy_py, host.facts(), host_data(tmp_path)))
+    plans = {}
+    for switch in ("", pyinfra_planning.USE_PYINFRA):
+        monkeypatch.setenv(pyinfra_planning.SWITCH, switch)
+        plans[switch] = plan(run_deploy_py, host.facts(), host_data(tmp_path, ssh_hardening_enabled=False))
+    restore_pyinfras_functions()
+    ours, theirs = plans[""], plans[pyinfra_planning.USE_PYINFRA]
+    assert [(op.name, comparable(op.arguments)) for op in ours.operations] == [
+        (op.name, comparable(op.arguments)) for op in theirs.operations]
+    assert ours.facts_asked == theirs.facts_asked
+    assert any(op.arguments.get("_sudo") for op in ours.operations)
+
+
+def comparable(arguments: dict) -> dict:
+    """Global arguments with functions (`_if`'s conditions, made anew by each plan) by name."""
+    def named(value):
+        if callable(value):
+            return value.__qualname__
+        if isinstance(value, (list, tuple)):
+            return [named(item) for item in value]
+        return value
+    return {key: named(value) for key, value in arguments.items()}
