@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import copy
 import datetime
+import functools
 import inspect
 import posixpath
 import re
@@ -78,6 +79,12 @@ def own_copy(value: Any) -> Any:
     return copy.deepcopy(value)
 
 
+@functools.cache
+def _signature(command: Callable) -> inspect.Signature:
+    """A fact's command's signature: read once per run, not once per read per host."""
+    return inspect.signature(command)
+
+
 def _normalized(fact: type[FactBase], arguments: dict) -> tuple | None:
     """The fact's arguments as pyinfra binds them (defaults filled in), hashable; None if
     they do not fit its command."""
@@ -85,7 +92,7 @@ def _normalized(fact: type[FactBase], arguments: dict) -> tuple | None:
     if not callable(command):
         return () if not arguments else None
     try:
-        bound = inspect.signature(command).bind(None, **arguments)
+        bound = _signature(command).bind(None, **arguments)
     except TypeError:
         return None
     bound.apply_defaults()

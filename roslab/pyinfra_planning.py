@@ -1,9 +1,9 @@
 """pyinfra's planning of an operation, without the costs that made each host cost like the first.
 
-pyinfra runs deploy.py once per host, and for every operation (and @deploy) on every host
-it does work that depends on neither: on a converged class's no-op re-run that was most of
-the controller's CPU, and it grew with every host (issue 32). Two of pyinfra 3.10's
-functions are replaced by exact equivalents:
+pyinfra runs deploy.py once per host, and for every operation, @deploy and fact on every
+host it does work that costs far more CPU than its result needs: on a converged class's
+no-op re-run that was most of the controller's CPU, and it grew with every host (issue 32).
+Three of pyinfra 3.10's functions are replaced by exact equivalents:
 
 1. `pyinfra.api.util.get_operation_order_from_stack`: in CLI mode pyinfra orders operations
    by the line numbers of the call stack from deploy.py inwards, leaving out pyinfra's own
@@ -22,8 +22,16 @@ functions are replaced by exact equivalents:
    `AllArguments` TypedDict, evaluated again for every operation, @deploy and fact on every
    host. `all_global_arguments` below evaluates it once and hands out a new list of the same
    pairs each time.
+3. `pyinfra.api.arguments.pop_global_arguments`, called for every operation, @deploy and
+   fact on every host: for each of its ~30 global arguments (`_sudo`, `_serial`, ...) it
+   asks `host.data`, and each ask calls all five data layers again (override, host, the
+   host's groups merged anew, the inventory's, the @deploy's defaults) and searches them.
+   `pop_global_arguments` below is pyinfra's, line for line, except that it calls the five
+   layers once per call and searches those, as `HostData.__getattr__` does (first layer
+   holding the key, a shallow copy of its value). Nothing in the loop can change a layer:
+   it runs only pyinfra's argument defaults and `generate_env`.
 
-`install()` puts both in place of pyinfra's, in the modules that call them, only for the
+`install()` puts them in place of pyinfra's, in the modules that call them, only for the
 pyinfra version they were checked against (`CHECKED_PYINFRA`, the pin in pyproject.toml;
 tests/unit/test_pyinfra_planning.py compares them with pyinfra's own on real nested deploy
 call stacks and fails when the pin moves). Any other pyinfra keeps its own functions.
@@ -35,6 +43,7 @@ measures both.
 
 from __future__ import annotations
 
+import copy
 import importlib
 import importlib.machinery
 import inspect
@@ -48,6 +57,8 @@ import pyinfra
 from pyinfra.api import arguments as pyinfra_arguments
 from pyinfra.api import facts as pyinfra_facts
 from pyinfra.api import util as pyinfra_util
+from pyinfra.api.host import extract_callable_datas
+from pyinfra.context import ctx_config
 
 # The module, not the `operation` decorator that pyinfra.api exports under the same name.
 pyinfra_operation = importlib.import_module("pyinfra.api.operation")
@@ -65,6 +76,11 @@ BYTECODE_SUFFIXES = tuple(importlib.machinery.DEBUG_BYTECODE_SUFFIXES
 # pyinfra's functions, kept before install() replaces them.
 pyinfra_get_operation_order_from_stack = pyinfra_util.get_operation_order_from_stack
 pyinfra_all_global_arguments = pyinfra_arguments.all_global_arguments
+pyinfra_pop_global_arguments = pyinfra_arguments.pop_global_arguments
+# The modules that call pop_global_arguments by the name they imported.
+POP_GLOBAL_ARGUMENTS_CALLERS = ("pyinfra.api.arguments", "pyinfra.api.deploy", "pyinfra.api.operation",
+                                "pyinfra.api.facts")
+_NOT_IN_DATA = object()
 
 
 def frame_location(frame) -> tuple[str, int]:
@@ -117,6 +133,60 @@ def all_global_arguments() -> list[tuple[str, type]]:
     return list(_global_argument_types())
 
 
+def host_data_lookup(host):
+    """`getattr(host.data, key, default)` for many keys: the data layers called once."""
+    layers = list(extract_callable_datas(host.data.datas))
+
+    def lookup(key, default):
+        for layer in layers:
+            try:
+                return copy.copy(layer[key])
+            except KeyError:
+                pass
+        return default
+    return lookup
+
+
+def pop_global_arguments(state, host, kwargs):
+    """pyinfra 3.10's `pop_global_arguments`, with `host.data`'s layers called once."""
+    config = state.config
+    if ctx_config.isset():
+        config = ctx_config.get()
+        assert config is not None
+
+    cdkwargs = host.current_deploy_kwargs
+    meta_kwargs = cdkwargs or {}
+
+    arguments = {}
+    found_keys = []
+    host_data = host_data_lookup(host)
+
+    for key, type_ in pyinfra_arguments.all_global_arguments():
+        argument_meta = pyinfra_arguments.all_argument_meta[key]
+        handler = argument_meta.handler
+        default = argument_meta.default(config)
+
+        host_default = host_data(key, _NOT_IN_DATA)
+        if host_default is not _NOT_IN_DATA:
+            default = host_default
+
+        if key in kwargs:
+            found_keys.append(key)
+            value = kwargs.pop(key)
+        else:
+            value = meta_kwargs.get(key, default)
+
+        if handler:
+            value = handler(config, value)
+
+        if value != default:
+            pyinfra_arguments.raise_if_bad_type(
+                value, type_, pyinfra_arguments.ArgumentTypeError, f"Invalid argument `{key}`:")
+
+        arguments[key] = value
+    return arguments, found_keys
+
+
 @cache
 def installed_pyinfra() -> str | None:
     try:
@@ -138,4 +208,7 @@ def install() -> bool:
         get_operation_order_from_stack if ours else pyinfra_get_operation_order_from_stack)
     for module in (pyinfra_arguments, pyinfra_facts):
         module.all_global_arguments = all_global_arguments if ours else pyinfra_all_global_arguments
+    for name in POP_GLOBAL_ARGUMENTS_CALLERS:
+        importlib.import_module(name).pop_global_arguments = (
+            pop_global_arguments if ours else pyinfra_pop_global_arguments)
     return ours

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import runpy
 import tomllib
 from pathlib import Path
@@ -66,6 +67,8 @@ def restore_pyinfras_functions():
         pyinfra_planning.pyinfra_get_operation_order_from_stack)
     pyinfra_arguments.all_global_arguments = pyinfra_planning.pyinfra_all_global_arguments
     pyinfra_facts.all_global_arguments = pyinfra_planning.pyinfra_all_global_arguments
+    for name in pyinfra_planning.POP_GLOBAL_ARGUMENTS_CALLERS:
+        importlib.import_module(name).pop_global_arguments = pyinfra_planning.pyinfra_pop_global_arguments
 
 
 @pytest.fixture
@@ -169,13 +172,15 @@ def test_a_converged_host_plans_the_same_operations_with_either_function(tmp_pat
 
 def installed_functions():
     return (pyinfra_planning.pyinfra_operation.get_operation_order_from_stack,
-            pyinfra_arguments.all_global_arguments, pyinfra_facts.all_global_arguments)
+            pyinfra_arguments.all_global_arguments, pyinfra_facts.all_global_arguments,
+            *(importlib.import_module(name).pop_global_arguments
+              for name in pyinfra_planning.POP_GLOBAL_ARGUMENTS_CALLERS))
 
 
 OURS = (pyinfra_planning.get_operation_order_from_stack, pyinfra_planning.all_global_arguments,
-        pyinfra_planning.all_global_arguments)
+        pyinfra_planning.all_global_arguments, *[pyinfra_planning.pop_global_arguments] * 4)
 PYINFRAS = (pyinfra_util.get_operation_order_from_stack, pyinfra_arguments.all_global_arguments,
-            pyinfra_facts.all_global_arguments)
+            pyinfra_facts.all_global_arguments, *[pyinfra_arguments.pop_global_arguments] * 4)
 
 
 def test_install_only_for_the_checked_pyinfra_and_without_the_switch(monkeypatch):
@@ -254,3 +259,58 @@ def comparable(arguments: dict) -> dict:
             return [named(item) for item in value]
         return value
     return {key: named(value) for key, value in arguments.items()}
+
+
+def test_global_arguments_from_every_data_layer_are_popped_as_pyinfra_pops_them():
+    """Override, host, group (merged in inventory order), inventory and @deploy data."""
+    from pyinfra.api import Config, Inventory, State
+    from pyinfra.api.deploy import deploy
+    from pyinfra.context import ctx_host, ctx_state
+
+    inventory = Inventory(
+        ([("pi", {"_sudo_user": "student", "_env": {"A": "host"}}), ("other", {})], {}),
+        first=(["pi"], {"_sudo": True, "_retries": 2}),
+        second=([("pi", {})], {"_retries": 3, "_shell_executable": "bash"}),
+    )
+    state = State(inventory, Config(RETRY=1))
+    host = inventory.get_host("pi")
+    host.data._chdir = "/srv"  # an override, as a deploy may set one
+    seen = []
+
+    @deploy("with defaults", data_defaults={"_serial": True, "_sudo_user": "nobody"})
+    def with_defaults():
+        for kwargs in ({}, {"_sudo": False, "_env": {"B": "op"}, "name": "kept", "path": "/x"}):
+            ours_kwargs, theirs_kwargs = dict(kwargs), dict(kwargs)
+            ours = pyinfra_planning.pop_global_arguments(state, host, ours_kwargs)
+            theirs = pyinfra_planning.pyinfra_pop_global_arguments(state, host, theirs_kwargs)
+            seen.append((ours, theirs, ours_kwargs, theirs_kwargs))
+
+    with ctx_state.use(state), ctx_host.use(host):
+        with_defaults()
+        for ours_kwargs, theirs_kwargs in (({"_doas": True}, {"_doas": True}),):
+            seen.append((pyinfra_planning.pop_global_arguments(state, host, ours_kwargs),
+                         pyinfra_planning.pyinfra_pop_global_arguments(state, host, theirs_kwargs),
+                         ours_kwargs, theirs_kwargs))
+
+    assert len(seen) == 3
+    for ours, theirs, ours_kwargs, theirs_kwargs in seen:
+        assert ours == theirs and ours_kwargs == theirs_kwargs
+    arguments = seen[0][0][0]
+    assert (arguments["_sudo"], arguments["_sudo_user"], arguments["_retries"], arguments["_chdir"],
+            arguments["_shell_executable"], arguments["_env"]) == (True, "student", 3, "/srv", "bash", {"A": "host"})
+    assert seen[1][2] == {"path": "/x"} and set(seen[1][0][1]) == {"_sudo", "_env", "name"}
+
+
+def test_a_bad_global_argument_is_refused_as_pyinfra_refuses_it():
+    from pyinfra.api import Config, Inventory, State
+    from pyinfra.api.exceptions import ArgumentTypeError
+
+    inventory = Inventory(([("pi", {})], {}))
+    state = State(inventory, Config())
+    host = inventory.get_host("pi")
+    errors = []
+    for pop in (pyinfra_planning.pop_global_arguments, pyinfra_planning.pyinfra_pop_global_arguments):
+        with pytest.raises(ArgumentTypeError) as raised:
+            pop(state, host, {"_sudo_user": 42})
+        errors.append(str(raised.value))
+    assert errors[0] == errors[1] and "_sudo_user" in errors[0]
