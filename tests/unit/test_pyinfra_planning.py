@@ -292,6 +292,8 @@ def test_global_arguments_from_every_data_layer_are_popped_as_pyinfra_pops_them(
                          pyinfra_planning.pyinfra_pop_global_arguments(state, host, theirs_kwargs),
                          ours_kwargs, theirs_kwargs))
 
+    # getattr(host.data, key) reaches the layers only for names HostData does not have itself
+    assert not [key for key, _ in pyinfra_arguments.all_global_arguments() if key in dir(host.data)]
     assert len(seen) == 3
     for ours, theirs, ours_kwargs, theirs_kwargs in seen:
         assert ours == theirs and ours_kwargs == theirs_kwargs
