@@ -21,6 +21,8 @@ usual way. Values are handed out as copies: a caller that edits one changes noth
 from __future__ import annotations
 
 import copy
+import datetime
+import functools
 import inspect
 import posixpath
 import re
@@ -49,6 +51,40 @@ def _hashable(value: Any) -> Any:
     return value
 
 
+# Values that no caller can change: served as they are (frozenset's items are hashable,
+# so of these types too).
+_UNCHANGEABLE = frozenset({str, bytes, int, float, bool, type(None), frozenset,
+                           datetime.datetime, datetime.date, datetime.time, datetime.timedelta})
+
+
+def own_copy(value: Any) -> Any:
+    """A copy of a fact's value that its caller may change, as `copy.deepcopy` gives.
+
+    A fact's value is plain data (dicts, lists and sets of strings, numbers, dates): those
+    types are copied here directly, each other type by `copy.deepcopy` (subclasses such as
+    defaultdict included), which on a whole class's no-op cost more CPU than planning the
+    operations (hundreds of installed packages per host, copied once per read).
+    """
+    kind = type(value)
+    if kind in _UNCHANGEABLE:
+        return value
+    if kind is dict:
+        return {key: own_copy(item) for key, item in value.items()}
+    if kind is list:
+        return [own_copy(item) for item in value]
+    if kind is set:
+        return set(value)  # hashable items: nothing in them to change
+    if kind is tuple:
+        return tuple(own_copy(item) for item in value)
+    return copy.deepcopy(value)
+
+
+@functools.cache
+def _signature(command: Callable) -> inspect.Signature:
+    """A fact's command's signature: read once per run, not once per read per host."""
+    return inspect.signature(command)
+
+
 def _normalized(fact: type[FactBase], arguments: dict) -> tuple | None:
     """The fact's arguments as pyinfra binds them (defaults filled in), hashable; None if
     they do not fit its command."""
@@ -56,7 +92,7 @@ def _normalized(fact: type[FactBase], arguments: dict) -> tuple | None:
     if not callable(command):
         return () if not arguments else None
     try:
-        bound = inspect.signature(command).bind(None, **arguments)
+        bound = _signature(command).bind(None, **arguments)
     except TypeError:
         return None
     bound.apply_defaults()
@@ -234,7 +270,7 @@ class ReadAhead:
         key = (fact, normalized)
         if normalized is None or key not in self.values:
             return _NOT_READ
-        return copy.deepcopy(self.values[key])
+        return own_copy(self.values[key])  # the caller's to change, as a fact read from the host
 
     def __call__(self, fact, *args, **kwargs):
         value = self.lookup(fact, args, kwargs)

@@ -3,8 +3,11 @@ served only until an operation changes the host."""
 
 from __future__ import annotations
 
+import copy
+import datetime
 import io
 import subprocess
+from collections import defaultdict
 
 from fixtures.fake_host import fake_host, plan
 from pyinfra import host
@@ -145,3 +148,28 @@ def test_a_fact_whose_command_holds_a_secret_is_never_batched():
     # The probe's command is logged as one string: a HiddenValue would show there. Nothing
     # is left to batch, so nothing runs (no host is in context here: asking one would raise).
     assert probe.run_probe([probe.read(EchoesASecret, secret="hunter2")]) == {}
+
+
+def test_a_served_value_is_the_callers_own_copy_at_every_level():
+    """What deepcopy gave, for every shape a fact returns: changing it leaves the read alone."""
+    when = datetime.datetime(2026, 11, 26, 18, 0)
+    read = {
+        "packages": {"ros-jazzy-desktop": ["1.0", "1.1"], "sudo": ["1.9"]},
+        "file": {"mode": 644, "mtime": when, "size": None, "link": False},
+        "lines": ["a", "b"], "groups": {"dialout", "video"}, "pair": ("x", ["y"]),
+        "frozen": frozenset({"z"}), "by_default": defaultdict(list, {"k": ["v"]}),
+        "data": b"\x00",
+    }
+    before = copy.deepcopy(read)
+    served = probe.own_copy(read)
+
+    assert served == read == copy.deepcopy(read)
+    assert type(served["by_default"]) is defaultdict and served["by_default"]["new"] == []
+    served["packages"]["ros-jazzy-desktop"].append("2.0")
+    served["packages"]["new"] = ["1"]
+    served["lines"].append("c")
+    served["groups"].add("plugdev")
+    served["pair"][1].append("w")
+    served["file"]["mode"] = 600
+    served["by_default"]["k"].append("w")
+    assert read == before
