@@ -803,8 +803,9 @@ def build(serve_dir: Path, url: str, rootfs: Path, nodes_dir: Path | None = None
     source_ros_keys, source_system_keys = source_keys(bundles)
     ros_keys |= source_ros_keys
     system_keys = {**SYSTEM_ROSDEP_KEYS, **system_keys, **source_system_keys}
+    # the real ros-core's stand-ins depend on them as Ubuntu's debs do (real_sources.BUILD_DEPENDS)
     build_tools = sorted({package for packages in real_sources.BUILD_DEPENDS.values() for package in packages}
-                         ) if bundles else []
+                         ) if runtime.trees else []
     ubuntu = ubuntu_archive(rootfs, system_keys, [*runtime.debian_packages(), *build_tools])
     ros = ros_archive(ros_keys, runtime, bundles)
     shutil.rmtree(serve_dir, ignore_errors=True)
