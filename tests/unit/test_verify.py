@@ -373,3 +373,100 @@ def test_any_message_of_the_type_passes_a_team_whose_topic_names_no_robot():
     stopped = result("team3", heard=heard(message="header: {}"), topic="/scan", message_type=SCAN)
     stopped.services["team3-robot"] = "failed (exit-code)"
     assert not stopped.passed and "roslab-nodes.service on team3-robot is failed" in stopped.verdict()
+
+
+# Judged by what the profile runs (roslab.host_services)
+# ------------------------------------------------------
+
+from test_profiles import _in_tmp, rosdistro_url, write  # noqa: E402,F401  (fixtures)
+
+from roslab.host_services import HostService, host_services  # noqa: E402
+from roslab.roster import load_roster  # noqa: E402
+
+DISCOVERY_SERVER = HostService("roslab-discovery-server.service", "the team's Fast DDS discovery server", "discovery")
+
+
+def turtlebot3_and_sim_class(tmp_path, url, classroom_extra="", demo_discovery="discovery_server"):
+    return load_roster(write(tmp_path, f"""\
+        classroom:
+          ssh_user: ubuntu
+          rosdistro_index_url: {url}
+          rosdep_cache_dir: cache
+          {classroom_extra}
+        teams:
+          blue:
+            ubuntu_release: "24.04"
+            robot_profile: turtlebot3
+            turtlebot3_model: burger
+            lds_model: LDS-03
+            hosts:
+              blue-main: {{role: main}}
+              blue-robot: {{role: robot}}
+          sim1:
+            ubuntu_release: "24.04"
+            robot_profile: sim
+            hosts:
+              sim1-main: {{role: main}}
+          demo:
+            ubuntu_release: "24.04"
+            ros_discovery_mode: {demo_discovery}
+            hosts:
+              demo-main: {{role: main}}
+              demo-robot: {{role: robot}}
+        """))
+
+
+def test_each_host_runs_the_services_its_profile_and_discovery_give_it(tmp_path, rosdistro_url):
+    classroom = turtlebot3_and_sim_class(tmp_path, rosdistro_url)
+    units = {host.name: [service.unit for service in host_services(host.data)] for host in classroom.hosts}
+    assert units == {
+        "blue-main": [],  # a TurtleBot3's main runs nothing: teleop and RViz are the students'
+        "blue-robot": ["roslab-nodes.service"],
+        "sim1-main": [],  # the simulation is started by hand from the desktop
+        "demo-main": ["roslab-discovery-server.service", "roslab-nodes.service"],
+        "demo-robot": ["roslab-nodes.service"],
+    }
+
+
+def test_a_zenoh_main_runs_the_router_and_a_switched_off_deploy_runs_nothing(tmp_path, rosdistro_url):
+    classroom = turtlebot3_and_sim_class(tmp_path, rosdistro_url, "ros_middleware: rmw_zenoh_cpp", "static")
+    units = {host.name: [service.unit for service in host_services(host.data)] for host in classroom.hosts}
+    assert units["blue-main"] == ["roslab-zenoh-router.service"]
+    assert units["sim1-main"] == ["roslab-zenoh-router.service"]  # its own router, on the loopback
+    assert units["blue-robot"] == ["roslab-nodes.service"]
+    data = next(host.data for host in classroom.hosts if host.name == "blue-main")
+    assert host_services({**data, "discovery_enabled": False}) == []
+    robot = next(host.data for host in classroom.hosts if host.name == "blue-robot")
+    assert [s.unit for s in host_services({**robot, "nodes_service_enabled": False})] == []
+
+
+def test_a_sim_team_has_no_robot_to_hear_and_passes_on_what_its_main_runs():
+    sim = verify.TeamResult("sim1", main="sim1-main", robots=[], services={"sim1-main": "not installed"},
+                            without_service={"sim1-main"}, listens=False, profile="sim")
+    assert sim.passed
+    assert sim.verdict() == "nothing to hear: robot profile sim names no robot on sim1-main; roslab runs no service there"
+    row = verify.format_table([sim]).splitlines()[2]
+    assert "PASS nothing to hear" in row and "returned nothing" not in row
+    # Its services still count: a sim main on Zenoh runs its own router.
+    router = HostService("roslab-zenoh-router.service", "the team's Zenoh router", "discovery")
+    sim.other_services = [("sim1-main", router, "failed (exit-code)")]
+    assert not sim.passed and sim.verdict().startswith("roslab-zenoh-router.service on sim1-main is failed (exit-code)")
+
+
+def test_a_main_without_a_nodes_service_passes_whatever_is_left_of_an_old_unit():
+    # A main that once ran the demo and is now a TurtleBot3's: the deploy stopped and disabled the unit.
+    team = result("tb3", heard=heard(topics=("/scan",), message="header: {}"), topic="/scan",
+                  message_type=SCAN, without_service={"tb3-main"})
+    team.services["tb3-main"] = "inactive (dead)"
+    assert team.passed
+
+
+def test_a_stopped_discovery_server_is_named_as_the_cause():
+    # Both nodes services run; the main hears nothing because the server is down.
+    team = result("team6", heard=heard(topics=()))
+    team.other_services = [("team6-main", DISCOVERY_SERVER, "inactive (dead)")]
+    assert not team.passed
+    assert team.verdict() == ("roslab-discovery-server.service on team6-main is inactive (dead) (the team's Fast "
+                              "DDS discovery server: without it the team's hosts do not find each other)")
+    team.other_services = [("team6-main", DISCOVERY_SERVER, "active (running)")]
+    assert team.verdict() == "team6-main does not see /chatter"
