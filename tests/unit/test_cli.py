@@ -30,9 +30,9 @@ def test_check_prints_the_classroom_as_aligned_columns(capsys):
     header, *rows = out[1:]
     assert header.split() == list(TABLE_COLUMNS)
     assert [row.split() for row in rows] == [
-        ["team1", "team1-main", "main", "127.0.0.11", "24.04", "jazzy", "desktop", "11", "multicast"],
-        ["team1", "team1-robot", "robot", "127.0.0.12", "24.04", "jazzy", "ros-base", "11", "multicast"],
-        ["team-2", "team2-main", "main", "127.0.0.21", "22.04", "humble", "desktop", "12", "multicast"],
+        ["team1", "team1-main", "main", "127.0.0.11", "24.04", "jazzy", "desktop", "11", "multicast", "demo"],
+        ["team1", "team1-robot", "robot", "127.0.0.12", "24.04", "jazzy", "ros-base", "11", "multicast", "demo"],
+        ["team-2", "team2-main", "main", "127.0.0.21", "22.04", "humble", "desktop", "12", "multicast", "demo"],
     ]
     assert out[0].endswith(", middleware rmw_fastrtps_cpp")
     # Every column starts at the same offset on every line.
@@ -200,5 +200,5 @@ def test_check_shows_an_assigned_domain_id_and_each_teams_mode(tmp_path, capsys)
     """))
     assert main(["check", str(roster)]) == 0
     rows = [line.split() for line in capsys.readouterr().out.splitlines()[2:]]
-    assert [row[7:] for row in rows] == [["5", "static"],
+    assert [row[7:-1] for row in rows] == [["5", "static"],
                                         [str(preferred_domain_id("bravo")), "(auto)", "discovery_server"]]

@@ -470,3 +470,15 @@ def test_a_stopped_discovery_server_is_named_as_the_cause():
                               "DDS discovery server: without it the team's hosts do not find each other)")
     team.other_services = [("team6-main", DISCOVERY_SERVER, "active (running)")]
     assert team.verdict() == "team6-main does not see /chatter"
+
+
+def test_check_shows_each_hosts_profile_and_its_settings(tmp_path, rosdistro_url, capsys):
+    from roslab.cli import main
+
+    turtlebot3_and_sim_class(tmp_path, rosdistro_url)
+    assert main(["check", str(tmp_path / "lab.yaml")]) == 0
+    rows = {line.split()[1]: line for line in capsys.readouterr().out.splitlines()[2:]}
+    assert rows["blue-main"].endswith("turtlebot3 (burger, LDS-03)")
+    assert rows["blue-robot"].endswith("turtlebot3 (burger, LDS-03)")
+    assert rows["sim1-main"].endswith("sim (burger)")
+    assert rows["demo-main"].endswith("demo")
