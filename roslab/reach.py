@@ -14,6 +14,7 @@ distro) or a host name, with shell-style wildcards.
 from __future__ import annotations
 
 import argparse
+import difflib
 import fnmatch
 import os
 import sys
@@ -91,6 +92,42 @@ def select_hosts(inventory, patterns: list[str] | None) -> list:
         group = inventory.get_group(pattern, None)
         selected.update(group if group else [host for host in hosts if fnmatch.fnmatch(host.name, pattern)])
     return [host for host in hosts if host in selected]
+
+
+def limit_problem(groups: dict, patterns, command: str = "roslab") -> str | None:
+    """One line naming each `--limit` pattern that selects no host of the roster, or None.
+
+    pyinfra only warns about such a pattern and goes on with the others (with none left it
+    does nothing and exits 0): a typo in a team's name, or `--limit a,b` (one pattern with a
+    comma, which pyinfra does not split), would leave hosts out of a run that says it worked."""
+    inventory = roster_inventory(groups)
+    unmatched = [pattern for pattern in patterns or () if not select_hosts(inventory, [pattern])]
+    if not unmatched:
+        return None
+    names = sorted({*(name for name in groups if name != "all"), *(host.name for host in inventory)})
+    hints = []
+    for pattern in unmatched:
+        if "," in pattern:
+            parts = " ".join(f"--limit {part.strip()}" for part in pattern.split(",") if part.strip())
+            hints.append(f"for several, repeat the option: {parts}")
+        else:
+            close = difflib.get_close_matches(pattern.replace("-", "_"), names, n=1) or \
+                difflib.get_close_matches(pattern, names, n=1)
+            if close:
+                hints.append(f"did you mean {close[0]!r}?")
+    quoted = ", ".join(repr(pattern) for pattern in unmatched)
+    return (f"{command}: --limit {quoted} selects no host of the roster (a team, role or distro group, "
+            f"or host names with wildcards)" + (f"; {'; '.join(hints)}" if hints else "") + "; nothing was run")
+
+
+def refuse_unmatched_limit(groups: dict) -> None:
+    """In a pyinfra run's inventory file: stop with exit 2 when a --limit pattern selects no host."""
+    from roslab.summary import cli_option
+
+    problem = limit_problem(groups, cli_option("limit") or ())
+    if problem:
+        print(problem, file=sys.stderr)
+        sys.exit(2)
 
 
 def roster_state(groups: dict, limit: list[str] | None = None, **config):

@@ -816,7 +816,7 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
 
 
 def run(args: argparse.Namespace) -> int:
-    from roslab.reach import RosterProblem, load_classroom
+    from roslab.reach import RosterProblem, limit_problem, load_classroom
 
     try:
         classroom = load_classroom(args.roster, "status")
@@ -832,13 +832,13 @@ def run(args: argparse.Namespace) -> int:
     try:
         # Once: it also brings the classroom's known_hosts up to date, as deploy.py's inventory does.
         groups = inventory_groups(classroom)
-        statuses = host_statuses(classroom, groups, args.limit)
+        problem = limit_problem(groups, args.limit, "roslab status")
+        statuses = [] if problem else host_statuses(classroom, groups, args.limit)
     except RosterError as error:  # a broken addresses.yaml or known_hosts
         print(error, file=sys.stderr)
         return 1
-    if not statuses:
-        print(f"roslab status: --limit {' '.join(args.limit or [])} selects no host of {display_path(path)}",
-              file=sys.stderr)
+    if problem or not statuses:
+        print(problem or f"roslab status: {display_path(path)} has no host", file=sys.stderr)
         return 2
     try:
         runs = read_runs(classroom.path)

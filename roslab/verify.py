@@ -457,15 +457,16 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
 def run(args: argparse.Namespace) -> int:
     """`roslab verify [ROSTER] [--limit NAME ...]`: the roster's hosts, reached as deploy.py
     reaches them (roslab.reach)."""
-    from roslab.reach import RosterProblem, connected_state, load_classroom_groups, roster_inventory, select_hosts
+    from roslab.reach import RosterProblem, connected_state, limit_problem, load_classroom_groups
 
     try:
         classroom, groups = load_classroom_groups(args.roster, "verify")
     except RosterProblem as problem:
         print(problem, file=sys.stderr)
         return 1
-    if args.limit and not select_hosts(roster_inventory(groups), args.limit):
-        print(f"roslab verify: --limit {' '.join(args.limit)} selects no host of the roster", file=sys.stderr)
+    problem = limit_problem(groups, args.limit, "roslab verify")
+    if problem:
+        print(problem, file=sys.stderr)
         return 2
     state = connected_state(groups, args.limit)
     try:

@@ -202,3 +202,31 @@ def test_check_shows_an_assigned_domain_id_and_each_teams_mode(tmp_path, capsys)
     rows = [line.split() for line in capsys.readouterr().out.splitlines()[2:]]
     assert [row[7:-1] for row in rows] == [["5", "static"],
                                         [str(preferred_domain_id("bravo")), "(auto)", "discovery_server"]]
+
+
+@pytest.mark.parametrize(("limits", "named", "hint"), [
+    (["team1,team_2"], "'team1,team_2'", "for several, repeat the option: --limit team1 --limit team_2"),
+    (["team1", "tem1"], "'tem1'", "did you mean 'team1'?"),  # one typo among patterns that match
+    (["team-2"], "'team-2'", "did you mean 'team_2'?"),  # the group of team-2 is team_2
+])
+def test_a_pyinfra_limit_that_selects_no_host_stops_the_run_naming_it(limits, named, hint, tmp_path):
+    # Real pyinfra, the checkout's inventory: it stops before connecting to any host (the
+    # fixture's loopback addresses have no SSH server; a connection attempt would show).
+    argv = [str(Path(sys.executable).parent / "pyinfra"), "-y", "inventories/lab.py", "deploy.py"]
+    for limit in limits:
+        argv += ["--limit", limit]
+    result = subprocess.run(argv, cwd=REPO, env={**os.environ, "ROSLAB_ROSTER": str(FIXTURE)},
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2, result.stdout + result.stderr
+    line = next(line for line in result.stderr.splitlines() if line.startswith("roslab: --limit"))
+    assert line.startswith(f"roslab: --limit {named} selects no host of the roster"), line
+    assert hint in line and line.endswith("nothing was run"), line
+    assert "Connecting" not in result.stdout + result.stderr and "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize("command", ["verify", "status"])
+def test_roslab_commands_name_a_limit_that_selects_no_host(command, capsys):
+    assert main([command, str(FIXTURE), "--limit", "team1", "--limit", "team1,team-2"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"roslab {command}: --limit 'team1,team-2' selects no host of the roster"), err
+    assert "--limit team1 --limit team-2" in err and "Traceback" not in err
