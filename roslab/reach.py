@@ -130,6 +130,18 @@ def refuse_unmatched_limit(groups: dict) -> None:
         sys.exit(2)
 
 
+def quiet_paramiko() -> None:
+    """No paramiko traceback on stderr: a Pi whose sshd is still starting accepts the TCP
+    connection and hangs up, and paramiko's transport thread logs "Error reading SSH protocol
+    banner" with two tracebacks through Python's last-resort handler (paramiko's logger has
+    none of its own). pyinfra reports the same failure as one line naming the host."""
+    import logging
+
+    paramiko_logger = logging.getLogger("paramiko")
+    if not any(isinstance(handler, logging.NullHandler) for handler in paramiko_logger.handlers):
+        paramiko_logger.addHandler(logging.NullHandler())
+
+
 def roster_state(groups: dict, limit: list[str] | None = None, **config):
     """A pyinfra State over the roster's hosts that `limit` selects (not connected), set as
     pyinfra's current state, config and inventory. `config`: pyinfra Config options."""
@@ -138,6 +150,7 @@ def roster_state(groups: dict, limit: list[str] | None = None, **config):
 
     from roslab import sudo
 
+    quiet_paramiko()
     sudo.install()  # no sudo password on a host's command line, whatever the command
     inventory = roster_inventory(groups)
     chosen = select_hosts(inventory, limit)

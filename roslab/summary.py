@@ -582,6 +582,9 @@ def install(state: State | None = None) -> RunSummary:
     confirmation pyinfra asks for on a closed standard input ends with one line, exit 1.
     """
     global _current, _atexit_registered
+    from roslab.reach import quiet_paramiko
+
+    quiet_paramiko()  # a host that hangs up is pyinfra's one line, not paramiko's traceback
     state = state if isinstance(state, State) else ctx_state.get()
     summary = summary_for(state)
     if summary is None:

@@ -482,3 +482,50 @@ def test_check_shows_each_hosts_profile_and_its_settings(tmp_path, rosdistro_url
     assert rows["blue-robot"].endswith("turtlebot3 (burger, LDS-03)")
     assert rows["sim1-main"].endswith("sim (burger)")
     assert rows["demo-main"].endswith("demo")
+
+
+@pytest.mark.parametrize("command", ["verify", "status"])
+def test_a_host_that_accepts_and_hangs_up_is_one_line_not_a_traceback(command, tmp_path):
+    """A Pi whose sshd is still starting accepts the TCP connection and closes it: paramiko
+    would print two tracebacks ("Error reading SSH protocol banner")."""
+    import os
+    import socket
+    import threading
+
+    import yaml
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(16)
+    stop = threading.Event()
+
+    def hang_up():
+        server.settimeout(0.2)
+        while not stop.is_set():
+            try:
+                connection, _ = server.accept()
+            except OSError:
+                continue
+            connection.close()
+
+    thread = threading.Thread(target=hang_up, daemon=True)
+    thread.start()
+    roster = tmp_path / "classroom.yaml"
+    roster.write_text(yaml.safe_dump({
+        "classroom": {"ssh_user": "ubuntu", "ssh_port": server.getsockname()[1], "ubuntu_release": "24.04"},
+        "teams": {"team1": {"hosts": {"team1-main": {"role": "main", "address": "127.0.0.1"}}}},
+    }))
+    env = {key: value for key, value in os.environ.items() if key != "ROSLAB_ROSTER"}
+    try:
+        result = subprocess.run([sys.executable, "-m", "roslab", command, str(roster),
+                                 *(["--html", str(tmp_path / "s.html")] if command == "status" else [])],
+                                cwd=Path(__file__).resolve().parents[2], env=env, capture_output=True, text=True,
+                                timeout=120)
+    finally:
+        stop.set()
+        thread.join(timeout=5)
+        server.close()
+    output = result.stdout + result.stderr
+    assert result.returncode == 1, output
+    assert "Traceback" not in output and "paramiko" not in output, output
+    assert any("team1-main" in line and "SSH protocol banner" in line for line in output.splitlines()), output
