@@ -768,10 +768,18 @@ def format_checklists(lists: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def item_parts(text: str) -> list[dict]:
+    """A checklist item's text and its `code` spans (a command to copy), for the page."""
+    pieces = text.split("`")
+    if len(pieces) % 2 == 0:  # an unpaired backtick: the text as it is
+        return [{"text": text, "code": False}]
+    return [{"text": piece, "code": bool(index % 2)} for index, piece in enumerate(pieces) if piece]
+
+
 def render_page(context: dict) -> str:
     from roslab.templating import render_html
 
-    return render_html("status.html.j2", **context)
+    return render_html("status.html.j2", item_parts=item_parts, **context)
 
 
 def write_page(path: Path, text: str) -> None:

@@ -111,7 +111,8 @@ def side_parts(side: Side, values: dict, distro: str, board: str | None) -> list
 
 
 def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
-                 board: str | None = None) -> tuple[dict | None, list[ResolveError]]:
+                 board: str | None = None, host: str | None = None) -> tuple[dict | None, list[ResolveError]]:
+    """`host`: the host's name, for the checklist's ${host} (else the word HOST)."""
     problems: list[ResolveError] = []
     if distro not in profile.distros:
         works = " or ".join(f"{p.release} ({p.distro})" for p in PLATFORMS if p.distro in profile.distros)
@@ -177,7 +178,7 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         "verify_topic": profile.verify_topic if _matches(profile.verify_if, values) else None,
         "verify_type": profile.verify_type,
         "discovery": profile.discovery,
-        "checklist": [fill(item, values) for item in merged.checklist],
+        "checklist": [fill(item, {**values, "host": host or "HOST"}) for item in merged.checklist],
         "os_tweaks": dict(side.os_tweaks),
         # the side's .repos files' repositories: filled by the roster loader (roslab/sources.py),
         # which reads the files; here only for hand-made data

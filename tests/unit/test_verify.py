@@ -529,3 +529,16 @@ def test_a_host_that_accepts_and_hangs_up_is_one_line_not_a_traceback(command, t
     assert result.returncode == 1, output
     assert "Traceback" not in output and "paramiko" not in output, output
     assert any("team1-main" in line and "SSH protocol banner" in line for line in output.splitlines()), output
+
+
+def test_the_opencr_step_names_the_robot_and_the_page_shows_the_command_as_code(tmp_path, rosdistro_url):
+    from roslab import status
+
+    classroom = turtlebot3_and_sim_class(tmp_path, rosdistro_url)
+    lists = {entry["host"]: entry["items"] for entry in status.checklists(classroom)}
+    (opencr,) = [item for item in lists["blue-robot"] if "OpenCR firmware" in item]
+    assert "`roslab opencr-update blue-robot`" in opencr and "HOST" not in opencr
+    assert "burger.opencr" in opencr
+    page = status.render_page(status.page_context("lab", "lab.yaml", [], status.now_utc(),
+                                                  checklists=status.checklists(classroom)))
+    assert "<code>roslab opencr-update blue-robot</code>" in page and "`roslab opencr-update" not in page
