@@ -142,6 +142,29 @@ def quiet_paramiko() -> None:
         paramiko_logger.addHandler(logging.NullHandler())
 
 
+def select_roster_hosts(classroom: Classroom, patterns) -> tuple[list, list[str]]:
+    """(the roster's hosts `--limit` patterns select, in roster order; the patterns that select
+    none), without building pyinfra's inventory: as pyinfra's --limit, a pattern is a team (its
+    name or its group's, `team-1` or `team_1`), a role, a distro, or host names with wildcards."""
+    hosts = list(classroom.hosts)
+    chosen: set[str] = set()
+    unmatched = []
+    for pattern in patterns or ():
+        matched = [host.name for host in hosts if fnmatch.fnmatch(host.name, pattern)
+                   or pattern in (host.team, host.team.replace("-", "_"), host.role, host.distro)]
+        chosen.update(matched)
+        if not matched:
+            unmatched.append(pattern)
+    return ([host for host in hosts if host.name in chosen] if patterns else hosts), unmatched
+
+
+def add_limit_argument(parser: argparse.ArgumentParser, what: str = "") -> None:
+    """--limit NAME (repeatable), as every roslab command that reaches hosts takes it; --host
+    is the same option's older name."""
+    parser.add_argument("--limit", "--host", dest="limit", action="append", metavar="NAME",
+                        help=LIMIT_HELP + what)
+
+
 def roster_state(groups: dict, limit: list[str] | None = None, **config):
     """A pyinfra State over the roster's hosts that `limit` selects (not connected), set as
     pyinfra's current state, config and inventory. `config`: pyinfra Config options."""

@@ -230,3 +230,21 @@ def test_roslab_commands_name_a_limit_that_selects_no_host(command, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith(f"roslab {command}: --limit 'team1,team-2' selects no host of the roster"), err
     assert "--limit team1 --limit team-2" in err and "Traceback" not in err
+
+
+def test_trust_and_seed_take_hosts_by_limit_as_every_command_does(tmp_path, capsys):
+    from roslab.reach import select_roster_hosts
+    from roslab.roster import load_roster
+
+    classroom = load_roster(FIXTURE)
+    names = lambda patterns: [host.name for host in select_roster_hosts(classroom, patterns)[0]]  # noqa: E731
+    assert names(["team-2"]) == names(["team_2"]) == ["team2-main"]  # the team, or its pyinfra group
+    assert names(["robot"]) == ["team1-robot"] and names(["jazzy"]) == ["team1-main", "team1-robot"]
+    assert names(["team1-*"]) == ["team1-main", "team1-robot"] and len(names(None)) == 3
+    assert select_roster_hosts(classroom, ["team1", "nosuch"])[1] == ["nosuch"]
+
+    out = tmp_path / "seeds"
+    assert main(["seed", str(FIXTURE), "--out", str(out), "--limit", "nosuch"]) == 2
+    assert "--limit 'nosuch' selects no host of" in capsys.readouterr().err
+    assert main(["trust", str(FIXTURE), "--limit", "team1,team-2"]) == 2
+    assert "--limit 'team1,team-2' selects no host of" in capsys.readouterr().err
