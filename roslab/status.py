@@ -14,8 +14,12 @@ Read-only and bounded: the hosts are reached the way deploy.py reaches them (the
 ssh user, key, port, known_hosts and host key policy, and a host the network deploy moved
 at its recorded address), all in parallel, each within `HOST_BOUND` seconds, with one
 command (`StatusProbe`, no sudo). A host that cannot be reached is a row that says why.
-`--listen` adds `roslab verify`'s check on each main host (`roslab.verify.hear`: the topics
-it lists and whether its robot's message arrives), a second bounded command.
+`--listen` adds `roslab verify`'s check on each main host whose profile names a topic
+(`roslab.verify.hear`: the topics it lists and whether its robot's message arrives, waiting
+the roster's `nodes_verify_timeout` unless `--listen-timeout` says), a second bounded command.
+Each host is judged by what its roster and robot profile run there (`roslab.host_services`):
+a TurtleBot3's or a sim main runs no nodes service and is green without one; a stopped
+discovery server, Zenoh router or profile service is named in its row and its team's line.
 
 Exit status: 0 when every host answered and none failed its last recorded run; 1 when one
 did not answer, one's last run failed, or the roster has errors. A host
