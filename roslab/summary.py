@@ -519,9 +519,19 @@ def op_order(state: State) -> list[str]:
 MAX_STEP_NAME = 90  # characters of a step's name on its line of the compact tables
 
 
-def step_title(state: State, op_hash: str) -> str:
-    name = " ".join(op_name(state, op_hash).split())
+def step_title(state: State, op_hash: str, host_name: str | None = None) -> str:
+    """The step's name as pyinfra showed it on that host (a name holding a host's value, such
+    as its distro, is that host's), shortened to one line."""
+    host = state.inventory.get_host(host_name, None) if host_name else None
+    name = " ".join(op_name(state, op_hash, host).split())
     return name if len(name) <= MAX_STEP_NAME else name[: MAX_STEP_NAME - 3] + "..."
+
+
+def _by_title(state: State, op_hash: str, names: list[str]) -> dict[str, list[str]]:
+    titles: dict[str, list[str]] = {}
+    for name in sorted(names):
+        titles.setdefault(step_title(state, op_hash, name), []).append(name)
+    return titles
 
 
 def plan_lines(state: State) -> list[str]:
@@ -530,8 +540,9 @@ def plan_lines(state: State) -> list[str]:
     changes = planned_changes(state)
     if not changes:
         return ["    nothing would change on any host"]
-    return [f"    {step_title(state, op_hash)}: {', '.join(sorted(hosts))}"
-            for op_hash in op_order(state) if (hosts := changes.get(op_hash))]
+    return [f"    {title}: {', '.join(hosts)}"
+            for op_hash in op_order(state) if changes.get(op_hash)
+            for title, hosts in _by_title(state, op_hash, changes[op_hash]).items()]
 
 
 def result_lines(state: State) -> list[str]:
@@ -539,9 +550,11 @@ def result_lines(state: State) -> list[str]:
     none when nothing changed (the summary says each host's outcome)."""
     lines = []
     for op_hash, hosts in executed_changes(state).items():
-        parts = [f"changed on {', '.join(hosts['changed'])}"] if hosts["changed"] else []
-        parts += [f"failed on {', '.join(hosts['failed'])}"] if hosts["failed"] else []
-        lines.append(f"    {step_title(state, op_hash)}: {'; '.join(parts)}")
+        outcome = {name: "changed" for name in hosts["changed"]} | {name: "failed" for name in hosts["failed"]}
+        for title, names in _by_title(state, op_hash, list(outcome)).items():
+            parts = [f"{what} on {', '.join(name for name in names if outcome[name] == what)}"
+                     for what in ("changed", "failed") if any(outcome[name] == what for name in names)]
+            lines.append(f"    {title}: {'; '.join(parts)}")
     return lines
 
 

@@ -635,3 +635,19 @@ def test_the_results_of_a_no_op_are_not_shown_and_a_change_names_its_hosts():
     finally:
         log.removeFilter(compact)
     assert shown == ["--> Results:", "    Ensure the unit: changed on team1-main; failed on team1-robot"]
+
+
+def test_a_step_named_with_a_hosts_value_is_shown_with_each_hosts_own_name():
+    # One operation, two names: "Ensure ROS 2 jazzy ..." on one host, "... humble ..." on the other.
+    state, handler = classroom("team1-main", "team2-main")
+    for name, distro in (("team1-main", "jazzy"), ("team2-main", "humble")):
+        operation_on(state, name, "op-ros", f"Ensure ROS 2 {distro} is installed", changed=True)
+        state.ops[state.inventory.get_host(name)]["op-ros"].global_arguments["name"] = \
+            f"Ensure ROS 2 {distro} is installed"
+    log, compact, shown = compact_log(state, "roslab-test-plan-names")
+    try:
+        log.info("--> Detected changes:")
+    finally:
+        log.removeFilter(compact)
+    assert shown == ["--> Detected changes:", "    Ensure ROS 2 jazzy is installed: team1-main",
+                     "    Ensure ROS 2 humble is installed: team2-main"]
