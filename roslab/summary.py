@@ -539,8 +539,8 @@ def plan_lines(state: State) -> list[str]:
     hosts (a restart gated on a change that will not happen is not one)."""
     changes = planned_changes(state)
     if not changes:
-        return ["    nothing would change on any host"]
-    return [f"    {title}: {', '.join(hosts)}"
+        return ["nothing would change on any host"]
+    return [f"{title}: {', '.join(hosts)}"
             for op_hash in op_order(state) if changes.get(op_hash)
             for title, hosts in _by_title(state, op_hash, changes[op_hash]).items()]
 
@@ -554,7 +554,7 @@ def result_lines(state: State) -> list[str]:
         for title, names in _by_title(state, op_hash, list(outcome)).items():
             parts = [f"{what} on {', '.join(name for name in names if outcome[name] == what)}"
                      for what in ("changed", "failed") if any(outcome[name] == what for name in names)]
-            lines.append(f"    {title}: {'; '.join(parts)}")
+            lines.append(f"{title}: {'; '.join(parts)}")
     return lines
 
 
@@ -887,6 +887,9 @@ LONG_STEP = 5.0  # seconds after which a step that has changed nothing yet is sh
 STILL_RUNNING_EVERY = 20.0  # seconds between "still running on ..." lines of a long step
 _STARTING = re.compile(r"^--> Starting\b.*\boperation:")
 _QUIET_STATUSES = re.compile(r"^(?:No changes|Skipped)\b")
+# pyinfra's "[host] Ready: deploy.py", one per host once its plan is made: a host that cannot
+# be planned says so in a warning or an error line, which is always shown.
+_READY = re.compile(r"^Ready: ")
 
 
 class CompactOutput(logging.Filter):
@@ -926,7 +929,7 @@ class CompactOutput(logging.Filter):
         try:
             lines = lines_of(self.state or ctx_state.get())
         except Exception as error:  # noqa: BLE001 - the output must never break the run
-            lines = [f"    (roslab could not list the steps: {type(error).__name__}: {error}; -v shows pyinfra's table)"]
+            lines = [f"(roslab could not list the steps: {type(error).__name__}: {error}; -v shows pyinfra's table)"]
         if not lines:
             return
         for line in [header, *lines]:
@@ -965,7 +968,7 @@ class CompactOutput(logging.Filter):
                 self._later(record)
             return False
         if prefixed:
-            if _QUIET_STATUSES.match(prefixed.group(2)):
+            if _QUIET_STATUSES.match(prefixed.group(2)) or (self.step is None and _READY.match(prefixed.group(2))):
                 return False
             self.show_pending()
             return True

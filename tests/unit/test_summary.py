@@ -585,7 +585,7 @@ def test_a_converged_plan_shows_no_conditional_restart_and_keeps_the_state_unexe
             log.info(line)
     finally:
         log.removeFilter(compact)
-    assert shown == ["--> Detected changes:", "    nothing would change on any host", "--> Disconnecting from hosts..."]
+    assert shown == ["--> Detected changes:", "nothing would change on any host", "--> Disconnecting from hosts..."]
     # Nothing was executed by looking: pyinfra would still run every operation.
     assert not any(op.operation_meta.is_complete() for ops in state.ops.values() for op in ops.values())
     assert [meta.is_complete() for meta in restarts] == [False, False]
@@ -602,7 +602,7 @@ def test_a_plan_names_each_step_that_would_change_with_its_hosts():
             log.info(line)
     finally:
         log.removeFilter(compact)
-    assert shown == ["--> Detected changes:", "    Ensure the unit: team1-robot", "    Restart roslab-nodes: team1-robot"]
+    assert shown == ["--> Detected changes:", "Ensure the unit: team1-robot", "Restart roslab-nodes: team1-robot"]
 
 
 def test_the_results_of_a_no_op_are_not_shown_and_a_change_names_its_hosts():
@@ -634,7 +634,7 @@ def test_the_results_of_a_no_op_are_not_shown_and_a_change_names_its_hosts():
             log.info(line)
     finally:
         log.removeFilter(compact)
-    assert shown == ["--> Results:", "    Ensure the unit: changed on team1-main; failed on team1-robot"]
+    assert shown == ["--> Results:", "Ensure the unit: changed on team1-main; failed on team1-robot"]
 
 
 def test_a_step_named_with_a_hosts_value_is_shown_with_each_hosts_own_name():
@@ -649,5 +649,20 @@ def test_a_step_named_with_a_hosts_value_is_shown_with_each_hosts_own_name():
         log.info("--> Detected changes:")
     finally:
         log.removeFilter(compact)
-    assert shown == ["--> Detected changes:", "    Ensure ROS 2 jazzy is installed: team1-main",
-                     "    Ensure ROS 2 humble is installed: team2-main"]
+    assert shown == ["--> Detected changes:", "Ensure ROS 2 jazzy is installed: team1-main",
+                     "Ensure ROS 2 humble is installed: team2-main"]
+
+
+def test_the_hosts_ready_lines_are_not_shown_but_a_step_s_lines_are():
+    state, handler = classroom("team1-main")
+    log, compact, shown = compact_log(state, "roslab-test-ready")
+    try:
+        for line in ["--> Preparing operation files...", "    Loading: deploy.py", "    [team1-main] Ready: deploy.py",
+                     "--> Starting operation: Ensure the unit", "    [team1-main] Success"]:
+            log.info(line)
+        log.warning("    [team1-main] a warning while planning")
+    finally:
+        log.removeFilter(compact)
+    assert shown == ["--> Preparing operation files...", "    Loading: deploy.py",
+                     "--> Starting operation: Ensure the unit", "    [team1-main] Success",
+                     "    [team1-main] a warning while planning"]
