@@ -5,19 +5,21 @@
 Read-only and bounded. On every host it asks systemd for the state of the services the
 host runs by its roster and robot profile (`roslab.host_services`: roslab-nodes.service
 where the profile has a launch there, the team's discovery server or Zenoh router, the
-profile's own services), one unit at a time. On each main host whose profile names a topic, as the login user and with the
-team's ROS environment (the same as the service's, `roslab.ros_env`), it lists the topics
-and waits up to `nodes_verify_timeout` seconds for one message on `nodes_verify_topic`,
-with `--no-daemon` so no ros2 daemon is left behind (and one the check started anyway is
-stopped). Every ros2 call runs under `timeout --kill-after`, and the whole check under one
-more bound: a node that ignores SIGTERM cannot hang the check.
+profile's own services), one unit at a time. On each main host whose profile names a
+topic, as the login user and with the team's ROS environment (the same as the service's,
+`roslab.ros_env`), it lists the topics and waits up to `nodes_verify_timeout` seconds for
+one message on `nodes_verify_topic`, with `--no-daemon` so no ros2 daemon is left behind
+(and one the check started anyway is stopped). Every ros2 call runs under `timeout
+--kill-after`, and the whole check under one more bound: a node that ignores SIGTERM cannot
+hang the check.
 
 A team passes only when every one of those services is active (running) (a stopped discovery
-server or Zenoh router is named as the cause) and the message itself is a robot's greeting (`Hello from <robot> #<n>`,
-the demo talker's `chatter_text`) naming one of the team's robots: a greeting from another
-team's robot (domain IDs crossed) or any other text is not a pass. A host without a ROS 2
-runtime (no `ros2` command, as in the sandbox's stand-in ROS) is reported as such. A team
-whose main's profile names no topic (sim: no robot) passes on its services alone, saying so.
+server or Zenoh router is named as the cause) and the message itself is a robot's greeting
+(`Hello from <robot> #<n>`, the demo talker's `chatter_text`) naming one of the team's
+robots: a greeting from another team's robot (domain IDs crossed) or any other text is not a
+pass. A host without a ROS 2 runtime (no `ros2` command, as in the sandbox's stand-in ROS) is
+reported as such. A team whose main's profile names no topic (sim: no robot) passes on its
+services alone, saying so.
 """
 
 from __future__ import annotations
@@ -34,7 +36,8 @@ from pyinfra.context import ctx_host
 from pyinfra.facts.server import LinuxDistribution
 
 from roslab.distro import default_distro
-from roslab.host_services import host_services, profile_name, runs_a_launch, runs_nodes  # noqa: F401 (runs_a_launch: API)
+# runs_a_launch: verify's own name for it before host_services held it.
+from roslab.host_services import host_services, profile_name, runs_a_launch, runs_nodes  # noqa: F401
 from roslab.operations import as_user
 from roslab.quoting import shell_home_path, shell_word
 from roslab.ros_env import host_environment
