@@ -577,7 +577,7 @@ def box_level(host: HostStatus) -> str:
     levels = [service_level(state) for state in states]
     if "bad" in levels:
         return "bad"
-    return "ok" if host.runs_what_it_should else "muted" if "muted" in levels else "warn"
+    return "ok" if host.runs_what_it_should else "warn"
 
 
 def host_box(host: HostStatus, x: int, y: int) -> dict:
