@@ -132,6 +132,8 @@ def up(count: int | None = None, instance: Instance | None = None, desktop: list
                 raise SandboxError("--hosts and --roster: the roster says which hosts there are")
             class_roster = Path(class_roster).resolve()
             wanted = instance.plan_members(_class_members(class_roster), desktop or ())
+        elif running is not None and running.class_roster is not None and count is None and not desktop:
+            wanted, class_roster = running.hosts, running.class_roster  # `up` again: what runs
         else:
             wanted = instance.plan_hosts(count or (len(running.hosts) if running else DEFAULT_HOSTS), desktop or ())
         if running and (running.hosts != wanted or running.class_roster != class_roster) and (

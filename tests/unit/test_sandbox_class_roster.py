@@ -121,3 +121,14 @@ def test_a_release_the_sandbox_does_not_emulate_is_a_note(tmp_path, rosdistro_ur
 def test_hosts_and_roster_cannot_be_asked_together(tmp_path):
     with pytest.raises(lifecycle.SandboxError, match="--hosts and --roster"):
         lifecycle.up(4, Instance("try-class", IPv4Network("10.213.163.0/24")), class_roster=tmp_path / "x.yaml")
+
+
+def test_up_again_without_options_keeps_a_class_sandbox(tmp_path, rosdistro_url, monkeypatch):
+    path, instance, hosts, _ = planned(tmp_path, rosdistro_url)
+    running = lifecycle.Classroom(instance, hosts, path)
+    monkeypatch.setattr(lifecycle, "file_lock", lambda path: __import__("contextlib").nullcontext())
+    monkeypatch.setattr(lifecycle, "load", lambda instance: running)
+    monkeypatch.setattr(lifecycle, "_healthy", lambda classroom: True)
+    assert lifecycle.up(instance=instance) is running  # nothing to do
+    with pytest.raises(lifecycle.SandboxError, match="running with other hosts"):
+        lifecycle.up(4, instance=instance)
