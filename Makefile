@@ -5,14 +5,25 @@ PYTHON ?= python3
 
 .PHONY: setup demo demo-down test unit e2e bench clean
 
-# The virtualenv is rebuilt when the project's dependencies change.
+# bash, so that a pipe fails when its first command does (pip's output is filtered below).
+SHELL := /bin/bash
+.SHELLFLAGS := -o pipefail -c
+
+# The virtualenv is rebuilt when the project's dependencies change. Each step says what it
+# does before it starts, and pip names each package as it comes (no silent half minute).
 $(VENV)/.installed: pyproject.toml
+	@echo "make setup: creating the virtualenv $(VENV) ($(PYTHON) -m venv)"
 	$(PYTHON) -m venv $(VENV)
+	@echo "make setup: upgrading pip in $(VENV)"
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[test]'
+	@echo "make setup: installing roslab (editable) and its dependencies: pyinfra, paramiko, PyYAML, jinja2, pytest..."
+	$(BIN)/pip install --progress-bar off -e '.[test]' 2>&1 \
+		| grep --line-buffered -E '^(Collecting|Building|Installing|Successfully|ERROR|error)' \
+		| sed -u 's/^/    /'
 	touch $@
 
 setup: $(VENV)/.installed
+	@echo "make setup: checking this machine's tools for the sandbox (scripts/install-host-tools)"
 	scripts/install-host-tools
 
 # Boot the sandbox classroom (2 teams, emulated Ubuntu 24.04 and 22.04) and provision it.
@@ -21,6 +32,7 @@ demo: setup
 	$(BIN)/pyinfra -y inventories/sandbox.py deploy.py
 
 demo-down: setup
+	@echo "make demo-down: taking the sandbox classroom down (roslab sandbox down)"
 	$(BIN)/roslab sandbox down
 
 # Unit tests first (seconds), then end-to-end tests on sandbox hosts, in one pytest run;

@@ -15,6 +15,7 @@ from pathlib import Path as _Path
 from roslab import remote_files as _remote_files
 from roslab import sudo as _sudo
 from roslab import summary as _summary
+from roslab.reach import refuse_unmatched_limit as _refuse_unmatched_limit
 from roslab.roster import RosterError as _RosterError
 from roslab.roster import inventory_groups as _inventory_groups
 from roslab.roster import load_roster as _load_roster
@@ -34,4 +35,6 @@ except _RosterError as _error:
 _summary.install()  # before pyinfra connects: a run where no host answers is summarised too
 _sudo.install()  # before pyinfra's first command: no sudo password on a host's command line
 _remote_files.install()  # every upload: never through a link, never via SFTP or a temp file
-globals().update(_inventory_groups(_classroom))
+_groups = _inventory_groups(_classroom)
+_refuse_unmatched_limit(_groups)  # a --limit that selects no host stops here, naming it
+globals().update(_groups)

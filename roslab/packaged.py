@@ -46,8 +46,12 @@ def classroom_inventory(folder_file: str) -> dict:
     connects (as inventories/lab.py)."""
     from roslab.roster import inventory_groups
 
+    from roslab.reach import refuse_unmatched_limit
+
     path = Path(os.environ.get("ROSLAB_ROSTER") or Path(folder_file).resolve().parent / FOLDER_ROSTER)
-    return inventory_groups(checked_classroom(path))
+    groups = inventory_groups(checked_classroom(path))
+    refuse_unmatched_limit(groups)  # a --limit that selects no host stops here, naming it
+    return groups
 
 
 def checked_classroom(path: Path):

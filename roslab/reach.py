@@ -14,6 +14,7 @@ distro) or a host name, with shell-style wildcards.
 from __future__ import annotations
 
 import argparse
+import difflib
 import fnmatch
 import os
 import sys
@@ -93,6 +94,77 @@ def select_hosts(inventory, patterns: list[str] | None) -> list:
     return [host for host in hosts if host in selected]
 
 
+def limit_problem(groups: dict, patterns, command: str = "roslab") -> str | None:
+    """One line naming each `--limit` pattern that selects no host of the roster, or None.
+
+    pyinfra only warns about such a pattern and goes on with the others (with none left it
+    does nothing and exits 0): a typo in a team's name, or `--limit a,b` (one pattern with a
+    comma, which pyinfra does not split), would leave hosts out of a run that says it worked."""
+    inventory = roster_inventory(groups)
+    unmatched = [pattern for pattern in patterns or () if not select_hosts(inventory, [pattern])]
+    if not unmatched:
+        return None
+    names = sorted({*(name for name in groups if name != "all"), *(host.name for host in inventory)})
+    hints = []
+    for pattern in unmatched:
+        if "," in pattern:
+            parts = " ".join(f"--limit {part.strip()}" for part in pattern.split(",") if part.strip())
+            hints.append(f"for several, repeat the option: {parts}")
+        else:
+            close = difflib.get_close_matches(pattern.replace("-", "_"), names, n=1) or \
+                difflib.get_close_matches(pattern, names, n=1)
+            if close:
+                hints.append(f"did you mean {close[0]!r}?")
+    quoted = ", ".join(repr(pattern) for pattern in unmatched)
+    return (f"{command}: --limit {quoted} selects no host of the roster (a team, role or distro group, "
+            f"or host names with wildcards)" + (f"; {'; '.join(hints)}" if hints else "") + "; nothing was run")
+
+
+def refuse_unmatched_limit(groups: dict) -> None:
+    """In a pyinfra run's inventory file: stop with exit 2 when a --limit pattern selects no host."""
+    from roslab.summary import cli_option
+
+    problem = limit_problem(groups, cli_option("limit") or ())
+    if problem:
+        print(problem, file=sys.stderr)
+        sys.exit(2)
+
+
+def quiet_paramiko() -> None:
+    """No paramiko traceback on stderr: a Pi whose sshd is still starting accepts the TCP
+    connection and hangs up, and paramiko's transport thread logs "Error reading SSH protocol
+    banner" with two tracebacks through Python's last-resort handler (paramiko's logger has
+    none of its own). pyinfra reports the same failure as one line naming the host."""
+    import logging
+
+    paramiko_logger = logging.getLogger("paramiko")
+    if not any(isinstance(handler, logging.NullHandler) for handler in paramiko_logger.handlers):
+        paramiko_logger.addHandler(logging.NullHandler())
+
+
+def select_roster_hosts(classroom: Classroom, patterns) -> tuple[list, list[str]]:
+    """(the roster's hosts `--limit` patterns select, in roster order; the patterns that select
+    none), without building pyinfra's inventory: as pyinfra's --limit, a pattern is a team (its
+    name or its group's, `team-1` or `team_1`), a role, a distro, or host names with wildcards."""
+    hosts = list(classroom.hosts)
+    chosen: set[str] = set()
+    unmatched = []
+    for pattern in patterns or ():
+        matched = [host.name for host in hosts if fnmatch.fnmatch(host.name, pattern)
+                   or pattern in (host.team, host.team.replace("-", "_"), host.role, host.distro)]
+        chosen.update(matched)
+        if not matched:
+            unmatched.append(pattern)
+    return ([host for host in hosts if host.name in chosen] if patterns else hosts), unmatched
+
+
+def add_limit_argument(parser: argparse.ArgumentParser, what: str = "") -> None:
+    """--limit NAME (repeatable), as every roslab command that reaches hosts takes it; --host
+    is the same option's older name."""
+    parser.add_argument("--limit", "--host", dest="limit", action="append", metavar="NAME",
+                        help=LIMIT_HELP + what)
+
+
 def roster_state(groups: dict, limit: list[str] | None = None, **config):
     """A pyinfra State over the roster's hosts that `limit` selects (not connected), set as
     pyinfra's current state, config and inventory. `config`: pyinfra Config options."""
@@ -101,6 +173,7 @@ def roster_state(groups: dict, limit: list[str] | None = None, **config):
 
     from roslab import sudo
 
+    quiet_paramiko()
     sudo.install()  # no sudo password on a host's command line, whatever the command
     inventory = roster_inventory(groups)
     chosen = select_hosts(inventory, limit)

@@ -14,8 +14,12 @@ Read-only and bounded: the hosts are reached the way deploy.py reaches them (the
 ssh user, key, port, known_hosts and host key policy, and a host the network deploy moved
 at its recorded address), all in parallel, each within `HOST_BOUND` seconds, with one
 command (`StatusProbe`, no sudo). A host that cannot be reached is a row that says why.
-`--listen` adds `roslab verify`'s check on each main host (`roslab.verify.hear`: the topics
-it lists and whether its robot's message arrives), a second bounded command.
+`--listen` adds `roslab verify`'s check on each main host whose profile names a topic
+(`roslab.verify.hear`: the topics it lists and whether its robot's message arrives, waiting
+the roster's `nodes_verify_timeout` unless `--listen-timeout` says), a second bounded command.
+Each host is judged by what its roster and robot profile run there (`roslab.host_services`):
+a TurtleBot3's or a sim main runs no nodes service and is green without one; a stopped
+discovery server, Zenoh router or profile service is named in its row and its team's line.
 
 Exit status: 0 when every host answered and none failed its last recorded run; 1 when one
 did not answer, one's last run failed, or the roster has errors. A host
@@ -39,14 +43,21 @@ from pyinfra.api import FactBase
 from roslab.roster import Classroom, RosterError, display_path, inventory_groups
 from roslab.profiles.host import RebootRecord, parse_reboot_record, reboot_pending
 from roslab.runs import RunRecord, now_utc, read_runs, runs_path
-from roslab.verify import CHATTER_TYPE, TeamResult, check_bound, hear, parse_check_output, service_state
+from roslab.host_services import host_services, profile_name, runs_nodes
+from roslab.verify import (
+    CHATTER_TYPE, SERVICE_RUNNING, TeamResult, check_bound, hear, parse_check_output, service_state,
+    stopped_service_line,
+)
 from roslab.workspace import NODES_SERVICE
 
 # Bounds, in seconds.
 CONNECT_TIMEOUT = 8  # the TCP connection (paramiko's timeout; the deploys use pyinfra's 10)
 PROBE_TIMEOUT = 15  # the probe command
 HOST_BOUND = 30  # everything on one host, connection included (without --listen)
-LISTEN_TIMEOUT = 5  # --listen: seconds the main host waits for its robot's message by default
+# --listen: seconds a main host waits for its robot's message, unless --listen-timeout says: the
+# roster's nodes_verify_timeout, as roslab verify waits (Fast DDS discovery alone can take more
+# than 5 s on a busy host). LISTEN_TIMEOUT is for a host without one (a hand-made inventory).
+LISTEN_TIMEOUT = 20
 
 STATUS_PAGE = "status.html"
 # Topics every ROS 2 graph has: not worth a line in the picture.
@@ -71,14 +82,16 @@ class StatusProbe(FactBase):
     def default():
         return parse_probe([])
 
-    def command(self, service: str = NODES_SERVICE) -> str:
-        return probe_script(service)
+    def command(self, service: str = NODES_SERVICE, others: tuple[str, ...] = ()) -> str:
+        return probe_script(service, others)
 
     def process(self, output):
         return parse_probe(output)
 
 
-def probe_script(service: str = NODES_SERVICE) -> str:
+def probe_script(service: str = NODES_SERVICE, others: tuple[str, ...] = ()) -> str:
+    """`others`: the host's other services (roslab.host_services: its discovery server or Zenoh
+    router, its profile's), each read into a `## unit <name>` section."""
     return "; ".join([
         "echo '## os-release'",
         "cat /etc/os-release 2>/dev/null",
@@ -87,6 +100,9 @@ def probe_script(service: str = NODES_SERVICE) -> str:
         "echo '## unit'",
         "systemctl show --property=LoadState,ActiveState,SubState,Result,Environment "
         f"{shlex.quote(service)} 2>/dev/null",
+        *(part for other in others for part in (
+            f"echo {shlex.quote(f'## unit {other}')}",
+            f"systemctl show --property=LoadState,ActiveState,SubState,Result {shlex.quote(other)} 2>/dev/null")),
         "echo '## reboot'",
         REBOOT_RECORD_COMMAND,
         "echo '## end'",
@@ -131,16 +147,16 @@ def parse_probe(lines) -> dict:
             continue
         if section is not None:
             sections[section].append(line)
-    unit = {}
-    for line in sections.get("unit", []):
-        key, sep, value = line.partition("=")
-        if sep:
-            unit[key] = value
+    def properties(lines) -> dict:
+        return dict(line.split("=", 1) for line in lines if "=" in line)
+
     return {
         "probed": "end" in sections,
         "os": parse_os_release(sections.get("os-release", [])),
         "ros": sorted({os.path.basename(line.strip()) for line in sections.get("ros", []) if line.strip()}),
-        "unit": unit,
+        "unit": properties(sections.get("unit", [])),
+        "units": {name.removeprefix("unit "): properties(lines) for name, lines in sections.items()
+                  if name.startswith("unit ")},
         "reboot": parse_reboot_record(sections.get("reboot", [])),
     }
 
@@ -169,6 +185,12 @@ class HostStatus:
     run: RunRecord | None = None
     heard: dict | None = None  # --listen, main hosts: roslab.verify's NodesHeard
     listen_error: str | None = None
+    # What the host runs by its roster and robot profile (roslab.host_services).
+    profile: str = "demo"
+    runs_nodes: bool = True
+    other_services: list = field(default_factory=list)  # HostService, beside roslab-nodes
+    listens: bool = True  # a main whose profile names a topic to hear (not sim)
+    listen_timeout: int = LISTEN_TIMEOUT  # --listen: seconds its check waits for a message
 
     @property
     def release(self) -> str | None:
@@ -202,6 +224,31 @@ class HostStatus:
     @property
     def service(self) -> str:
         return service_state(self.unit) if self.reachable and self.probe["probed"] else "?"
+
+    @property
+    def nodes(self) -> str:
+        """The NODES cell: the service's state, or that the profile runs none here."""
+        if not self.runs_nodes and self.reachable and self.probe["probed"]:
+            return f"none ({self.profile} {self.role})"
+        return self.service
+
+    def other_states(self) -> list[tuple]:
+        """(HostService, state) of its other services, as systemd has them."""
+        if not (self.reachable and self.probe["probed"]):
+            return [(service, "?") for service in self.other_services]
+        units = self.probe.get("units") or {}
+        return [(service, service_state(units.get(service.unit) or {})) for service in self.other_services]
+
+    def services_stopped(self) -> list[tuple]:
+        """(HostService, state) of its other services that do not run."""
+        return [(service, state) for service, state in self.other_states() if state != SERVICE_RUNNING]
+
+    @property
+    def runs_what_it_should(self) -> bool:
+        """Reached, and every service its roster gives it runs (none at all is fine)."""
+        if not (self.reachable and self.probe["probed"]):
+            return False
+        return (not self.runs_nodes or self.service.startswith("active")) and not self.services_stopped()
 
     @property
     def domain(self) -> int | None:
@@ -314,8 +361,12 @@ def host_cells(host: HostStatus, now: datetime) -> dict[str, Cell]:
         cells["DOMAIN"] = Cell(str(host.domain), "ok")
 
     cells["DISCOVERY"] = discovery_cell(host, notes)
-    service = host.service
-    cells["NODES"] = Cell(service, service_level(service))
+    if host.runs_nodes:
+        cells["NODES"] = Cell(host.service, service_level(host.service))
+    else:
+        cells["NODES"] = Cell(host.nodes, "ok" if probed else "muted")
+    for service, state in host.services_stopped() if probed else ():
+        notes.append(stopped_service_line(host.name, service, state))
 
     run = host.run
     if run is None or run.last_run is None:
@@ -334,7 +385,8 @@ def host_cells(host: HostStatus, now: datetime) -> dict[str, Cell]:
         notes.append(f"reboot needed: {host.reboot_needed}")
     if host.listen_error:
         notes.append(host.listen_error)
-    level = "bad" if not host.reachable or last_run_failed(host) else "warn" if host.reboot_needed else "plain"
+    level = ("bad" if not host.reachable or last_run_failed(host)
+             else "warn" if host.reboot_needed or (probed and host.services_stopped()) else "plain")
     cells["NOTE"] = Cell("; ".join(notes), level)
     return cells
 
@@ -379,6 +431,10 @@ def host_statuses(classroom: Classroom, groups: dict, limit: list[str] | None = 
             discovery_mode=host.data.get("ros_discovery_mode"),
             middleware=host.data.get("ros_middleware"),
             expected_release=host.ubuntu_release, expected_distro=host.distro,
+            profile=profile_name(host.data), runs_nodes=runs_nodes(host.data),
+            other_services=[service for service in host_services(host.data) if service.kind != "nodes"],
+            listens=bool(host.data.get("nodes_verify_topic")),
+            listen_timeout=int(host.data.get("nodes_verify_timeout") or LISTEN_TIMEOUT),
         ))
     return statuses
 
@@ -391,9 +447,10 @@ def limited_names(groups: dict, limit: list[str]) -> list[str]:
 
 
 def probe(groups: dict, statuses: list[HostStatus], listen: bool = False,
-          listen_timeout: int = LISTEN_TIMEOUT, host_bound: int = HOST_BOUND) -> None:
+          listen_timeout: int | None = None, host_bound: int = HOST_BOUND) -> None:
     """Fill in what each host says, all hosts at once, each within `host_bound` seconds
-    (plus the listening check's own bound with `listen`)."""
+    (plus the listening check's own bound with `listen`). `listen_timeout`: seconds every main
+    waits for its message; None: each its own (`HostStatus.listen_timeout`)."""
     from gevent import monkey
 
     monkey.patch_all()  # as pyinfra's CLI does: SSH to every host at once (a no-op when done)
@@ -407,15 +464,18 @@ def probe(groups: dict, statuses: list[HostStatus], listen: bool = False,
     state = roster_state(groups, [status.name for status in statuses],
                          CONNECT_TIMEOUT=min(CONNECT_TIMEOUT, host_bound), PARALLEL=parallel)
     inventory = state.inventory
+    if listen_timeout is not None:
+        for status in statuses:
+            status.listen_timeout = listen_timeout
     bound = host_bound
     if listen:
-        bound += check_bound(listen_timeout) + 30
+        bound += check_bound(max(status.listen_timeout for status in statuses)) + 30
     pyinfra_logger = logging.getLogger("pyinfra")
     level = pyinfra_logger.level
     pyinfra_logger.setLevel(logging.CRITICAL)  # every host's trouble is its row, not a log line
     try:
         by_name = {host.name: host for host in inventory}
-        jobs = {state.pool.spawn(_probe_host, state, by_name[status.name], status, listen, listen_timeout,
+        jobs = {state.pool.spawn(_probe_host, state, by_name[status.name], status, listen, status.listen_timeout,
                                  bound): status for status in statuses}
         rounds = -(-len(statuses) // parallel)
         gevent.joinall(list(jobs), timeout=rounds * bound + 5)
@@ -450,7 +510,8 @@ def _probe_host(state, host, status: HostStatus, listen: bool, listen_timeout: i
         try:
             status.probe = get_fact(
                 state, host, StatusProbe,
-                kwargs={"_sudo": False, "_timeout": min(PROBE_TIMEOUT, bound), "_ignore_errors": True},
+                kwargs={"others": tuple(service.unit for service in status.other_services),
+                        "_sudo": False, "_timeout": min(PROBE_TIMEOUT, bound), "_ignore_errors": True},
                 apply_failed_hosts=False,
             )
         except Exception as error:  # noqa: BLE001
@@ -459,7 +520,7 @@ def _probe_host(state, host, status: HostStatus, listen: bool, listen_timeout: i
         if not status.probe["probed"]:
             status.error = "the status command returned nothing"
             return
-        if listen and status.role == "main":
+        if listen and status.role == "main" and status.listens:
             if not status.distro:
                 status.listen_error = "no ROS 2 installed: not listened"
                 return
@@ -469,7 +530,7 @@ def _probe_host(state, host, status: HostStatus, listen: bool, listen_timeout: i
                 status.listen_error = one_line(f"listening failed: {error}")
     if not status.probe["probed"] and not status.error:  # the bound ended it
         status.error = f"no answer within {bound} s"
-    elif (listen and status.role == "main" and status.probe["probed"] and status.distro
+    elif (listen and status.role == "main" and status.listens and status.probe["probed"] and status.distro
           and status.heard is None and not status.listen_error):
         status.listen_error = f"listening did not finish within {bound} s"
 
@@ -512,7 +573,11 @@ def box_level(host: HostStatus) -> str:
     legend says red means failed), else its nodes' service state."""
     if not host.reachable or last_run_failed(host):
         return "bad"
-    return {"ok": "ok", "bad": "bad"}.get(service_level(host.service), "warn")
+    states = [state for _, state in host.other_states()] + ([host.service] if host.runs_nodes else [])
+    levels = [service_level(state) for state in states]
+    if "bad" in levels:
+        return "bad"
+    return "ok" if host.runs_what_it_should else "warn"
 
 
 def host_box(host: HostStatus, x: int, y: int) -> dict:
@@ -527,7 +592,7 @@ def host_box(host: HostStatus, x: int, y: int) -> dict:
         {"text": clip(host.name), "class": "name"},
         {"text": clip(f"{host.role} \u00b7 {host.address}"), "class": "detail"},
         {"text": clip(facts), "class": "detail"},
-        {"text": clip(f"nodes: {host.service}"), "class": "detail"},
+        {"text": clip(f"nodes: {host.nodes}"), "class": "detail"},
     ]
     return {
         "x": x, "y": y, "width": BOX_WIDTH, "height": BOX_HEIGHT, "level": box_level(host),
@@ -539,7 +604,7 @@ def host_box(host: HostStatus, x: int, y: int) -> dict:
 
 
 def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = "/chatter",
-                 message_type: str = CHATTER_TYPE) -> dict:
+                 message_type: str = CHATTER_TYPE, listen_timeout: int | None = None) -> dict:
     """Coordinates and texts of one team's SVG: main on the left, robots on the right, arrows
     from each robot to the main host labelled with what the main host hears."""
     main = next((host for host in hosts if host.role == "main"), None)
@@ -556,9 +621,14 @@ def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = 
 
     result = TeamResult(team, main=main.name if main else None, robots=sorted(r.name for r in robots),
                         topic=topic, services={host.name: host.service for host in hosts},
-                        message_type=message_type)
+                        message_type=message_type,
+                        timeout=listen_timeout or (main.listen_timeout if main else LISTEN_TIMEOUT),
+                        without_service={host.name for host in hosts if not host.runs_nodes},
+                        other_services=[(host.name, service, state) for host in hosts
+                                        for service, state in host.other_states()])
     if main is not None:
         result.heard = main.heard
+        result.listens, result.profile = main.listens, main.profile
         if not main.reachable:
             result.error = f"{main.name} is {UNREACHABLE}"
         elif main.listen_error:
@@ -566,10 +636,13 @@ def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = 
     heard_robots = result.heard_robots()
     # Listened for real: the main host answered with a ROS 2 runtime (else nothing is known).
     listened = listen and main is not None and bool((main.heard or {}).get("ros"))
+    nothing_to_hear = main is not None and not main.listens
     for index, robot in enumerate(robots):
         y = MARGIN + index * (BOX_HEIGHT + BOX_GAP)
         boxes.append(host_box(robot, ROBOT_X, y))
-        if not listened:
+        if nothing_to_hear:
+            state, label = "unknown", "nothing to hear"
+        elif not listened:
             state, label = "unknown", f"{topic}: not checked"
         elif robot.name in heard_robots:
             state, label = "ok", f"{topic}: heard"
@@ -585,7 +658,9 @@ def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = 
     # What the main host hears, under its box.
     heard = (main.heard if main is not None else None) or parse_check_output([])
     topics_y = main_y + BOX_HEIGHT + 22
-    if not listen:
+    if nothing_to_hear:
+        topic_lines = [f"topics heard: nothing to hear (robot profile {main.profile})"]
+    elif not listen:
         topic_lines = ["topics heard: not checked (roslab status --listen)"]
     elif main is None or main.heard is None:
         topic_lines = [f"topics heard: {result.verdict()}"]
@@ -602,13 +677,11 @@ def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = 
     if not robots:
         texts.append({"x": ROBOT_X, "y": main_y + BOX_HEIGHT // 2 + 4, "text": "no robot in this team"})
     height = max(MARGIN + rows * (BOX_HEIGHT + BOX_GAP), topics_y + len(topic_lines) * LINE) + MARGIN
-    if listen:
+    if listen or nothing_to_hear:
         verdict = result.verdict()
-        verdict_level = "ok" if result.passed else "bad" if listened else "warn"
+        verdict_level = "ok" if result.passed else "bad" if listened or nothing_to_hear else "warn"
     else:
-        running = sum(host.service.startswith("active") for host in hosts)
-        verdict = f"{running} of {len(hosts)} hosts run their nodes"
-        verdict_level = "ok" if running == len(hosts) else "warn"
+        verdict, verdict_level = services_verdict(hosts)
     failed = sum(last_run_failed(host) for host in hosts)
     if failed:
         verdict = f"{failed} of {len(hosts)} hosts failed their last run; " + verdict
@@ -624,6 +697,18 @@ def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = 
     }
 
 
+def services_verdict(hosts: list[HostStatus]) -> tuple[str, str]:
+    """Without --listen: how many of the team's hosts run what their roster gives them (a
+    TurtleBot3's main runs nothing and counts), naming a stopped discovery server or router."""
+    good = sum(host.runs_what_it_should for host in hosts)
+    verdict = f"{good} of {len(hosts)} hosts run their services"
+    stopped = [stopped_service_line(host.name, service, state) for host in hosts
+               if host.reachable and host.probe["probed"] for service, state in host.services_stopped()]
+    if stopped:
+        verdict += "; " + "; ".join(stopped)
+    return verdict, "ok" if good == len(hosts) else "bad" if stopped else "warn"
+
+
 def team_discovery(hosts: list[HostStatus]) -> str:
     """The team's discovery mode(s) and the class's middleware, as the team's heading shows them."""
     modes = sorted({host.discovery_mode for host in hosts if host.discovery_mode})
@@ -634,7 +719,7 @@ def team_discovery(hosts: list[HostStatus]) -> str:
 def page_context(classroom_name: str | None, roster: str, hosts: list[HostStatus], now: datetime,
                  listen: bool = False, topics: dict[str, str] | None = None,
                  warnings: list[str] | None = None, checklists: list[dict] | None = None,
-                 message_types: dict[str, str] | None = None) -> dict:
+                 message_types: dict[str, str] | None = None, listen_timeout: int | None = None) -> dict:
     """Everything the page shows, computed here (the template only loops and tests).
 
     `checklists`: per host, its robot profile's steps done by hand (`checklists()`)."""
@@ -643,7 +728,7 @@ def page_context(classroom_name: str | None, roster: str, hosts: list[HostStatus
         teams.setdefault(host.team, []).append(host)
     topics = topics or {}
     reachable = sum(host.reachable for host in hosts)
-    running = sum(host.service.startswith("active") for host in hosts)
+    running = sum(host.runs_what_it_should for host in hosts)
     failed = sum(last_run_failed(host) for host in hosts)
     return {
         "title": f"roslab status: {classroom_name}" if classroom_name else "roslab status",
@@ -653,13 +738,13 @@ def page_context(classroom_name: str | None, roster: str, hosts: list[HostStatus
         "counts": [
             {"text": f"{len(teams)} teams, {len(hosts)} hosts", "level": "plain"},
             {"text": f"{reachable} reachable", "level": "ok" if reachable == len(hosts) else "bad"},
-            {"text": f"{running} running their nodes", "level": "ok" if running == len(hosts) else "warn"},
+            {"text": f"{running} running their services", "level": "ok" if running == len(hosts) else "warn"},
             {"text": f"{failed} failed in their last run" if failed else "no failed last run",
              "level": "bad" if failed else "ok"},
         ],
         "listen": listen,
         "teams": [team_picture(name, members, listen, topics.get(name, "/chatter"),
-                               (message_types or {}).get(name, CHATTER_TYPE))
+                               (message_types or {}).get(name, CHATTER_TYPE), listen_timeout)
                   for name, members in teams.items()],
         "columns": COLUMNS,
         "rows": [{"host": host.name, "cells": [host_cells(host, now)[column] for column in COLUMNS]}
@@ -687,10 +772,18 @@ def format_checklists(lists: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def item_parts(text: str) -> list[dict]:
+    """A checklist item's text and its `code` spans (a command to copy), for the page."""
+    pieces = text.split("`")
+    if len(pieces) % 2 == 0:  # an unpaired backtick: the text as it is
+        return [{"text": text, "code": False}]
+    return [{"text": piece, "code": bool(index % 2)} for index, piece in enumerate(pieces) if piece]
+
+
 def render_page(context: dict) -> str:
     from roslab.templating import render_html
 
-    return render_html("status.html.j2", **context)
+    return render_html("status.html.j2", item_parts=item_parts, **context)
 
 
 def write_page(path: Path, text: str) -> None:
@@ -728,13 +821,14 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
                         help=f"seconds each host gets to answer, connection included (default {HOST_BOUND})")
     parser.add_argument("--listen", action="store_true",
                         help="also check what each main host hears (roslab verify's check; slower)")
-    parser.add_argument("--listen-timeout", type=int, default=LISTEN_TIMEOUT, metavar="S",
-                        help=f"--listen: seconds to wait for the robot's message (default {LISTEN_TIMEOUT})")
+    parser.add_argument("--listen-timeout", type=int, default=None, metavar="S",
+                        help="--listen: seconds to wait for the robot's message (default: the roster's "
+                             f"nodes_verify_timeout, {LISTEN_TIMEOUT} s unless set, as roslab verify waits)")
     return parser
 
 
 def run(args: argparse.Namespace) -> int:
-    from roslab.reach import RosterProblem, load_classroom
+    from roslab.reach import RosterProblem, limit_problem, load_classroom
 
     try:
         classroom = load_classroom(args.roster, "status")
@@ -743,20 +837,20 @@ def run(args: argparse.Namespace) -> int:
         return 1
     path = classroom.path
     for option, value in (("--timeout", args.timeout), ("--listen-timeout", args.listen_timeout)):
-        if not 1 <= value <= 600:
+        if value is not None and not 1 <= value <= 600:
             print(f"roslab status: {option} must be 1 to 600 seconds", file=sys.stderr)
             return 2
     warnings = [str(warning) for warning in classroom.warnings]
     try:
         # Once: it also brings the classroom's known_hosts up to date, as deploy.py's inventory does.
         groups = inventory_groups(classroom)
-        statuses = host_statuses(classroom, groups, args.limit)
+        problem = limit_problem(groups, args.limit, "roslab status")
+        statuses = [] if problem else host_statuses(classroom, groups, args.limit)
     except RosterError as error:  # a broken addresses.yaml or known_hosts
         print(error, file=sys.stderr)
         return 1
-    if not statuses:
-        print(f"roslab status: --limit {' '.join(args.limit or [])} selects no host of {display_path(path)}",
-              file=sys.stderr)
+    if problem or not statuses:
+        print(problem or f"roslab status: {display_path(path)} has no host", file=sys.stderr)
         return 2
     try:
         runs = read_runs(classroom.path)
@@ -775,7 +869,8 @@ def run(args: argparse.Namespace) -> int:
     message_types = {host.team: host.data.get("nodes_verify_type") or CHATTER_TYPE
                      for host in classroom.hosts if host.role == "main"}
     context = page_context(classroom.name, display_path(path), statuses, now, args.listen, topics, warnings,
-                           checklists(classroom, {status.name for status in statuses}), message_types)
+                           checklists(classroom, {status.name for status in statuses}), message_types,
+                           args.listen_timeout)
     for warning in warnings:
         print(f"warning: {warning}", file=sys.stderr)
     title = f"Classroom {classroom.name!r}" if classroom.name else "Classroom"

@@ -504,6 +504,107 @@ def dry_run_changes(state: State) -> dict:
     return changes
 
 
+def planned_changes(state: State) -> dict[str, list[str]]:
+    """Before executing (a real run's plan, or --dry): op hash -> the hosts it would change,
+    each `_if` condition evaluated as pyinfra evaluates it when executing (as `dry_run_changes`),
+    without changing the state: every operation completed for the walk is reset afterwards."""
+    from pyinfra.api.command import StringCommand
+    from pyinfra.connectors.util import CommandOutput
+
+    changes: dict[str, list[str]] = {}
+    for host in state.inventory:
+        if host not in state.active_hosts or not state.is_host_in_limit(host):
+            continue
+        walked = []
+        try:
+            ops = state.ops.get(host, {})
+            hashes = {id(op_data): op_hash for op_hash, op_data in ops.items()}
+            for op_data in ops_in_order(state, host):
+                meta = op_data.operation_meta
+                if meta.is_complete():
+                    continue
+                runs = bool(meta.will_change) and condition_holds(op_data.global_arguments.get("_if"))
+                if runs:
+                    changes.setdefault(hashes[id(op_data)], []).append(host.name)
+                meta.set_complete(True, [StringCommand("true")] if runs else [], CommandOutput([]))
+                walked.append(meta)
+        finally:
+            for meta in walked:  # back to "not executed yet" (OperationMeta's class defaults)
+                for attribute in ("_success", "_commands", "_combined_output"):
+                    meta.__dict__.pop(attribute, None)
+    return changes
+
+
+def executed_changes(state: State) -> dict[str, dict[str, list[str]]]:
+    """After executing: op hash -> {"changed": hosts, "failed": hosts}, only the operations
+    that changed or failed somewhere, each host named (pyinfra's table counts them)."""
+    result: dict[str, dict[str, list[str]]] = {}
+    for op_hash in op_order(state):
+        changed, failed = [], []
+        for host in state.inventory.iter_activated_hosts():
+            op_data = state.ops.get(host, {}).get(op_hash)
+            if op_data is None or not state.is_host_in_limit(host):
+                continue
+            meta = op_data.operation_meta
+            if not meta.is_complete():
+                continue
+            if not meta.did_succeed(_raise_if_not_complete=False):
+                failed.append(host.name)
+            elif meta.did_change():
+                changed.append(host.name)
+        if changed or failed:
+            result[op_hash] = {"changed": sorted(changed), "failed": sorted(failed)}
+    return result
+
+
+def op_order(state: State) -> list[str]:
+    """Every planned operation's hash in pyinfra's order (then any it does not order)."""
+    order = list(state.get_op_order())
+    return order + [op_hash for op_hash in state.op_meta if op_hash not in order]
+
+
+MAX_STEP_NAME = 90  # characters of a step's name on its line of the compact tables
+
+
+def step_title(state: State, op_hash: str, host_name: str | None = None) -> str:
+    """The step's name as pyinfra showed it on that host (a name holding a host's value, such
+    as its distro, is that host's), shortened to one line."""
+    host = state.inventory.get_host(host_name, None) if host_name else None
+    name = " ".join(op_name(state, op_hash, host).split())
+    return name if len(name) <= MAX_STEP_NAME else name[: MAX_STEP_NAME - 3] + "..."
+
+
+def _by_title(state: State, op_hash: str, names: list[str]) -> dict[str, list[str]]:
+    titles: dict[str, list[str]] = {}
+    for name in sorted(names):
+        titles.setdefault(step_title(state, op_hash, name), []).append(name)
+    return titles
+
+
+def plan_lines(state: State) -> list[str]:
+    """The compact "Detected changes": one line per step that would change a host, naming the
+    hosts (a restart gated on a change that will not happen is not one)."""
+    changes = planned_changes(state)
+    if not changes:
+        return ["nothing would change on any host"]
+    return [f"{title}: {', '.join(hosts)}"
+            for op_hash in op_order(state) if changes.get(op_hash)
+            for title, hosts in _by_title(state, op_hash, changes[op_hash]).items()]
+
+
+def result_lines(state: State) -> list[str]:
+    """The compact "Results": one line per step that changed or failed on a host, naming them;
+    none when nothing changed (the summary says each host's outcome)."""
+    lines = []
+    for op_hash, hosts in executed_changes(state).items():
+        outcome = {name: "changed" for name in hosts["changed"]} | {name: "failed" for name in hosts["failed"]}
+        for title, names in _by_title(state, op_hash, list(outcome)).items():
+            parts = [f"{what} on {', '.join(name for name in names if outcome[name] == what)}"
+                     for what in ("changed", "failed") if any(outcome[name] == what for name in names)]
+            lines.append(f"{title}: {'; '.join(parts)}")
+    return lines
+
+
 def ops_in_order(state: State, host) -> list:
     """The host's planned operations (StateOperationHostData) in the order pyinfra runs them."""
     ops = state.ops.get(host, {})
@@ -629,6 +730,9 @@ def install(state: State | None = None) -> RunSummary:
     confirmation pyinfra asks for on a closed standard input ends with one line, exit 1.
     """
     global _current, _atexit_registered
+    from roslab.reach import quiet_paramiko
+
+    quiet_paramiko()  # a host that hangs up is pyinfra's one line, not paramiko's traceback
     state = state if isinstance(state, State) else ctx_state.get()
     summary = summary_for(state)
     if summary is None:
@@ -834,6 +938,9 @@ LONG_STEP = 5.0  # seconds after which a step that has changed nothing yet is sh
 STILL_RUNNING_EVERY = 20.0  # seconds between "still running on ..." lines of a long step
 _STARTING = re.compile(r"^--> Starting\b.*\boperation:")
 _QUIET_STATUSES = re.compile(r"^(?:No changes|Skipped)\b")
+# pyinfra's "[host] Ready: deploy.py", one per host once its plan is made: a host that cannot
+# be planned says so in a warning or an error line, which is always shown.
+_READY = re.compile(r"^Ready: ")
 
 
 class CompactOutput(logging.Filter):
@@ -846,6 +953,11 @@ class CompactOutput(logging.Filter):
     step every host reports "No changes" for is not shown at all. While a long step runs,
     every `STILL_RUNNING_EVERY` seconds one line says which hosts are still in it and for how
     long. Warnings and errors always pass, at once.
+
+    pyinfra's two tables (its "Detected changes" plan and its "Results", a row per step with
+    counts of hosts) become roslab's lines (`plan_lines`, `result_lines`): one per step that
+    would change, changed or failed something, naming each host; a restart gated on a change
+    that will not happen (`_if`) is not one; after a run that changed nothing, none at all.
     """
 
     def __init__(self, logger: logging.Logger, long_step: float | None = LONG_STEP,
@@ -859,6 +971,20 @@ class CompactOutput(logging.Filter):
         self.step: logging.LogRecord | None = None  # the step running now
         self.done: set[str] = set()  # hosts that finished it
         self.hidden_steps = 0
+        self.table: str | None = None  # pyinfra's table being printed (its rows are held back)
+        self.state = None  # the run's pyinfra State (else the current one)
+
+    def show_table(self, header: str, lines_of) -> None:
+        """roslab's lines in place of pyinfra's table: the steps that change (or changed, or
+        failed) something, each naming its hosts; nothing after a run that changed nothing."""
+        try:
+            lines = lines_of(self.state or ctx_state.get())
+        except Exception as error:  # noqa: BLE001 - the output must never break the run
+            lines = [f"(roslab could not list the steps: {type(error).__name__}: {error}; -v shows pyinfra's table)"]
+        if not lines:
+            return
+        for line in [header, *lines]:
+            self.logger.info(line, extra={"roslab_shown": True})
 
     def filter(self, record: logging.LogRecord) -> bool:
         if getattr(record, "roslab_shown", False):
@@ -867,6 +993,17 @@ class CompactOutput(logging.Filter):
             text = _ANSI.sub("", record.getMessage()).strip()
         except Exception:  # noqa: BLE001 - a line that cannot be read is shown as it is
             return True
+        if text.startswith("-->"):
+            self.table = None
+        if self.table is not None and record.levelno <= logging.INFO:
+            return False  # a row of pyinfra's table: roslab's lines stand for it
+        table = _TABLES.get(text)
+        if table is not None and record.levelno <= logging.INFO:
+            self.drop_pending()
+            self.step = None
+            self.table = text
+            self.show_table(text, table)
+            return False
         prefixed = _PREFIXED.match(text)
         if prefixed and (_QUIET_STATUSES.match(prefixed.group(2)) or prefixed.group(2).startswith(
                 ("Success", "Error"))):
@@ -882,7 +1019,7 @@ class CompactOutput(logging.Filter):
                 self._later(record)
             return False
         if prefixed:
-            if _QUIET_STATUSES.match(prefixed.group(2)):
+            if _QUIET_STATUSES.match(prefixed.group(2)) or (self.step is None and _READY.match(prefixed.group(2))):
                 return False
             self.show_pending()
             return True
@@ -923,6 +1060,10 @@ class CompactOutput(logging.Filter):
 
         gevent.spawn_later(self.long_step, still_running, True)
 
+
+# pyinfra's tables (pyinfra_cli.prints: print_meta, print_results), after their header line: in
+# the compact output roslab's own lines stand for them (`-v` shows pyinfra's).
+_TABLES = {"--> Detected changes:": plan_lines, "--> Results:": result_lines}
 
 _compact: CompactOutput | None = None
 

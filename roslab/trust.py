@@ -22,6 +22,7 @@ import yaml
 
 from roslab import identity
 from roslab.network.state import last_known_addresses
+from roslab.reach import add_limit_argument, select_roster_hosts
 from roslab.roster import RosterError, default_roster_path, display_path, load_roster
 from roslab.roster.inventory import known_addresses
 
@@ -74,15 +75,11 @@ def run_trust(args: argparse.Namespace) -> int:
     classroom = _load(path)
     if classroom is None:
         return 1
-    hosts = classroom.hosts
-    if args.host:
-        by_name = {host.name: host for host in hosts}
-        unknown = [name for name in args.host if name not in by_name]
-        if unknown:
-            print(f"roslab trust: no host {', '.join(map(repr, unknown))} in {display_path(path)}",
-                  file=sys.stderr)
-            return 2
-        hosts = [by_name[name] for name in dict.fromkeys(args.host)]
+    hosts, unknown = select_roster_hosts(classroom, args.limit)
+    if unknown:
+        print(f"roslab trust: --limit {', '.join(map(repr, unknown))} selects no host of {display_path(path)}",
+              file=sys.stderr)
+        return 2
     try:
         moved = last_known_addresses(path)
     except (OSError, ValueError, yaml.YAMLError) as error:
@@ -188,7 +185,7 @@ def register(commands) -> None:
         "A Pi whose recorded key differs is refused: run `roslab forget HOST` first.",
     )
     trust.add_argument("roster", nargs="?", metavar="ROSTER", help="roster file (default: as for roslab check)")
-    trust.add_argument("--host", action="append", metavar="NAME", help="only this host (repeatable)")
+    add_limit_argument(trust)
     trust.set_defaults(run=run_trust)
 
     forget = commands.add_parser(

@@ -2,19 +2,24 @@
 
     roslab verify [ROSTER] [--limit team1 ...]      (or: python -m roslab.verify ...)
 
-Read-only and bounded. On every host it asks systemd for the state of
-roslab-nodes.service (that unit only). On each main host, as the login user and with the
-team's ROS environment (the same as the service's, `roslab.ros_env`), it lists the topics
-and waits up to `nodes_verify_timeout` seconds for one message on `nodes_verify_topic`,
-with `--no-daemon` so no ros2 daemon is left behind (and one the check started anyway is
-stopped). Every ros2 call runs under `timeout --kill-after`, and the whole check under one
-more bound: a node that ignores SIGTERM cannot hang the check.
+Read-only and bounded. On every host it asks systemd for the state of the services the
+host runs by its roster and robot profile (`roslab.host_services`: roslab-nodes.service
+where the profile has a launch there, the team's discovery server or Zenoh router, the
+profile's own services), one unit at a time. On each main host whose profile names a
+topic, as the login user and with the team's ROS environment (the same as the service's,
+`roslab.ros_env`), it lists the topics and waits up to `nodes_verify_timeout` seconds for
+one message on `nodes_verify_topic`, with `--no-daemon` so no ros2 daemon is left behind
+(and one the check started anyway is stopped). Every ros2 call runs under `timeout
+--kill-after`, and the whole check under one more bound: a node that ignores SIGTERM cannot
+hang the check.
 
-A team passes only when every one of its hosts' roslab-nodes.service is active (running) and the
-message itself is a robot's greeting (`Hello from <robot> #<n>`,
-the demo talker's `chatter_text`) naming one of the team's robots: a greeting from another
-team's robot (domain IDs crossed) or any other text is not a pass. A host without a ROS 2
-runtime (no `ros2` command, as in the sandbox's stand-in ROS) is reported as such.
+A team passes only when every one of those services is active (running) (a stopped discovery
+server or Zenoh router is named as the cause) and the message itself is a robot's greeting
+(`Hello from <robot> #<n>`, the demo talker's `chatter_text`) naming one of the team's
+robots: a greeting from another team's robot (domain IDs crossed) or any other text is not a
+pass. A host without a ROS 2 runtime (no `ros2` command, as in the sandbox's stand-in ROS) is
+reported as such. A team whose main's profile names no topic (sim: no robot) passes on its
+services alone, saying so.
 """
 
 from __future__ import annotations
@@ -31,6 +36,8 @@ from pyinfra.context import ctx_host
 from pyinfra.facts.server import LinuxDistribution
 
 from roslab.distro import default_distro
+# runs_a_launch: verify's own name for it before host_services held it.
+from roslab.host_services import host_services, profile_name, runs_a_launch, runs_nodes  # noqa: F401
 from roslab.operations import as_user
 from roslab.quoting import shell_home_path, shell_word
 from roslab.ros_env import host_environment
@@ -198,6 +205,13 @@ class TeamResult:
     without_service: set = field(default_factory=set)
     # what publishes the topic (the profile's verify_source), named when nothing was heard
     source: str = ""
+    # The other services the team's hosts run by their roster (roslab.host_services: the discovery
+    # server or Zenoh router, the profile's own): (host, HostService, state).
+    other_services: list = field(default_factory=list)
+    # False when the main's robot profile names no topic to hear (sim: no robot; an ESP32 not
+    # yet present): the team is judged by the services it runs.
+    listens: bool = True
+    profile: str = "demo"  # the main's robot profile, for the verdict
 
     def services_down(self) -> list[tuple[str, str]]:
         """(host, state) of the team's hosts whose nodes service is not active (running).
@@ -208,8 +222,13 @@ class TeamResult:
         """
         hosts = ([self.main] if self.main else []) + list(self.robots)
         return [(host, self.services.get(host, "?")) for host in hosts
-                if self.services.get(host) != SERVICE_RUNNING
-                and not (host in self.without_service and self.services.get(host) == "not installed")]
+                if self.services.get(host) != SERVICE_RUNNING and host not in self.without_service]
+
+    def stopped_services(self) -> list[tuple]:
+        """(host, HostService, state) of the team's other services that do not run: a stopped
+        discovery server or Zenoh router is why a main hears nothing, so it comes first."""
+        return [(host, service, state) for host, service, state in self.other_services
+                if state != SERVICE_RUNNING]
 
     @property
     def greeting(self) -> bool:
@@ -228,13 +247,29 @@ class TeamResult:
 
     @property
     def passed(self) -> bool:
-        return bool(not self.error and self.heard_robots() and not self.services_down())
+        if self.error or self.services_down() or self.stopped_services():
+            return False
+        if not self.listens:
+            return bool(self.main)  # nothing to hear: its services are the whole check
+        return bool(self.heard_robots())
 
     def verdict(self) -> str:
         if self.error:
             return self.error
         if not self.main:
             return "no main host in the team"
+        stopped = self.stopped_services()
+        if stopped:
+            return "; ".join(stopped_service_line(host, service, state) for host, service, state in stopped)
+        if not self.listens:
+            down = self.services_down()
+            if down:
+                return "; ".join(f"{NODES_SERVICE} on {host} is {state}" for host, state in down)
+            running = sorted({service.unit for _, service, _ in self.other_services}
+                             | {NODES_SERVICE for host in self.services if host not in self.without_service})
+            runs = f"; running: {', '.join(running)}" if running else "; roslab runs no service there"
+            robots = "no robot" if not self.robots else f"no topic for {', '.join(self.robots)}"
+            return f"nothing to hear: robot profile {self.profile} names {robots} on {self.main}{runs}"
         heard = self.heard or parse_check_output([])
         if heard["ros"] is None:
             return f"the check on {self.main} returned nothing"
@@ -260,6 +295,14 @@ class TeamResult:
         if self.topic in heard["topics"]:
             return f"{self.topic} listed but no message within {self.timeout} s{because}"
         return f"{self.main} does not see {self.topic}{because}"
+
+
+def stopped_service_line(host: str, service, state: str) -> str:
+    """One host's service that does not run, and what that means when it is the team's discovery."""
+    line = f"{service.unit} on {host} is {state}"
+    if service.kind == "discovery":
+        line += f" ({service.what}: without it the team's hosts do not find each other)"
+    return line
 
 
 def _service_cell(result: TeamResult, name: str | None) -> str:
@@ -341,25 +384,24 @@ def hear(host, distro: str | None = None, timeout: int | None = None) -> dict:
     )
 
 
-def runs_a_launch(data) -> bool:
-    """Whether the roster gives the host a launch for roslab-nodes to run: its nodes_launch (or a
-    deprecated nodes_launch_<role>), as the roster loader resolved it from the robot profile; a
-    host without a resolved profile (a hand-made inventory) runs the demo's."""
-    if data.get("roslab_profile") is None:
-        return True
-    return bool(data.get("nodes_launch") or data.get(f"nodes_launch_{data.get('roslab_role')}"))
-
-
-def _check_host(state: State, host) -> tuple[str, dict | None, str | None]:
-    """(service state, NodesHeard on main hosts, error) for one host."""
+def _check_host(state: State, host) -> tuple[str, dict, dict | None, str | None]:
+    """(nodes service state, {unit: state} of its other services, NodesHeard on main hosts,
+    error) for one host."""
     with ctx_host.use(host):
         try:
             service = service_state(host.get_fact(NodesUnitState, service=NODES_SERVICE))
+            others = {item.unit: service_state(host.get_fact(NodesUnitState, service=item.unit))
+                      for item in host_services(host.data) if item.kind != "nodes"}
             if host.data.get("roslab_role") != "main" or not host.data.get("nodes_verify_topic"):
-                return service, None, None  # a robot, or a main whose profile has nothing to hear (sim)
-            return service, hear(host), None
+                return service, others, None, None  # a robot, or a main whose profile has nothing to hear (sim)
+            return service, others, hear(host), None
         except Exception as error:  # one host's trouble is its team's row, not a crash
-            return "?", None, f"{host.name}: {error}"
+            return "?", {}, None, f"{host.name}: {one_line(error)}"
+
+
+def one_line(error) -> str:
+    text = " ".join(str(error).split()) or type(error).__name__
+    return text if len(text) <= 300 else text[:297] + "..."
 
 
 def verify(state: State) -> list[TeamResult]:
@@ -379,13 +421,17 @@ def verify(state: State) -> list[TeamResult]:
         return teams[name]
 
     for host, greenlet in greenlets.items():
-        service, heard, error = greenlet.get()
+        service, others, heard, error = greenlet.get()
         team = team_of(host)
         team.services[host.name] = service
-        if not runs_a_launch(host.data):
+        if not runs_nodes(host.data):
             team.without_service.add(host.name)
+        team.other_services += [(host.name, item, others.get(item.unit, "?"))
+                                for item in host_services(host.data) if item.kind != "nodes" and not error]
         if host.data.get("roslab_role") == "main":
             team.main, team.heard = host.name, heard
+            team.listens = bool(host.data.get("nodes_verify_topic"))
+            team.profile = profile_name(host.data)
             team.topic = host.data.get("nodes_verify_topic") or team.topic
             team.timeout = host.data.get("nodes_verify_timeout") or team.timeout
             team.message_type = host.data.get("nodes_verify_type") or team.message_type
@@ -418,15 +464,16 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
 def run(args: argparse.Namespace) -> int:
     """`roslab verify [ROSTER] [--limit NAME ...]`: the roster's hosts, reached as deploy.py
     reaches them (roslab.reach)."""
-    from roslab.reach import RosterProblem, connected_state, load_classroom_groups, roster_inventory, select_hosts
+    from roslab.reach import RosterProblem, connected_state, limit_problem, load_classroom_groups
 
     try:
         classroom, groups = load_classroom_groups(args.roster, "verify")
     except RosterProblem as problem:
         print(problem, file=sys.stderr)
         return 1
-    if args.limit and not select_hosts(roster_inventory(groups), args.limit):
-        print(f"roslab verify: --limit {' '.join(args.limit)} selects no host of the roster", file=sys.stderr)
+    problem = limit_problem(groups, args.limit, "roslab verify")
+    if problem:
+        print(problem, file=sys.stderr)
         return 2
     state = connected_state(groups, args.limit)
     try:

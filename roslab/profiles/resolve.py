@@ -119,7 +119,8 @@ def side_parts(side: Side, values: dict, distro: str, board: str | None) -> list
 
 
 def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
-                 board: str | None = None) -> tuple[dict | None, list[ResolveError]]:
+                 board: str | None = None, host: str | None = None) -> tuple[dict | None, list[ResolveError]]:
+    """`host`: the host's name, for the checklist's ${host} (else the word HOST)."""
     problems: list[ResolveError] = []
     if distro not in profile.distros:
         works = " or ".join(f"{p.release} ({p.distro})" for p in PLATFORMS if p.distro in profile.distros)
@@ -191,7 +192,7 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         "verify_type": profile.verify_type,
         "verify_source": fill(profile.verify_source, values),
         "discovery": profile.discovery,
-        "checklist": [fill(item, values) for item in merged.checklist],
+        "checklist": [fill(item, {**values, "host": host or "HOST"}) for item in merged.checklist],
         "os_tweaks": dict(side.os_tweaks),
         # the side's .repos files' repositories: filled by the roster loader (roslab/sources.py),
         # which reads the files; here only for hand-made data

@@ -73,6 +73,9 @@ RESERVED_SERVICE_PREFIXES = ("roslab", "systemd-", "dbus", "getty", "serial-gett
                              "apt-", "initrd-")
 # What a service's command may name besides the profile's settings.
 COMMAND_PLACEHOLDERS = ("distro",)
+# What a checklist item may name besides the profile's settings: the host it is for (filled
+# in by the roster loader, so a command in it can be copied as it is).
+CHECKLIST_PLACEHOLDERS = ("host",)
 RULE_KEYS = ("rule", "comment")
 # Opt-in OS changes a robot's maker recommends (applied when the roster sets profile_os_tweaks).
 OS_TWEAK_KEYS = ("mask_units", "swap_mb", "swap_if_memory_mb_at_most")
@@ -298,7 +301,8 @@ class ProfileReader:
         side.checklist += self.string_list(mapping, "checklist", f"{path}.checklist", formats.single_line)
         for item in mapping.get("checklist") or []:
             if isinstance(item, str):
-                self.check_text(item, known, mapping, "checklist", f"{path}.checklist")
+                self.check_text(item, known | set(CHECKLIST_PLACEHOLDERS), mapping, "checklist",
+                                f"{path}.checklist")
         env = mapping.get("environment") or {}
         if not isinstance(env, dict):
             self.error("must be a mapping of VARIABLE -> value", mapping, "environment", f"{path}.environment")

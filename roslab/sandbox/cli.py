@@ -26,6 +26,10 @@ def register(subparsers) -> argparse.ArgumentParser:
                     help=f"number of hosts, in teams of two (default {lifecycle.DEFAULT_HOSTS})")
     up.add_argument("--desktop", action="append", default=[], metavar="HOST",
                     help="make HOST an Ubuntu Desktop-like host (NetworkManager instead of networkd); repeatable")
+    up.add_argument("--roster", type=Path, metavar="FILE",
+                    help="your class's roster: its hosts (names, teams, roles, releases) and its settings where "
+                         "the sandbox can serve them (a note names each it cannot); status and ssh then use "
+                         "its host names")
     commands.add_parser("status", help="list the hosts and whether they answer")
     commands.add_parser("down", help="stop the hosts and remove everything the sandbox made")
     reset = commands.add_parser(
@@ -81,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, _interrupt)
     try:
         if args.sandbox_command == "up":
-            lifecycle.up(args.hosts, desktop=args.desktop)
+            lifecycle.up(args.hosts, desktop=args.desktop, class_roster=args.roster)
             print_status(lifecycle.status())
         elif args.sandbox_command == "status":
             print_status(lifecycle.status())

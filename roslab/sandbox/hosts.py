@@ -25,8 +25,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from . import emulation, image, seeding
-from .instance import Instance, SandboxHost
-from .system import SandboxError, log, run, terminate, write_file
+from .instance import STATE_ROOT, Instance, SandboxHost
+from .system import SandboxError, discard, log, run, terminate, write_file
 
 LXCFS_DIR = Path("/var/lib/lxcfs")
 REBOOT_EXIT_CODE = 133  # what systemd-nspawn returns when the container asked to reboot
@@ -197,7 +197,7 @@ def mount_fresh(instance: Instance, host: SandboxHost, rootfs: Path) -> Path:
     paths = _host_paths(instance, host)
     unmount_all(paths["merged"])
     for name in ("upper", "work"):
-        shutil.rmtree(paths[name], ignore_errors=True)
+        discard(paths[name], STATE_ROOT)  # a converged host's upper dir is large: deleted in the background
     for path in paths.values():
         path.mkdir(parents=True, exist_ok=True)
     run("mount", "-t", "overlay", "overlay", "-o",

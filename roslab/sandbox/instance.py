@@ -135,6 +135,21 @@ class Instance:
         return self.state_dir / "hosts" / host.name
 
     # -- the classroom ---------------------------------------------------------------
+    def plan_members(self, members: list[dict], desktop: Iterable[str] = ()) -> list[SandboxHost]:
+        """The hosts a class roster names (`class_roster.members`: name, team, role, release), in
+        its order, on this instance's addresses."""
+        if not 1 <= len(members) <= min(MAX_HOSTS, self.subnet.num_addresses - FIRST_HOST_OCTET - 1):
+            raise SandboxError(f"the roster has {len(members)} hosts: a sandbox holds 1 to {MAX_HOSTS}")
+        desktop = set(desktop)
+        unknown = desktop - {member["name"] for member in members}
+        if unknown:
+            raise SandboxError(f"--desktop {', '.join(sorted(unknown))}: no such host in the roster")
+        return [SandboxHost(name=member["name"], team=member["team"], role=member["role"],
+                            release=member["release"], index=index,
+                            address=str(self.subnet.network_address + FIRST_HOST_OCTET + index),
+                            flavour="desktop" if member["name"] in desktop else "server")
+                for index, member in enumerate(members)]
+
     def plan_hosts(self, count: int, desktop: Iterable[str] = (),
                    releases: Iterable[str] | None = None) -> list[SandboxHost]:
         """`count` hosts in teams of two (main, robot), teams on the releases of `releases_by_team()`.

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
@@ -23,7 +22,7 @@ from roslab import identity
 
 from . import git_standins, hosts, image, seeding, upstream
 from .instance import STATE_ROOT, UPSTREAM_PORT, Instance, SandboxHost, releases_by_team
-from .system import SandboxError, announced, file_lock, log, run, write_file
+from .system import SandboxError, announced, discard, file_lock, log, run, sweep_discarded, write_file
 
 DEFAULT_HOSTS = 4
 INOTIFY_INSTANCES = Path("/proc/sys/fs/inotify/max_user_instances")
@@ -37,6 +36,7 @@ class Classroom:
 
     instance: Instance
     hosts: list[SandboxHost]
+    class_roster: Path | None = None  # `up --roster`: the class's roster its hosts and settings come from
 
     def host(self, name: str) -> SandboxHost:
         for host in self.hosts:
@@ -62,6 +62,9 @@ def load(instance: Instance | None = None) -> Classroom:
     except FileNotFoundError:
         raise SandboxError(f"no sandbox {instance.name!r} is running: run `roslab sandbox up`") from None
     instance = replace(instance, subnet=IPv4Network(state["subnet"]))
+    if state.get("members"):  # brought up from a class's roster: its hosts' names
+        return Classroom(instance, instance.plan_members(state["members"], state.get("desktop", ())),
+                         Path(state["class_roster"]) if state.get("class_roster") else None)
     return Classroom(instance, instance.plan_hosts(state["hosts"], state.get("desktop", ()),
                                                    state.get("releases")))
 
@@ -110,10 +113,13 @@ def _store_boot(instance: Instance, host: SandboxHost) -> hosts.Boot:
 
 # -- up -------------------------------------------------------------------------------------
 
-def up(count: int | None = None, instance: Instance | None = None, desktop: list[str] | None = None) -> Classroom:
+def up(count: int | None = None, instance: Instance | None = None, desktop: list[str] | None = None,
+       class_roster: Path | None = None) -> Classroom:
     """Boot the instance's classroom (default 4 hosts); a running one is left as it is.
 
     Hosts named in `desktop` emulate Ubuntu Desktop (NetworkManager) instead of Server.
+    `class_roster`: the hosts a class's roster names, with its settings where the sandbox can
+    serve them (`class_roster.sandbox_roster`; a note is logged for each it cannot).
     """
     instance = instance or Instance.from_env()
     with file_lock(_instance_lock(instance)):
@@ -121,8 +127,17 @@ def up(count: int | None = None, instance: Instance | None = None, desktop: list
             running = load(instance)
         except SandboxError:
             running = None
-        wanted = instance.plan_hosts(count or (len(running.hosts) if running else DEFAULT_HOSTS), desktop or ())
-        if running and running.hosts != wanted and (count is not None or desktop):
+        if class_roster is not None:
+            if count is not None:
+                raise SandboxError("--hosts and --roster: the roster says which hosts there are")
+            class_roster = Path(class_roster).resolve()
+            wanted = instance.plan_members(_class_members(class_roster), desktop or ())
+        elif running is not None and running.class_roster is not None and count is None and not desktop:
+            wanted, class_roster = running.hosts, running.class_roster  # `up` again: what runs
+        else:
+            wanted = instance.plan_hosts(count or (len(running.hosts) if running else DEFAULT_HOSTS), desktop or ())
+        if running and (running.hosts != wanted or running.class_roster != class_roster) and (
+                count is not None or desktop or class_roster is not None or running.class_roster is not None):
             raise SandboxError(
                 f"sandbox {instance.name!r} is running with other hosts: run `roslab sandbox down` first"
             )
@@ -130,7 +145,7 @@ def up(count: int | None = None, instance: Instance | None = None, desktop: list
             return running
         _down_locked(instance)  # leftovers of a crashed or half-started run
         try:
-            return _up_locked(instance, wanted)
+            return _up_locked(instance, wanted, class_roster)
         except BaseException:
             _down_locked(instance)
             raise
@@ -166,15 +181,35 @@ def _healthy(classroom: Classroom) -> bool:
     return all(hosts.is_running(classroom.instance, host.name) for host in classroom.hosts)
 
 
-def _up_locked(instance: Instance, planned: list[SandboxHost]) -> Classroom:
+def _class_members(path: Path) -> list[dict]:
+    """The hosts of the class's roster (checked as every roslab command checks it), noting each
+    the sandbox cannot give what the roster asks."""
+    from roslab.roster import RosterError, load_roster
+
+    from .class_roster import members
+
+    try:
+        classroom = load_roster(path)
+    except RosterError as error:
+        raise SandboxError(f"--roster {path}: the roster has errors:\n{error}") from None
+    found, notes = members(classroom)
+    for note in notes:
+        log.warning("note: %s", note)
+    return found
+
+
+def _up_locked(instance: Instance, planned: list[SandboxHost], class_roster: Path | None = None) -> Classroom:
     started = time.monotonic()
-    classroom = Classroom(instance, planned)
+    classroom = Classroom(instance, planned, class_roster)
     rootfs = image.base_image()
     instance.state_dir.mkdir(parents=True, mode=0o700)
     desktop = [host.name for host in planned if host.flavour == "desktop"]
     write_file(_state_file(instance), json.dumps(
         {"hosts": len(planned), "subnet": str(instance.subnet), "desktop": desktop,
-         "releases": list(releases_by_team())}) + "\n")
+         "releases": list(releases_by_team()),
+         **({"members": [{"name": host.name, "team": host.team, "role": host.role, "release": host.release}
+                         for host in planned], "class_roster": str(class_roster)} if class_roster else {})})
+        + "\n")
     _claim_machine(instance)
     run("ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-C", f"roslab-sandbox-{instance.name}",
         "-f", instance.key_path)
@@ -216,9 +251,11 @@ def roster(classroom: Classroom, published: upstream.Upstream) -> dict:
     instance = classroom.instance
     teams: dict[str, dict] = {}
     for host in classroom.hosts:
+        number = host.team.removeprefix("team")
         team = teams.setdefault(host.team, {
             "ubuntu_release": host.release,
-            "ros_domain_id": 10 + int(host.team.removeprefix("team")),
+            # team1: 11, team2: 12...; a class's own team names (up --roster) keep the class's IDs
+            **({"ros_domain_id": 10 + int(number)} if number.isdigit() else {}),
             "hosts": {},
         })
         team["hosts"][host.name] = {"role": host.role, "address": host.address}
@@ -242,7 +279,24 @@ def write_roster(classroom: Classroom, published: upstream.Upstream) -> None:
     header = (f"# Roster of the roslab sandbox {instance.name!r}, written by `roslab sandbox up`\n"
               "# and removed by `roslab sandbox down`. Its settings point at the sandbox's local\n"
               "# upstream exactly as a real classroom's would point at a mirror.\n")
-    write_file(instance.roster_path, header + yaml.safe_dump(roster(classroom, published), sort_keys=False))
+    written = roster(classroom, published)
+    if classroom.class_roster is not None:
+        from .class_roster import sandbox_roster
+
+        written, notes = sandbox_roster(classroom.class_roster, written,
+                                        {host.name: host.address for host in classroom.hosts},
+                                        {host.name: host.release for host in classroom.hosts})
+        header += f"# Its hosts and settings are the class's in {classroom.class_roster} (`up --roster`).\n"
+        for note in notes:
+            log.warning("note: %s", note)
+    write_file(instance.roster_path, header + yaml.safe_dump(written, sort_keys=False))
+    if classroom.class_roster is not None:
+        from roslab.roster import RosterError, load_roster
+
+        try:  # before any host boots: a class setting the sandbox cannot take is named here
+            load_roster(instance.roster_path)
+        except RosterError as error:
+            raise SandboxError(f"the sandbox's copy of {classroom.class_roster} has errors:\n{error}") from None
     key_file = instance.state_dir / "ros-archive-key.asc"
     write_file(key_file, upstream.ros_key().armored.read_bytes())
     write_file(instance.state_dir / "upstream.yaml",
@@ -283,6 +337,7 @@ def _release_machine() -> None:
 def down(instance: Instance | None = None) -> None:
     """Stop and remove everything the instance made; safe to run on anything left over."""
     instance = instance or Instance.from_env()
+    sweep_discarded(STATE_ROOT)  # what an earlier down could not finish deleting (a reboot)
     with file_lock(_instance_lock(instance)):
         _down_locked(instance)
     _release_machine()
@@ -304,8 +359,8 @@ def _down_locked(instance: Instance) -> None:
         if instance.state_dir.exists():
             hosts.unmount_all(instance.state_dir)
         hosts.remove_network(instance)
-        if instance.state_dir.exists():
-            shutil.rmtree(instance.state_dir)
+        # Gone at once; its files (a converged host's overlay: ~557 MB) are deleted in the background.
+        discard(instance.state_dir, STATE_ROOT)
 
 
 # -- status, reset, reboot -------------------------------------------------------------------

@@ -9,7 +9,9 @@ from pathlib import Path
 
 from roslab import identity
 from roslab.network.state import last_known_addresses
-from roslab.reach import RosterProblem, add_roster_argument, load_classroom
+from roslab.reach import (
+    RosterProblem, add_limit_argument, add_roster_argument, load_classroom, select_roster_hosts,
+)
 from roslab.roster import display_path
 from roslab.roster.inventory import known_addresses
 from roslab.seed import targets, tools
@@ -55,19 +57,15 @@ def run_seed(args: argparse.Namespace) -> int:
         print(problem, file=sys.stderr)
         return 1
     path = classroom.path
-    hosts = classroom.hosts
-    if args.host:
-        by_name = {host.name: host for host in hosts}
-        unknown = [name for name in args.host if name not in by_name]
-        if unknown:
-            print(f"roslab seed: no host {', '.join(map(repr, unknown))} in {display_path(path)} "
-                  f"(it has: {', '.join(sorted(by_name))})", file=sys.stderr)
-            return 2
-        hosts = [by_name[name] for name in dict.fromkeys(args.host)]
-    if (args.boot_partition or args.image) and (not args.host or len(hosts) != 1):
+    hosts, unknown = select_roster_hosts(classroom, args.limit)
+    if unknown:
+        print(f"roslab seed: --limit {', '.join(map(repr, unknown))} selects no host of {display_path(path)} "
+              f"(it has: {', '.join(sorted(host.name for host in classroom.hosts))})", file=sys.stderr)
+        return 2
+    if (args.boot_partition or args.image) and (not args.limit or len(hosts) != 1):
         # A card is one Pi's identity: name it, so no card gets another Pi's key by accident.
-        print("roslab seed: --boot-partition and --image take the seed of one host: give one --host NAME",
-              file=sys.stderr)
+        print("roslab seed: --boot-partition and --image take the seed of one host: give --limit HOST "
+              f"(one host; it selects {len(hosts)})", file=sys.stderr)
         return 2
     try:
         if args.boot_partition:
@@ -178,7 +176,7 @@ def register(commands) -> None:
         "SSH host key (generated once, kept beside the roster), its network, locale, time zone and "
         "time sync. Checked with cloud-init's and netplan's own parsers before anything is written.",
     )
-    add_roster_argument(seed, limit=False)  # one host is named with --host (a card is one Pi)
+    add_roster_argument(seed, limit=False)  # --limit below: one host for a card (a card is one Pi)
     where = seed.add_mutually_exclusive_group(required=True)
     where.add_argument("--out", metavar="DIR", help="write DIR/<host>/{user-data,network-config,meta-data}")
     where.add_argument("--boot-partition", metavar="PATH",
@@ -186,5 +184,5 @@ def register(commands) -> None:
     where.add_argument("--image", metavar="FILE",
                        help="a raw Ubuntu Pi image: its boot partition is written with mtools, "
                        "not mounted (with --host)")
-    seed.add_argument("--host", action="append", metavar="NAME", help="only this host (repeatable)")
+    add_limit_argument(seed, " (--boot-partition, --image: one host)")
     seed.set_defaults(run=run_seed)

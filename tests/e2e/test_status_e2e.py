@@ -143,3 +143,35 @@ def test_listen_says_the_stand_in_ros_has_no_runtime_and_stays_bounded(class_con
     assert "team team2: no ROS runtime on team2-main: not verified" in result.stdout
     page = runs.runs_path(sandbox.roster_path).parent / "status.html"
     assert "topics heard: no ROS 2 runtime on the main host" in page.read_text()
+
+
+def test_a_stopped_discovery_server_is_named_by_status_and_verify(class_converged, tmp_path):
+    """team1 on a Fast DDS discovery server (a class on Fast DDS, as test_discovery_e2e runs it):
+    with the server stopped, both nodes services still run and the main hears nothing; status
+    and verify name the server, not the topic."""
+    import yaml
+
+    sandbox, _ = class_converged
+    data = yaml.safe_load(sandbox.roster_path.read_text())
+    data["classroom"]["ros_middleware"] = "rmw_fastrtps_cpp"
+    data["teams"]["team1"]["ros_discovery_mode"] = "discovery_server"
+    roster = tmp_path / "roster.yaml"
+    roster.write_text(yaml.safe_dump(data, sort_keys=False))
+    run = sandbox.pyinfra("--limit", "team1", inventory="inventories/lab.py", env={"ROSLAB_ROSTER": str(roster)})
+    assert run.returncode == 0, run.stderr[-6000:]
+    sandbox.sudo("team1-main", "systemctl stop roslab-discovery-server; systemctl reset-failed roslab-discovery-server",
+                 check=True)
+    stopped = "roslab-discovery-server.service on team1-main is inactive (dead)"
+
+    result = subprocess.run([sys.executable, "-m", "roslab", "status", str(roster), "--limit", "team1",
+                             "--html", str(tmp_path / "status.html")],
+                            env=sandbox.env, capture_output=True, text=True, timeout=120)
+    rows = table(result.stdout)
+    assert rows["team1-main"]["NODES"] == "active (running)", rows["team1-main"]
+    assert rows["team1-main"]["NOTE"].startswith(stopped), rows["team1-main"]
+    assert rows["team1-robot"]["NOTE"] == "", rows["team1-robot"]
+
+    verified = subprocess.run([sys.executable, "-m", "roslab", "verify", str(roster), "--limit", "team1"],
+                              env=sandbox.env, capture_output=True, text=True, timeout=300)
+    assert verified.returncode == 1, verified.stdout + verified.stderr
+    assert f"FAIL {stopped}" in verified.stdout, verified.stdout

@@ -8,10 +8,12 @@ names each with the step and the reason; the other two hosts carry on and are `c
 
 from __future__ import annotations
 
+import subprocess
+
 import pytest
 import yaml
 
-from tests.e2e.conftest import summary_lines
+from tests.e2e.conftest import BIN, REPO, summary_lines
 
 pytestmark = pytest.mark.e2e
 
@@ -49,3 +51,35 @@ def test_a_failed_host_is_named_with_its_step_and_reason_and_the_others_carry_on
         assert by_host[host] == f"{host} changed", by_host[host]  # fresh hosts: provisioned
     assert last == "exit code 1: 2 failed, 2 changed, 0 ok (4 hosts)", last
     assert "executed 0 commands" not in "\n".join(rows)
+
+
+SCREEN = 30  # lines: a no-op and a converged --dry of the 4-host class fit one terminal screen
+
+
+def plain_pyinfra(sandbox, *args: str) -> subprocess.CompletedProcess:
+    """pyinfra as a teacher runs it (no --json): the compact output and roslab's summary."""
+    return subprocess.run([str(BIN / "pyinfra"), *args, "inventories/sandbox.py", "deploy.py"], cwd=REPO,
+                          env={**sandbox.env, "COLUMNS": "120"}, capture_output=True, text=True, timeout=1800)
+
+
+def test_a_no_op_and_a_converged_dry_run_fit_one_screen(fresh_hosts):
+    converge = fresh_hosts.pyinfra()
+    assert converge.returncode == 0, converge.stderr[-6000:]
+
+    no_op = plain_pyinfra(fresh_hosts, "-y")
+    shown = (no_op.stdout + no_op.stderr).splitlines()
+    print("\n".join(["--- the no-op, as a teacher sees it:", *shown]))  # pytest -s shows it
+    assert no_op.returncode == 0, "\n".join(shown[-60:])
+    assert len(shown) <= SCREEN, "\n".join(shown)
+    assert "Grand total" not in no_op.stderr and "No Change" not in no_op.stderr  # pyinfra's results table
+    assert "exit code 0: 0 failed, 0 changed, 4 ok (4 hosts)" in no_op.stderr, no_op.stderr
+
+    dry = plain_pyinfra(fresh_hosts, "--dry")
+    shown = (dry.stdout + dry.stderr).splitlines()
+    print("\n".join(["--- the converged --dry:", *shown]))
+    assert dry.returncode == 0, "\n".join(shown[-60:])
+    assert len(shown) <= SCREEN, "\n".join(shown)
+    assert "Conditional Change" not in dry.stderr, dry.stderr  # "4 (...)" rows for restarts that will not run
+    assert any(line.strip() == "nothing would change on any host" for line in shown), dry.stderr
+    assert "Ready: deploy.py" not in dry.stderr  # one line per host that says nothing
+    assert "exit code 0: 0 failed, 0 changed, 4 ok (4 hosts)" in dry.stderr, dry.stderr

@@ -30,9 +30,9 @@ def test_check_prints_the_classroom_as_aligned_columns(capsys):
     header, *rows = out[1:]
     assert header.split() == list(TABLE_COLUMNS)
     assert [row.split() for row in rows] == [
-        ["team1", "team1-main", "main", "127.0.0.11", "24.04", "jazzy", "desktop", "11", "multicast"],
-        ["team1", "team1-robot", "robot", "127.0.0.12", "24.04", "jazzy", "ros-base", "11", "multicast"],
-        ["team-2", "team2-main", "main", "127.0.0.21", "22.04", "humble", "desktop", "12", "multicast"],
+        ["team1", "team1-main", "main", "127.0.0.11", "24.04", "jazzy", "desktop", "11", "multicast", "demo"],
+        ["team1", "team1-robot", "robot", "127.0.0.12", "24.04", "jazzy", "ros-base", "11", "multicast", "demo"],
+        ["team-2", "team2-main", "main", "127.0.0.21", "22.04", "humble", "desktop", "12", "multicast", "demo"],
     ]
     assert out[0].endswith(", middleware rmw_fastrtps_cpp")
     # Every column starts at the same offset on every line.
@@ -200,5 +200,51 @@ def test_check_shows_an_assigned_domain_id_and_each_teams_mode(tmp_path, capsys)
     """))
     assert main(["check", str(roster)]) == 0
     rows = [line.split() for line in capsys.readouterr().out.splitlines()[2:]]
-    assert [row[7:] for row in rows] == [["5", "static"],
+    assert [row[7:-1] for row in rows] == [["5", "static"],
                                         [str(preferred_domain_id("bravo")), "(auto)", "discovery_server"]]
+
+
+@pytest.mark.parametrize(("limits", "named", "hint"), [
+    (["team1,team_2"], "'team1,team_2'", "for several, repeat the option: --limit team1 --limit team_2"),
+    (["team1", "tem1"], "'tem1'", "did you mean 'team1'?"),  # one typo among patterns that match
+    (["team-2"], "'team-2'", "did you mean 'team_2'?"),  # the group of team-2 is team_2
+])
+def test_a_pyinfra_limit_that_selects_no_host_stops_the_run_naming_it(limits, named, hint, tmp_path):
+    # Real pyinfra, the checkout's inventory: it stops before connecting to any host (the
+    # fixture's loopback addresses have no SSH server; a connection attempt would show).
+    argv = [str(Path(sys.executable).parent / "pyinfra"), "-y", "inventories/lab.py", "deploy.py"]
+    for limit in limits:
+        argv += ["--limit", limit]
+    result = subprocess.run(argv, cwd=REPO, env={**os.environ, "ROSLAB_ROSTER": str(FIXTURE)},
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2, result.stdout + result.stderr
+    line = next(line for line in result.stderr.splitlines() if line.startswith("roslab: --limit"))
+    assert line.startswith(f"roslab: --limit {named} selects no host of the roster"), line
+    assert hint in line and line.endswith("nothing was run"), line
+    assert "Connecting" not in result.stdout + result.stderr and "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize("command", ["verify", "status"])
+def test_roslab_commands_name_a_limit_that_selects_no_host(command, capsys):
+    assert main([command, str(FIXTURE), "--limit", "team1", "--limit", "team1,team-2"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"roslab {command}: --limit 'team1,team-2' selects no host of the roster"), err
+    assert "--limit team1 --limit team-2" in err and "Traceback" not in err
+
+
+def test_trust_and_seed_take_hosts_by_limit_as_every_command_does(tmp_path, capsys):
+    from roslab.reach import select_roster_hosts
+    from roslab.roster import load_roster
+
+    classroom = load_roster(FIXTURE)
+    names = lambda patterns: [host.name for host in select_roster_hosts(classroom, patterns)[0]]  # noqa: E731
+    assert names(["team-2"]) == names(["team_2"]) == ["team2-main"]  # the team, or its pyinfra group
+    assert names(["robot"]) == ["team1-robot"] and names(["jazzy"]) == ["team1-main", "team1-robot"]
+    assert names(["team1-*"]) == ["team1-main", "team1-robot"] and len(names(None)) == 3
+    assert select_roster_hosts(classroom, ["team1", "nosuch"])[1] == ["nosuch"]
+
+    out = tmp_path / "seeds"
+    assert main(["seed", str(FIXTURE), "--out", str(out), "--limit", "nosuch"]) == 2
+    assert "--limit 'nosuch' selects no host of" in capsys.readouterr().err
+    assert main(["trust", str(FIXTURE), "--limit", "team1,team-2"]) == 2
+    assert "--limit 'team1,team-2' selects no host of" in capsys.readouterr().err

@@ -66,3 +66,49 @@ def test_an_emptied_cgroup_is_removed(cgroup):
 def test_a_pid_that_is_gone_counts_as_exited():
     assert hosts._is_zombie(PID)
     assert not hosts._is_zombie(os.getpid())
+
+
+# Removing a host's files: gone at once, deleted in the background --------------------------
+
+def test_a_discarded_tree_is_gone_at_once_and_deleted_in_the_background(tmp_path):
+    import time
+
+    from roslab.sandbox import system
+
+    root = tmp_path / "sandbox"
+    upper = root / "class1" / "hosts" / "team1-main" / "upper"
+    for index in range(2000):  # a converged host's upper dir: many files (tens of thousands)
+        (upper / f"d{index % 20}").mkdir(parents=True, exist_ok=True)
+        (upper / f"d{index % 20}" / f"f{index}").write_bytes(b"x" * 64)
+    (upper / "locked").mkdir()
+    (upper / "locked" / "file").write_text("root deletes what it cannot read")
+    (upper / "locked").chmod(0o000)
+
+    started = time.monotonic()
+    system.discard(upper, root)
+    assert time.monotonic() - started < 2  # one rename and a detached rm: not a delete
+    assert not upper.exists() and upper.parent.is_dir()  # the host's other directories stay
+
+    deadline = time.monotonic() + 60
+    while any((root / system.DISCARDED_DIR).iterdir()) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert list((root / system.DISCARDED_DIR).iterdir()) == []
+    assert sorted(path.name for path in root.iterdir()) == [system.DISCARDED_DIR, "class1"]
+
+
+def test_a_delete_cut_short_is_finished_by_the_next_sweep(tmp_path):
+    import time
+
+    from roslab.sandbox import system
+
+    root = tmp_path / "sandbox"
+    left = root / system.DISCARDED_DIR / "class1-123-456" / "hosts"
+    left.mkdir(parents=True)
+    (left / "file").write_text("x")
+    system.discard(root / "nothing-here", root)  # nothing to discard: nothing happens
+    system.sweep_discarded(root)
+    deadline = time.monotonic() + 30
+    while (root / system.DISCARDED_DIR / "class1-123-456").exists() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not (root / system.DISCARDED_DIR / "class1-123-456").exists()
+

@@ -450,3 +450,111 @@ def test_status_flags_nodes_running_another_middleware_than_the_roster_says():
     cells = host_cells(host, NOW)
     assert (cells["DISCOVERY"].text, cells["DISCOVERY"].level) == ("multicast (rmw_fastrtps_cpp)", "bad")
     assert "its nodes run rmw_fastrtps_cpp, the roster says rmw_cyclonedds_cpp" in cells["NOTE"].text
+
+
+# judged by what each host's profile runs (roslab.host_services) ---------------------------
+
+from roslab.host_services import HostService  # noqa: E402
+
+NOT_FOUND = {"LoadState": "not-found", "ActiveState": "inactive", "SubState": "dead"}
+DISCOVERY_SERVER = HostService("roslab-discovery-server.service", "the team's Fast DDS discovery server", "discovery")
+
+
+def turtlebot3_team() -> list:
+    main = reachable_host(name="blue-main", team="blue", profile="turtlebot3", runs_nodes=False)
+    main.probe = {**main.probe, "unit": dict(NOT_FOUND)}
+    robot = reachable_host(name="blue-robot", role="robot", team="blue", profile="turtlebot3")
+    return [main, robot]
+
+
+def test_a_main_whose_profile_runs_no_nodes_is_green_not_not_installed():
+    hosts = turtlebot3_team()
+    cells = host_cells(hosts[0], NOW)
+    assert (cells["NODES"].text, cells["NODES"].level) == ("none (turtlebot3 main)", "ok")
+    assert "not installed" not in format_table(hosts, NOW)
+    context = page_context("lab", "x", hosts, NOW)
+    picture = context["teams"][0]
+    assert (picture["verdict"], picture["verdict_level"]) == ("2 of 2 hosts run their services", "ok")
+    assert [box["level"] for box in picture["boxes"]] == ["ok", "ok"]
+    assert context["counts"][2] == {"text": "2 running their services", "level": "ok"}
+    # Listening: the robot heard on /scan passes the team; no "not installed" line over it.
+    hosts[0].heard = {"ros": True, "topics": ["/scan"], "message": "header: {}", "robot": None,
+                      "echo_status": 0, "daemon_stopped": False, "finished": True}
+    picture = page_context("lab", "x", hosts, NOW, listen=True, topics={"blue": "/scan"},
+                           message_types={"blue": "sensor_msgs/msg/LaserScan"})["teams"][0]
+    assert picture["verdict_level"] == "ok" and "not installed" not in picture["verdict"]
+
+
+def test_a_sim_team_has_nothing_to_hear_and_is_green():
+    sim = reachable_host(name="sim1-main", team="sim1", profile="sim", runs_nodes=False, listens=False)
+    sim.probe = {**sim.probe, "unit": dict(NOT_FOUND)}
+    for listen in (False, True):
+        picture = page_context("lab", "x", [sim], NOW, listen=listen)["teams"][0]
+        assert picture["verdict_level"] == "ok", picture["verdict"]
+        assert picture["verdict"].startswith("nothing to hear: robot profile sim names no robot on sim1-main")
+        assert picture["texts"][0]["text"] == "topics heard: nothing to hear (robot profile sim)"
+
+
+def test_a_stopped_discovery_server_is_named_in_the_row_and_the_team():
+    main, robot = reachable_host(discovery_mode="discovery_server"), reachable_host(name="team1-robot", role="robot")
+    main.other_services = [DISCOVERY_SERVER]
+    main.probe = {**main.probe, "units": {DISCOVERY_SERVER.unit: {"LoadState": "loaded", "ActiveState": "inactive",
+                                                                   "SubState": "dead"}}}
+    note = host_cells(main, NOW)["NOTE"]
+    assert note.level == "warn" and note.text == (
+        "roslab-discovery-server.service on team1-main is inactive (dead) (the team's Fast DDS discovery server: "
+        "without it the team's hosts do not find each other)")
+    picture = page_context("lab", "x", [main, robot], NOW)["teams"][0]
+    assert picture["verdict_level"] == "bad" and "roslab-discovery-server.service on team1-main" in picture["verdict"]
+    main.heard = {"ros": True, "topics": [], "message": None, "robot": None, "echo_status": 124,
+                  "daemon_stopped": False, "finished": True}
+    picture = page_context("lab", "x", [main, robot], NOW, listen=True)["teams"][0]
+    assert picture["verdict"].startswith("roslab-discovery-server.service on team1-main is inactive (dead)")
+    main.probe["units"][DISCOVERY_SERVER.unit] = {"LoadState": "loaded", "ActiveState": "active",
+                                                  "SubState": "running"}
+    assert host_cells(main, NOW)["NOTE"].text == ""
+
+
+def test_the_probe_reads_each_other_service_in_its_own_section():
+    script = status.probe_script(others=("roslab-discovery-server.service",))
+    assert "systemctl show --property=LoadState,ActiveState,SubState,Result roslab-discovery-server.service" in script
+    lines = [line for line in PROBE_OUTPUT if line != "## end"] + [
+        "## unit roslab-discovery-server.service", "LoadState=loaded", "ActiveState=failed", "SubState=failed",
+        "Result=exit-code", "## end"]
+    probe = parse_probe(lines)
+    assert probe["unit"]["SubState"] == "running"  # the nodes' own section is untouched
+    assert probe["units"] == {"roslab-discovery-server.service": {
+        "LoadState": "loaded", "ActiveState": "failed", "SubState": "failed", "Result": "exit-code"}}
+    output = subprocess.run(["sh", "-c", script], capture_output=True, text=True, timeout=30)
+    assert "roslab-discovery-server.service" in parse_probe(output.stdout.splitlines())["units"]
+
+
+def test_listen_waits_as_long_as_verify_and_says_how_long_it_waited():
+    assert status.build_parser().parse_args([]).listen_timeout is None  # the roster's nodes_verify_timeout
+    assert status.LISTEN_TIMEOUT >= 20
+    main, robot = reachable_host(listen_timeout=20), reachable_host(name="team1-robot", role="robot")
+    main.heard = {"ros": True, "topics": ["/chatter"], "message": None, "robot": None, "echo_status": 124,
+                  "daemon_stopped": False, "finished": True}
+    picture = page_context("lab", "x", [main, robot], NOW, listen=True)["teams"][0]
+    assert picture["verdict"] == "/chatter listed but no message within 20 s"
+    picture = page_context("lab", "x", [main, robot], NOW, listen=True, listen_timeout=7)["teams"][0]
+    assert picture["verdict"] == "/chatter listed but no message within 7 s"
+
+
+def test_status_reads_what_each_host_runs_from_the_roster(tmp_path):
+    roster = tmp_path / "classroom.yaml"
+    roster.write_text(yaml.safe_dump({
+        "classroom": {"ssh_user": "ubuntu", "ubuntu_release": "24.04", "nodes_verify_timeout": 35},
+        "teams": {
+            "team1": {"ros_discovery_mode": "discovery_server", "hosts": {
+                "team1-main": {"role": "main", "address": "127.0.0.1"},
+                "team1-robot": {"role": "robot", "address": "127.0.0.2"}}},
+        },
+    }, sort_keys=False))
+    from roslab.roster import inventory_groups, load_roster
+
+    classroom = load_roster(roster)
+    statuses = {s.name: s for s in status.host_statuses(classroom, inventory_groups(classroom))}
+    assert [s.unit for s in statuses["team1-main"].other_services] == ["roslab-discovery-server.service"]
+    assert statuses["team1-robot"].other_services == [] and statuses["team1-robot"].runs_nodes
+    assert statuses["team1-main"].listen_timeout == 35

@@ -632,3 +632,122 @@ def test_a_lost_host_keeps_the_steps_own_words_when_it_had_any():
     assert "lost the connection to the host during this step" in line
     assert line.endswith("(Network change not confirmed at 10.0.0.11, and the host does not answer at 10.0.0.200 "
                          "either)"), line
+# pyinfra's tables in the compact output ---------------------------------------------------
+
+PLAN_TABLE = ["    Operation    Change    Conditional Change",
+              "    Ensure the unit    -    -",
+              "    Restart roslab-nodes    -    2 (team1-main, team1-robot)"]
+RESULTS_TABLE = ["    Operation    Hosts    Success    Error    No Change",
+                 "    Ensure the unit    2    -    -    2", "    Grand total    2    -    -    2"]
+
+
+def compact_log(state, name):
+    shown: list[str] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record):
+            shown.append(record.getMessage())
+
+    log = logging.getLogger(name)
+    log.propagate = False
+    log.setLevel(logging.INFO)
+    log.handlers = [Collect()]
+    compact = summary.CompactOutput(log, long_step=None)
+    compact.state = state
+    log.addFilter(compact)
+    return log, compact, shown
+
+
+def test_a_converged_plan_shows_no_conditional_restart_and_keeps_the_state_unexecuted():
+    state, handler = classroom("team1-main", "team1-robot")
+    restarts = []
+    for name in ("team1-main", "team1-robot"):
+        unit = operation_on(state, name, "op-unit", "Ensure the unit", changed=False)
+        restarts.append(conditional(state, name, "op-restart", "Restart roslab-nodes", unit.did_change))
+    log, compact, shown = compact_log(state, "roslab-test-plan")
+    try:
+        for line in ["--> Detected changes:", *PLAN_TABLE, "--> Disconnecting from hosts..."]:
+            log.info(line)
+    finally:
+        log.removeFilter(compact)
+    assert shown == ["--> Detected changes:", "nothing would change on any host", "--> Disconnecting from hosts..."]
+    # Nothing was executed by looking: pyinfra would still run every operation.
+    assert not any(op.operation_meta.is_complete() for ops in state.ops.values() for op in ops.values())
+    assert [meta.is_complete() for meta in restarts] == [False, False]
+
+
+def test_a_plan_names_each_step_that_would_change_with_its_hosts():
+    state, handler = classroom("team1-main", "team1-robot")
+    for name in ("team1-main", "team1-robot"):
+        unit = operation_on(state, name, "op-unit", "Ensure the unit", changed=name == "team1-robot")
+        conditional(state, name, "op-restart", "Restart roslab-nodes", unit.did_change)
+    log, compact, shown = compact_log(state, "roslab-test-plan-changes")
+    try:
+        for line in ["--> Detected changes:", *PLAN_TABLE]:
+            log.info(line)
+    finally:
+        log.removeFilter(compact)
+    assert shown == ["--> Detected changes:", "Ensure the unit: team1-robot", "Restart roslab-nodes: team1-robot"]
+
+
+def test_the_results_of_a_no_op_are_not_shown_and_a_change_names_its_hosts():
+    state, handler = classroom("team1-main", "team1-robot")
+    for name in ("team1-main", "team1-robot"):
+        operation_on(state, name, "op-unit", "Ensure the unit", changed=False)
+    state.set_stage(StateStage.Execute)
+    state.is_executing = True
+    for name in ("team1-main", "team1-robot"):
+        executed(state, handler, name, "op-unit", success=True, commands=0)
+    log, compact, shown = compact_log(state, "roslab-test-results")
+    try:
+        for line in ["--> Results:", *RESULTS_TABLE, "--> Disconnecting from hosts..."]:
+            log.info(line)
+    finally:
+        log.removeFilter(compact)
+    assert shown == ["--> Disconnecting from hosts..."]
+
+    state, handler = classroom("team1-main", "team1-robot")
+    for name in ("team1-main", "team1-robot"):
+        operation_on(state, name, "op-unit", "Ensure the unit", changed=True)
+    state.set_stage(StateStage.Execute)
+    state.is_executing = True
+    executed(state, handler, "team1-main", "op-unit", success=True)
+    executed(state, handler, "team1-robot", "op-unit", success=False)
+    log, compact, shown = compact_log(state, "roslab-test-results-changed")
+    try:
+        for line in ["--> Results:", *RESULTS_TABLE]:
+            log.info(line)
+    finally:
+        log.removeFilter(compact)
+    assert shown == ["--> Results:", "Ensure the unit: changed on team1-main; failed on team1-robot"]
+
+
+def test_a_step_named_with_a_hosts_value_is_shown_with_each_hosts_own_name():
+    # One operation, two names: "Ensure ROS 2 jazzy ..." on one host, "... humble ..." on the other.
+    state, handler = classroom("team1-main", "team2-main")
+    for name, distro in (("team1-main", "jazzy"), ("team2-main", "humble")):
+        operation_on(state, name, "op-ros", f"Ensure ROS 2 {distro} is installed", changed=True)
+        state.ops[state.inventory.get_host(name)]["op-ros"].global_arguments["name"] = \
+            f"Ensure ROS 2 {distro} is installed"
+    log, compact, shown = compact_log(state, "roslab-test-plan-names")
+    try:
+        log.info("--> Detected changes:")
+    finally:
+        log.removeFilter(compact)
+    assert shown == ["--> Detected changes:", "Ensure ROS 2 jazzy is installed: team1-main",
+                     "Ensure ROS 2 humble is installed: team2-main"]
+
+
+def test_the_hosts_ready_lines_are_not_shown_but_a_step_s_lines_are():
+    state, handler = classroom("team1-main")
+    log, compact, shown = compact_log(state, "roslab-test-ready")
+    try:
+        for line in ["--> Preparing operation files...", "    Loading: deploy.py", "    [team1-main] Ready: deploy.py",
+                     "--> Starting operation: Ensure the unit", "    [team1-main] Success"]:
+            log.info(line)
+        log.warning("    [team1-main] a warning while planning")
+    finally:
+        log.removeFilter(compact)
+    assert shown == ["--> Preparing operation files...", "    Loading: deploy.py",
+                     "--> Starting operation: Ensure the unit", "    [team1-main] Success",
+                     "    [team1-main] a warning while planning"]

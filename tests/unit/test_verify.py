@@ -373,3 +373,172 @@ def test_any_message_of_the_type_passes_a_team_whose_topic_names_no_robot():
     stopped = result("team3", heard=heard(message="header: {}"), topic="/scan", message_type=SCAN)
     stopped.services["team3-robot"] = "failed (exit-code)"
     assert not stopped.passed and "roslab-nodes.service on team3-robot is failed" in stopped.verdict()
+
+
+# Judged by what the profile runs (roslab.host_services)
+# ------------------------------------------------------
+
+from test_profiles import _in_tmp, rosdistro_url, write  # noqa: E402,F401  (fixtures)
+
+from roslab.host_services import HostService, host_services  # noqa: E402
+from roslab.roster import load_roster  # noqa: E402
+
+DISCOVERY_SERVER = HostService("roslab-discovery-server.service", "the team's Fast DDS discovery server", "discovery")
+
+
+def turtlebot3_and_sim_class(tmp_path, url, classroom_extra="", demo_discovery="discovery_server"):
+    return load_roster(write(tmp_path, f"""\
+        classroom:
+          ssh_user: ubuntu
+          rosdistro_index_url: {url}
+          rosdep_cache_dir: cache
+          {classroom_extra}
+        teams:
+          blue:
+            ubuntu_release: "24.04"
+            robot_profile: turtlebot3
+            turtlebot3_model: burger
+            lds_model: LDS-03
+            hosts:
+              blue-main: {{role: main}}
+              blue-robot: {{role: robot}}
+          sim1:
+            ubuntu_release: "24.04"
+            robot_profile: sim
+            hosts:
+              sim1-main: {{role: main}}
+          demo:
+            ubuntu_release: "24.04"
+            ros_discovery_mode: {demo_discovery}
+            hosts:
+              demo-main: {{role: main}}
+              demo-robot: {{role: robot}}
+        """))
+
+
+def test_each_host_runs_the_services_its_profile_and_discovery_give_it(tmp_path, rosdistro_url):
+    classroom = turtlebot3_and_sim_class(tmp_path, rosdistro_url)
+    units = {host.name: [service.unit for service in host_services(host.data)] for host in classroom.hosts}
+    assert units == {
+        "blue-main": [],  # a TurtleBot3's main runs nothing: teleop and RViz are the students'
+        "blue-robot": ["roslab-nodes.service"],
+        "sim1-main": [],  # the simulation is started by hand from the desktop
+        "demo-main": ["roslab-discovery-server.service", "roslab-nodes.service"],
+        "demo-robot": ["roslab-nodes.service"],
+    }
+
+
+def test_a_zenoh_main_runs_the_router_and_a_switched_off_deploy_runs_nothing(tmp_path, rosdistro_url):
+    classroom = turtlebot3_and_sim_class(tmp_path, rosdistro_url, "ros_middleware: rmw_zenoh_cpp", "static")
+    units = {host.name: [service.unit for service in host_services(host.data)] for host in classroom.hosts}
+    assert units["blue-main"] == ["roslab-zenoh-router.service"]
+    assert units["sim1-main"] == ["roslab-zenoh-router.service"]  # its own router, on the loopback
+    assert units["blue-robot"] == ["roslab-nodes.service"]
+    data = next(host.data for host in classroom.hosts if host.name == "blue-main")
+    assert host_services({**data, "discovery_enabled": False}) == []
+    robot = next(host.data for host in classroom.hosts if host.name == "blue-robot")
+    assert [s.unit for s in host_services({**robot, "nodes_service_enabled": False})] == []
+
+
+def test_a_sim_team_has_no_robot_to_hear_and_passes_on_what_its_main_runs():
+    sim = verify.TeamResult("sim1", main="sim1-main", robots=[], services={"sim1-main": "not installed"},
+                            without_service={"sim1-main"}, listens=False, profile="sim")
+    assert sim.passed
+    assert sim.verdict() == "nothing to hear: robot profile sim names no robot on sim1-main; roslab runs no service there"
+    row = verify.format_table([sim]).splitlines()[2]
+    assert "PASS nothing to hear" in row and "returned nothing" not in row
+    # Its services still count: a sim main on Zenoh runs its own router.
+    router = HostService("roslab-zenoh-router.service", "the team's Zenoh router", "discovery")
+    sim.other_services = [("sim1-main", router, "failed (exit-code)")]
+    assert not sim.passed and sim.verdict().startswith("roslab-zenoh-router.service on sim1-main is failed (exit-code)")
+
+
+def test_a_main_without_a_nodes_service_passes_whatever_is_left_of_an_old_unit():
+    # A main that once ran the demo and is now a TurtleBot3's: the deploy stopped and disabled the unit.
+    team = result("tb3", heard=heard(topics=("/scan",), message="header: {}"), topic="/scan",
+                  message_type=SCAN, without_service={"tb3-main"})
+    team.services["tb3-main"] = "inactive (dead)"
+    assert team.passed
+
+
+def test_a_stopped_discovery_server_is_named_as_the_cause():
+    # Both nodes services run; the main hears nothing because the server is down.
+    team = result("team6", heard=heard(topics=()))
+    team.other_services = [("team6-main", DISCOVERY_SERVER, "inactive (dead)")]
+    assert not team.passed
+    assert team.verdict() == ("roslab-discovery-server.service on team6-main is inactive (dead) (the team's Fast "
+                              "DDS discovery server: without it the team's hosts do not find each other)")
+    team.other_services = [("team6-main", DISCOVERY_SERVER, "active (running)")]
+    assert team.verdict() == "team6-main does not see /chatter"
+
+
+def test_check_shows_each_hosts_profile_and_its_settings(tmp_path, rosdistro_url, capsys):
+    from roslab.cli import main
+
+    turtlebot3_and_sim_class(tmp_path, rosdistro_url)
+    assert main(["check", str(tmp_path / "lab.yaml")]) == 0
+    rows = {line.split()[1]: line for line in capsys.readouterr().out.splitlines()[2:]}
+    assert rows["blue-main"].endswith("turtlebot3 (burger, LDS-03)")
+    assert rows["blue-robot"].endswith("turtlebot3 (burger, LDS-03)")
+    assert rows["sim1-main"].endswith("sim (burger)")
+    assert rows["demo-main"].endswith("demo")
+
+
+@pytest.mark.parametrize("command", ["verify", "status"])
+def test_a_host_that_accepts_and_hangs_up_is_one_line_not_a_traceback(command, tmp_path):
+    """A Pi whose sshd is still starting accepts the TCP connection and closes it: paramiko
+    would print two tracebacks ("Error reading SSH protocol banner")."""
+    import os
+    import socket
+    import threading
+
+    import yaml
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(16)
+    stop = threading.Event()
+
+    def hang_up():
+        server.settimeout(0.2)
+        while not stop.is_set():
+            try:
+                connection, _ = server.accept()
+            except OSError:
+                continue
+            connection.close()
+
+    thread = threading.Thread(target=hang_up, daemon=True)
+    thread.start()
+    roster = tmp_path / "classroom.yaml"
+    roster.write_text(yaml.safe_dump({
+        "classroom": {"ssh_user": "ubuntu", "ssh_port": server.getsockname()[1], "ubuntu_release": "24.04"},
+        "teams": {"team1": {"hosts": {"team1-main": {"role": "main", "address": "127.0.0.1"}}}},
+    }))
+    env = {key: value for key, value in os.environ.items() if key != "ROSLAB_ROSTER"}
+    try:
+        result = subprocess.run([sys.executable, "-m", "roslab", command, str(roster),
+                                 *(["--html", str(tmp_path / "s.html")] if command == "status" else [])],
+                                cwd=Path(__file__).resolve().parents[2], env=env, capture_output=True, text=True,
+                                timeout=120)
+    finally:
+        stop.set()
+        thread.join(timeout=5)
+        server.close()
+    output = result.stdout + result.stderr
+    assert result.returncode == 1, output
+    assert "Traceback" not in output and "paramiko" not in output, output
+    assert any("team1-main" in line and "SSH protocol banner" in line for line in output.splitlines()), output
+
+
+def test_the_opencr_step_names_the_robot_and_the_page_shows_the_command_as_code(tmp_path, rosdistro_url):
+    from roslab import status
+
+    classroom = turtlebot3_and_sim_class(tmp_path, rosdistro_url)
+    lists = {entry["host"]: entry["items"] for entry in status.checklists(classroom)}
+    (opencr,) = [item for item in lists["blue-robot"] if "OpenCR firmware" in item]
+    assert "`roslab opencr-update blue-robot`" in opencr and "HOST" not in opencr
+    assert "burger.opencr" in opencr
+    page = status.render_page(status.page_context("lab", "lab.yaml", [], status.now_utc(),
+                                                  checklists=status.checklists(classroom)))
+    assert "<code>roslab opencr-update blue-robot</code>" in page and "`roslab opencr-update" not in page

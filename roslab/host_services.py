@@ -1,0 +1,77 @@
+"""The systemd services a host runs by its roster and robot profile, for `roslab verify` and
+`roslab status` to judge it by.
+
+One source, from the same host data the deploys read:
+
+- `roslab-nodes.service` when the host has a launch to run (its nodes_launch, else its
+  profile side's; a hand-made inventory without a resolved profile runs the demo's) and
+  `workspace_enabled` and `nodes_service_enabled` are on. A TurtleBot3's or a sim main has none.
+- the team's discovery service (`roslab-discovery-server` on a discovery-server team's main,
+  `roslab-zenoh-router` on a Zenoh team's main or a Zenoh localhost host), from
+  `roslab.discovery`, when `discovery_enabled` is on.
+- the robot profile's own services whose `enabled_if` holds (the rover's `osr_startup`, the
+  ESP32's `micro_ros_agent`), when `profile_services_enabled` is on.
+
+A service on this list that does not run is the team's fault to name: a stopped discovery
+server leaves both nodes services active and the main hearing nothing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from roslab import discovery, settings
+from roslab.workspace import NODES_SERVICE
+
+
+@dataclass(frozen=True)
+class HostService:
+    unit: str  # "roslab-discovery-server.service"
+    what: str  # what it is for, said where it is the cause: "the team's Fast DDS discovery server"
+    kind: str  # "nodes", "discovery" or "profile"
+
+
+def _on(data, key: str) -> bool:
+    value = data.get(key)
+    return True if value is None else bool(value)
+
+
+def runs_a_launch(data) -> bool:
+    """Whether the host's roslab-nodes service has a launch to run: its nodes_launch (or a
+    deprecated nodes_launch_<role>), as the roster loader resolved it from the robot profile; a
+    host without a resolved profile (a hand-made inventory) runs the demo's."""
+    if data.get("roslab_profile") is None:
+        return True
+    return bool(data.get("nodes_launch") or data.get(f"nodes_launch_{data.get('roslab_role')}"))
+
+
+def runs_nodes(data) -> bool:
+    """Whether the deploys install and run roslab-nodes.service on the host."""
+    return _on(data, "workspace_enabled") and _on(data, "nodes_service_enabled") and runs_a_launch(data)
+
+
+def profile_name(data) -> str:
+    return (data.get("roslab_profile") or {}).get("name") or "demo"
+
+
+def host_services(data) -> list[HostService]:
+    """Every service the host runs by its roster, the team's discovery service first (when it is
+    down, nothing else can be heard), then the profile's, then the nodes."""
+    services: list[HostService] = []
+    if _on(data, "discovery_enabled"):
+        distro = data.get("ros_distro") or data.get("roslab_expected_distro") or "jazzy"
+        given = data.dict() if hasattr(data, "dict") else dict(data)  # pyinfra's HostData, or a dict
+        merged = {**settings.defaults("discovery"), **{k: v for k, v in given.items() if v is not None}}
+        service = discovery.host_discovery(merged, distro).service
+        if service is not None:
+            what = ("the team's Zenoh router" if service.name == discovery.ZENOH_ROUTER_SERVICE
+                    else "the team's Fast DDS discovery server")
+            services.append(HostService(f"{service.name}.service", what, "discovery"))
+    if _on(data, "profile_services_enabled"):
+        for service in (data.get("roslab_profile") or {}).get("services") or ():
+            if service.get("enabled"):
+                services.append(HostService(f"{service['name']}.service",
+                                            f"robot profile {profile_name(data)}'s {service['name']}", "profile"))
+    if runs_nodes(data):
+        services.append(HostService(NODES_SERVICE, "the nodes", "nodes"))
+    return services

@@ -1,0 +1,134 @@
+"""`roslab sandbox up --roster FILE`: the sandbox's hosts and roster from a class's own roster
+(no host is booted: the plan and the roster the sandbox would write)."""
+
+from __future__ import annotations
+
+from ipaddress import IPv4Network
+from types import SimpleNamespace
+
+import pytest
+from test_profiles import _in_tmp, rosdistro_url, write  # noqa: F401  (fixtures)
+
+from roslab.roster import load_roster
+from roslab.sandbox import class_roster, lifecycle
+from roslab.sandbox.instance import Instance
+
+SANDBOX_SETTINGS = {"rosdistro_index_url": "http://10.213.163.1:8080/rosdistro/index-v4.yaml",
+                    "ros_middleware": "rmw_cyclonedds_cpp"}
+
+
+def teachers_class(tmp_path, url):
+    secrets = tmp_path / "secrets.yaml"
+    secrets.write_text("sudo: not-a-real-password\n")
+    secrets.chmod(0o600)
+    return write(tmp_path, f"""\
+        classroom:
+          name: Robotics 1
+          ssh_user: teacher
+          ros_middleware: rmw_fastrtps_cpp
+          rosdistro_index_url: {url}
+          rosdep_cache_dir: cache
+          sudo_password_secret: sudo
+          nodes_verify_timeout: 30
+        teams:
+          blue:
+            ubuntu_release: "24.04"
+            robot_profile: turtlebot3
+            turtlebot3_model: burger
+            lds_model: LDS-03
+            ros_domain_id: 21
+            hosts:
+              blue-main: {{role: main, address: 192.168.50.11}}
+              blue-robot: {{role: robot, address: 192.168.50.12, network_address: 192.168.50.112/24}}
+          green:
+            ubuntu_release: "22.04"
+            robot_profile: turtlebot3
+            turtlebot3_model: waffle_pi
+            lds_model: LDS-01
+            hosts:
+              green-main: {{role: main, address: 192.168.50.21}}
+              green-robot: {{role: robot, address: 192.168.50.22}}
+          sim1:
+            ubuntu_release: "24.04"
+            robot_profile: sim
+            hosts:
+              sim1-main: {{role: main, address: 192.168.50.31}}
+        """)
+
+
+def planned(tmp_path, url):
+    path = teachers_class(tmp_path, url)
+    members, notes = class_roster.members(load_roster(path))
+    instance = Instance("try-class", IPv4Network("10.213.163.0/24"))
+    return path, instance, instance.plan_members(members), notes
+
+
+def test_the_sandbox_hosts_are_the_rosters_hosts(tmp_path, rosdistro_url):
+    _, instance, hosts, notes = planned(tmp_path, rosdistro_url)
+    assert [(h.name, h.team, h.role, h.release, h.address) for h in hosts] == [
+        ("blue-main", "blue", "main", "24.04", "10.213.163.11"),
+        ("blue-robot", "blue", "robot", "24.04", "10.213.163.12"),
+        ("green-main", "green", "main", "22.04", "10.213.163.13"),
+        ("green-robot", "green", "robot", "22.04", "10.213.163.14"),
+        ("sim1-main", "sim1", "main", "24.04", "10.213.163.15"),
+    ]
+    assert notes == []
+    # What sandbox.json keeps: `status` and `ssh` then use the roster's names.
+    again = instance.plan_members([{"name": h.name, "team": h.team, "role": h.role, "release": h.release}
+                                   for h in hosts])
+    assert again == hosts
+    assert lifecycle.Classroom(instance, hosts).host("green-robot").address == "10.213.163.14"
+
+
+def test_the_class_settings_are_kept_where_the_sandbox_can_serve_them(tmp_path, rosdistro_url):
+    path, instance, hosts, _ = planned(tmp_path, rosdistro_url)
+    published = SimpleNamespace(roster_settings=lambda: dict(SANDBOX_SETTINGS))
+    base = lifecycle.roster(lifecycle.Classroom(instance, hosts, path), published)
+    roster, notes = class_roster.sandbox_roster(path, base, {h.name: h.address for h in hosts},
+                                                {h.name: h.release for h in hosts})
+
+    assert roster["classroom"]["ssh_user"] == base["classroom"]["ssh_user"] != "teacher"
+    assert roster["classroom"]["ros_middleware"] == "rmw_cyclonedds_cpp"
+    assert roster["classroom"]["rosdistro_index_url"] == SANDBOX_SETTINGS["rosdistro_index_url"]
+    assert roster["classroom"]["nodes_verify_timeout"] == 30  # the class's own
+    assert roster["classroom"]["name"].endswith("(Robotics 1)")
+    assert "sudo_password_secret" not in roster["classroom"]
+    blue = roster["teams"]["blue"]
+    assert (blue["robot_profile"], blue["turtlebot3_model"], blue["lds_model"], blue["ros_domain_id"]) == (
+        "turtlebot3", "burger", "LDS-03", 21)
+    assert blue["hosts"]["blue-robot"] == {"role": "robot", "address": "10.213.163.12", "ubuntu_release": "24.04"}
+    assert roster["teams"]["green"]["hosts"]["green-main"]["ubuntu_release"] == "22.04"
+    assert roster["teams"]["sim1"]["robot_profile"] == "sim"
+    assert notes == [
+        "classroom: ssh_user: the sandbox's own connection is used",
+        "classroom: ros_middleware rmw_fastrtps_cpp: the sandbox's real ROS runtime serves rmw_cyclonedds_cpp "
+        "only (its Humble has no Fast DDS); the sandbox runs that",
+        "classroom: rosdistro_index_url: the sandbox serves its own",
+        "classroom: rosdep_cache_dir: cache is relative to your roster's folder, not the sandbox's",
+        "classroom: sudo_password_secret: the sandbox has no secrets (no WiFi, no sudo password)",
+        "blue-robot: network_address: the sandbox's hosts keep its subnet's addresses",
+    ]
+
+
+def test_a_release_the_sandbox_does_not_emulate_is_a_note(tmp_path, rosdistro_url):
+    classroom = load_roster(teachers_class(tmp_path, rosdistro_url))
+    classroom.hosts[0].ubuntu_release = "20.04"  # as a roster of another time might say
+    members, notes = class_roster.members(classroom)
+    assert members[0]["release"] == class_roster.DEFAULT_RELEASE
+    assert notes == ["blue-main: Ubuntu 20.04 is not a release the sandbox emulates: it runs 24.04"]
+
+
+def test_hosts_and_roster_cannot_be_asked_together(tmp_path):
+    with pytest.raises(lifecycle.SandboxError, match="--hosts and --roster"):
+        lifecycle.up(4, Instance("try-class", IPv4Network("10.213.163.0/24")), class_roster=tmp_path / "x.yaml")
+
+
+def test_up_again_without_options_keeps_a_class_sandbox(tmp_path, rosdistro_url, monkeypatch):
+    path, instance, hosts, _ = planned(tmp_path, rosdistro_url)
+    running = lifecycle.Classroom(instance, hosts, path)
+    monkeypatch.setattr(lifecycle, "file_lock", lambda path: __import__("contextlib").nullcontext())
+    monkeypatch.setattr(lifecycle, "load", lambda instance: running)
+    monkeypatch.setattr(lifecycle, "_healthy", lambda classroom: True)
+    assert lifecycle.up(instance=instance) is running  # nothing to do
+    with pytest.raises(lifecycle.SandboxError, match="running with other hosts"):
+        lifecycle.up(4, instance=instance)
