@@ -29,6 +29,9 @@ class HostService:
     unit: str  # "roslab-discovery-server.service"
     what: str  # what it is for, said where it is the cause: "the team's Fast DDS discovery server"
     kind: str  # "nodes", "discovery" or "profile"
+    # a profile's service that runs `ros2 launch` (the rover's osr_startup): its nodes can die
+    # and start again while systemd sees the launch running (roslab.launch_journal)
+    launch: bool = False
 
 
 def _on(data, key: str) -> bool:
@@ -71,7 +74,8 @@ def host_services(data) -> list[HostService]:
         for service in (data.get("roslab_profile") or {}).get("services") or ():
             if service.get("enabled"):
                 services.append(HostService(f"{service['name']}.service",
-                                            f"robot profile {profile_name(data)}'s {service['name']}", "profile"))
+                                            f"robot profile {profile_name(data)}'s {service['name']}", "profile",
+                                            launch=str(service.get("command") or "").startswith("ros2 launch ")))
     if runs_nodes(data):
         services.append(HostService(NODES_SERVICE, "the nodes", "nodes"))
     return services

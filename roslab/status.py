@@ -43,6 +43,7 @@ from pyinfra.api import FactBase
 from roslab.roster import Classroom, RosterError, display_path, inventory_groups
 from roslab.profiles.host import RebootRecord, parse_reboot_record, reboot_pending
 from roslab.runs import RunRecord, now_utc, read_runs, runs_path
+from roslab import launch_journal
 from roslab.host_services import host_services, profile_name, runs_nodes
 from roslab.verify import (
     CHATTER_TYPE, SERVICE_RUNNING, TeamResult, check_bound, hear, parse_check_output, service_state,
@@ -82,16 +83,18 @@ class StatusProbe(FactBase):
     def default():
         return parse_probe([])
 
-    def command(self, service: str = NODES_SERVICE, others: tuple[str, ...] = ()) -> str:
-        return probe_script(service, others)
+    def command(self, service: str = NODES_SERVICE, others: tuple[str, ...] = (), launches: tuple[str, ...] = ()) -> str:
+        return probe_script(service, others, launches)
 
     def process(self, output):
         return parse_probe(output)
 
 
-def probe_script(service: str = NODES_SERVICE, others: tuple[str, ...] = ()) -> str:
+def probe_script(service: str = NODES_SERVICE, others: tuple[str, ...] = (), launches: tuple[str, ...] = ()) -> str:
     """`others`: the host's other services (roslab.host_services: its discovery server or Zenoh
-    router, its profile's), each read into a `## unit <name>` section."""
+    router, its profile's), each read into a `## unit <name>` section; `launches`: those that
+    run `ros2 launch`, whose journal's last lines go into a `## journal <name>` section (which
+    of the launch's nodes died, roslab.launch_journal)."""
     return "; ".join([
         "echo '## os-release'",
         "cat /etc/os-release 2>/dev/null",
@@ -103,6 +106,8 @@ def probe_script(service: str = NODES_SERVICE, others: tuple[str, ...] = ()) -> 
         *(part for other in others for part in (
             f"echo {shlex.quote(f'## unit {other}')}",
             f"systemctl show --property=LoadState,ActiveState,SubState,Result {shlex.quote(other)} 2>/dev/null")),
+        *(part for unit in launches for part in (
+            f"echo {shlex.quote(f'## journal {unit}')}", launch_journal.command(shlex.quote(unit)))),
         "echo '## reboot'",
         REBOOT_RECORD_COMMAND,
         "echo '## end'",
@@ -157,6 +162,8 @@ def parse_probe(lines) -> dict:
         "unit": properties(sections.get("unit", [])),
         "units": {name.removeprefix("unit "): properties(lines) for name, lines in sections.items()
                   if name.startswith("unit ")},
+        "journals": {name.removeprefix("journal "): lines for name, lines in sections.items()
+                     if name.startswith("journal ")},
         "reboot": parse_reboot_record(sections.get("reboot", [])),
     }
 
@@ -238,6 +245,14 @@ class HostStatus:
             return [(service, "?") for service in self.other_services]
         units = self.probe.get("units") or {}
         return [(service, service_state(units.get(service.unit) or {})) for service in self.other_services]
+
+    def launch_failures(self) -> list[str]:
+        """One line per node that died in a running launch service of its profile (the rover's
+        roboclaw_wrapper without its serial port), from the journal's last lines."""
+        journals = self.probe.get("journals") or {}
+        return [line for service, state in self.other_states() if service.launch and state == SERVICE_RUNNING
+                for line in launch_journal.summary(service.unit.removesuffix(".service"),
+                                                   journals.get(service.unit) or [])]
 
     def services_stopped(self) -> list[tuple]:
         """(HostService, state) of its other services that do not run."""
@@ -367,6 +382,8 @@ def host_cells(host: HostStatus, now: datetime) -> dict[str, Cell]:
         cells["NODES"] = Cell(host.nodes, "ok" if probed else "muted")
     for service, state in host.services_stopped() if probed else ():
         notes.append(stopped_service_line(host.name, service, state))
+    failures = host.launch_failures() if probed else []
+    notes += failures
 
     run = host.run
     if run is None or run.last_run is None:
@@ -386,7 +403,7 @@ def host_cells(host: HostStatus, now: datetime) -> dict[str, Cell]:
     if host.listen_error:
         notes.append(host.listen_error)
     level = ("bad" if not host.reachable or last_run_failed(host)
-             else "warn" if host.reboot_needed or (probed and host.services_stopped()) else "plain")
+             else "warn" if host.reboot_needed or failures or (probed and host.services_stopped()) else "plain")
     cells["NOTE"] = Cell("; ".join(notes), level)
     return cells
 
@@ -511,6 +528,7 @@ def _probe_host(state, host, status: HostStatus, listen: bool, listen_timeout: i
             status.probe = get_fact(
                 state, host, StatusProbe,
                 kwargs={"others": tuple(service.unit for service in status.other_services),
+                        "launches": tuple(service.unit for service in status.other_services if service.launch),
                         "_sudo": False, "_timeout": min(PROBE_TIMEOUT, bound), "_ignore_errors": True},
                 apply_failed_hosts=False,
             )

@@ -348,7 +348,7 @@ def test_the_real_agent_is_an_elf_binary_built_after_the_xrce_agent_and_listens_
     assert f":{AGENT_PORT} " in listening and "micro_ros_agent" in listening, listening
 
 
-def test_the_rovers_real_packages_have_their_generated_code_and_its_launch_starts(sandbox, first_run):
+def test_the_rovers_real_packages_have_their_generated_code_and_its_launch_starts(sandbox, roster, first_run):
     needs_real(sandbox)
     interfaces = sandbox.ssh(ROVER, f"ls {UNDERLAY}/install/osr_interfaces/lib", check=True).stdout.split()
     assert {"libosr_interfaces__rosidl_typesupport_c.so", "libosr_interfaces__rosidl_generator_py.so"} <= set(
@@ -368,6 +368,12 @@ def test_the_rovers_real_packages_have_their_generated_code_and_its_launch_start
     assert "roslab sandbox stand-in: joy joy_node" in journal, journal[-3000:]
     assert "roslab sandbox stand-in: teleop_twist_joy teleop_node" in journal, journal[-3000:]
     assert show(sandbox, ROVER, "osr_startup.service", "ActiveState")["ActiveState"] == "active"
+    # roslab status says so truly, one line per node that died (systemd sees the launch running)
+    result = subprocess.run([sys.executable, "-m", "roslab", "status", "--limit", ROVER, str(roster)],
+                            env=sandbox.env, capture_output=True, text=True, timeout=120)
+    text = " ".join(result.stdout.split())
+    assert "osr_startup: roboclaw_wrapper died" in text and "Unable to connect to serial port" in text, text
+    assert "osr_startup: rover died" in text and "No module named 'tf2_ros'" in text, text
 
 
 def test_verify_hears_the_board_through_the_real_agent_and_names_the_board_when_it_stops(

@@ -558,3 +558,49 @@ def test_status_reads_what_each_host_runs_from_the_roster(tmp_path):
     assert [s.unit for s in statuses["team1-main"].other_services] == ["roslab-discovery-server.service"]
     assert statuses["team1-robot"].other_services == [] and statuses["team1-robot"].runs_nodes
     assert statuses["team1-main"].listen_timeout == 35
+
+
+OSR_STARTUP = HostService("osr_startup.service", "robot profile osr's osr_startup", "profile", launch=True)
+RUNNING = {"LoadState": "loaded", "ActiveState": "active", "SubState": "running"}
+
+
+def test_a_running_launch_whose_nodes_die_is_one_line_per_node_with_its_reason():
+    """The rover's osr_startup runs (systemd sees the launch), while its nodes die and start
+    again: the note names each, as its journal does (a sandbox rover's, real osr-rover-code)."""
+    journal = (Path(__file__).parent / "fixtures/journals/osr_launch_journal.txt").read_text().splitlines()
+    rover = reachable_host(name="rover-robot", role="robot", team="rover", profile="osr", runs_nodes=False)
+    rover.other_services = [OSR_STARTUP]
+    rover.probe = {**rover.probe, "units": {OSR_STARTUP.unit: dict(RUNNING)},
+                   "journals": {OSR_STARTUP.unit: journal}}
+    note = host_cells(rover, NOW)["NOTE"]
+    assert note.level == "warn"
+    assert note.text.split("; ") == [
+        "osr_startup: roboclaw_wrapper died once: Exception: Unable to connect to serial port /dev/serial1.",
+        "osr_startup: rover died 2 times: ModuleNotFoundError: No module named 'tf2_ros'",
+        "osr_startup: servo_control died 2 times: ImportError: cannot import name 'ServoKit' from "
+        "'adafruit_servokit' (/home/ubuntu/osr_venv/lib/python3.11/site-packages/adafruit_servokit.py)"]
+    # a launch whose nodes all run says nothing; a stopped one is named as stopped, not by its journal
+    rover.probe["journals"][OSR_STARTUP.unit] = ["[INFO] [rover-3]: process started with pid [7]"]
+    assert host_cells(rover, NOW)["NOTE"].text == ""
+
+
+def test_the_probe_reads_a_launch_services_journal_bounded_and_in_its_own_section():
+    script = status.probe_script(others=(OSR_STARTUP.unit,), launches=(OSR_STARTUP.unit,))
+    assert "echo '## journal osr_startup.service'; journalctl -u osr_startup.service -n 400 --no-pager" in script
+    probe = parse_probe([line for line in PROBE_OUTPUT if line != "## end"] + [
+        "## journal osr_startup.service", "[ERROR] [rover-3]: process has died [pid 1, exit code 1, cmd 'x'].",
+        "## end"])
+    assert probe["journals"] == {OSR_STARTUP.unit: ["[ERROR] [rover-3]: process has died [pid 1, exit code 1, "
+                                                    "cmd 'x']."]}
+    assert subprocess.run(["sh", "-c", script], capture_output=True, text=True, timeout=30).returncode == 0
+
+
+def test_the_rovers_service_is_known_to_run_a_launch():
+    from roslab.host_services import host_services as services_of
+
+    data = {"roslab_role": "robot", "roslab_profile": {"name": "osr", "services": [
+        {"name": "osr_startup", "command": "ros2 launch osr_bringup osr_launch.py", "enabled": True},
+        {"name": "micro_ros_agent", "command": "ros2 run micro_ros_agent micro_ros_agent udp4 --port 8888",
+         "enabled": True}]}, "discovery_enabled": False, "nodes_launch": None}
+    launches = {service.unit: service.launch for service in services_of(data) if service.kind == "profile"}
+    assert launches == {"osr_startup.service": True, "micro_ros_agent.service": False}
