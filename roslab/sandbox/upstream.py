@@ -676,14 +676,19 @@ def source_keys(bundles: real_sources.Bundles) -> tuple[set[str], dict[str, str]
 
 # -- per-instance content ----------------------------------------------------------------
 
-def ros2_sources(url: str, codename: str) -> str:
+def ros2_sources(url: str, codename: str, armored_key: str | None = None) -> str:
+    """ros2.sources as the real ros2-apt-source writes it: deb822, its signing key inline in
+    `Signed-By:` (the armored block, each line indented, an empty line as " ."), so apt needs no
+    keyring file. `armored_key`: the sandbox ROS archive's key (default: its own)."""
+    armored = armored_key if armored_key is not None else ros_key().armored.read_text()
+    key_lines = [line if line.strip() else "." for line in armored.strip().splitlines()]
     return (
         f"# {STANDIN_NOTE} for ros2-apt-source's ros2.sources\n"
         "Types: deb\n"
         f"URIs: {url}/ros2/ubuntu\n"
         f"Suites: {codename}\n"
         "Components: main\n"
-        "Signed-By: /usr/share/keyrings/ros2-archive-keyring.gpg\n"
+        f"Signed-By: {key_lines[0]}\n" + "".join(f" {line}\n" for line in key_lines[1:])
     )
 
 

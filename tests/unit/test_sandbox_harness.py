@@ -262,11 +262,17 @@ def test_stand_in_setup_script_sets_the_ros_environment_once(tmp_path):
     assert out == ["jazzy", "2", "3", "/opt/ros/jazzy"]
 
 
-def test_ros2_sources_is_deb822_signed_by_the_ros_keyring():
-    text = upstream.ros2_sources(URL, "jammy")
+def test_ros2_sources_is_deb822_with_its_key_inline_as_the_real_one():
+    armored = "-----BEGIN PGP PUBLIC KEY BLOCK-----\n\nmQINBGtest\nabc=\n-----END PGP PUBLIC KEY BLOCK-----\n"
+    text = upstream.ros2_sources(URL, "jammy", armored)
     assert f"URIs: {URL}/ros2/ubuntu\n" in text
     assert "Suites: jammy\n" in text
-    assert "Signed-By: /usr/share/keyrings/ros2-archive-keyring.gpg\n" in text
+    assert text.endswith("Signed-By: -----BEGIN PGP PUBLIC KEY BLOCK-----\n .\n mQINBGtest\n abc=\n"
+                         " -----END PGP PUBLIC KEY BLOCK-----\n")
+    # apt reads it: one stanza whose Signed-By field holds the whole block
+    import email.parser
+    fields = email.parser.Parser().parsestr("\n".join(line for line in text.splitlines() if not line.startswith("#")))
+    assert fields["Signed-By"].split()[:5] == ["-----BEGIN", "PGP", "PUBLIC", "KEY", "BLOCK-----"]
 
 
 def test_mirror_settings_name_the_mirror_and_the_key_file(tmp_path):
