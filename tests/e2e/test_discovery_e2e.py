@@ -138,12 +138,27 @@ def test_the_discovery_server_is_a_service_on_team1s_main_only(sandbox, first_ru
     assert ros(sandbox, "team1-main", 'printf %s "$ROS_SUPER_CLIENT"').stdout.strip().endswith("TRUE")
 
 
+def table_rows(text: str) -> dict[str, dict[str, str]]:
+    """`roslab check`'s table, by host and column (cells are cut where the header's columns start)."""
+    lines = text.splitlines()
+    header = next(line for line in lines if line.startswith("TEAM "))
+    starts = [match.start() for match in re.finditer(r"\S+", header)]
+    names = header.split()
+    rows = {}
+    for line in lines[lines.index(header) + 1:]:
+        if not line.strip():
+            continue
+        cells = [line[start:end].strip() for start, end in zip(starts, [*starts[1:], None])]
+        rows[cells[1]] = dict(zip(names, cells))
+    return rows
+
+
 def test_status_and_check_show_each_teams_mode_and_the_assigned_domain(sandbox, roster, first_run):
     check = roslab(sandbox, "check", str(roster))
     assert check.returncode == 0, check.stderr
-    rows = {line.split()[1]: line.split() for line in check.stdout.splitlines()[2:] if line.strip()}
-    assert rows["team1-robot"][-1] == "discovery_server" and rows["team2-main"][-1] == "static"
-    assert rows["team3-main"][-2:] == ["(auto)", "localhost"]
+    rows = table_rows(check.stdout)
+    assert rows["team1-robot"]["DISCOVERY"] == "discovery_server" and rows["team2-main"]["DISCOVERY"] == "static"
+    assert rows["team3-main"]["DOMAIN"].endswith("(auto)") and rows["team3-main"]["DISCOVERY"] == "localhost"
     status = roslab(sandbox, "status", str(roster))
     assert "discovery_server" in status.stdout and "static" in status.stdout, status.stdout
 
