@@ -917,7 +917,9 @@ class _LogCapture(logging.Handler):
             if host is None or getattr(host, "name", None) != name:
                 host = None
             if record.levelno >= logging.ERROR:
-                known = host or state.inventory.get_host(name, None)
+                # before deploy.py's first host registers the state (no host connected), only
+                # the record's own host is known
+                known = host or (state.inventory.get_host(name, None) if state is not None else None)
                 if known is not None and connection_lost(known):
                     summary.host(name).lost = True
             summary.record_log(name, LogLine(

@@ -751,3 +751,17 @@ def test_the_hosts_ready_lines_are_not_shown_but_a_step_s_lines_are():
     assert shown == ["--> Preparing operation files...", "    Loading: deploy.py",
                      "--> Starting operation: Ensure the unit", "    [team1-main] Success",
                      "    [team1-main] a warning while planning"]
+
+
+def test_a_connect_error_before_any_host_connected_is_kept_for_the_summary(monkeypatch):
+    """No host connects: deploy.py never runs, so the summary has no state yet when pyinfra logs
+    "[host] Could not connect (...)"; the line must still be kept (it is the row's reason)."""
+    run = summary.RunSummary()
+    monkeypatch.setattr(summary, "_current", (run, None))
+    capture = summary._LogCapture(level=logging.WARNING)
+    record = logging.LogRecord("pyinfra", logging.ERROR, __file__, 1,
+                               "[team1-main] \x1b[31mCould not connect\x1b[0m ([Errno None] Unable to connect to "
+                               "port 2 on 10.0.0.11)", None, None)
+    capture.emit(record)
+    assert [line.text for line in run.host("team1-main").log] == [
+        "Could not connect ([Errno None] Unable to connect to port 2 on 10.0.0.11)"]
