@@ -13,18 +13,16 @@ Built once per bundle and source digest into the sandbox cache (`esp32-board/<ke
 from __future__ import annotations
 
 import hashlib
-import json
 import os
-import shutil
 import signal
 import subprocess
 import tempfile
 import time
 from pathlib import Path
 
-from . import image
+from . import upstream
 from .real_sources import Bundles
-from .system import SandboxError, file_lock, log
+from .system import SandboxError, log
 
 SOURCE = Path(__file__).resolve().parent / "board" / "esp32_board_standin.c"
 # The client the board's firmware uses for Jazzy (micro_ros_platformio builds it at v2.4.3) and
@@ -32,16 +30,16 @@ SOURCE = Path(__file__).resolve().parent / "board" / "esp32_board_standin.c"
 CLIENT = ("Micro-XRCE-DDS-Client", "v2.4.3")
 CDR = ("Micro-CDR", "v2.0.1")
 BUILD_VERSION = 1
+EXECUTABLE = "esp32_board_standin"
 
 
 def available(bundles: Bundles) -> bool:
     return all(name in bundles.paths for name, _ in (CLIENT, CDR))
 
 
-def _key(bundles: Bundles) -> str:
-    parts = [BUILD_VERSION, CLIENT, CDR, bundles.sums[CLIENT[0]], bundles.sums[CDR[0]],
-             hashlib.sha256(SOURCE.read_bytes()).hexdigest()]
-    return hashlib.sha256(json.dumps(parts).encode()).hexdigest()[:16]
+def _key(bundles: Bundles) -> list:
+    return [BUILD_VERSION, CLIENT, CDR, bundles.sums[CLIENT[0]], bundles.sums[CDR[0]],
+            hashlib.sha256(SOURCE.read_bytes()).hexdigest()]
 
 
 def _cmake(source: Path, build: Path, prefix: Path, *options: str) -> None:
@@ -60,13 +58,8 @@ def binary(bundles: Bundles) -> Path:
     if not available(bundles):
         raise SandboxError(f"no bundles of {CLIENT[0]} and {CDR[0]} in {bundles.folder}: the ESP32 stand-in "
                            "cannot be built")
-    final = image.cache_dir() / "esp32-board" / _key(bundles)
-    executable = final / "esp32_board_standin"
-    if executable.is_file():
-        return executable
-    with file_lock(image.cache_dir() / "lock"):
-        if executable.is_file():
-            return executable
+
+    def build(out: Path) -> None:
         log.warning(f"building the sandbox's ESP32 board stand-in from {CLIENT[0]} {CLIENT[1]} and "
                     f"{CDR[0]} {CDR[1]} (once)...")
         with tempfile.TemporaryDirectory(prefix="roslab-esp32-") as work:
@@ -77,18 +70,16 @@ def binary(bundles: Bundles) -> Path:
             client = bundles.tree(CLIENT[0], CLIENT[1], work / "client")
             _cmake(client, work / "client-build", prefix, "-DUCLIENT_SUPERBUILD=OFF", "-DUCLIENT_PROFILE_UDP=ON",
                    "-DUCLIENT_ISOLATED_INSTALL=OFF")
-            built = work / "esp32_board_standin"
             libs = sorted(str(path) for path in prefix.rglob("*.a"))
             client_libs = [lib for lib in libs if "microxrcedds_client" in lib]
             cdr_libs = [lib for lib in libs if "microcdr" in lib]
-            done = subprocess.run(["cc", "-O2", "-o", str(built), str(SOURCE), f"-I{prefix / 'include'}",
+            done = subprocess.run(["cc", "-O2", "-o", str(out / EXECUTABLE), str(SOURCE), f"-I{prefix / 'include'}",
                                    *client_libs, *cdr_libs], capture_output=True, text=True)
             if done.returncode:
                 raise SandboxError(f"building the ESP32 stand-in: {done.stderr.strip()[-1500:]}")
-            final.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(built, executable.with_suffix(".new"))
-            os.replace(executable.with_suffix(".new"), executable)
-    return executable
+
+    # cached like the sandbox's archives: built under the cache lock, renamed into place whole
+    return upstream._cached_build("esp32-board", upstream._cache_key(*_key(bundles)), build) / EXECUTABLE
 
 
 class Board:

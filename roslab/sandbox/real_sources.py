@@ -25,7 +25,6 @@ archive (upstream.py):
 from __future__ import annotations
 
 import os
-import re
 import shutil
 import subprocess
 import tempfile
@@ -150,20 +149,12 @@ class Bundles:
         shutil.rmtree(bare)
         return into
 
-    def package_keys(self, name: str, ref: str) -> set[str]:
-        """Every dependency key the package.xml files of `ref` in bundle `name` declare."""
-        with tempfile.TemporaryDirectory(prefix="roslab-keys-") as work:
-            tree = self.tree(name, ref, Path(work) / "tree")
-            keys, own = set(), set()
-            for manifest in tree.rglob("package.xml"):
-                if any((parent / marker).exists() for parent in manifest.parents
-                       for marker in ("COLCON_IGNORE", "AMENT_IGNORE", "CATKIN_IGNORE")):
-                    continue
-                text = manifest.read_text(errors="replace")
-                own |= set(re.findall(r"<name>\s*([a-z][a-z0-9_]*)\s*</name>", text))
-                keys |= set(re.findall(r"<(?:build_|buildtool_|exec_|test_|build_export_|buildtool_export_)?"
-                                       r"depend(?:\s[^>]*)?>\s*([A-Za-z0-9_.+-]+)\s*</", text))
-            return keys - own
+
+def built_manifests(tree: Path) -> list[Path]:
+    """The package.xml files in `tree` that colcon builds (none below an ignore marker)."""
+    return sorted(manifest for manifest in tree.rglob("package.xml")
+                  if not any((parent / marker).exists() for parent in manifest.parents
+                             for marker in ("COLCON_IGNORE", "AMENT_IGNORE", "CATKIN_IGNORE")))
 
 
 def build_released_deb(bundles: Bundles, key: str, distro: str, tree: Path, version: str,

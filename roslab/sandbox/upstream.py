@@ -34,6 +34,7 @@ import shutil
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 import xml.etree.ElementTree as ElementTree
 from dataclasses import dataclass
@@ -264,7 +265,13 @@ def node_dependencies(nodes_dir: Path) -> tuple[set[str], dict[str, str]]:
 
     The workspace's own packages are built from source, so they get no stand-in.
     """
-    manifests = [ElementTree.parse(path).getroot() for path in sorted(nodes_dir.glob("*/package.xml"))]
+    return manifest_dependencies(sorted(nodes_dir.glob("*/package.xml")))
+
+
+def manifest_dependencies(paths) -> tuple[set[str], dict[str, str]]:
+    """(ROS keys, system keys -> package) the package.xml files at `paths` declare, less the
+    packages they are themselves (built from source, they get no stand-in)."""
+    manifests = [ElementTree.parse(path).getroot() for path in paths]
     own_packages = {manifest.findtext("name") for manifest in manifests}
     ros_keys: set[str] = set()
     system: dict[str, str] = {}
@@ -666,11 +673,11 @@ def source_keys(bundles: real_sources.Bundles) -> tuple[set[str], dict[str, str]
         bundle = bundles.bundle_for(url)
         if bundle is None or not version:
             continue
-        for key in bundles.package_keys(bundle.name.removesuffix(".bundle"), version):
-            if key in SYSTEM_ROSDEP_KEYS or key.startswith("python3-"):
-                system[key] = SYSTEM_ROSDEP_KEYS.get(key, key)
-            else:
-                ros_keys.add(key)
+        with tempfile.TemporaryDirectory(prefix="roslab-keys-") as work:
+            tree = bundles.tree(bundle.name.removesuffix(".bundle"), version, Path(work) / "tree")
+            repo_keys, repo_system = manifest_dependencies(real_sources.built_manifests(tree))
+        ros_keys |= repo_keys
+        system.update(repo_system)
     return ros_keys, system
 
 
