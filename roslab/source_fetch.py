@@ -298,25 +298,33 @@ def fetched(repo: dict, cache_dir: Path, *, rewrites: dict | None = None, offlin
     cache_dir = Path(cache_dir).expanduser()
     pins = frozenset(pins) if pins is not None else frozenset({(repo["url"], repo["version"])})
     key = (repo["url"], repo["version"], str(cache_dir), offline, tuple(sorted((rewrites or {}).items())))
-    with _lock:
-        known = _results.get(key)
-        repo_lock = _repo_locks.setdefault(repo["url"], threading.Lock())
-    if known is None:
-        with repo_lock:  # hosts planned in threads wait for one fetch of the same repository
-            with _lock:
-                known = _results.get(key)
-            if known is None:
-                try:
-                    known = _fetch_healing(repo, cache_dir, rewritten(repo["url"], rewrites), offline, timeout,
-                                           pins_digest(pins))
-                except SourceError as error:
-                    known = SourceError(f"{_named(repo)}: {error}")
-                with _lock:
-                    _results[key] = known
-    if isinstance(known, SourceError):
-        raise known
+    known = _once(_results, key, repo["url"], _named(repo), lambda: _fetch_healing(
+        repo, cache_dir, rewritten(repo["url"], rewrites), offline, timeout, pins_digest(pins)))
     # the same repository under another path in another host's .repos file
     return Fetched(repo["path"], known.url, known.version, known.commit, known.sha256, known.archive, known.notes)
+
+
+def _once(results: dict, key: tuple, url: str, named: str, compute) -> "Fetched":
+    """`compute()` once per run for `key`, its SourceError (prefixed with `named`) kept as well:
+    hosts planned in threads wait for one another per repository URL, so a classroom of Pis
+    makes one fetch, or one archive, of the same repository."""
+    with _lock:
+        known = results.get(key)
+        repo_lock = _repo_locks.setdefault(url, threading.Lock())
+    if known is None:
+        with repo_lock:
+            with _lock:
+                known = results.get(key)
+            if known is None:
+                try:
+                    known = compute()
+                except SourceError as error:
+                    known = SourceError(f"{named}: {error}")
+                with _lock:
+                    results[key] = known
+    if isinstance(known, SourceError):
+        raise known
+    return known
 
 
 def _fetch_healing(repo: dict, cache_dir: Path, fetch_url: str, offline: bool, timeout: float,
@@ -521,17 +529,8 @@ def for_host(item: Fetched, cache_dir: Path, skip_packages=(), timeout: float = 
     """
     skip = tuple(sorted(set(skip_packages)))
     key = (item.url, item.commit, str(Path(cache_dir).expanduser()), skip)
-    with _lock:
-        known = _selected.get(key)
-    if known is None:
-        try:
-            known = _for_host(item, Path(cache_dir).expanduser(), skip, timeout)
-        except SourceError as error:
-            known = SourceError(f"repository {item.path!r} ({item.url} {item.version}): {error}")
-        with _lock:
-            _selected[key] = known
-    if isinstance(known, SourceError):
-        raise known
+    known = _once(_selected, key, item.url, f"repository {item.path!r} ({item.url} {item.version})",
+                  lambda: _for_host(item, Path(cache_dir).expanduser(), skip, timeout))
     return Fetched(item.path, item.url, item.version, item.commit, known.sha256, known.archive, item.notes)
 
 
