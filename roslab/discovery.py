@@ -36,7 +36,7 @@ import hashlib
 from dataclasses import dataclass, field
 from xml.sax.saxutils import escape, quoteattr
 
-from roslab.distro import DISCOVERY_RANGE_DISTROS
+from roslab import distro as distros
 
 MODES = ("multicast", "static", "discovery_server", "localhost")
 MIDDLEWARES = ("rmw_fastrtps_cpp", "rmw_cyclonedds_cpp", "rmw_zenoh_cpp")
@@ -59,9 +59,6 @@ DISCOVERY_SERVER_SERVICE = "roslab-discovery-server"
 ZENOH_ROUTER_SERVICE = "roslab-zenoh-router"
 SERVICES = (DISCOVERY_SERVER_SERVICE, ZENOH_ROUTER_SERVICE)
 
-# Fast DDS 2.x (Humble 2.6, Jazzy 2.14) reads FASTRTPS_DEFAULT_PROFILES_FILE; 3.x (Kilted, Lyrical)
-# only FASTDDS_DEFAULT_PROFILES_FILE. Only Humble needs a profile file here.
-FASTDDS_3_DISTROS = {"kilted", "lyrical"}
 # Fast DDS's well-known prefix of discovery server 0 (its CLI's `-i 0`, ROS_DISCOVERY_SERVER's first).
 SERVER_0_PREFIX = "44.53.00.5f.45.50.52.4f.53.49.4d.41"
 # Cyclone DDS without multicast probes this many participant indexes per peer (its default is 9:
@@ -161,7 +158,7 @@ def host_discovery(data, distro: str) -> HostDiscovery:
     shell: dict[str, str] = {}
     files: dict[str, str] = {}
     service = None
-    jazzy_era = distro in DISCOVERY_RANGE_DISTROS
+    jazzy_era = distros.record(distro).discovery_range
 
     if middleware == ZENOH:
         port = _get(data, "ros_zenoh_router_port", DEFAULT_ROUTER_PORT)
@@ -204,7 +201,7 @@ def host_discovery(data, distro: str) -> HostDiscovery:
     elif mode == "discovery_server":  # Fast DDS only (refused otherwise before connecting)
         port = _get(data, "ros_discovery_server_port", DEFAULT_SERVER_PORT)
         variables["ROS_DISCOVERY_SERVER"] = f"{server_address(data)}:{port}"
-        if distro == "humble":  # Fast DDS 2.6 has no ROS_SUPER_CLIENT: its XML profile
+        if not distros.record(distro).fastdds_super_client_variable:  # Fast DDS 2.6: its XML profile
             shell[profiles_variable(distro)] = FASTDDS_SUPER_CLIENT_XML
             files[FASTDDS_SUPER_CLIENT_XML] = fastdds_super_client_xml(server_address(data), port)
         else:
@@ -215,7 +212,7 @@ def host_discovery(data, distro: str) -> HostDiscovery:
 
 
 def profiles_variable(distro: str) -> str:
-    return "FASTDDS_DEFAULT_PROFILES_FILE" if distro in FASTDDS_3_DISTROS else "FASTRTPS_DEFAULT_PROFILES_FILE"
+    return distros.record(distro).fastdds_profiles_variable
 
 
 def discovery_server(port: int) -> Service:

@@ -7,7 +7,8 @@ ros2-apt-source pin. The roster's schema, the deploys (on the host's real facts)
 sandbox (its emulated releases and stand-in archives) all read these records; a mapping
 elsewhere is derived from them, never written by hand.
 
-Adding the next pair is one `Platform(...)` below. A value roslab does not know (a pin
+Adding the next pair is one `Platform(...)` below, its `RosDistro` inside it (a non-LTS
+distro that is no release's default goes in OTHER_DISTROS). A value roslab does not know (a pin
 not yet published, verified or copied) is None: the roster check then says so before any
 host is touched and names the setting the teacher can set instead.
 """
@@ -24,6 +25,38 @@ class Gazebo:
     name: str  # "Harmonic"
     ros_package: str  # the ROS package that brings it ("ros_gz", "gazebo_ros_pkgs")
     conflicts: str = ""  # what it cannot be installed beside, in words
+    # The Debian package the simulator itself comes as, and those it cannot be installed beside
+    # (the sandbox's stand-ins conflict the same way: turtlebot3_simulations#241).
+    debian_package: str = ""
+    conflicts_with: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class RosDistro:
+    """One ROS 2 distro: where its packages are and what its middleware reads.
+
+    Every consumer reads these fields; none keeps a list of distro names of its own."""
+
+    name: str  # "jazzy"
+    # Iron and later: ROS_AUTOMATIC_DISCOVERY_RANGE and ROS_STATIC_PEERS (REP 2000, the
+    # "Improved Dynamic Discovery" of Iron); Humble has only ROS_LOCALHOST_ONLY.
+    discovery_range: bool
+    # The Fast DDS release it ships, as its rosdistro distribution.yaml pins fastdds/fastrtps.
+    fastdds: tuple[int, int]
+    lts: bool = True
+    # The Ubuntu releases it has packages for besides the one whose default it is (a non-LTS
+    # distro's: it is no release's default).
+    codenames: tuple[str, ...] = ()
+
+    @property
+    def fastdds_profiles_variable(self) -> str:
+        """Fast DDS 3 reads only FASTDDS_DEFAULT_PROFILES_FILE; 2.x only FASTRTPS_DEFAULT_PROFILES_FILE."""
+        return "FASTDDS_DEFAULT_PROFILES_FILE" if self.fastdds >= (3, 0) else "FASTRTPS_DEFAULT_PROFILES_FILE"
+
+    @property
+    def fastdds_super_client_variable(self) -> bool:
+        """Whether its Fast DDS reads ROS_SUPER_CLIENT (2.6 does not: it needs an XML profile)."""
+        return self.fastdds > (2, 6)
 
 
 @dataclass(frozen=True)
@@ -32,7 +65,7 @@ class Platform:
 
     release: str  # "24.04"
     codename: str  # "noble"
-    distro: str  # "jazzy": the distro a host on this release gets by default
+    ros: RosDistro  # the distro a host on this release gets by default
     python: str  # the release's python3 ("3.12")
     gazebo: Gazebo
     # sha256 of ros2-apt-source's .deb for this codename at ROS_APT_SOURCE_VERSION; None: unknown.
@@ -40,53 +73,99 @@ class Platform:
     pretty: str = ""  # what /etc/os-release says, e.g. "Ubuntu 24.04.2 LTS"
     version_text: str = ""  # os-release's VERSION, e.g. "24.04.2 LTS (Noble Numbat)"
 
+    @property
+    def distro(self) -> str:
+        """The default distro's name ("jazzy")."""
+        return self.ros.name
+
 
 # The pinned ros2-apt-source release every record's sha256 is of (2026-04).
 ROS_APT_SOURCE_VERSION = "1.2.0"
 
-PLATFORMS: tuple[Platform, ...] = (
+PLATFORMS: list[Platform] = [
     Platform(
-        release="22.04", codename="jammy", distro="humble", python="3.10",
+        release="22.04", codename="jammy", python="3.10",
+        ros=RosDistro("humble", discovery_range=False, fastdds=(2, 6)),
         # turtlebot3_gazebo on Humble needs Gazebo Classic 11 (end of life 2025-01).
-        gazebo=Gazebo("Classic 11", "gazebo_ros_pkgs", "Gazebo Harmonic's packages (gz-*)"),
+        gazebo=Gazebo("Classic 11", "gazebo_ros_pkgs", "Gazebo Harmonic's packages (gz-*)",
+                      debian_package="gazebo11", conflicts_with=("gz-harmonic",)),
         # Copied from public install scripts that pin 1.2.0; not verified from here.
         ros_apt_source_sha256="767884cf4ed03116b9d64438930a832ed854147ae435279a7924dfdf60f94433",
         pretty="Ubuntu 22.04.5 LTS", version_text="22.04.5 LTS (Jammy Jellyfish)",
     ),
     Platform(
-        release="24.04", codename="noble", distro="jazzy", python="3.12",
-        gazebo=Gazebo("Harmonic", "ros_gz", "Gazebo Classic 11's packages (gazebo11, gazebo_ros_pkgs)"),
+        release="24.04", codename="noble", python="3.12",
+        ros=RosDistro("jazzy", discovery_range=True, fastdds=(2, 14)),
+        gazebo=Gazebo("Harmonic", "ros_gz", "Gazebo Classic 11's packages (gazebo11, gazebo_ros_pkgs)",
+                      debian_package="gz-harmonic", conflicts_with=("gazebo11",)),
         ros_apt_source_sha256="0804d9b13db770eb87019be414cd78378835228ad5fa801fc88758596dd8f7e5",
         pretty="Ubuntu 24.04.2 LTS", version_text="24.04.2 LTS (Noble Numbat)",
     ),
     Platform(
-        release="26.04", codename="resolute", distro="lyrical", python="3.14",
+        release="26.04", codename="resolute", python="3.14",
+        ros=RosDistro("lyrical", discovery_range=True, fastdds=(3, 6)),
         gazebo=Gazebo("Jetty", "ros_gz"),
         # As the official Docker images pin ros2-apt-source_1.2.0.resolute_all.deb
         # (osrf/docker_images); 1.2.0 is the first release that supports resolute.
         ros_apt_source_sha256="a275b9b819874e745a928e83e39c429fa4d607159285c4ef3ebcf75afa732ee3",
         pretty="Ubuntu 26.04 LTS", version_text="26.04 LTS (Resolute Raccoon)",
     ),
-)
+]
 
-# Non-LTS distros roslab accepts as an override on an LTS release (`ros_distro: kilted`).
-OTHER_DISTROS: dict[str, set[str]] = {"kilted": {"noble"}}
+# Distros that are no release's default, accepted as an override (`ros_distro: kilted`).
+OTHER_DISTROS: list[RosDistro] = [
+    RosDistro("kilted", discovery_range=True, fastdds=(3, 2), lts=False, codenames=("noble",)),
+]
 
-# Distros that have the Jazzy-era discovery variables
-# (ROS_AUTOMATIC_DISCOVERY_RANGE, ROS_STATIC_PEERS); Humble has only ROS_LOCALHOST_ONLY.
-DISCOVERY_RANGE_DISTROS = {"jazzy", "kilted", "lyrical"}
+
+def distros() -> list[RosDistro]:
+    """Every distro roslab knows: each release's default, then the others."""
+    return [p.ros for p in PLATFORMS] + list(OTHER_DISTROS)
+
 
 VARIANTS = ("desktop", "ros-base", "ros-core", "desktop-full")
 
-BY_RELEASE: dict[str, Platform] = {p.release: p for p in PLATFORMS}
-BY_CODENAME: dict[str, Platform] = {p.codename: p for p in PLATFORMS}
+# Indexes and derived views (read-only by convention), for the callers that want a plain mapping.
+# They are filled by `index()` in place, so a module that imported one sees a record added later.
+BY_RELEASE: dict[str, Platform] = {}
+BY_CODENAME: dict[str, Platform] = {}
+BY_NAME: dict[str, RosDistro] = {}
+UBUNTU_CODENAMES: dict[str, str] = {}
+DEFAULT_DISTRO: dict[str, str] = {}
+DISTRO_RELEASES: dict[str, set[str]] = {}
+DISCOVERY_RANGE_DISTROS: set[str] = set()
+# codename -> sha256 of ros2-apt-source's .deb, for the codenames whose pin is known (the schema's
+# default of ros_apt_source_sha256 is this very mapping).
+APT_SOURCE_PINS: dict[str, str] = {}
 
-# Derived views (read-only by convention), for the callers that want a plain mapping.
-UBUNTU_CODENAMES = {p.release: p.codename for p in PLATFORMS}
-DEFAULT_DISTRO = {p.codename: p.distro for p in PLATFORMS}
-DISTRO_RELEASES: dict[str, set[str]] = {p.distro: {p.codename} for p in PLATFORMS}
-for _name, _codenames in OTHER_DISTROS.items():
-    DISTRO_RELEASES.setdefault(_name, set()).update(_codenames)
+
+def index() -> None:
+    """(Re)build the indexes from PLATFORMS and OTHER_DISTROS: after a record is added, every consumer
+    (the roster schema, the deploys, discovery, sources, the sandbox) sees it."""
+    for view in (BY_RELEASE, BY_CODENAME, BY_NAME, UBUNTU_CODENAMES, DEFAULT_DISTRO, DISTRO_RELEASES,
+                 DISCOVERY_RANGE_DISTROS, APT_SOURCE_PINS):
+        view.clear()
+    for platform in PLATFORMS:
+        BY_RELEASE[platform.release] = platform
+        BY_CODENAME[platform.codename] = platform
+        UBUNTU_CODENAMES[platform.release] = platform.codename
+        DEFAULT_DISTRO[platform.codename] = platform.distro
+        DISTRO_RELEASES.setdefault(platform.distro, set()).add(platform.codename)
+        if platform.ros_apt_source_sha256:
+            APT_SOURCE_PINS[platform.codename] = platform.ros_apt_source_sha256
+    for ros in distros():
+        BY_NAME[ros.name] = ros
+        DISTRO_RELEASES.setdefault(ros.name, set()).update(ros.codenames)
+        if ros.discovery_range:
+            DISCOVERY_RANGE_DISTROS.add(ros.name)
+
+
+index()
+
+
+def record(name: str) -> RosDistro:
+    """The record of a distro roslab knows (a KeyError for any other: names are checked earlier)."""
+    return BY_NAME[name]
 
 
 class DistroError(ValueError):
@@ -138,5 +217,6 @@ def select_distro(codename: str, override: str | None = None) -> str:
 
 
 def ros_apt_source_pins() -> dict[str, str]:
-    """codename -> sha256 of ros2-apt-source's .deb, for the codenames whose pin is known."""
-    return {p.codename: p.ros_apt_source_sha256 for p in PLATFORMS if p.ros_apt_source_sha256}
+    """codename -> sha256 of ros2-apt-source's .deb, for the codenames whose pin is known (the live
+    index: copy it before changing it)."""
+    return APT_SOURCE_PINS

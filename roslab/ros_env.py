@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 
 from roslab.discovery import host_discovery
-from roslab.distro import DISCOVERY_RANGE_DISTROS
+from roslab import distro as distros
 
 # The host.data keys `ros_variables_of` reads (shell_env's, discovery's, the host's identity); `host_environment`
 # reads these, the resolved robot profile (roslab_profile) and ros_environment.
@@ -32,7 +32,7 @@ def ros_variables(
     """
     variables = {"ROS_DOMAIN_ID": str(domain_id)}
     static_peers = list(static_peers or ())
-    if distro in DISCOVERY_RANGE_DISTROS:
+    if distros.record(distro).discovery_range:
         variables["ROS_AUTOMATIC_DISCOVERY_RANGE"] = str(discovery_range)
         if static_peers:
             variables["ROS_STATIC_PEERS"] = ";".join(static_peers)

@@ -252,12 +252,11 @@ SCHEMA: list[Setting] = [
         "robot_profile",
         _enabled("robot_profile", "Apply the robot profile's udev rules and the login user's groups."),
         ("robot_profile", "demo", str,
-         "What the team's hosts run (roslab/profiles/data, or the roster's own `profiles:`): demo "
-         "(roslab's talker/listener), turtlebot3 (robot + its main), sim (Gazebo on the main), osr "
-         "(JPL Open Source Rover), esp32_microros (an ESP32 board through micro-ROS). "
-         "Its settings (e.g. turtlebot3_model, lds_model) are set beside it; see README, Robots.",
+         "What the team's hosts run: a built-in profile (one file each in roslab/profiles/data; "
+         "README, Robots, lists them) or one of the roster's own `profiles:`. Its settings (e.g. "
+         "turtlebot3_model, lds_model) are set beside it.",
          f.pattern(r"[a-z][a-z0-9_]{0,62}", "a profile name"),
-         {"allowed": "demo, turtlebot3, sim, osr, esp32_microros, or a roster's profile"}),
+         {"allowed": "a built-in profile (README, Robots) or a roster's profile"}),
         ("board", None, str,
          "The board the host is: pi3b+, pi4, pi5 or pc; None: not said (nothing is checked). "
          "Ubuntu 22.04 has no image for a Pi 5.", f.choice("pi3b+", "pi4", "pi5", "pc"),

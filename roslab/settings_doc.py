@@ -1,8 +1,9 @@
-"""The README's settings reference, generated from the schema (`roslab.settings`).
+"""The README's settings reference and its table of robot profiles, generated from the schema
+(`roslab.settings`) and the built-in profile files (`roslab/profiles/data`).
 
-Every setting is declared once, with its type, default, allowed values and doc line;
-this module turns the schema into the markdown table between the README's markers,
-so the table can't drift from the code:
+Every setting is declared once, with its type, default, allowed values and doc line, and every
+built-in profile is one file; this module turns them into the markdown tables between the
+README's markers, so the tables can't drift from the code (a new profile file is a new row):
 
     python -m roslab.settings_doc            # print the table
     python -m roslab.settings_doc --write    # rewrite it in README.md
@@ -19,6 +20,8 @@ from roslab import settings
 
 BEGIN_MARKER = "<!-- BEGIN settings table (python -m roslab.settings_doc --write) -->"
 END_MARKER = "<!-- END settings table -->"
+PROFILES_BEGIN_MARKER = "<!-- BEGIN profiles table (python -m roslab.settings_doc --write) -->"
+PROFILES_END_MARKER = "<!-- END profiles table -->"
 README = Path(__file__).resolve().parent.parent / "README.md"
 COLUMNS = ("key", "type", "default", "allowed", "where", "what it does", "deploy")
 
@@ -46,23 +49,70 @@ def markdown_table(schema: list[settings.Setting] = settings.SCHEMA) -> str:
     return "\n".join(rows)
 
 
-def readme_with_table(readme_text: str, table: str) -> str:
-    head, sep, rest = readme_text.partition(BEGIN_MARKER)
-    _, sep2, tail = rest.partition(END_MARKER)
+def _profile_settings(profile) -> str:
+    parts = []
+    for setting in profile.settings.values():
+        values = ", ".join(setting.allowed) if setting.allowed else (setting.pattern and "a value")
+        required = "required" if setting.required else f"default {setting.default}" if setting.default else "optional"
+        parts.append(f"`{setting.name}` ({values}; {required})" if values else f"`{setting.name}` ({required})")
+    return "; ".join(parts) or "none"
+
+
+def _runs(side, absent: str) -> str:
+    """What a side starts: its launch and its services, and what its `when` blocks choose instead."""
+    if side is None:
+        return absent
+    started = [f"`{side.launch}`"] if side.launch else []
+    started += [f"service `{service['name']}`" for service in side.services]
+    for block in side.when:
+        chosen = [f"`{block['side'].launch}`"] if block["side"].launch else []
+        chosen += [f"service `{service['name']}`" for service in block["side"].services]
+        if chosen:
+            condition = ", ".join(f"{name}: {value}" for name, value in block["if"].items())
+            started.append(f"{' and '.join(chosen)} when {condition}")
+    return "; ".join(started) or "nothing"
+
+
+def profiles_table() -> str:
+    """One row per built-in profile file: what it is, where it runs, what each side runs."""
+    from roslab.profiles.library import builtin_profiles
+
+    columns = ("profile", "what it is", "distros", "robot runs", "main runs", "its settings", "verify hears")
+    rows = [f"| {' | '.join(columns)} |", "|" + "---|" * len(columns)]
+    for name, profile in sorted(builtin_profiles().items()):
+        distros = "all" if profile.declared_distros == ("all",) else ", ".join(profile.distros)
+        cells = (f"`{name}`", profile.description, distros, _runs(profile.sides.get("robot"), "no robot"),
+                 _runs(profile.sides.get("main"), "no main"), _profile_settings(profile),
+                 f"`{profile.verify_topic}`" if profile.verify_topic else "nothing (no topic to check)")
+        rows.append("| " + " | ".join(_cell(cell) for cell in cells) + " |")
+    return "\n".join(rows)
+
+
+def _between(text: str, begin: str, end: str, table: str) -> str:
+    head, sep, rest = text.partition(begin)
+    _, sep2, tail = rest.partition(end)
     if not sep or not sep2:
-        raise ValueError("README.md lacks the settings table markers")
-    return f"{head}{BEGIN_MARKER}\n{table}\n{END_MARKER}{tail}"
+        raise ValueError(f"README.md lacks the markers {begin} ... {end}")
+    return f"{head}{begin}\n{table}\n{end}{tail}"
+
+
+def readme_with_table(readme_text: str, table: str) -> str:
+    return _between(readme_text, BEGIN_MARKER, END_MARKER, table)
+
+
+def readme_with_profiles(readme_text: str, table: str) -> str:
+    return _between(readme_text, PROFILES_BEGIN_MARKER, PROFILES_END_MARKER, table)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--write", action="store_true", help="rewrite the table in README.md")
+    parser.add_argument("--write", action="store_true", help="rewrite the tables in README.md")
     args = parser.parse_args(argv)
-    table = markdown_table()
+    table, profiles = markdown_table(), profiles_table()
     if args.write:
-        README.write_text(readme_with_table(README.read_text(), table))
+        README.write_text(readme_with_profiles(readme_with_table(README.read_text(), table), profiles))
     else:
-        print(table)
+        print(f"{table}\n\n{profiles}")
     return 0
 
 

@@ -28,6 +28,7 @@ import stat
 from pathlib import Path
 from urllib.parse import unquote, urlsplit
 
+from roslab import distro as distros
 from roslab.controller_files import kind_of
 from roslab.roster.loading import line_of, load_yaml
 from roslab.roster.problems import Problem, Report, display_path
@@ -43,11 +44,18 @@ COMMIT = re.compile(r"[0-9a-f]{40}", re.ASCII)
 TAG = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+-]{0,99}(?:/[A-Za-z0-9_][A-Za-z0-9_.+-]{0,99}){0,3}", re.ASCII)
 # Names that are branches in every ROS repository (and ROS distros, which name branches):
 # refused without asking upstream. Any other name is asked: a branch there is refused too.
-BRANCH_NAMES = frozenset({
+# The distros roslab has records of are added from roslab.distro (`branch_names()`), so a new
+# record needs no edit here.
+_BRANCH_NAMES = frozenset({
     "HEAD", "master", "main", "develop", "devel", "development", "trunk", "rolling", "ros2", "ros2-devel",
-    "ardent", "bouncy", "crystal", "dashing", "eloquent", "foxy", "galactic", "humble", "iron", "jazzy",
-    "kilted", "lyrical",
+    "ardent", "bouncy", "crystal", "dashing", "eloquent", "foxy", "galactic", "iron",
 })
+
+
+def branch_names() -> frozenset[str]:
+    """The names refused as pins without asking upstream: the usual branches and every ROS distro's."""
+    return _BRANCH_NAMES | set(distros.BY_NAME)
+
 URL_SCHEMES = ("http", "https", "file")
 MAX_REPOSITORIES = 200
 MAX_URL = 2000
@@ -114,7 +122,7 @@ def version_problem(version) -> str | None:
     if re.fullmatch(r"[0-9a-fA-F]{7,39}", version) and not re.fullmatch(r"[0-9]+", version):
         return (f"{version!r} looks like an abbreviated commit: give all 40 hex digits "
                 "(a short one can match another commit later)")
-    if version in BRANCH_NAMES or version.startswith(("refs/heads/", "origin/")):
+    if version in branch_names() or version.startswith(("refs/heads/", "origin/")):
         return (f"{version!r} is a branch, which moves: pin the commit (40 hex digits) or a tag, "
                 "so every Pi of the class builds the same sources")
     if not TAG.fullmatch(version) or ".." in version or version.endswith((".lock", ".", "/")) \

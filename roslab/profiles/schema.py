@@ -14,7 +14,7 @@ from pathlib import Path
 import re2
 
 from roslab import formats, settings
-from roslab.distro import DISTRO_RELEASES
+from roslab.distro import BY_NAME, DISTRO_RELEASES
 from roslab.profiles import udev
 from roslab.roster.loading import line_of
 from roslab.roster.problems import Report
@@ -26,6 +26,8 @@ DISCOVERY = ("localhost",)  # room for issue 20's modes (static, discovery_serve
 _NAME = re.compile(r"[a-z][a-z0-9_]{0,62}")
 _VALUE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.:+-]{0,127}")
 _ROS_PACKAGE = re.compile(r"[a-z][a-z0-9_]*|\$\{gazebo\}")
+# `distros: all`: the profile runs on every distro roslab has a record of (roslab.distro).
+ALL_DISTROS = "all"
 # Conditions a `when` block may test besides the profile's settings.
 BUILTIN_CONDITIONS = ("distro", "board")
 
@@ -35,7 +37,7 @@ SETTING_KEYS = ("doc", "allowed", "pattern", "required", "default")
 SIDE_KEYS = ("variant", "boards", "ros_packages", "apt_packages", "remove_apt_packages", "environment", "groups",
              "udev_rules", "boot_config", "services", "launch", "checklist", "os_tweaks", "sources",
              "cmake_args", "build_dependencies", "skip_packages", "python_packages", "python_venv", "when")
-WHEN_KEYS = ("if", "ros_packages", "apt_packages", "remove_apt_packages", "environment", "groups", "udev_rules",
+WHEN_KEYS = ("if", "launch", "ros_packages", "apt_packages", "remove_apt_packages", "environment", "groups", "udev_rules",
              "boot_config", "services", "sources", "cmake_args", "build_dependencies", "skip_packages", "checklist")
 # An underlay package's name in `cmake_args`, `build_dependencies` and `skip_packages` (a ROS
 # package name, or a plain CMake package's as its colcon.pkg gives it).
@@ -166,12 +168,18 @@ class Side:
     boot_config: dict = field(default_factory=dict)  # {"config_txt": [...], "cmdline_remove": [...]}
     services: list[dict] = field(default_factory=list)  # SERVICE_KEYS
 
+    def launches(self) -> list[str]:
+        """Every launch this side may run: its own, then those its `when` blocks choose."""
+        return [launch for launch in [self.launch, *(block["side"].launch for block in self.when)] if launch]
+
 
 @dataclass
 class Profile:
     name: str
     description: str = ""
-    distros: tuple[str, ...] = ()
+    # The distros it supports as the file lists them; ("all",): every distro roslab has a record
+    # of, now or later (`distros` reads the records each time).
+    declared_distros: tuple[str, ...] = ()
     boards: tuple[str, ...] = BOARDS
     middlewares: tuple[str, ...] = MIDDLEWARES
     discovery: str | None = None
@@ -185,6 +193,13 @@ class Profile:
     # What publishes the verify topic, named when the main hears nothing (one line of text; the
     # profile's ${settings} filled): "the ESP32 board, through micro_ros_agent on ...".
     verify_source: str = ""
+
+    @property
+    def distros(self) -> tuple[str, ...]:
+        """The distros it supports (every known one for `distros: all`)."""
+        if self.declared_distros == (ALL_DISTROS,):
+            return tuple(BY_NAME)
+        return self.declared_distros
 
 
 # A profile's text refers to its settings as ${name} (braces only: udev's own $attr{...} and
@@ -288,6 +303,16 @@ class ProfileReader:
                 hint = f" (did you mean {close[0]!r}?)" if close else ""
                 self.error(f"names ${{{name}}}, which is not a setting of this profile{hint}",
                            mapping, key, path)
+
+    def read_launch(self, mapping, path: str, side: Side) -> None:
+        """`launch: <package> <file>.launch.py`, into `side`."""
+        launch = mapping.get("launch")
+        if launch is not None:
+            problem = formats.launch(launch) if isinstance(launch, str) else "must be a string"
+            if problem:
+                self.error(problem, mapping, "launch", f"{path}.launch")
+            else:
+                side.launch = launch
 
     def read_parts(self, mapping, path: str, known: set[str], side: Side, when_ok: bool) -> None:
         """The list and environment keys of a side or a `when` block, into `side`."""
@@ -568,13 +593,7 @@ class ProfileReader:
         self.unknown_keys(value, SIDE_KEYS, name)
         side = Side()
         self.read_parts(value, name, known, side, when_ok=True)
-        launch = value.get("launch")
-        if launch is not None:
-            problem = formats.launch(launch) if isinstance(launch, str) else "must be a string"
-            if problem:
-                self.error(problem, value, "launch", f"{name}.launch")
-            else:
-                side.launch = launch
+        self.read_launch(value, name, side)
         variant = value.get("variant")
         if variant is not None:
             problem = formats.ros_variant(variant) if isinstance(variant, str) else "must be a string"
@@ -621,6 +640,7 @@ class ProfileReader:
             part = Side()
             self.read_parts(block, path, known, part, when_ok=False)
             part.sources = self.read_sources(block, path)
+            self.read_launch(block, path, part)  # a setting may choose the launch (a model's own)
             side.when.append({"if": dict(block["if"]), "side": part})
         return side
 
@@ -731,10 +751,12 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
     settings = dict(base.settings) if base else {}
     settings.update(reader.read_settings(mapping))
     known = set(settings)
-    distros = mapping.get("distros", list(base.distros) if base else None)
-    if not isinstance(distros, list) or not distros or not all(d in DISTRO_RELEASES for d in distros):
-        reader.error(f"must list the distros the profile supports (of {', '.join(sorted(DISTRO_RELEASES))})",
-                     mapping, "distros", "distros")
+    distros = mapping.get("distros", list(base.declared_distros) if base else None)
+    if distros in (ALL_DISTROS, [ALL_DISTROS]):  # nothing distro-specific: every release's record
+        distros = [ALL_DISTROS]
+    elif not isinstance(distros, list) or not distros or not all(d in DISTRO_RELEASES for d in distros):
+        reader.error(f"must list the distros the profile supports (of {', '.join(sorted(DISTRO_RELEASES))}), "
+                     f"or be {ALL_DISTROS!r}", mapping, "distros", "distros")
         distros = []
     boards = mapping.get("boards", list(base.boards) if base else list(BOARDS))
     if not isinstance(boards, list) or not all(b in BOARDS for b in boards):

@@ -13,12 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from roslab.distro import PLATFORMS
-
-# Ubuntu release -> what its os-release says (from roslab.distro's one record per release).
-RELEASES = {
-    p.release: {"codename": p.codename, "pretty": p.pretty, "version": p.version_text} for p in PLATFORMS
-}
+from roslab.distro import BY_RELEASE
 
 HEADER = "# roslab sandbox emulation of Ubuntu {release}: this host runs a Debian userland.\n"
 
@@ -37,31 +32,31 @@ class HostIdentity:
 
     @property
     def codename(self) -> str:
-        return RELEASES[self.release]["codename"]
+        return BY_RELEASE[self.release].codename
 
 
 def os_release(host: HostIdentity) -> str:
-    info = RELEASES[host.release]
+    platform = BY_RELEASE[host.release]
     return HEADER.format(release=host.release) + (
-        f'PRETTY_NAME="{info["pretty"]}"\n'
+        f'PRETTY_NAME="{platform.pretty}"\n'
         'NAME="Ubuntu"\n'
         f'VERSION_ID="{host.release}"\n'
-        f'VERSION="{info["version"]}"\n'
-        f"VERSION_CODENAME={info['codename']}\n"
+        f'VERSION="{platform.version_text}"\n'
+        f"VERSION_CODENAME={platform.codename}\n"
         "ID=ubuntu\n"
         "ID_LIKE=debian\n"
         'HOME_URL="https://www.ubuntu.com/"\n'
-        f"UBUNTU_CODENAME={info['codename']}\n"
+        f"UBUNTU_CODENAME={platform.codename}\n"
     )
 
 
 def lsb_release(host: HostIdentity) -> str:
-    info = RELEASES[host.release]
+    platform = BY_RELEASE[host.release]
     return HEADER.format(release=host.release) + (
         "DISTRIB_ID=Ubuntu\n"
         f"DISTRIB_RELEASE={host.release}\n"
-        f"DISTRIB_CODENAME={info['codename']}\n"
-        f'DISTRIB_DESCRIPTION="{info["pretty"]}"\n'
+        f"DISTRIB_CODENAME={platform.codename}\n"
+        f'DISTRIB_DESCRIPTION="{platform.pretty}"\n'
     )
 
 

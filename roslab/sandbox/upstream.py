@@ -42,7 +42,7 @@ from pathlib import Path
 
 import yaml
 
-from roslab.distro import PLATFORMS
+from roslab.distro import DEFAULT_DISTRO, PLATFORMS
 from roslab.distro import ROS_APT_SOURCE_VERSION as ROS_APT_SOURCE_PIN
 
 from . import git_standins, image, pypi, real_sources, ros_runtime
@@ -55,10 +55,10 @@ ROS_APT_SOURCE_VERSION = ROS_APT_SOURCE_PIN  # the version roslab pins (roslab.d
 
 # Ubuntu codename -> the ROS distro whose stand-ins its ROS archive suite holds
 # (roslab.distro's one record per Ubuntu/ROS pair).
-ROS_DISTROS = {p.codename: p.distro for p in PLATFORMS}
+# codename -> distro: the release records' live index (a record added later is served too).
+ROS_DISTROS = DEFAULT_DISTRO
 UBUNTU_SUITE_POCKETS = ("", "-updates", "-backports", "-security")
 UBUNTU_COMPONENTS = ("main", "restricted", "universe", "multiverse")
-UBUNTU_VERSIONS = {p.codename: p.release for p in PLATFORMS}
 
 # The real Debian tools ros-dev-tools brings (Debian's names for them).
 ROS_DEV_TOOLS_DEPENDS = (
@@ -113,15 +113,26 @@ VARIANT_DEPENDS = {
 
 STANDIN_NOTE = "roslab sandbox stand-in"
 
-# The simulators the robot profiles' ROS packages bring, as stand-ins that conflict the way the
-# real ones do: Gazebo Classic 11 (Humble's turtlebot3_gazebo, through gazebo_ros_pkgs) cannot be
-# installed beside Gazebo Harmonic (Jazzy's, through ros_gz) (turtlebot3_simulations#241).
-SIMULATOR_STANDINS = {
-    "gazebo11": ("11.10.2", "Gazebo Classic 11", "gz-harmonic"),
-    "gz-harmonic": ("8.9.0", "Gazebo Harmonic", "gazebo11"),
-}
-# ROS package key -> the simulator stand-in it depends on, per distro.
-SIMULATOR_OF = {("humble", "gazebo_ros_pkgs"): "gazebo11", ("jazzy", "ros_gz"): "gz-harmonic"}
+# The simulators the robot profiles' ROS packages bring (each release record's Gazebo), as
+# stand-ins that conflict the way the real ones do: Gazebo Classic 11 (Humble's turtlebot3_gazebo,
+# through gazebo_ros_pkgs) cannot be installed beside Gazebo Harmonic (Jazzy's, through ros_gz).
+# The stand-ins' versions: gazebo11's, and gz-sim's of each Gazebo release.
+SIMULATOR_VERSIONS = {"gazebo11": "11.10.2", "gz-harmonic": "8.9.0"}
+
+
+def simulator_standins() -> dict[str, tuple[str, str, list[str]]]:
+    """Debian package -> (stand-in version, title, the packages it conflicts with), from the records."""
+    return {p.gazebo.debian_package: (SIMULATOR_VERSIONS.get(p.gazebo.debian_package, "0.0.0"),
+                                      f"Gazebo {p.gazebo.name}", list(p.gazebo.conflicts_with))
+            for p in PLATFORMS if p.gazebo.debian_package}
+
+
+def simulator_of(distro: str, key: str) -> str | None:
+    """The simulator stand-in a ROS package key depends on, on `distro` (its release's Gazebo)."""
+    for platform in PLATFORMS:
+        if platform.distro == distro and platform.gazebo.ros_package == key and platform.gazebo.debian_package:
+            return platform.gazebo.debian_package
+    return None
 
 
 def profile_keys(distro: str) -> set[str]:
@@ -145,16 +156,14 @@ def profile_launches(distro: str) -> dict[str, dict[str, list[str]]]:
         if distro not in profile.distros:
             continue
         for side in profile.sides.values():
-            if not side.launch:
-                continue
-            package, launch_file = side.launch.split()
-            if package not in stand_ins:
-                continue
             names = set(side.environment)
             for block in side.when:
                 names |= set(block["side"].environment)
-            files = launches.setdefault(package, {})
-            files[launch_file] = sorted(set(files.get(launch_file, [])) | names)
+            for launch in side.launches():
+                package, launch_file = launch.split()
+                if package in stand_ins:
+                    files = launches.setdefault(package, {})
+                    files[launch_file] = sorted(set(files.get(launch_file, [])) | names)
     return launches
 
 
@@ -168,11 +177,12 @@ def profile_verify_topics(distro: str) -> dict[tuple[str, str], tuple[str, str]]
     topics = {}
     for profile in builtin_profiles().values():
         robot = profile.sides.get("robot")
-        if distro not in profile.distros or robot is None or not robot.launch or not profile.verify_topic:
+        if distro not in profile.distros or robot is None or not profile.verify_topic:
             continue
-        package, launch_file = robot.launch.split()
-        if package in stand_ins:
-            topics[(package, launch_file)] = (profile.verify_topic, profile.verify_type)
+        for launch in robot.launches():
+            package, launch_file = launch.split()
+            if package in stand_ins:
+                topics[(package, launch_file)] = (profile.verify_topic, profile.verify_type)
     return topics
 
 
@@ -483,7 +493,7 @@ def ubuntu_archive(rootfs: Path, system_keys: dict[str, str], runtime_packages=(
         log.warning("building the sandbox's Ubuntu-layout archive (once; downloads from Debian)...")
         _download_closure(rootfs, packages, out / "work", out / "pool/universe")
         shutil.rmtree(out / "work")
-        for codename, version in UBUNTU_VERSIONS.items():
+        for codename, version in ((p.codename, p.release) for p in PLATFORMS):
             for pocket in UBUNTU_SUITE_POCKETS:
                 suite = codename + pocket
                 dist_dir = out / "dists" / suite
@@ -569,9 +579,9 @@ def ros_archive(extra_keys: set[str], runtime: ros_runtime.Runtime | None = None
         common = out / "pool/main/common"
         _build_deb(work, "ros-dev-tools", "1.0.1", f"{STANDIN_NOTE}: ROS development tools (real Debian "
                    "rosdep, colcon and vcstool)", depends=list(ROS_DEV_TOOLS_DEPENDS), out_dir=common)
-        for simulator, (version, title, conflicts) in SIMULATOR_STANDINS.items():
+        for simulator, (version, title, conflicts) in simulator_standins().items():
             _build_deb(work, simulator, version, f"{STANDIN_NOTE}: {title} (no simulator; conflicts with "
-                       f"{conflicts} as the real packages do)", conflicts=[conflicts], out_dir=common)
+                       f"{', '.join(conflicts)} as the real packages do)", conflicts=conflicts, out_dir=common)
         for codename, distro in ROS_DISTROS.items():
             pool = out / "pool/main" / codename
             distro_keys = sorted(set(keys) | profile_keys(distro))
@@ -584,8 +594,8 @@ def ros_archive(extra_keys: set[str], runtime: ros_runtime.Runtime | None = None
                 package = debian_name(distro, key)
                 files, depends = standin_launch_files(distro, key), [
                     debian_name(distro, dep) for dep in VARIANT_DEPENDS.get(key, [])]
-                if (distro, key) in SIMULATOR_OF:
-                    depends.append(SIMULATOR_OF[(distro, key)])
+                if simulator_of(distro, key):
+                    depends.append(simulator_of(distro, key))
                 if key == ROS_WORKSPACE_KEY:
                     prefix = f"/opt/ros/{distro}"
                     files = {f"{prefix}/{name}": setup_script(distro)
@@ -609,7 +619,7 @@ def ros_archive(extra_keys: set[str], runtime: ros_runtime.Runtime | None = None
     launches = {distro: (profile_launches(distro), sorted(profile_verify_topics(distro).items()))
                 for distro in ROS_DISTROS.values()}
     return _cached_build("ros-archive", _cache_key(ARCHIVE_VERSION, keys, ROS_DEV_TOOLS_DEPENDS, profiles,
-                                                   launches, SIMULATOR_STANDINS, signer.fingerprint,
+                                                   launches, simulator_standins(), signer.fingerprint,
                                                    runtime.cache_key(), bundles.cache_key(),
                                                    real_sources.BUILD_DEPENDS), build)
 
@@ -637,8 +647,8 @@ def _real_ros_packages(work: Path, codename: str, distro: str, keys: list[str],
         depends = [debian_name(distro, dep) for dep in VARIANT_DEPENDS.get(key, [])] or [core]
         depends += ros_runtime.LINTER_DEPENDS.get(key, ())
         depends += real_sources.BUILD_DEPENDS.get(key, ())  # what Ubuntu's deb brings along
-        if (distro, key) in SIMULATOR_OF:
-            depends.append(SIMULATOR_OF[(distro, key)])
+        if simulator_of(distro, key):
+            depends.append(simulator_of(distro, key))
         files = {**standin_launch_files(distro, key), **real_sources.standin_executable_files(distro, key)}
         what = "stand-in launch files or executables" if files else "no files of its own"
         _build_deb(work, package, version, f"{STANDIN_NOTE}: {key} for ROS 2 {distro} ({what}; "

@@ -43,7 +43,8 @@ def test_every_record_is_consistent_with_the_derived_mappings():
         assert distro.codename_for(platform.release) == platform.codename
         assert distro.default_distro(platform.codename) == platform.distro
         distro.check_distro(platform.distro, platform.codename)
-        assert emulation.RELEASES[platform.release]["codename"] == platform.codename
+        assert f"VERSION_CODENAME={platform.codename}\n" in emulation.os_release(
+            emulation.HostIdentity("h", platform.release, "10.0.0.2", 24))
         assert upstream.ROS_DISTROS[platform.codename] == platform.distro
     assert distro.BY_RELEASE["26.04"].distro == "lyrical"
     assert distro.BY_RELEASE["26.04"].gazebo.name == "Jetty"
@@ -105,3 +106,98 @@ def test_the_sandbox_emulates_each_record_and_takes_releases_per_team(monkeypatc
     monkeypatch.setenv("ROSLAB_SANDBOX_RELEASES", "24.04,23.10")
     with pytest.raises(SandboxError, match="23.10 is not a release the sandbox emulates"):
         releases_by_team()
+
+
+# -- a new Ubuntu/ROS pair is one record ---------------------------------------------------
+
+FAKE_PIN = "cd" * 32
+
+
+@pytest.fixture
+def fake_release():
+    """A made-up 28.04 "testudo" with its distro "tortuga" (Fast DDS 3.8), and a Humble-like
+    old distro "oldtimer" on it as an override: one Platform and one OtherDistro, nothing else."""
+    platform = distro.Platform(
+        release="28.04", codename="testudo", python="3.16",
+        ros=distro.RosDistro("tortuga", discovery_range=True, fastdds=(3, 8)),
+        gazebo=distro.Gazebo("Kestrel", "ros_gz", debian_package="gz-kestrel", conflicts_with=("gazebo11",)),
+        ros_apt_source_sha256=FAKE_PIN, pretty="Ubuntu 28.04 LTS", version_text="28.04 LTS (Testy Testudo)",
+    )
+    old = distro.RosDistro("oldtimer", discovery_range=False, fastdds=(2, 6), lts=False, codenames=("testudo",))
+    distro.PLATFORMS.append(platform)
+    distro.OTHER_DISTROS.append(old)
+    distro.index()
+    try:
+        yield platform
+    finally:
+        distro.PLATFORMS.remove(platform)
+        distro.OTHER_DISTROS.remove(old)
+        distro.index()
+
+
+def test_a_new_release_record_reaches_every_consumer(tmp_path, fake_release):
+    from roslab import discovery, sources
+    from roslab.ros_env import host_environment
+
+    # The roster schema and checks: the release loads, with its distro and its ros2-apt-source pin.
+    path = tmp_path / "lab.yaml"
+    path.write_text(textwrap.dedent("""\
+        classroom:
+          ssh_user: ubuntu
+          ubuntu_release: "28.04"
+        teams:
+          team1:
+            ros_domain_id: 11
+            hosts:
+              team1-main: {role: main}
+              team1-robot: {role: robot, ros_distro: oldtimer}
+        """))
+    main, robot = load_roster(path).hosts
+    assert (main.distro, robot.distro) == ("tortuga", "oldtimer")
+    assert main.data["ros_apt_source_sha256"]["testudo"] == FAKE_PIN
+    assert settings.SETTINGS["ros_distro"].check("tortuga") is None
+
+    # Discovery: the new distro's variables follow its record, not a list of names.
+    assert "ROS_AUTOMATIC_DISCOVERY_RANGE" in host_environment(main.data, "tortuga", shell=True)
+    old_env = host_environment({**robot.data, "ros_automatic_discovery_range": "LOCALHOST"}, "oldtimer", shell=True)
+    assert old_env.get("ROS_LOCALHOST_ONLY") == "1" and "ROS_AUTOMATIC_DISCOVERY_RANGE" not in old_env
+    assert discovery.profiles_variable("tortuga") == "FASTDDS_DEFAULT_PROFILES_FILE"
+    assert discovery.profiles_variable("oldtimer") == "FASTRTPS_DEFAULT_PROFILES_FILE"
+
+    # Sources: a distro's name is a branch, refused as a pin without asking upstream.
+    assert {"tortuga", "oldtimer"} <= sources.branch_names()
+
+    # The deploys pick the distro from the host's facts by the same record.
+    assert distro.select_distro("testudo") == "tortuga"
+    assert distro.select_distro("testudo", "oldtimer") == "oldtimer"
+
+    # The sandbox emulates the release and serves its archive, Gazebo stand-in included.
+    assert "VERSION_CODENAME=testudo" in emulation.os_release(emulation.HostIdentity("h", "28.04", "10.0.0.2", 24))
+    assert upstream.ROS_DISTROS["testudo"] == "tortuga"
+    assert upstream.simulator_of("tortuga", "ros_gz") == "gz-kestrel"
+    assert upstream.simulator_standins()["gz-kestrel"][2] == ["gazebo11"]
+
+
+def test_a_profile_may_name_a_new_records_distro(tmp_path, fake_release):
+    path = tmp_path / "lab.yaml"
+    path.write_text(textwrap.dedent("""\
+        classroom:
+          ssh_user: ubuntu
+          ubuntu_release: "28.04"
+        profiles:
+          mybot:
+            description: a robot that runs only on the new release
+            distros: [tortuga]
+            verify_topic: /chatter
+            verify_type: std_msgs/msg/String
+            robot:
+              launch: roslab_bringup robot.launch.py
+        teams:
+          team1:
+            ros_domain_id: 11
+            robot_profile: mybot
+            hosts:
+              team1-robot: {role: robot}
+        """))
+    (host,) = load_roster(path).hosts
+    assert host.distro == "tortuga"

@@ -250,8 +250,9 @@ def test_a_profile_naming_an_unknown_setting_is_refused_where_it_is_defined(tmp_
     errors = errors_of(path)
     assert errors[0] == ("lab.yaml:9: field 'profiles.mybot.robot.environment.MYBOT_ARM': names ${arm_modle}, "
                          "which is not a setting of this profile")
+    known = ", ".join(sorted(builtin_profiles()))
     assert errors[1] == ("lab.yaml:12: team 't1', host 't1-robot', field 'robot_profile': 'mybot' is not a robot "
-                         "profile (known: demo, esp32_microros, osr, sim, turtlebot3)")
+                         f"profile (known: {known})")
 
 
 def test_a_roster_profile_extends_a_built_in_one(tmp_path, rosdistro_url):
@@ -565,3 +566,92 @@ def test_the_rover_skips_its_ros1_and_gazebo_packages_and_bad_package_lists_are_
                for error in errors), errors
     assert any("field 'profiles.mybot.robot.skip_packages': '../../etc' is not a package name" in error
                for error in errors), errors
+
+
+# -- a new robot is one profile file -----------------------------------------------------
+
+NEW_ROBOT_CHECK = """\
+import json, sys
+from roslab.roster import RosterError, load_roster
+from roslab.sandbox import upstream
+from roslab import settings_doc
+try:
+    classroom = load_roster(sys.argv[1])
+except RosterError as error:
+    print(json.dumps({"refused": [str(problem) for problem in error.problems]}))
+    sys.exit(0)
+hosts = {host.name: host.data["roslab_profile"] for host in classroom.hosts}
+print(json.dumps({
+    "launch": {name: profile["launch"] for name, profile in hosts.items()},
+    "packages": {name: profile["packages"] for name, profile in hosts.items()},
+    "stand_ins": sorted(upstream.profile_keys("jazzy")),
+    "stand_in_launches": sorted(upstream.profile_launches("jazzy").get("turtlebot4_bringup", {})),
+    "verify": [list(key) for key in upstream.profile_verify_topics("jazzy")],
+    "readme_row": [line for line in settings_doc.profiles_table().splitlines() if "`mybot4`" in line],
+}))
+"""
+
+
+def _files_of(root: Path) -> dict[str, bytes]:
+    return {str(path.relative_to(root)): path.read_bytes() for path in sorted(root.rglob("*")) if path.is_file()}
+
+
+def test_a_new_robot_is_one_profile_file_and_nothing_else(tmp_path, rosdistro_url):
+    """A copy of roslab with one more file in roslab/profiles/data (the TurtleBot 4's profile under a
+    new name): the roster takes it, its launch is chosen by its setting, the package check and the
+    sandbox's stand-ins cover it, and the README's table has its row; no other file changed."""
+    import json
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    import roslab
+
+    copy = tmp_path / "copy"
+    shutil.copytree(Path(roslab.__file__).parent, copy / "roslab", ignore=shutil.ignore_patterns("__pycache__"))
+    before = _files_of(copy)
+    data = copy / "roslab/profiles/data"
+    (data / "mybot4.yaml").write_text(
+        (data / "turtlebot4.yaml").read_text().replace("profile: turtlebot4", "profile: mybot4"))
+    after = _files_of(copy)
+    assert {name for name in after if before.get(name) != after[name]} == {"roslab/profiles/data/mybot4.yaml"}
+
+    roster = tmp_path / "lab.yaml"
+    roster.write_text(textwrap.dedent(f"""\
+        classroom:
+          ssh_user: ubuntu
+          ubuntu_release: "24.04"
+          rosdistro_index_url: {rosdistro_url}
+        teams:
+          t1:
+            ros_domain_id: 11
+            robot_profile: mybot4
+            turtlebot4_model: lite
+            hosts:
+              t1-main: {{role: main}}
+              t1-robot: {{role: robot, board: pi4}}
+        """))
+
+    def check() -> dict:
+        run = subprocess.run([sys.executable, "-c", NEW_ROBOT_CHECK, str(roster)], capture_output=True, text=True,
+                             env={**os.environ, "PYTHONPATH": str(copy)}, cwd=tmp_path, timeout=120)
+        assert run.returncode == 0, run.stderr
+        return json.loads(run.stdout.splitlines()[-1])
+
+    seen = check()
+    assert seen["launch"] == {"t1-main": None, "t1-robot": "turtlebot4_bringup lite.launch.py"}
+    assert "ros-jazzy-turtlebot4-robot" in seen["packages"]["t1-robot"]
+    assert "ros-jazzy-turtlebot4-desktop" in seen["packages"]["t1-main"]
+    assert {"turtlebot4_robot", "turtlebot4_desktop"} <= set(seen["stand_ins"])
+    assert seen["stand_in_launches"] == ["lite.launch.py", "standard.launch.py"]
+    assert ["turtlebot4_bringup", "lite.launch.py"] in seen["verify"]
+    assert len(seen["readme_row"]) == 1 and "standard, lite" in seen["readme_row"][0]
+
+    # The package check covers the new file as it covers the built-in ones: a misspelt package
+    # in it is refused before any host is touched, naming the profile and the closest real name.
+    (data / "mybot4.yaml").write_text((data / "mybot4.yaml").read_text().replace(
+        "turtlebot4_node]", "turtlebot4_nodee]"))
+    refused = check()["refused"]
+    assert any("mybot4" in line and "ros-jazzy-turtlebot4-nodee" in line and "did you mean ros-jazzy-turtlebot4-node?" in line
+               for line in refused), refused

@@ -24,6 +24,18 @@ def test_readme_table_is_up_to_date():
     )
 
 
+def test_readme_profiles_table_is_up_to_date_and_has_a_row_per_profile_file():
+    from roslab.profiles.library import builtin_files
+
+    expected = settings_doc.profiles_table()
+    readme = settings_doc.README.read_text()
+    assert settings_doc.readme_with_profiles(readme, expected) == readme, (
+        "README's profiles table is stale: run `python -m roslab.settings_doc --write`"
+    )
+    for path in builtin_files():
+        assert f"| `{path.stem}` |" in expected
+
+
 def test_readme_table_lists_every_setting_with_type_and_allowed_values():
     table = settings_doc.markdown_table()
     for s in settings.SCHEMA:
