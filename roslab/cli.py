@@ -123,9 +123,9 @@ def build_parser() -> argparse.ArgumentParser:
     register_seed(commands)  # roslab seed
     register_trust(commands)  # roslab trust, roslab forget
 
-    from roslab.profiles.opencr import register as register_opencr
+    from roslab.robot_tools import register_profile_tools
 
-    register_opencr(commands)  # roslab opencr-update
+    register_profile_tools(commands)  # what the robot profiles bring: roslab opencr-update
 
     status = commands.add_parser(
         "status",

@@ -30,8 +30,8 @@ from urllib.parse import unquote, urlsplit
 
 from roslab import distro as distros
 from roslab.controller_files import kind_of
-from roslab.roster.loading import line_of, load_yaml
-from roslab.roster.problems import Problem, Report, display_path
+from roslab.checked.loading import line_of, load_yaml
+from roslab.checked.problems import Problem, Report, display_path
 
 # A .repos file's name as a profile or roster gives it: a relative path ending in .repos.
 REPOS_FILE = re.compile(r"(?:[A-Za-z0-9_][A-Za-z0-9_.-]{0,99}/){0,7}[A-Za-z0-9_][A-Za-z0-9_.-]{0,99}\.repos",

@@ -8,8 +8,8 @@ from importlib import resources
 from pathlib import Path
 
 from roslab.profiles.schema import Profile, read_profile
-from roslab.roster.loading import Mapping, line_of, load_yaml
-from roslab.roster.problems import Problem, Report, RosterError
+from roslab.checked.loading import Mapping, line_of, load_yaml
+from roslab.checked.problems import Problem, Report, RosterError
 
 DATA = "roslab.profiles.data"
 DEFAULT_PROFILE = "demo"

@@ -16,8 +16,8 @@ import re2
 from roslab import formats, settings
 from roslab.distro import BY_NAME, DISTRO_RELEASES
 from roslab.profiles import udev
-from roslab.roster.loading import line_of
-from roslab.roster.problems import Report
+from roslab.checked.loading import line_of
+from roslab.checked.problems import Report
 
 SIDES = ("main", "robot")
 BOARDS = ("pi3b+", "pi4", "pi5", "pc")
@@ -26,12 +26,29 @@ DISCOVERY = ("localhost",)  # room for issue 20's modes (static, discovery_serve
 _NAME = re.compile(r"[a-z][a-z0-9_]{0,62}")
 _VALUE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.:+-]{0,127}")
 _ROS_PACKAGE = re.compile(r"[a-z][a-z0-9_]*|\$\{gazebo\}")
+# The commands a profile may bring (`tools:`): the modules of roslab/robot_tools, as `roslab <tool>`
+# spells them. Read from the folder, not imported: those commands sit above the profiles.
+TOOLS_DIR = Path(__file__).resolve().parent.parent / "robot_tools"
+TOOL_NAME = re.compile(r"[a-z][a-z0-9]*(-[a-z0-9]+){0,5}", re.ASCII)
+
+
+def known_tools() -> list[str]:
+    return sorted(path.stem.replace("_", "-") for path in TOOLS_DIR.glob("*.py") if path.stem != "__init__")
+
+
+def tool_problem(name) -> str | None:
+    """Why `name` is not a tool a profile may name, or None."""
+    if not isinstance(name, str) or not TOOL_NAME.fullmatch(name) or name not in known_tools():
+        return f"{name!r} is not a robot tool roslab has (known: {', '.join(known_tools())})"
+    return None
+
+
 # `distros: all`: the profile runs on every distro roslab has a record of (roslab.distro).
 ALL_DISTROS = "all"
 # Conditions a `when` block may test besides the profile's settings.
 BUILTIN_CONDITIONS = ("distro", "board")
 
-TOP_KEYS = ("profile", "extends", "description", "distros", "boards", "middlewares", "discovery", "verify_topic",
+TOP_KEYS = ("profile", "extends", "description", "distros", "tools", "boards", "middlewares", "discovery", "verify_topic",
             "verify_type", "verify_if", "verify_source", "settings", *SIDES)
 SETTING_KEYS = ("doc", "allowed", "pattern", "required", "default")
 SIDE_KEYS = ("variant", "boards", "ros_packages", "apt_packages", "remove_apt_packages", "environment", "groups",
@@ -193,6 +210,8 @@ class Profile:
     # What publishes the verify topic, named when the main hears nothing (one line of text; the
     # profile's ${settings} filled): "the ESP32 board, through micro_ros_agent on ...".
     verify_source: str = ""
+    # Commands the robot brings (roslab/robot_tools): `roslab opencr-update` for a TurtleBot3.
+    tools: tuple[str, ...] = ()
 
     @property
     def distros(self) -> tuple[str, ...]:
@@ -786,6 +805,11 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
         if setting not in known:
             reader.error(f"tests {setting!r}, which is not a setting of this profile", verify_if, setting,
                          "verify_if")
+    tools = mapping.get("tools", list(base.tools) if base else [])
+    if not isinstance(tools, list) or any(tool_problem(tool) for tool in tools):
+        problems = [tool_problem(tool) for tool in tools] if isinstance(tools, list) else ["must be a list"]
+        reader.error(next(problem for problem in problems if problem), mapping, "tools", "tools")
+        tools = []
     verify_source = mapping.get("verify_source", base.verify_source if base else "")
     if not isinstance(verify_source, str) or (verify_source and formats.single_line(verify_source)):
         reader.error("must be one line of text", mapping, "verify_source", "verify_source")
@@ -811,7 +835,7 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
         return None
     return Profile(name, str(description or ""), tuple(distros), tuple(boards), tuple(middlewares), discovery,
                    topic, message_type, dict(verify_if), settings, sides, source, line_of(mapping),
-                   verify_source=verify_source)
+                   verify_source=verify_source, tools=tuple(tools))
 
 
 def merged_side(base: Side, own: Side) -> Side:

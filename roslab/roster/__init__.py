@@ -19,7 +19,7 @@ from roslab.profiles.packages import check_classroom as _check_ros_packages
 from roslab.roster.checks import Validator, assign_domain_ids, check_classroom
 from roslab.roster.inventory import add_host_lists, default_roster_path, inventory_groups
 from roslab.roster.model import ROLES, Classroom, Host, Team
-from roslab.roster.problems import Problem, Report, RosterError, display_path
+from roslab.checked.problems import Problem, Report, RosterError, display_path
 from roslab.roster.reader import RosterReader
 
 # Checks across the classroom that live with their concern, each `(classroom, report)`.

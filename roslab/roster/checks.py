@@ -17,7 +17,7 @@ from roslab import discovery
 from roslab import distro as distros
 from roslab import settings
 from roslab.roster.model import ROLES, Classroom, Host
-from roslab.roster.problems import Report
+from roslab.checked.problems import Report
 
 # Group names pyinfra or roslab already use; a team may not take them.
 RESERVED_GROUPS = {"all", *ROLES, *distros.DISTRO_RELEASES}

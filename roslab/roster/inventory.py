@@ -11,7 +11,7 @@ from roslab import identity
 from roslab.network.state import addresses_path, last_known_addresses
 from roslab.roster.checks import host_ip
 from roslab.roster.model import ROLES, Classroom
-from roslab.roster.problems import Problem, RosterError, display_path
+from roslab.checked.problems import Problem, RosterError, display_path
 
 DEFAULT_ROSTER = Path("inventories/lab.yaml")
 CLASSROOM_ROSTER = Path("inventories/classroom.yaml")

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from roslab.roster.problems import Problem
+from roslab.checked.problems import Problem
 
 ROLES = ("main", "robot")
 

@@ -20,7 +20,7 @@ from roslab import formats, secrets, settings
 from roslab.controller_files import MAX_SMALL_FILE_BYTES, UnreadableFile, read_regular_file
 from roslab.roster import overrides
 from roslab.roster.checks import unknown_key_message
-from roslab.roster.loading import (
+from roslab.checked.loading import (
     Ambiguous,
     Mapping,
     ambiguous_inside,
@@ -31,7 +31,7 @@ from roslab.roster.loading import (
     without,
 )
 from roslab.roster.model import Classroom, Host, Team
-from roslab.roster.problems import Problem, Report, display_path
+from roslab.checked.problems import Problem, Report, display_path
 
 TOP_LEVEL_KEYS = ("classroom", "teams", "profiles")
 # Role-named keys kept as aliases of the role-free ones (a warning says which to set instead).

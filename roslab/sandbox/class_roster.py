@@ -49,7 +49,7 @@ def members(classroom) -> tuple[list[dict], list[str]]:
 def _plain(value, key=None):
     """The strict loader's values as plain YAML data again (an Ambiguous scalar as the boolean a
     switch means, else its text)."""
-    from roslab.roster.loading import Ambiguous
+    from roslab.checked.loading import Ambiguous
 
     if isinstance(value, Ambiguous):
         setting = settings.SETTINGS.get(key)
@@ -94,8 +94,8 @@ def sandbox_roster(class_path: Path, base: dict, addresses: dict[str, str],
     """The sandbox's roster for the class at `class_path`: `base` is the roster the sandbox
     writes for its own hosts (its classroom settings win), `addresses` and `releases` each
     host's in the sandbox. Returns the roster and the notes."""
-    from roslab.roster.loading import load_yaml
-    from roslab.roster.problems import Report
+    from roslab.checked.loading import load_yaml
+    from roslab.checked.problems import Report
 
     report = Report(class_path)
     raw = _plain(load_yaml(class_path, report))

@@ -368,7 +368,7 @@ def test_ros_environment_refuses_what_no_destination_can_carry(tmp_path, variabl
 # --- roslab opencr-update ------------------------------------------------------------------
 
 def test_opencr_update_refuses_in_one_line_naming_the_device():
-    from roslab.profiles.opencr import UsbSerialPort, port_problem, update_script
+    from roslab.robot_tools.opencr_update import UsbSerialPort, port_problem, update_script
 
     fact = UsbSerialPort()
     assert fact.process(["missing"]) is None

@@ -29,7 +29,7 @@ from roslab.profiles.host import (
 from roslab.profiles.library import builtin_profiles
 from roslab.profiles.resolve import resolve_host
 from roslab.roster import load_roster
-from roslab.roster.problems import Report
+from roslab.checked.problems import Report
 from roslab.profiles.schema import read_profile
 
 UBUNTU_CMDLINE = ("console=serial0,115200 multipath=off dwc_otg.lpm_enable=0 console=tty1 root=LABEL=writable "

@@ -318,7 +318,7 @@ def test_text_that_only_starts_like_a_number_in_another_base_is_plain_text(raw):
     """0b wants binary digits, 0o octal and 0x hex ones: anything else is text to every YAML reader."""
     import yaml
 
-    from roslab.roster.loading import Ambiguous, StrictLoader
+    from roslab.checked.loading import Ambiguous, StrictLoader
 
     value = yaml.load(f"v: {raw}\n", Loader=StrictLoader)["v"]
     assert value == raw and not isinstance(value, Ambiguous)

@@ -154,9 +154,9 @@ def test_the_bringups_stand_in_launch_needs_the_profiles_variables_and_reports_t
     import types
     import xml.etree.ElementTree as ElementTree
 
-    assert upstream.profile_launches("jazzy") == {
-        "turtlebot3_bringup": {"robot.launch.py": ["LDS_MODEL", "TURTLEBOT3_MODEL"]}}
-    assert upstream.profile_launches("lyrical") == {}  # no TurtleBot3 on Lyrical
+    assert upstream.profile_launches("jazzy")["turtlebot3_bringup"] == {
+        "robot.launch.py": ["LDS_MODEL", "TURTLEBOT3_MODEL"]}
+    assert "turtlebot3_bringup" not in upstream.profile_launches("lyrical")  # no TurtleBot3 on Lyrical
     assert upstream.standin_launch_files("jazzy", "turtlesim") == {}
     files = upstream.standin_launch_files("humble", "turtlebot3_bringup")
     share = "/opt/ros/humble/share"

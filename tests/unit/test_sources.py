@@ -14,7 +14,7 @@ from fixtures.fake_host import plan
 
 from roslab import source_fetch, sources, underlay
 from roslab.roster import RosterError, load_roster
-from roslab.roster.problems import Report
+from roslab.checked.problems import Report
 from roslab.sandbox import git_standins
 from roslab.workspace import WorkspaceStamps
 

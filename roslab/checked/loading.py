@@ -15,7 +15,7 @@ import yaml
 
 from roslab.controller_files import UnreadableFile, read_regular_file
 
-from roslab.roster.problems import Report
+from roslab.checked.problems import Report
 
 # Far above any classroom (a 5,000-host roster is about 100,000 nodes), far below a hang.
 MAX_EXPANDED_NODES = 1_000_000

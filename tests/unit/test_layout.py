@@ -1,0 +1,115 @@
+"""roslab's layout: no import cycle between its folders (lazy imports inside functions count),
+and robot commands come from the profiles that name them."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+import roslab
+from roslab.profiles.library import builtin_profiles
+from roslab.profiles.schema import known_tools
+
+ROOT = Path(roslab.__file__).parent
+
+
+def _unit(module: str) -> str:
+    """roslab.<folder> for a folder's modules, roslab.<module> for a loose one."""
+    return ".".join(module.split(".")[:2])
+
+
+def import_edges() -> dict[str, set[str]]:
+    edges: dict[str, set[str]] = {}
+    for path in ROOT.rglob("*.py"):
+        module = ".".join(path.relative_to(ROOT.parent).with_suffix("").parts).removesuffix(".__init__")
+        source = _unit(module)
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("roslab"):
+                targets = [f"roslab.{alias.name}" for alias in node.names] if node.module == "roslab" \
+                    else [node.module]
+            elif isinstance(node, ast.Import):
+                targets = [alias.name for alias in node.names if alias.name.startswith("roslab.")]
+            else:
+                continue
+            for target in targets:
+                if _unit(target) != source:
+                    edges.setdefault(source, set()).add(_unit(target))
+    return edges
+
+
+def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components of more than one unit (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[list[str]] = []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        for successor in edges.get(node, ()):
+            if successor not in index:
+                visit(successor)
+                low[node] = min(low[node], low[successor])
+            elif successor in stack:
+                low[node] = min(low[node], index[successor])
+        if low[node] == index[node]:
+            component = []
+            while True:
+                member = stack.pop()
+                component.append(member)
+                if member == node:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for node in list(edges):
+        if node not in index:
+            visit(node)
+    return found
+
+
+def test_no_import_cycle_runs_through_a_folder():
+    folders = {f"roslab.{path.parent.name}" for path in ROOT.glob("*/__init__.py")}
+    through_folders = [component for component in cycles(import_edges()) if folders & set(component)]
+    assert through_folders == []
+
+
+def test_the_cycle_finder_finds_a_cycle():
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def test_robot_commands_are_the_ones_profiles_name():
+    from roslab.cli import build_parser
+
+    named = {tool for profile in builtin_profiles().values() for tool in profile.tools}
+    assert named == {"opencr-update"} and set(known_tools()) >= named
+    parser = build_parser()
+    commands = next(action for action in parser._actions if action.dest == "command").choices
+    assert named <= set(commands)
+
+
+@pytest.mark.parametrize("tools", ["[flash-everything]", "[opencr_update]", "opencr-update", "['../x']"])
+def test_a_profile_naming_a_tool_roslab_lacks_is_refused(tmp_path, tools):
+    from roslab.roster import RosterError, load_roster
+
+    path = tmp_path / "lab.yaml"
+    path.write_text(f"""\
+classroom:
+  ssh_user: ubuntu
+profiles:
+  mine:
+    extends: demo
+    tools: {tools}
+teams:
+  t1:
+    robot_profile: mine
+    hosts:
+      t1-robot: {{role: robot}}
+""")
+    with pytest.raises(RosterError) as raised:
+        load_roster(path)
+    assert any("lab.yaml:6: field 'profiles.mine.tools'" in str(problem) for problem in raised.value.problems), \
+        raised.value.problems
