@@ -27,7 +27,8 @@ from pyinfra.operations import files, systemd
 from deploy.common import existing_login_home, host_distro, login_home, login_user, should_run, stop_host, where
 from roslab import discovery, probe, settings
 from roslab import workspace as ws_ops
-from roslab.quoting import shell_word, systemd_assignment, systemd_value, systemd_word
+from roslab.quoting import shell_word, systemd_value
+from roslab.service_units import DISCOVERY_RESTARTS, unit_values
 from roslab.templating import render
 from roslab.workspace import NODES_SERVICE
 
@@ -35,9 +36,6 @@ DEFAULTS = settings.defaults("discovery")
 
 UNIT_DIR = "/etc/systemd/system"
 MANAGED_FILES = (discovery.FASTDDS_PEERS_XML, discovery.FASTDDS_SUPER_CLIENT_XML, discovery.CYCLONEDDS_PEERS_XML)
-RESTART_SEC = 3
-START_LIMIT_BURST = 5
-START_LIMIT_INTERVAL = 120
 
 
 def unit_path(service: str) -> str:
@@ -54,13 +52,8 @@ def service_unit_text(service: discovery.Service, *, distro: str, user: str, hom
         "roslab-discovery.service.j2",
         description=systemd_value(service.description),
         nodes_service=NODES_SERVICE,
-        service_user=systemd_value(user),
-        working_directory=systemd_value(home),
-        environment=[systemd_assignment(name, value) for name, value in sorted(service.environment.items())],
-        exec_start=f"/bin/bash -c {systemd_word(script)}",
-        restart_sec=RESTART_SEC,
-        start_limit_burst=START_LIMIT_BURST,
-        start_limit_interval=START_LIMIT_INTERVAL,
+        **unit_values(user=user, home=home, environment=service.environment, script=script,
+                      restarts=DISCOVERY_RESTARTS),
     )
 
 

@@ -25,15 +25,13 @@ from roslab import probe, settings
 from roslab import workspace as ws_ops
 from roslab.profiles.host import service_installed_not_running
 from roslab.python_venv import venv_on_pythonpath
-from roslab.quoting import shell_word, systemd_assignment, systemd_value, systemd_word
+from roslab.quoting import shell_word, systemd_value
+from roslab.service_units import NODE_RESTARTS, unit_values
 from roslab.ros_env import host_environment
 from roslab.templating import render
 
 DEFAULTS = settings.defaults("profile_services")
 UNIT_DIR = "/etc/systemd/system"
-START_LIMIT_BURST = 5
-START_LIMIT_INTERVAL = 300
-RESTART_SEC = 5
 
 
 def unit_path(name: str) -> str:
@@ -68,13 +66,7 @@ def unit_text(*, service: dict, profile: str, user: str, home: str, workspace_di
         profile=systemd_value(profile),
         service=f"{service['name']}.service",
         description=systemd_value(service["description"]),
-        service_user=systemd_value(user),
-        working_directory=systemd_value(home),
-        environment=[systemd_assignment(name, value) for name, value in sorted(merged.items())],
-        exec_start=f"/bin/bash -c {systemd_word(script)}",
-        restart_sec=RESTART_SEC,
-        start_limit_burst=START_LIMIT_BURST,
-        start_limit_interval=START_LIMIT_INTERVAL,
+        **unit_values(user=user, home=home, environment=merged, script=script, restarts=NODE_RESTARTS),
     )
 
 

@@ -25,7 +25,7 @@ from roslab.quoting import shell_home_path, shell_word
 from deploy.python_env import filled_venv
 from deploy.sources import repositories
 from roslab.python_venv import venv_on_pythonpath
-from roslab.ros_env import host_environment, ros_variables
+from roslab.ros_env import host_environment
 from roslab.templating import render
 
 BLOCK_LABEL = "ROS 2 environment"
@@ -35,26 +35,19 @@ DEFAULTS = settings.defaults("shell_env")
 
 def render_ros_environment(
     distro: str,
-    domain_id: int,
-    discovery_range: str = "SUBNET",
-    static_peers: list[str] | tuple = (),
+    variables: dict[str, str],
     workspace_dir: str = settings.SETTINGS["workspace_dir"].default,
     rosdistro_index_url: str | None = None,
-    extra: dict[str, str] | None = None,
-    variables: dict[str, str] | None = None,
     underlay_dir: str | None = None,
     venv_dir: str | None = None,
 ) -> str:
     """The text of the ~/.bashrc block for these (schema-checked) settings.
 
-    `extra`: the robot profile's and ros_environment's variables (roslab.ros_env.extra_variables).
     `variables`: every variable, as `roslab.ros_env.host_environment(data, distro, shell=True)` gives
-    them (domain, middleware, discovery mode, extras); then the other value arguments are unused.
+    them (domain, middleware, discovery mode, the profile's and the roster's extras).
     `underlay_dir`: the underlay workspace (deploy/sources.py) sourced before the workspace, or None.
     `venv_dir`: the robot profile's venv (`~/...`), whose site-packages go first on PYTHONPATH, or None.
     """
-    if variables is None:
-        variables = {**ros_variables(distro, domain_id, discovery_range, static_peers), **(extra or {})}
     return render(
         "bashrc-ros-environment.sh.j2",
         ros_setup=shell_word(f"/opt/ros/{distro}/setup.bash"),
@@ -92,7 +85,6 @@ def shell_env():
         distro = host_distro()
         block = render_ros_environment(
             distro=distro,
-            domain_id=host.data.ros_domain_id,
             workspace_dir=host.data.workspace_dir,
             rosdistro_index_url=host.data.rosdistro_index_url,
             variables=host_environment(host.data, distro, shell=True),

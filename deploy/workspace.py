@@ -41,7 +41,8 @@ from deploy.sources import underlay_identity, underlay_setup
 from roslab import packaged, probe, settings
 from roslab import workspace as ws_ops
 from roslab.python_venv import venv_on_pythonpath
-from roslab.quoting import shell_word, systemd_assignment, systemd_value, systemd_word
+from roslab.quoting import shell_word, systemd_value
+from roslab.service_units import NODE_RESTARTS, unit_values
 from roslab.profiles.library import DEFAULT_PROFILE, builtin_profiles
 from roslab.discovery import host_discovery
 from roslab.ros_env import host_environment
@@ -54,9 +55,6 @@ REPO = Path(__file__).resolve().parent.parent
 DEFAULTS = settings.defaults("workspace")
 
 # A launch that keeps failing is retried this many times in this many seconds, then left failed.
-START_LIMIT_BURST = 5
-START_LIMIT_INTERVAL = 300
-RESTART_SEC = 5
 
 
 def nodes_dir() -> str:
@@ -102,14 +100,7 @@ def unit_text(
         workspace_dir=systemd_value(workspace_dir),
         description=systemd_value(f"roslab {role} nodes (ros2 launch {launch})"),
         service=NODES_SERVICE,
-        service_user=systemd_value(user),
-        working_directory=systemd_value(home),
-        environment=[systemd_assignment(name, value) for name, value in sorted(environment.items())],
-        # ExecStart un-escapes \, expands % and $ in every word: the script is one escaped word.
-        exec_start=f"/bin/bash -c {systemd_word(script)}",
-        restart_sec=RESTART_SEC,
-        start_limit_burst=START_LIMIT_BURST,
-        start_limit_interval=START_LIMIT_INTERVAL,
+        **unit_values(user=user, home=home, environment=environment, script=script, restarts=NODE_RESTARTS),
         discovery_digest=files_digest(discovery_files) if discovery_files else None,
     )
 

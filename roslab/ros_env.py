@@ -9,10 +9,7 @@ Values arrive checked by the settings schema; each destination quotes them its o
 
 from __future__ import annotations
 
-from collections.abc import Iterable
-
 from roslab.discovery import host_discovery
-from roslab import distro as distros
 
 # The host.data keys `ros_variables_of` reads (shell_env's, discovery's, the host's identity); `host_environment`
 # reads these, the resolved robot profile (roslab_profile) and ros_environment.
@@ -20,25 +17,6 @@ SETTING_KEYS = ("ros_domain_id", "ros_automatic_discovery_range", "ros_static_pe
                 "ros_discovery_mode", "ros_discovery_server_port", "ros_zenoh_router_port",
                 "roslab_team_hosts", "roslab_hostname", "roslab_role")
 ENVIRONMENT_KEYS = (*SETTING_KEYS, "roslab_profile", "ros_environment")
-
-
-def ros_variables(
-    distro: str, domain_id: int, discovery_range: str = "SUBNET", static_peers: Iterable[str] = (),
-) -> dict[str, str]:
-    """The ROS variables a shell or a service of this host needs, in export order.
-
-    Jazzy and later have ROS_AUTOMATIC_DISCOVERY_RANGE and ROS_STATIC_PEERS; Humble has
-    neither, and its LOCALHOST is ROS_LOCALHOST_ONLY=1.
-    """
-    variables = {"ROS_DOMAIN_ID": str(domain_id)}
-    static_peers = list(static_peers or ())
-    if distros.record(distro).discovery_range:
-        variables["ROS_AUTOMATIC_DISCOVERY_RANGE"] = str(discovery_range)
-        if static_peers:
-            variables["ROS_STATIC_PEERS"] = ";".join(static_peers)
-    elif discovery_range == "LOCALHOST":
-        variables["ROS_LOCALHOST_ONLY"] = "1"
-    return variables
 
 
 def ros_variables_of(data, distro: str, shell: bool = False) -> dict[str, str]:

@@ -183,6 +183,12 @@ def builtin_ros_packages(distro: str) -> set[str]:
             for name in every_ros_package(profile, distro)}
 
 
+def dds_only_packages() -> dict[str, str]:
+    """ROS package -> what it is, for every package a built-in profile says speaks DDS only."""
+    return {package: what for profile in builtin_profiles().values()
+            for package, what in profile.dds_only_packages.items()}
+
+
 def builtin_debian_packages() -> set[str]:
     """Every apt package a built-in profile installs that is not a ROS one (python3-serial,
     i2c-tools): the sandbox's Ubuntu-layout archive carries the real Debian packages."""

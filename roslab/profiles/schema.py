@@ -48,7 +48,8 @@ ALL_DISTROS = "all"
 # Conditions a `when` block may test besides the profile's settings.
 BUILTIN_CONDITIONS = ("distro", "board")
 
-TOP_KEYS = ("profile", "extends", "description", "distros", "tools", "boards", "middlewares", "discovery", "verify_topic",
+TOP_KEYS = ("profile", "extends", "description", "distros", "tools", "boards", "middlewares", "dds_only_packages",
+            "discovery", "verify_topic",
             "verify_type", "verify_if", "verify_source", "settings", *SIDES)
 SETTING_KEYS = ("doc", "allowed", "pattern", "required", "default")
 SIDE_KEYS = ("variant", "boards", "ros_packages", "apt_packages", "remove_apt_packages", "environment", "groups",
@@ -212,6 +213,9 @@ class Profile:
     verify_source: str = ""
     # Commands the robot brings (roslab/robot_tools): `roslab opencr-update` for a TurtleBot3.
     tools: tuple[str, ...] = ()
+    # ROS packages of this robot that speak DDS only, with what they are in words: a roster that
+    # names one (its nodes_launch, ros_extra_packages) under rmw_zenoh_cpp is refused.
+    dds_only_packages: dict[str, str] = field(default_factory=dict)
 
     @property
     def distros(self) -> tuple[str, ...]:
@@ -810,6 +814,13 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
         problems = [tool_problem(tool) for tool in tools] if isinstance(tools, list) else ["must be a list"]
         reader.error(next(problem for problem in problems if problem), mapping, "tools", "tools")
         tools = []
+    dds_only = mapping.get("dds_only_packages", dict(base.dds_only_packages) if base else {})
+    if not isinstance(dds_only, dict) or not all(
+            isinstance(package, str) and _UNDERLAY_PACKAGE.fullmatch(package) and isinstance(what, str)
+            and not formats.single_line(what) and len(what) <= 80 for package, what in dds_only.items()):
+        reader.error("must map ROS package names to what they are, in a few words", mapping,
+                     "dds_only_packages", "dds_only_packages")
+        dds_only = {}
     verify_source = mapping.get("verify_source", base.verify_source if base else "")
     if not isinstance(verify_source, str) or (verify_source and formats.single_line(verify_source)):
         reader.error("must be one line of text", mapping, "verify_source", "verify_source")
@@ -835,7 +846,7 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
         return None
     return Profile(name, str(description or ""), tuple(distros), tuple(boards), tuple(middlewares), discovery,
                    topic, message_type, dict(verify_if), settings, sides, source, line_of(mapping),
-                   verify_source=verify_source, tools=tuple(tools))
+                   verify_source=verify_source, tools=tuple(tools), dds_only_packages=dict(dds_only))
 
 
 def merged_side(base: Side, own: Side) -> Side:

@@ -177,7 +177,6 @@ def assign_domain_ids(classroom: Classroom) -> None:
         team.ros_domain_id = assigned[team.name]
         team.domain_assigned = True
         for host in team.hosts:
-            host.ros_domain_id = team.ros_domain_id
             host.data["ros_domain_id"] = team.ros_domain_id
             host.data["roslab_domain_assigned"] = True
 
@@ -224,18 +223,25 @@ def check_discovery(classroom: Classroom, report: Report) -> None:
                              "itself (ros_discovery_mode localhost): this host would find nobody",
                              field="ros_discovery_mode",
                              line=main.lines.get("ros_discovery_mode") or main.line, **where)
-            if middleware == discovery.ZENOH and _runs_micro_ros_agent(data):
-                report.error("the micro-ROS agent speaks DDS only, so its robot would be invisible under "
+            dds_only = _dds_only_package(data) if middleware == discovery.ZENOH else None
+            if dds_only:
+                report.error(f"{dds_only} speaks DDS only, so its robot would be invisible under "
                              "rmw_zenoh_cpp: use rmw_fastrtps_cpp for this class",
                              field="ros_middleware", line=host.lines.get("ros_middleware") or host.line, **where)
 
 
-def _runs_micro_ros_agent(data: dict) -> bool:
-    """Whether a host runs or installs the micro-ROS agent (its launch or its profile's packages)."""
+def _dds_only_package(data: dict) -> str | None:
+    """What the host runs or installs that speaks DDS only (a profile's `dds_only_packages`), in
+    words: from its launch, its extra packages or its profile's packages; else None."""
+    from roslab.profiles.library import dds_only_packages
+
     profile = data.get("roslab_profile") or {}
     names = [*(profile.get("ros_packages") or ()), *(profile.get("packages") or ()),
              *(data.get("ros_extra_packages") or ()), (data.get("nodes_launch") or "").split(" ")[0]]
-    return any("micro_ros_agent" in str(name).replace("-", "_") for name in names)
+    for package, what in dds_only_packages().items():
+        if any(package in str(name).replace("-", "_") for name in names):
+            return what
+    return None
 
 
 def check_unique(classroom: Classroom, report: Report, field_name: str | None, key_of) -> None:

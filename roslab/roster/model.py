@@ -19,7 +19,6 @@ class Host:
     ubuntu_release: str | None
     distro: str | None
     variant: str | None
-    ros_domain_id: int | None
     # What pyinfra gets as host data: every deploy setting (defaults merged), the
     # connection keys the roster set, and the roslab_* identity keys.
     data: dict = field(repr=False)
@@ -27,6 +26,11 @@ class Host:
     line: int | None = None
     # Roster line where each resolved field was set, for checks' messages.
     lines: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def ros_domain_id(self) -> int | None:
+        """The team's domain, as the deploys read it (one value: host data, set from the team)."""
+        return self.data.get("ros_domain_id")
 
 
 @dataclass

@@ -403,8 +403,7 @@ class RosterReader:
         self.apply_profile(data, resolved, set_here, lines, line, where)
         self.apply_sources(data, resolved, lines, line, where)
         variant = data["ros_variant"] or variant
-        return Host(name, team.name, role, address, release, expected, variant,
-                    team.ros_domain_id, data, line, lines)
+        return Host(name, team.name, role, address, release, expected, variant, data, line, lines)
 
     # --- pyinfra's command line ---
 

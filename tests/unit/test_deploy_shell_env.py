@@ -8,9 +8,22 @@ import pytest
 from fixtures.fake_host import plan
 from fixtures.fake_ubuntu import FakeUbuntu
 
-from deploy.shell_env import render_ros_environment, shell_env
+from deploy.shell_env import render_ros_environment as render_block, shell_env
 from roslab import settings
-from roslab.ros_env import ros_variables
+from roslab.ros_env import host_environment
+
+
+def ros_variables(distro: str, domain_id: int, discovery_range: str = "SUBNET", static_peers=()) -> dict:
+    """A host's variables for these settings, in multicast discovery (where the range and the
+    peers are the roster's own), as the deploy computes them."""
+    data = {"ros_domain_id": domain_id, "ros_discovery_mode": "multicast",
+            "ros_automatic_discovery_range": discovery_range, "ros_static_peers": list(static_peers)}
+    return {name: value for name, value in host_environment(data, distro, shell=True).items()
+            if name != "RMW_IMPLEMENTATION"}
+
+
+def render_ros_environment(distro, domain_id, discovery_range="SUBNET", static_peers=(), **more) -> str:
+    return render_block(distro, ros_variables(distro, domain_id, discovery_range, static_peers), **more)
 
 
 def test_jazzy_block_sources_ros_and_the_workspace_and_sets_discovery():

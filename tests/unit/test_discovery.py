@@ -202,7 +202,7 @@ def nodes_unit(data: dict, distro: str) -> str:
 @pytest.mark.parametrize("mode", discovery.MODES)
 def test_the_shell_and_the_unit_share_the_variables_the_shell_adds_the_super_client(distro, mode):
     data = data_of("robot", mode)
-    block = render_ros_environment(distro, 11, variables=host_environment(data, distro, shell=True))
+    block = render_ros_environment(distro, host_environment(data, distro, shell=True))
     setup = discovery.host_discovery(data, distro)
     assert exported(block) == {**setup.variables, **setup.shell_variables}
     assert unit_environment(nodes_unit(data, distro)) == setup.variables

@@ -516,11 +516,11 @@ def test_the_rovers_service_sees_its_venvs_packages_through_pythonpath(tmp_path)
     assert done.stdout.split() == ["from", "the", "venv", f"{site}:/opt/ros/jazzy/lib/python3.12/site-packages"], \
         done.stderr
 
-    block = render_ros_environment("jazzy", 7, venv_dir="~/osr_venv").replace("/opt/ros/", f"{tmp_path}/opt/ros/")
+    block = render_ros_environment("jazzy", {"ROS_DOMAIN_ID": "7"}, venv_dir="~/osr_venv").replace("/opt/ros/", f"{tmp_path}/opt/ros/")
     twice = subprocess.run(["bash", "-c", f"{block}\n{block}\necho $PYTHONPATH"], capture_output=True, text=True,
                            env={"PATH": "/usr/bin:/bin", "HOME": str(home)})
     assert twice.stdout.strip() == f"{site}:/opt/ros/jazzy/lib/python3.12/site-packages", twice.stderr
-    assert "osr_venv" not in render_ros_environment("jazzy", 7)
+    assert "osr_venv" not in render_ros_environment("jazzy", {"ROS_DOMAIN_ID": "7"})
 
 
 def test_the_rovers_unit_names_its_venv_only_when_the_python_step_fills_it(monkeypatch):

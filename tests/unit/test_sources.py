@@ -583,9 +583,9 @@ def test_the_student_workspace_the_shell_and_the_unit_source_the_underlay_first(
                          underlay_setup="/home/u/roslab_underlay/install/setup.bash")
     assert script.index("/opt/ros/jazzy/setup.bash") < script.index("roslab_underlay/install/setup.bash") \
         < script.index("ros2_ws/install/setup.bash")
-    block = render_ros_environment("jazzy", 11, underlay_dir="~/roslab_underlay")
+    block = render_ros_environment("jazzy", {"ROS_DOMAIN_ID": "11"}, underlay_dir="~/roslab_underlay")
     assert block.index("roslab_underlay/install/setup.bash") < block.index("ros2_ws/install/setup.bash")
-    assert "roslab_underlay" not in render_ros_environment("jazzy", 11)
+    assert "roslab_underlay" not in render_ros_environment("jazzy", {"ROS_DOMAIN_ID": "11"})
     built = build_script("/home/u/ros2_ws", "jazzy", [], "s", underlays=["/home/u/roslab_underlay/install/setup.bash"])
     assert "source /home/u/roslab_underlay/install/setup.bash || exit 1" in built
 

@@ -22,7 +22,7 @@ from pyinfra.context import ctx_host
 
 from deploy import workspace as deploy_ws
 from roslab import settings, workspace
-from roslab.ros_env import host_environment, ros_variables
+from roslab.ros_env import host_environment
 from test_workspace_sync import USER, LocalDirHost, run_operation
 
 WS = "/home/ubuntu/ros2_ws"
@@ -524,19 +524,14 @@ def test_unit_is_valid_for_systemd(tmp_path):
 def test_service_environment_is_what_the_bashrc_block_exports(distro, values):
     from deploy.shell_env import render_ros_environment
 
-    block = render_ros_environment(
-        distro=distro,
-        domain_id=values["ros_domain_id"],
-        discovery_range=values["ros_automatic_discovery_range"],
-        static_peers=values["ros_static_peers"],
-    )
+    data = {"ros_discovery_mode": "multicast", **values}
+    block = render_ros_environment(distro, host_environment(data, distro, shell=True))
     exported = {}
     for line in block.splitlines():
         if line.startswith("export ") and not line.startswith("export ROSDISTRO_INDEX_URL"):
             name, _, value = line[len("export "):].partition("=")
             exported[name] = shlex.split(value)[0]
-    environment = ros_variables(distro, values["ros_domain_id"], values["ros_automatic_discovery_range"],
-                                values["ros_static_peers"])
+    environment = host_environment(data, distro)
     unit = render_unit(distro=distro, environment=environment)
     in_unit = dict(shlex.split(line.removeprefix("Environment="))[0].split("=", 1)
                    for line in unit.splitlines() if line.startswith("Environment="))
