@@ -3,7 +3,7 @@
 Every host gets every step, in this order; a step is switched off with its
 `<concern>_enabled: false` in the roster. A host that cannot get the ROS 2 the roster asks
 for (not Ubuntu, wrong release, distro without packages) is stopped before anything changes.
-At the end (also with --dry) roslab.summary prints one line per host: ok, changed, or
+At the end (also with --dry) roslab.reporting.summary prints one line per host: ok, changed, or
 failed with the step and the reason.
 """
 
@@ -25,7 +25,9 @@ from deploy.sources import sources
 from deploy.ssh_hardening import ssh_hardening
 from deploy.ssh_identity import ssh_identity
 from deploy.workspace import workspace
-from roslab import pyinfra_planning, remote_files, sudo, summary
+from roslab import pyinfra_planning, remote_files
+from roslab.ssh import sudo
+from roslab.reporting import summary
 
 summary.install()  # once per run, although pyinfra runs this file once per host
 sudo.install()  # for any inventory: the sudo password goes to an askpass file, never a command line

@@ -32,7 +32,7 @@ from pyinfra.operations import apt, files, systemd
 
 from deploy.common import host_codename, should_run, stop_host, where
 from roslab import probe, settings
-from roslab.distro import DistroError, codename_for
+from roslab.ros.distro import DistroError, codename_for
 from roslab.operations import (
     apt_install_options,
     apt_lists_updated,

@@ -12,10 +12,11 @@ from pyinfra.api import deploy
 from pyinfra.context import ctx_host
 from pyinfra.facts.server import Home, LinuxDistribution, User
 
-from roslab import settings, summary
+from roslab import settings
+from roslab.reporting import summary
 from roslab.operations import as_user
 from roslab.probe import read, read_ahead, registered_reads
-from roslab.distro import DistroError, UBUNTU_CODENAMES, check_distro, codename_for, default_distro
+from roslab.ros.distro import DistroError, UBUNTU_CODENAMES, check_distro, codename_for, default_distro
 
 DEFAULTS = settings.defaults("common")
 

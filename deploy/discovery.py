@@ -1,6 +1,6 @@
 """The team's discovery on its hosts: the middleware's files, the discovery server or Zenoh router.
 
-What a host gets is `roslab.discovery.host_discovery` (the same source as its variables in
+What a host gets is `roslab.ros.discovery.host_discovery` (the same source as its variables in
 ~/.bashrc, the nodes' unit and `roslab verify`):
 
 - the files the variables point to, under /etc/roslab/discovery (Humble's static peers as Fast
@@ -25,12 +25,13 @@ from pyinfra.facts.files import File
 from pyinfra.operations import files, systemd
 
 from deploy.common import existing_login_home, host_distro, login_home, login_user, should_run, stop_host, where
-from roslab import discovery, probe, settings
-from roslab import workspace as ws_ops
+from roslab import probe, settings
+from roslab.ros import discovery
+from roslab.ros import workspace as ws_ops
 from roslab.quoting import shell_word, systemd_value
 from roslab.service_units import DISCOVERY_RESTARTS, unit_values
 from roslab.templating import render
-from roslab.workspace import NODES_SERVICE
+from roslab.ros.workspace import NODES_SERVICE
 
 DEFAULTS = settings.defaults("discovery")
 

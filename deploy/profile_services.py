@@ -22,12 +22,12 @@ from pyinfra.operations import files, systemd
 from deploy.common import existing_login_home, host_distro, login_user, should_run, stop_host, where
 from deploy.python_env import filled_venv
 from roslab import probe, settings
-from roslab import workspace as ws_ops
+from roslab.ros import workspace as ws_ops
 from roslab.profiles.host import service_installed_not_running
-from roslab.python_venv import venv_on_pythonpath
+from roslab.python_env.venv import venv_on_pythonpath
 from roslab.quoting import shell_word, systemd_value
 from roslab.service_units import NODE_RESTARTS, unit_values
-from roslab.ros_env import host_environment
+from roslab.ros.environment import host_environment
 from roslab.templating import render
 
 DEFAULTS = settings.defaults("profile_services")
@@ -78,7 +78,7 @@ def profile_services_in_place():
 
     Reads host.data: profile_services_enabled, roslab_profile (name, services, python),
     python_env_enabled, workspace_dir, login_user, ssh_user, ros_distro and what
-    roslab.ros_env.host_environment reads.
+    roslab.ros.environment.host_environment reads.
     """
     services = profile_services()
     if not services or not should_run("profile_services_enabled"):

@@ -1,7 +1,7 @@
 """The robot profile's Python requirements in its venv, from the class's wheelhouse.
 
 The controller downloads each requirement set once per class and host platform
-(roslab/wheelhouse.py: wheels for the host's machine, glibc and Python, sdists where the
+(roslab/python_env/wheelhouse.py: wheels for the host's machine, glibc and Python, sdists where the
 index has no wheel) and copies the files to WHEELHOUSE on each host that needs them (only
 files that changed); the host installs from those alone (`pip install --no-index`), into a
 venv with the system's site packages (ROS's Python stays importable) and a COLCON_IGNORE.
@@ -19,9 +19,10 @@ from pyinfra.operations import apt, files, server
 from pyinfra.operations.util import any_changed
 
 from deploy.common import as_login_user, existing_login_home, login_home, login_user, should_run, stop_host, where
-from roslab import probe, settings, wheelhouse
+from roslab import probe, settings
+from roslab.python_env import wheelhouse
 from roslab.operations import apt_install_options
-from roslab.python_venv import (
+from roslab.python_env.venv import (
     PythonTarget,
     python_target_reads,
     venv_requirements_installed,

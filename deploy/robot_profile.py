@@ -4,7 +4,7 @@ block and cmdline.txt words, recorded as "reboot needed": roslab never reboots),
 `profile_os_tweaks`) the OS changes its maker recommends: masked units, a swap file.
 
 The profile's packages are ros_install's (deploy/ros_install.py `ros_packages`), its variables
-are in the shell block and the service's unit (roslab.ros_env.host_environment), its launch
+are in the shell block and the service's unit (roslab.ros.environment.host_environment), its launch
 is the workspace's service (deploy/workspace.py): this step adds what belongs to none of them.
 Everything comes resolved from the roster (`host.data.roslab_profile`, see roslab/profiles).
 """
@@ -19,7 +19,8 @@ from pyinfra.facts.files import File
 from pyinfra.operations import apt, files
 
 from deploy.common import existing_login_home, login_user, should_run
-from roslab import probe, settings, summary
+from roslab import probe, settings
+from roslab.reporting import summary
 from roslab.operations import BACKUP_SUFFIX, managed_block, managed_block_reads
 from roslab.profiles.host import (
     CMDLINE_TXT,

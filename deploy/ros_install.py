@@ -7,8 +7,8 @@ from pyinfra.api import deploy
 
 from deploy.common import host_codename, host_distro, should_run
 from roslab import probe, settings
-from roslab.discovery import middleware_of, middleware_package
-from roslab.distro import default_distro
+from roslab.ros.discovery import middleware_of, middleware_package
+from roslab.ros.distro import default_distro
 from roslab.operations import packages_installed
 from roslab.quoting import apt_arguments
 

@@ -2,7 +2,7 @@
 
 By default (`rosdep_data_from_controller`) the machine running pyinfra downloads rosdep's
 sources list, the files it lists and the rosdistro index with the host's distro once per
-run (roslab/rosdep_data.py) and copies them to each host: no Pi downloads rosdep's data
+run (roslab/ros/rosdep_data.py) and copies them to each host: no Pi downloads rosdep's data
 itself, and `offline: true` uses the controller's kept copies. Otherwise `rosdep init`
 downloads a sources list from a URL compiled into rosdep (no override), so when
 `rosdep_sources_list_url` is set the list is fetched from there by the controller and
@@ -29,7 +29,8 @@ from deploy.common import (
     stop_host,
     where,
 )
-from roslab import downloads, probe, rosdep_data, settings
+from roslab import downloads, probe, settings
+from roslab.ros import rosdep_data
 from roslab.operations import (
     ROSDEP_SOURCES_LIST,
     command_installed,

@@ -24,8 +24,8 @@ from roslab.operations import managed_block, managed_block_reads
 from roslab.quoting import shell_home_path, shell_word
 from deploy.python_env import filled_venv
 from deploy.sources import repositories
-from roslab.python_venv import venv_on_pythonpath
-from roslab.ros_env import host_environment
+from roslab.python_env.venv import venv_on_pythonpath
+from roslab.ros.environment import host_environment
 from roslab.templating import render
 
 BLOCK_LABEL = "ROS 2 environment"
@@ -43,7 +43,7 @@ def render_ros_environment(
 ) -> str:
     """The text of the ~/.bashrc block for these (schema-checked) settings.
 
-    `variables`: every variable, as `roslab.ros_env.host_environment(data, distro, shell=True)` gives
+    `variables`: every variable, as `roslab.ros.environment.host_environment(data, distro, shell=True)` gives
     them (domain, middleware, discovery mode, the profile's and the roster's extras).
     `underlay_dir`: the underlay workspace (deploy/sources.py) sourced before the workspace, or None.
     `venv_dir`: the robot profile's venv (`~/...`), whose site-packages go first on PYTHONPATH, or None.

@@ -2,10 +2,10 @@
 
 The repositories of the host's .repos files (its robot profile's `sources`, the roster's
 `workspace_sources`: host data `roslab_sources`, read and checked by the roster loader) are
-fetched by the controller, once per class and pinned (roslab/source_fetch.py), and copied
+fetched by the controller, once per class and pinned (roslab/sources/fetch.py), and copied
 here as archives: a Pi never clones. `rosdep install` and `colcon build` run only when the
 set of archives changed; a failed build fails this host with the package and its first error
-line and leaves the last good install in use (roslab/underlay.py). The student's workspace
+line and leaves the last good install in use (roslab/sources/underlay.py). The student's workspace
 (deploy/workspace.py), the ~/.bashrc block (deploy/shell_env.py) and the nodes' unit source the
 underlay's install before the workspace's own.
 """
@@ -29,9 +29,10 @@ from deploy.common import (
     stop_host,
     where,
 )
-from roslab import probe, settings, source_fetch
-from roslab import underlay as underlay_ops
-from roslab import workspace as ws_ops
+from roslab import probe, settings
+from roslab.sources import fetch as source_fetch
+from roslab.sources import underlay as underlay_ops
+from roslab.ros import workspace as ws_ops
 
 DEFAULTS = settings.defaults("sources")
 # The controller's warnings about the class's sources, each said once per run (not per host).

@@ -8,18 +8,18 @@ from pyinfra.operations import server
 
 from deploy.common import should_run, stop_host, where
 from roslab import probe, settings
-from roslab.sshd import DROPIN, KeyLogin, SshdLoginSettings, sshd_key_only
+from roslab.ssh.sshd import DROPIN, KeyLogin, SshdLoginSettings, sshd_key_only
 
 DEFAULTS = settings.defaults("ssh_hardening")
 
 
 @deploy("SSH accepts keys only and no root login, and the teacher's key still gets in", data_defaults=DEFAULTS)
 def ssh_hardening():
-    """Write sshd's drop-in (roslab.sshd.DROPIN) and reload sshd, never locking roslab out.
+    """Write sshd's drop-in (roslab.ssh.sshd.DROPIN) and reload sshd, never locking roslab out.
 
     Runs after ssh_identity (which authorised the teacher's keys): the drop-in changes only
     after a key-only login from this machine worked in this run and sshd accepts the new
-    configuration; see roslab.sshd.sshd_key_only.
+    configuration; see roslab.ssh.sshd.sshd_key_only.
 
     Reads host.data: ssh_hardening_enabled, ssh_password_login, ssh_permit_root_login,
     ssh_user, ssh_hostname, ssh_port, ssh_key, ssh_known_hosts_file, ssh_strict_host_key_checking.

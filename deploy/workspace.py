@@ -39,15 +39,15 @@ from deploy.common import (
 from deploy.python_env import filled_venv
 from deploy.sources import underlay_identity, underlay_setup
 from roslab import packaged, probe, settings
-from roslab import workspace as ws_ops
-from roslab.python_venv import venv_on_pythonpath
+from roslab.ros import workspace as ws_ops
+from roslab.python_env.venv import venv_on_pythonpath
 from roslab.quoting import shell_word, systemd_value
 from roslab.service_units import NODE_RESTARTS, unit_values
 from roslab.profiles.library import DEFAULT_PROFILE, builtin_profiles
-from roslab.discovery import host_discovery
-from roslab.ros_env import host_environment
+from roslab.ros.discovery import host_discovery
+from roslab.ros.environment import host_environment
 from roslab.templating import render
-from roslab.workspace import NODES_SERVICE, NODES_UNIT_PATH
+from roslab.ros.workspace import NODES_SERVICE, NODES_UNIT_PATH
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -13,8 +13,8 @@ import sys as _sys
 from pathlib import Path as _Path
 
 from roslab import remote_files as _remote_files
-from roslab import sudo as _sudo
-from roslab import summary as _summary
+from roslab.ssh import sudo as _sudo
+from roslab.reporting import summary as _summary
 from roslab.reach import refuse_unmatched_limit as _refuse_unmatched_limit
 from roslab.roster import RosterError as _RosterError
 from roslab.roster import inventory_groups as _inventory_groups

@@ -2,6 +2,6 @@
 
 import sys
 
-from roslab.cli import main
+from roslab.cli.main import main
 
 sys.exit(main())

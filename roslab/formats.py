@@ -21,13 +21,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import urlsplit
 
-from roslab import distro as distros
+from roslab.ros import distro as distros
 from roslab.controller_files import MAX_SMALL_FILE_BYTES, UnreadableFile, read_regular_file
 
 Check = Callable[[object, "Context"], "str | None"]
 
 
-# The classroom's own state beside the roster (roslab.identity, roslab.network.state).
+# The classroom's own state beside the roster (roslab.ssh.identity, roslab.network.state).
 STATE_DIR = ".roslab-state"
 
 

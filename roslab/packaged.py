@@ -62,7 +62,9 @@ def checked_classroom(path: Path):
     inventory file: they are checked here like the roster's own (roslab.roster.overrides).
     An invalid roster or override stops the run here, before pyinfra connects to any host.
     """
-    from roslab import remote_files, sudo, summary
+    from roslab import remote_files
+    from roslab.ssh import sudo
+    from roslab.reporting import summary
     from roslab.roster import RosterError, load_roster, overrides
 
     try:

@@ -122,24 +122,12 @@ def limit_problem(groups: dict, patterns, command: str = "roslab") -> str | None
 
 def refuse_unmatched_limit(groups: dict) -> None:
     """In a pyinfra run's inventory file: stop with exit 2 when a --limit pattern selects no host."""
-    from roslab.summary import cli_option
+    from roslab.reporting.summary import cli_option
 
     problem = limit_problem(groups, cli_option("limit") or ())
     if problem:
         print(problem, file=sys.stderr)
         sys.exit(2)
-
-
-def quiet_paramiko() -> None:
-    """No paramiko traceback on stderr: a Pi whose sshd is still starting accepts the TCP
-    connection and hangs up, and paramiko's transport thread logs "Error reading SSH protocol
-    banner" with two tracebacks through Python's last-resort handler (paramiko's logger has
-    none of its own). pyinfra reports the same failure as one line naming the host."""
-    import logging
-
-    paramiko_logger = logging.getLogger("paramiko")
-    if not any(isinstance(handler, logging.NullHandler) for handler in paramiko_logger.handlers):
-        paramiko_logger.addHandler(logging.NullHandler())
 
 
 def select_roster_hosts(classroom: Classroom, patterns) -> tuple[list, list[str]]:
@@ -171,7 +159,8 @@ def roster_state(groups: dict, limit: list[str] | None = None, **config):
     from pyinfra.api import Config, State
     from pyinfra.context import ctx_config, ctx_inventory, ctx_state
 
-    from roslab import sudo
+    from roslab.ssh import sudo
+    from roslab.ssh.quiet import quiet_paramiko
 
     quiet_paramiko()
     sudo.install()  # no sudo password on a host's command line, whatever the command

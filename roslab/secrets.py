@@ -60,8 +60,8 @@ def resolved_key(reference_key: str) -> str:
 def wrap(reference_key: str, value: str) -> Secret:
     """The host data value for a resolved secret: a `Secret`, masked in every output.
 
-    The sudo password too: `roslab.sudo` unmasks it only to write it into the
-    host's askpass file. Without `roslab.sudo` installed, pyinfra would send the
+    The sudo password too: `roslab.ssh.sudo` unmasks it only to write it into the
+    host's askpass file. Without `roslab.ssh.sudo` installed, pyinfra would send the
     mask instead of the password (sudo fails), never the password on a command line.
     """
     return Secret(value)

@@ -14,8 +14,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from roslab import discovery
-from roslab import distro as distros
+from roslab.ros import discovery
+from roslab.ros import distro as distros
 from roslab import formats as f
 
 # Where a key may be set: everywhere, or only at one level.
@@ -71,21 +71,21 @@ def _enabled(concern: str, doc: str) -> tuple:
 
 def _repos_file(value, context=None):
     """A .repos file (vcstool's format), relative to the roster, inside its folder."""
-    from roslab.sources import repos_file_problem  # it reads YAML with the roster's loader
+    from roslab.sources.repos import repos_file_problem  # it reads YAML with the roster's loader
 
     return repos_file_problem(value, context)
 
 
 def _url_rewrites(value, context=None):
     """URL prefix -> replacement prefix (http, https, file), as git's insteadOf."""
-    from roslab.sources import rewrites_problem
+    from roslab.sources.repos import rewrites_problem
 
     return rewrites_problem(value, context)
 
 
 def _source_pins(value, context=None):
     """Repository path -> a commit or a tag."""
-    from roslab.sources import pins_problem
+    from roslab.sources.repos import pins_problem
 
     return pins_problem(value, context)
 
@@ -203,7 +203,7 @@ SCHEMA: list[Setting] = [
         ("ros_apt_source_version", distros.ROS_APT_SOURCE_VERSION, str,
          f"The pinned ros2-apt-source release ({distros.ROS_APT_SOURCE_VERSION}, 2026-04).", f.version),
         ("ros_apt_source_sha256", distros.ros_apt_source_pins(), dict,
-         "Ubuntu codename -> sha256 of that release's .deb (roslab/distro.py's records). Pins set in a "
+         "Ubuntu codename -> sha256 of that release's .deb (roslab/ros/distro.py's records). Pins set in a "
          "roster are added to these (for the default version; another version needs all its pins). "
          "resolute's is the one the official Docker images pin (osrf/docker_images); jammy's and noble's "
          "are copied from public install scripts. None is verified from here: check once online.",

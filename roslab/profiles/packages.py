@@ -19,8 +19,9 @@ from urllib.parse import urljoin
 
 import yaml
 
-from roslab import discovery, downloads
-from roslab.rosdep_data import OFFICIAL_INDEX_URL
+from roslab import downloads
+from roslab.ros import discovery
+from roslab.ros.rosdep_data import OFFICIAL_INDEX_URL
 
 _lock = threading.Lock()
 _parsed: dict[tuple, set[str] | str] = {}

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from roslab.distro import DISTRO_RELEASES, PLATFORMS
+from roslab.ros.distro import DISTRO_RELEASES, PLATFORMS
 from roslab.profiles import udev
 from roslab.profiles.schema import (
     BOOT_CONFIG_KEYS,
@@ -33,7 +33,7 @@ class ResolveError(Exception):
 
 
 def gazebo_package(distro: str) -> str:
-    """The ROS package of the distro's Gazebo, from roslab.distro's records."""
+    """The ROS package of the distro's Gazebo, from roslab.ros.distro's records."""
     for platform in PLATFORMS:
         if platform.distro == distro:
             return platform.gazebo.ros_package
@@ -194,7 +194,7 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         "discovery": profile.discovery,
         "checklist": [fill(item, {**values, "host": host or "HOST"}) for item in merged.checklist],
         "os_tweaks": dict(side.os_tweaks),
-        # the side's .repos files' repositories: filled by the roster loader (roslab/sources.py),
+        # the side's .repos files' repositories: filled by the roster loader (roslab/sources/repos.py),
         # which reads the files; here only for hand-made data
         "sources": [],
         # {package: ["-DNAME=value", ...]} for the underlay's build (deploy/sources.py)

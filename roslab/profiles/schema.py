@@ -14,7 +14,7 @@ from pathlib import Path
 import re2
 
 from roslab import formats, settings
-from roslab.distro import BY_NAME, DISTRO_RELEASES
+from roslab.ros.distro import BY_NAME, DISTRO_RELEASES
 from roslab.profiles import udev
 from roslab.checked.loading import line_of
 from roslab.checked.problems import Report
@@ -43,7 +43,7 @@ def tool_problem(name) -> str | None:
     return None
 
 
-# `distros: all`: the profile runs on every distro roslab has a record of (roslab.distro).
+# `distros: all`: the profile runs on every distro roslab has a record of (roslab.ros.distro).
 ALL_DISTROS = "all"
 # Conditions a `when` block may test besides the profile's settings.
 BUILTIN_CONDITIONS = ("distro", "board")
@@ -164,7 +164,7 @@ class Side:
     variant: str | None = None  # ros-<distro>-<variant>: desktop, ros-base...
     checklist: list[str] = field(default_factory=list)
     os_tweaks: dict = field(default_factory=dict)  # OS_TWEAK_KEYS
-    # vcstool .repos files filling the login user's underlay (roslab/sources.py), as
+    # vcstool .repos files filling the login user's underlay (roslab/sources/repos.py), as
     # (folder, name): beside a built-in profile's YAML, or relative to the roster
     sources: list[tuple[Path, str]] = field(default_factory=list)
     # CMake cache settings per underlay package ({package: ["-DNAME=value", ...]}), given to
@@ -573,7 +573,7 @@ class ProfileReader:
     def read_sources(self, mapping, side: str) -> list[tuple[Path, str]]:
         """The side's .repos files (checked to exist where they are relative to; their content
         is read by the roster loader, for the hosts that use the profile)."""
-        from roslab.sources import name_problem
+        from roslab.sources.repos import name_problem
 
         names = self.string_list(mapping, "sources", f"{side}.sources")
         if self.base_dir is None:

@@ -13,8 +13,8 @@ import difflib
 import ipaddress
 from collections.abc import Callable
 
-from roslab import discovery
-from roslab import distro as distros
+from roslab.ros import discovery
+from roslab.ros import distro as distros
 from roslab import settings
 from roslab.roster.model import ROLES, Classroom, Host
 from roslab.checked.problems import Report
@@ -168,7 +168,7 @@ def check_groups(classroom: Classroom, report: Report) -> None:
 
 def assign_domain_ids(classroom: Classroom) -> None:
     """Give each team the roster left without a ros_domain_id a free one from its name
-    (roslab.discovery.assign_domain_ids), in the team and in each of its hosts' data."""
+    (roslab.ros.discovery.assign_domain_ids), in the team and in each of its hosts' data."""
     assigned = discovery.assign_domain_ids(
         {team.name: team.ros_domain_id if team.domain_set else None for team in classroom.teams})
     for team in classroom.teams:

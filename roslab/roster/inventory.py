@@ -7,7 +7,7 @@ from pathlib import Path
 
 import yaml
 
-from roslab import identity
+from roslab.ssh import identity
 from roslab.network.state import addresses_path, last_known_addresses
 from roslab.roster.checks import host_ip
 from roslab.roster.model import ROLES, Classroom
@@ -49,7 +49,7 @@ def inventory_groups(classroom: Classroom) -> dict[str, list[tuple[str, dict]]]:
     (recorded beside the roster), not at the roster's now stale `address`.
 
     Hosts connect with strict host key checking against the classroom's known_hosts
-    (`roslab.identity`) unless the roster sets `ssh_known_hosts_file` or
+    (`roslab.ssh.identity`) unless the roster sets `ssh_known_hosts_file` or
     `ssh_strict_host_key_checking`; a known host's key is listed there under every
     address it will be reached at in this run (`known_addresses`), and a refusal is
     explained by one line naming the roslab command to run.

@@ -41,7 +41,7 @@ class Team:
     hosts: list[Host]
     # Whether the roster chose the domain (team or classroom), not the default.
     domain_set: bool = True
-    # Whether roslab gave the team a free ID from its name (roslab.discovery.assign_domain_ids).
+    # Whether roslab gave the team a free ID from its name (roslab.ros.discovery.assign_domain_ids).
     domain_assigned: bool = False
     line: int | None = None
     domain_line: int | None = None

@@ -15,7 +15,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from roslab import distro as distros
+from roslab.ros import distro as distros
 from roslab import formats, secrets, settings
 from roslab.controller_files import MAX_SMALL_FILE_BYTES, UnreadableFile, read_regular_file
 from roslab.roster import overrides
@@ -488,7 +488,7 @@ class RosterReader:
         """Read the host's .repos files (its profile side's `sources`, the roster's
         `workspace_sources`) into `roslab_profile["sources"]` and `roslab_sources`; a problem
         names the .repos file and line, the host and the field."""
-        from roslab import sources
+        from roslab.sources import repos as sources
         from roslab.profiles.resolve import side_parts
 
         if not hasattr(self, "_repos_files"):

@@ -19,7 +19,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from roslab import formats, settings
-from roslab.distro import BY_RELEASE
+from roslab.ros.distro import BY_RELEASE
 
 from .system import SandboxError
 

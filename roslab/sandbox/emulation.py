@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from roslab.distro import BY_RELEASE
+from roslab.ros.distro import BY_RELEASE
 
 HEADER = "# roslab sandbox emulation of Ubuntu {release}: this host runs a Debian userland.\n"
 

@@ -33,7 +33,7 @@ RELEASES_ENV = "ROSLAB_SANDBOX_RELEASES"
 
 def releases_by_team() -> tuple[str, ...]:
     """The Ubuntu release of team 1, 2, ... in turn ($ROSLAB_SANDBOX_RELEASES, else RELEASES_BY_TEAM)."""
-    from roslab.distro import BY_RELEASE
+    from roslab.ros.distro import BY_RELEASE
 
     text = os.environ.get(RELEASES_ENV, "").strip()
     if not text:

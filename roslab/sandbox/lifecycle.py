@@ -18,7 +18,7 @@ from pathlib import Path
 
 import yaml
 
-from roslab import identity
+from roslab.ssh import identity
 
 from . import git_standins, hosts, image, seeding, upstream
 from .instance import STATE_ROOT, UPSTREAM_PORT, Instance, SandboxHost, releases_by_team

@@ -42,8 +42,8 @@ from pathlib import Path
 
 import yaml
 
-from roslab.distro import DEFAULT_DISTRO, PLATFORMS
-from roslab.distro import ROS_APT_SOURCE_VERSION as ROS_APT_SOURCE_PIN
+from roslab.ros.distro import DEFAULT_DISTRO, PLATFORMS
+from roslab.ros.distro import ROS_APT_SOURCE_VERSION as ROS_APT_SOURCE_PIN
 
 from . import git_standins, image, pypi, real_sources, ros_runtime
 from .system import SandboxError, file_lock, log, pid_alive, run, terminate, write_file
@@ -51,10 +51,10 @@ from .system import SandboxError, file_lock, log, pid_alive, run, terminate, wri
 # Bump when the archives' layout or the stand-ins change: part of the cache keys.
 ARCHIVE_VERSION = 6
 
-ROS_APT_SOURCE_VERSION = ROS_APT_SOURCE_PIN  # the version roslab pins (roslab.distro)
+ROS_APT_SOURCE_VERSION = ROS_APT_SOURCE_PIN  # the version roslab pins (roslab.ros.distro)
 
 # Ubuntu codename -> the ROS distro whose stand-ins its ROS archive suite holds
-# (roslab.distro's one record per Ubuntu/ROS pair).
+# (roslab.ros.distro's one record per Ubuntu/ROS pair).
 # codename -> distro: the release records' live index (a record added later is served too).
 ROS_DISTROS = DEFAULT_DISTRO
 UBUNTU_SUITE_POCKETS = ("", "-updates", "-backports", "-security")

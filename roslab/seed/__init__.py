@@ -12,7 +12,7 @@ Everything is checked before anything is written: the roster (`load_roster`), wh
 seed needs beyond it (an SSH key for the lab user), cloud-init's schema check of every
 user-data and netplan's parser on every network-config. A second run with the same
 roster writes nothing (the files are byte-identical; each host's key is generated once,
-`roslab.identity`).
+`roslab.ssh.identity`).
 """
 
 from roslab.seed.documents import SEED_FILES, SeedError, SeedFile, host_seed

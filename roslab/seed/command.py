@@ -7,7 +7,7 @@ import os
 import sys
 from pathlib import Path
 
-from roslab import identity
+from roslab.ssh import identity
 from roslab.network.state import last_known_addresses
 from roslab.reach import (
     RosterProblem, add_limit_argument, add_roster_argument, load_classroom, select_roster_hosts,

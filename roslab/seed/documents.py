@@ -19,7 +19,8 @@ from pathlib import Path
 
 import yaml
 
-from roslab import formats, identity, settings
+from roslab import formats, settings
+from roslab.ssh import identity
 from roslab.controller_files import UnreadableFile, read_regular_file
 from roslab.network.render import render_netplan
 from roslab.network.settings import NetworkSettingError, network_settings

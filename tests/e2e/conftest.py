@@ -109,7 +109,7 @@ class SandboxClassroom:
     @property
     def real_ros(self) -> bool:
         """Every distro this classroom's hosts run is real ROS 2 (else the tests that run nodes skip)."""
-        from roslab.distro import DEFAULT_DISTRO, UBUNTU_CODENAMES
+        from roslab.ros.distro import DEFAULT_DISTRO, UBUNTU_CODENAMES
 
         served = self.ros_served
         distros = {DEFAULT_DISTRO[UBUNTU_CODENAMES[host.release]] for host in self.hosts}

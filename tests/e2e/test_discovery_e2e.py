@@ -37,7 +37,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from roslab import discovery
+from roslab.ros import discovery
 from tests.e2e.conftest import bring_up
 
 pytestmark = pytest.mark.e2e

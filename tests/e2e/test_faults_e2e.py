@@ -24,7 +24,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from roslab import source_fetch
+from roslab.sources import fetch as source_fetch
 from roslab.sandbox import git_standins, upstream
 from tests.e2e.conftest import bring_up, summary_lines
 

@@ -30,7 +30,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from roslab import identity
+from roslab.ssh import identity
 from roslab.sandbox import lifecycle, seeding
 from roslab.sandbox.instance import Instance
 

@@ -29,7 +29,7 @@ import time
 import pytest
 import yaml
 
-from roslab import runs
+from roslab.reporting import runs
 from tests.e2e.conftest import BIN, REPO, summary_lines
 
 pytestmark = pytest.mark.e2e

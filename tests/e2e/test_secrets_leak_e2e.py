@@ -13,7 +13,7 @@ environment on both hosts (as root, from this machine's /proc) every 0.1 s. Afte
 hosts' whole filesystems and every output are searched for the planted secrets, also in
 base64 and hex. Zero hits.
 
-It can fail: the sampler must first catch pyinfra's own sudo command (what roslab.sudo
+It can fail: the sampler must first catch pyinfra's own sudo command (what roslab.ssh.sudo
 replaces) carrying a decoy password, sudo must refuse `sudo -n` on the hosts (so every
 sudo of the run needed the password), and the converge must succeed through it.
 The deploy is lean (ros_install, rosdep, workspace, locale off: long steps that add no new way to sudo).
@@ -185,7 +185,7 @@ def write_rosters(sandbox, directory: Path, secrets: dict[str, str]) -> tuple[Pa
 
 
 def send_pyinfras_own_sudo_command(sandbox, host: str, password: str) -> None:
-    """Run on `host` the sudo command pyinfra 3.10 itself would send (before roslab.sudo)."""
+    """Run on `host` the sudo command pyinfra 3.10 itself would send (before roslab.ssh.sudo)."""
     made = sandbox.ssh(host, ASKPASS_COMMAND.format("/tmp", SUDO_ASKPASS_ENV_VAR), check=True)
     askpass = made.stdout.strip().splitlines()[0]
     command = make_unix_command(StringCommand("true"), _sudo=True, _sudo_password=password,
@@ -210,7 +210,7 @@ def test_no_secret_reaches_a_host_process_file_or_output(fresh_hosts, tmp_path):
     trees = [next(tree for tree in sandbox_hosts.host_cgroups(sandbox.instance, name) if tree.is_dir())
              for name in names]
 
-    # The sampler catches pyinfra's own sudo command (what roslab.sudo replaces).
+    # The sampler catches pyinfra's own sudo command (what roslab.ssh.sudo replaces).
     canary = ProcessSampler(trees, decoy)
     canary.start()
     send_pyinfras_own_sudo_command(sandbox, names[0], decoy["decoy"])

@@ -22,7 +22,7 @@ import paramiko
 import pytest
 import yaml
 
-from roslab.sshd import DROPIN
+from roslab.ssh.sshd import DROPIN
 
 pytestmark = pytest.mark.e2e
 

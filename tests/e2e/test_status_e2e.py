@@ -18,7 +18,7 @@ from datetime import datetime, timezone
 
 import pytest
 
-from roslab import runs
+from roslab.reporting import runs
 from roslab.sandbox import hosts as sandbox_hosts
 from tests.unit.fixtures.browser import chromium_missing, dump_dom
 

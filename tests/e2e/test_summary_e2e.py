@@ -1,4 +1,4 @@
-"""The run summary (roslab/summary.py) at the end of a real run on sandbox hosts.
+"""The run summary (roslab/reporting/summary.py) at the end of a real run on sandbox hosts.
 
 One run on freshly imaged hosts, with two hosts made to fail for real, each in its own
 way: one is stopped by roslab while planning (the roster expects Ubuntu 22.04, the host

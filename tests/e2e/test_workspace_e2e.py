@@ -34,8 +34,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from roslab.distro import DEFAULT_DISTRO, UBUNTU_CODENAMES
-from roslab import verify
+from roslab.ros.distro import DEFAULT_DISTRO, UBUNTU_CODENAMES
+from roslab.cli import verify
 from roslab.roster import load_roster
 
 pytestmark = pytest.mark.e2e

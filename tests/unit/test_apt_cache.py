@@ -29,7 +29,8 @@ from deploy.apt_cache import (
 )
 from deploy.apt_ready import apt_lists
 from deploy.rosdep import ARCHIVE, rosdep
-from roslab import downloads, rosdep_data
+from roslab import downloads
+from roslab.ros import rosdep_data
 from roslab.roster import RosterError, load_roster
 from roslab.templating import render
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from roslab.cli import TABLE_COLUMNS, main
+from roslab.cli.main import TABLE_COLUMNS, main
 
 REPO = Path(__file__).resolve().parents[2]
 FIXTURE = Path(__file__).parent / "rosters" / "two_teams.yaml"
@@ -189,7 +189,7 @@ def test_every_sandbox_command_says_it_needs_root_in_one_line(subcommand, monkey
 
 
 def test_check_shows_an_assigned_domain_id_and_each_teams_mode(tmp_path, capsys):
-    from roslab.discovery import preferred_domain_id
+    from roslab.ros.discovery import preferred_domain_id
 
     roster = tmp_path / "lab.yaml"
     roster.write_text(textwrap.dedent("""\

@@ -10,7 +10,7 @@ from fixtures.fake_ubuntu import FakeUbuntu
 
 from deploy.shell_env import render_ros_environment as render_block, shell_env
 from roslab import settings
-from roslab.ros_env import host_environment
+from roslab.ros.environment import host_environment
 
 
 def ros_variables(distro: str, domain_id: int, discovery_range: str = "SUBNET", static_peers=()) -> dict:

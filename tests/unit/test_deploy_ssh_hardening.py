@@ -16,7 +16,7 @@ from fixtures.classroom import host_data
 from fixtures.fake_host import plan
 from fixtures.fake_ubuntu import FakeUbuntu
 from roslab import settings
-from roslab.sshd import (
+from roslab.ssh.sshd import (
     DROPIN,
     INSTALL_SCRIPT,
     STAGED,

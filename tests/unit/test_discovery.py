@@ -1,5 +1,5 @@
 """Discovery modes and the class's middleware: what each host gets, per mode, middleware and distro,
-and the combinations refused before connecting (roslab/discovery.py, deploy/discovery.py)."""
+and the combinations refused before connecting (roslab/ros/discovery.py, deploy/discovery.py)."""
 
 from __future__ import annotations
 
@@ -14,9 +14,11 @@ from fixtures.fake_ubuntu import FakeUbuntu
 from deploy import discovery as deploy_discovery
 from deploy import workspace as deploy_ws
 from deploy.shell_env import render_ros_environment
-from roslab import discovery, settings, workspace
+from roslab import settings
+from roslab.ros import discovery
+from roslab.ros import workspace
 from roslab.roster import RosterError, load_roster
-from roslab.ros_env import host_environment
+from roslab.ros.environment import host_environment
 
 MAIN_IP, ROBOT_IP = "10.0.0.11", "10.0.0.12"
 TEAM = [{"name": "team1-main", "address": MAIN_IP, "role": "main"},

@@ -15,8 +15,8 @@ import paramiko
 import pytest
 from paramiko import BadHostKeyException, Ed25519Key, SSHException
 
-from roslab import identity
-from roslab.cli import main
+from roslab.ssh import identity
+from roslab.cli.main import main
 from roslab.roster import inventory_groups, load_roster
 
 ROSTER = textwrap.dedent("""\
@@ -195,7 +195,7 @@ def test_a_changed_host_key_is_refused_with_the_roslab_commands(roster, monkeypa
     assert "[team1-main] roslab: team1-main (127.0.0.1) answered with another SSH host key" in output
     assert "re-flashed without its seed" in identity.refusal("team1-main")
     # The run summary's line for the host says the same.
-    from roslab.summary import RunSummary
+    from roslab.reporting.summary import RunSummary
 
     step, reason = RunSummary().failure(host.state, host)
     assert step == "connect" and reason == identity.refusal("team1-main")

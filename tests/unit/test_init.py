@@ -10,8 +10,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-from roslab import init, packaged
-from roslab.cli import main
+from roslab import packaged
+from roslab.cli import init
+from roslab.cli.main import main
 from roslab.roster import inventory_groups, load_roster
 
 REPO = Path(__file__).resolve().parents[2]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from roslab import launch_journal
+from roslab.cli import launch_journal
 
 JOURNAL = Path(__file__).parent / "fixtures/journals/osr_launch_journal.txt"
 

@@ -82,7 +82,7 @@ def test_the_cycle_finder_finds_a_cycle():
 
 
 def test_robot_commands_are_the_ones_profiles_name():
-    from roslab.cli import build_parser
+    from roslab.cli.main import build_parser
 
     named = {tool for profile in builtin_profiles().values() for tool in profile.tools}
     assert named == {"opencr-update"} and set(known_tools()) >= named

@@ -6,7 +6,8 @@ import textwrap
 
 import pytest
 
-from roslab import distro, settings
+from roslab import settings
+from roslab.ros import distro
 from roslab.roster import RosterError, load_roster
 from roslab.sandbox import emulation, upstream
 from roslab.sandbox.instance import Instance, releases_by_team
@@ -136,8 +137,9 @@ def fake_release():
 
 
 def test_a_new_release_record_reaches_every_consumer(tmp_path, fake_release):
-    from roslab import discovery, sources
-    from roslab.ros_env import host_environment
+    from roslab.ros import discovery
+    from roslab.sources import repos as sources
+    from roslab.ros.environment import host_environment
 
     # The roster schema and checks: the release loads, with its distro and its ros2-apt-source pin.
     path = tmp_path / "lab.yaml"

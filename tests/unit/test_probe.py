@@ -17,7 +17,7 @@ from pyinfra.facts.files import Directory, File, FileContents, Sha1File
 from roslab import probe
 from roslab.facts import FileAge
 from roslab.operations import managed_block
-from roslab.workspace import WorkspaceForeign, WorkspaceStamps
+from roslab.ros.workspace import WorkspaceForeign, WorkspaceStamps
 
 
 class Fails(FactBase):

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from roslab.cli import main
+from roslab.cli.main import main
 from roslab.profiles import library, udev
 from roslab.roster import RosterError, load_roster
 

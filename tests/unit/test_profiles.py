@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from roslab.cli import main
-from roslab.distro import PLATFORMS
+from roslab.cli.main import main
+from roslab.ros.distro import PLATFORMS
 from roslab.profiles import packages
 from roslab.profiles.library import builtin_profiles
 from roslab.profiles.resolve import resolve_host

@@ -18,7 +18,8 @@ from pyinfra.api import facts as pyinfra_facts
 from pyinfra.api import util as pyinfra_util
 from pyinfra.api.state import StateStage
 
-from roslab import pyinfra_planning, summary
+from roslab import pyinfra_planning
+from roslab.reporting import summary
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -75,7 +76,7 @@ def restore_pyinfras_functions():
 def cli_mode(monkeypatch):
     """pyinfra as its CLI runs deploy files: operations ordered by their call stack.
 
-    Without the CLI's exit summary and signal handlers (roslab.summary), which are for a run.
+    Without the CLI's exit summary and signal handlers (roslab.reporting.summary), which are for a run.
     """
     monkeypatch.setattr(pyinfra, "is_cli", True)
     monkeypatch.setattr(summary, "deploying_files", lambda: False)

@@ -17,8 +17,9 @@ from pyinfra.facts.files import Directory, File, Sha1File
 from pyinfra.facts.server import Home, LinuxDistribution, User
 
 from deploy import python_env as deploy_python
-from roslab import probe, settings, wheelhouse
-from roslab.python_venv import STAMP, PythonTarget, VenvState, venv_requirements_installed
+from roslab import probe, settings
+from roslab.python_env import wheelhouse
+from roslab.python_env.venv import STAMP, PythonTarget, VenvState, venv_requirements_installed
 from roslab.roster import RosterError, load_roster
 
 OSR_LIKE = ["adafruit-circuitpython-servokit==1.3.17", "ina260==0.0.3", "RPi.GPIO==0.7.1", "smbus==1.1.post2"]
@@ -347,7 +348,7 @@ def test_a_host_without_glibc_or_python_is_stopped_before_any_download(tmp_path,
 
 
 def test_a_failing_install_is_one_roslab_line_naming_pips_error(tmp_path):
-    from roslab.python_venv import pip_install_command
+    from roslab.python_env.venv import pip_install_command
     import subprocess
 
     venv = tmp_path / "venv"

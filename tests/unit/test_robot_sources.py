@@ -25,7 +25,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from roslab import source_fetch, underlay
+from roslab.sources import fetch as source_fetch
+from roslab.sources import underlay
 from roslab.profiles import library
 from roslab.profiles.resolve import resolve_host
 

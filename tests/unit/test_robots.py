@@ -210,7 +210,7 @@ def test_esp32_verify_expects_the_boards_reading_only_with_a_board_present_and_n
 
 
 def test_verify_names_what_publishes_the_topic_when_the_main_hears_nothing():
-    from roslab.verify import TeamResult, parse_check_output
+    from roslab.cli.verify import TeamResult, parse_check_output
 
     team = TeamResult("team2", main="team2-main", robots=["team2-robot"], topic="/esp32/potentiometer",
                       timeout=20, message_type="std_msgs/msg/Int32",
@@ -468,7 +468,7 @@ def test_the_summary_says_reboot_needed_once_per_host_that_changed_or_still_wait
 def test_status_shows_reboot_needed_until_the_host_has_rebooted():
     from fixtures.status_hosts import NOW, PROBE_OUTPUT, reachable_host
 
-    from roslab.status import format_table, host_cells, parse_probe
+    from roslab.cli.status import format_table, host_cells, parse_probe
 
     def with_record(boot_id, current):
         lines = [line for line in PROBE_OUTPUT if line != "## end"]
@@ -487,7 +487,7 @@ def test_status_shows_reboot_needed_until_the_host_has_rebooted():
 
 
 def test_the_status_probe_reads_the_record_without_sudo():
-    from roslab.status import probe_script
+    from roslab.cli.status import probe_script
 
     script = probe_script()
     assert "## reboot" in script and REBOOT_RECORD in script and "sudo" not in script

@@ -15,7 +15,7 @@ import yaml
 
 from roslab import roster
 from roslab import settings as schema
-from roslab.discovery import assign_domain_ids, preferred_domain_id
+from roslab.ros.discovery import assign_domain_ids, preferred_domain_id
 from roslab.roster import RosterError, inventory_groups, load_roster
 
 REPO = Path(__file__).resolve().parents[2]
@@ -121,7 +121,7 @@ def test_host_data_holds_identity_connection_and_every_setting_with_its_default(
         "roslab_roster_path": str(FIXTURES / "two_teams.yaml"),
         "ssh_hostname": "127.0.0.21",
         "ssh_user": "ubuntu",
-        # strict host key checking against the classroom's known_hosts (roslab.identity)
+        # strict host key checking against the classroom's known_hosts (roslab.ssh.identity)
         "ssh_known_hosts_file": str(FIXTURES / ".roslab-state" / "known_hosts"),
         "ssh_strict_host_key_checking": "yes",
         "_sudo": True,
@@ -148,7 +148,7 @@ def test_host_data_holds_identity_connection_and_every_setting_with_its_default(
             "cmake_args": {}, "build_dependencies": {}, "skip_packages": [],
             "python": {"venv": None, "requirements": []},
         },
-        "roslab_sources": [],  # the repositories of its .repos files (roslab.sources): none
+        "roslab_sources": [],  # the repositories of its .repos files (roslab.sources.repos): none
     }
 
 
@@ -608,7 +608,7 @@ def test_secret_is_resolved_masked_and_sudo_password_given_to_pyinfra(tmp_path):
     assert data["wifi_password"].unmask() == SECRET_VALUE
     assert SECRET_VALUE not in repr(data) and SECRET_VALUE not in str(data["wifi_password"])
     assert data["wifi_password_secret"] == "lab_wifi"
-    # The sudo password stays masked too: roslab.sudo unmasks it only into the host's askpass file.
+    # The sudo password stays masked too: roslab.ssh.sudo unmasks it only into the host's askpass file.
     assert data["_sudo_password"].unmask() == "s3cret-sudo" and "s3cret" not in repr(data)
 
 

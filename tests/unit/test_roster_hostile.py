@@ -201,7 +201,7 @@ def test_every_regex_that_reads_roster_values_means_ascii():
 
 
 def test_roslab_seed_reports_a_lookalike_host_name_without_a_traceback(classroom_dir, capsys, no_connections):
-    from roslab.cli import main
+    from roslab.cli.main import main
 
     path = classroom_dir / "lab.yaml"
     path.write_text(ROSTER.format(classroom="", team="", host="").replace("team1-main:", f"team1-ma{DOTLESS_I}n:"),
@@ -597,7 +597,8 @@ def test_roslab_seed_writes_unicode_where_the_roster_allows_it(classroom_dir, mo
 def test_rosdep_data_never_fetches_a_controller_file_outside_the_given_folder(listed, tmp_path, no_connections):
     """A sources list may list files too: what it lists is copied to every Pi, so a file:// URL
     stays inside the folder of the file:// URL the roster gave."""
-    from roslab import downloads, rosdep_data
+    from roslab import downloads
+    from roslab.ros import rosdep_data
 
     root = tmp_path / "offline"
     root.mkdir()

@@ -17,8 +17,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from roslab import identity
-from roslab.cli import main
+from roslab.ssh import identity
+from roslab.cli.main import main
 from roslab.seed import targets, tools
 
 PASSWORD = "Pa55: #\"'{x}&*!|>%@`"  # YAML specials in a WPA passphrase

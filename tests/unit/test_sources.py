@@ -12,11 +12,13 @@ from pathlib import Path
 import pytest
 from fixtures.fake_host import plan
 
-from roslab import source_fetch, sources, underlay
+from roslab.sources import fetch as source_fetch
+from roslab.sources import repos as sources
+from roslab.sources import underlay
 from roslab.roster import RosterError, load_roster
 from roslab.checked.problems import Report
 from roslab.sandbox import git_standins
-from roslab.workspace import WorkspaceStamps
+from roslab.ros.workspace import WorkspaceStamps
 
 COMMIT = "0123456789abcdef0123456789abcdef01234567"
 
@@ -577,7 +579,7 @@ def test_a_repository_that_fails_to_fetch_stops_only_that_host_naming_it(tmp_pat
 def test_the_student_workspace_the_shell_and_the_unit_source_the_underlay_first():
     from deploy.shell_env import render_ros_environment
     from deploy.workspace import exec_script
-    from roslab.workspace import build_script
+    from roslab.ros.workspace import build_script
 
     script = exec_script(distro="jazzy", workspace_dir="/home/u/ros2_ws", launch="pkg x.launch.py",
                          underlay_setup="/home/u/roslab_underlay/install/setup.bash")
@@ -591,7 +593,7 @@ def test_the_student_workspace_the_shell_and_the_unit_source_the_underlay_first(
 
 
 def test_source_pins_move_a_profiles_pin_and_name_themselves_as_its_origin(tmp_path):
-    from roslab.sources import ReposFiles, host_sources
+    from roslab.sources.repos import ReposFiles, host_sources
 
     (tmp_path / "robot.repos").write_text(
         "repositories:\n  agent:\n    type: git\n    url: https://github.com/o/agent.git\n"
@@ -607,7 +609,7 @@ def test_source_pins_move_a_profiles_pin_and_name_themselves_as_its_origin(tmp_p
 
 def test_the_sandbox_stands_in_for_a_commit_pin_with_a_tag_its_roster_pins_unless_served_for_real(tmp_path):
     from roslab.sandbox import git_standins
-    from roslab.sources import version_problem
+    from roslab.sources.repos import version_problem
 
     # the built-in profiles pin tags (upstream has them); a roster's profile may pin a commit
     repos = tmp_path / "mine.repos"

@@ -26,10 +26,12 @@ from fixtures.status_hosts import (
 from pyinfra.api import Config, Inventory, State
 from pyinfra.api.state import StateStage
 
-from roslab import runs, status, summary
-from roslab.runs import HostRun, RunRecord
+from roslab.reporting import runs
+from roslab.cli import status
+from roslab.reporting import summary
+from roslab.reporting.runs import HostRun, RunRecord
 from roslab.secrets import Secret
-from roslab.status import format_table, host_cells, page_context, parse_probe, render_page
+from roslab.cli.status import format_table, host_cells, page_context, parse_probe, render_page
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -388,7 +390,7 @@ def test_a_host_that_accepts_but_never_answers_is_bounded(tmp_path):
 
 
 def test_a_refused_host_key_says_which_roslab_command_to_run():
-    from roslab import identity
+    from roslab.ssh import identity
 
     target = identity.HostTarget("status-test-host", "classroom.yaml", ".roslab-state/known_hosts")
     identity.explainer().add_host(target, ["127.0.0.99"])
@@ -431,7 +433,7 @@ def test_status_exits_1_when_a_host_failed_its_last_run_or_is_unreachable():
 def test_status_shows_each_hosts_discovery_mode_and_an_auto_domain(tmp_path):
     from fixtures.status_hosts import reachable_host
 
-    from roslab.status import host_cells, page_context
+    from roslab.cli.status import host_cells, page_context
 
     host = reachable_host(discovery_mode="static", middleware="rmw_fastrtps_cpp", domain_assigned=True)
     cells = host_cells(host, NOW)
@@ -443,7 +445,7 @@ def test_status_shows_each_hosts_discovery_mode_and_an_auto_domain(tmp_path):
 def test_status_flags_nodes_running_another_middleware_than_the_roster_says():
     from fixtures.status_hosts import reachable_host
 
-    from roslab.status import host_cells
+    from roslab.cli.status import host_cells
 
     host = reachable_host(discovery_mode="multicast", middleware="rmw_cyclonedds_cpp")
     host.probe["unit"]["Environment"] = "ROS_DOMAIN_ID=11 RMW_IMPLEMENTATION=rmw_fastrtps_cpp"
@@ -452,9 +454,9 @@ def test_status_flags_nodes_running_another_middleware_than_the_roster_says():
     assert "its nodes run rmw_fastrtps_cpp, the roster says rmw_cyclonedds_cpp" in cells["NOTE"].text
 
 
-# judged by what each host's profile runs (roslab.host_services) ---------------------------
+# judged by what each host's profile runs (roslab.cli.host_services) ---------------------------
 
-from roslab.host_services import HostService  # noqa: E402
+from roslab.cli.host_services import HostService  # noqa: E402
 
 NOT_FOUND = {"LoadState": "not-found", "ActiveState": "inactive", "SubState": "dead"}
 DISCOVERY_SERVER = HostService("roslab-discovery-server.service", "the team's Fast DDS discovery server", "discovery")
@@ -596,7 +598,7 @@ def test_the_probe_reads_a_launch_services_journal_bounded_and_in_its_own_sectio
 
 
 def test_the_rovers_service_is_known_to_run_a_launch():
-    from roslab.host_services import host_services as services_of
+    from roslab.cli.host_services import host_services as services_of
 
     data = {"roslab_role": "robot", "roslab_profile": {"name": "osr", "services": [
         {"name": "osr_startup", "command": "ros2 launch osr_bringup osr_launch.py", "enabled": True},

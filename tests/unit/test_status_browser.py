@@ -14,7 +14,7 @@ import pytest
 from fixtures.browser import chromium_missing, distinct_rows, dump_dom, screenshot
 from fixtures.status_hosts import HOSTILE, NOW, hostile_page, never_run_host, reachable_host, unreachable_host
 
-from roslab.status import page_context, render_page
+from roslab.cli.status import page_context, render_page
 
 pytestmark = pytest.mark.skipif(chromium_missing() is not None, reason=str(chromium_missing()))
 
@@ -69,7 +69,7 @@ def test_the_browser_paints_the_page(tmp_path):
 def test_after_a_failed_run_the_browser_shows_the_host_and_the_chip_red(tmp_path):
     from datetime import timedelta
 
-    from roslab.runs import RunRecord
+    from roslab.reporting.runs import RunRecord
 
     failed = reachable_host(run=RunRecord(NOW - timedelta(minutes=2), "failed", "Ensure ROS 2 jazzy",
                                           "E: Unable to locate package x", NOW - timedelta(days=1)))

@@ -1,4 +1,4 @@
-"""roslab.sudo: sudo commands carry no password; the password reaches the host only on stdin.
+"""roslab.ssh.sudo: sudo commands carry no password; the password reaches the host only on stdin.
 
 The fake host runs the askpass setup command for real (in a temp dir on this machine),
 so the file's mode, content and the leftover cleanup are the shell's, not a mock's.
@@ -21,13 +21,13 @@ from pyinfra.api.exceptions import PyinfraError
 from pyinfra.connectors import util as pyinfra_util
 from pyinfra.connectors.util import CommandOutput, OutputLine
 
-from roslab import sudo
+from roslab.ssh import sudo
 from roslab.secrets import Secret
 
 PASSWORD = "pl4nted-'sudo' $(pw) \\ \"x\""
 
-# The pyinfra 3.10.0 code roslab.sudo relies on (sha256 of the source, first 16 hex digits).
-# When pyinfra changes one, re-read it against roslab/sudo.py's docstring, then update here.
+# The pyinfra 3.10.0 code roslab.ssh.sudo relies on (sha256 of the source, first 16 hex digits).
+# When pyinfra changes one, re-read it against roslab/ssh/sudo.py's docstring, then update here.
 PINNED_PYINFRA_SOURCE = {
     "make_unix_command_for_host": "524b0f3bc27f73ab",  # replaced by install()
     "make_unix_command": "68efd9b832857acc",  # builds `sudo -H -n ...`, which with_askpass rewrites
@@ -39,7 +39,7 @@ PINNED_PYINFRA_SOURCE = {
 
 
 class FakeHost:
-    """What roslab.sudo and pyinfra's askpass helpers use of a host; commands run locally."""
+    """What roslab.ssh.sudo and pyinfra's askpass helpers use of a host; commands run locally."""
 
     def __init__(self, temp_dir: Path):
         self.name = "team1-main"
@@ -78,7 +78,7 @@ def test_pyinfra_code_it_relies_on_is_unchanged():
     changed = {name for name, function in functions.items()
                if hashlib.sha256(inspect.getsource(function).encode()).hexdigest()[:16]
                != PINNED_PYINFRA_SOURCE[name]}
-    assert not changed, f"pyinfra changed {sorted(changed)}: re-check roslab/sudo.py, then update the pins"
+    assert not changed, f"pyinfra changed {sorted(changed)}: re-check roslab/ssh/sudo.py, then update the pins"
     assert pyinfra_util.SUDO_ASKPASS_ENV_VAR == "PYINFRA_SUDO_PASSWORD"
 
 

@@ -1,4 +1,4 @@
-"""roslab.summary: the table a teacher reads at the end of a run, and the exit code line.
+"""roslab.reporting.summary: the table a teacher reads at the end of a run, and the exit code line.
 
 The handler is fed the events pyinfra gives it (callbacks, roslab's stop_host, pyinfra's
 log lines) on a real pyinfra State; one test drives pyinfra's own run_ops so the order
@@ -24,7 +24,7 @@ from pyinfra.api.state import StateOperationHostData, StateOperationMeta, StateS
 from pyinfra.connectors.util import CommandOutput, OutputLine
 from pyinfra.context import ctx_host, ctx_state
 
-from roslab import summary
+from roslab.reporting import summary
 from roslab.secrets import Secret
 
 INSTALL = "ROS 2 is installed for the host's distro and role | Ensure ROS 2 jazzy is installed"

@@ -11,8 +11,8 @@ from __future__ import annotations
 import paramiko
 import pytest
 
-from roslab import identity
-from roslab.cli import main
+from roslab.ssh import identity
+from roslab.cli.main import main
 from roslab.network.state import record_address
 from roslab.roster import inventory_groups, load_roster
 from tests.unit.test_identity import ROSTER, KeyOnlyServer, loopback_ssh_server  # noqa: F401

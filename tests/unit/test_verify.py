@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from roslab import verify
-from roslab.workspace import NodesUnitState
+from roslab.cli import verify
+from roslab.ros.workspace import NodesUnitState
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "nodes" / "roslab_demo"))
 
@@ -375,12 +375,12 @@ def test_any_message_of_the_type_passes_a_team_whose_topic_names_no_robot():
     assert not stopped.passed and "roslab-nodes.service on team3-robot is failed" in stopped.verdict()
 
 
-# Judged by what the profile runs (roslab.host_services)
+# Judged by what the profile runs (roslab.cli.host_services)
 # ------------------------------------------------------
 
 from test_profiles import _in_tmp, rosdistro_url, write  # noqa: E402,F401  (fixtures)
 
-from roslab.host_services import HostService, host_services  # noqa: E402
+from roslab.cli.host_services import HostService, host_services  # noqa: E402
 from roslab.roster import load_roster  # noqa: E402
 
 DISCOVERY_SERVER = HostService("roslab-discovery-server.service", "the team's Fast DDS discovery server", "discovery")
@@ -473,7 +473,7 @@ def test_a_stopped_discovery_server_is_named_as_the_cause():
 
 
 def test_check_shows_each_hosts_profile_and_its_settings(tmp_path, rosdistro_url, capsys):
-    from roslab.cli import main
+    from roslab.cli.main import main
 
     turtlebot3_and_sim_class(tmp_path, rosdistro_url)
     assert main(["check", str(tmp_path / "lab.yaml")]) == 0
@@ -532,7 +532,7 @@ def test_a_host_that_accepts_and_hangs_up_is_one_line_not_a_traceback(command, t
 
 
 def test_the_opencr_step_names_the_robot_and_the_page_shows_the_command_as_code(tmp_path, rosdistro_url):
-    from roslab import status
+    from roslab.cli import status
 
     classroom = turtlebot3_and_sim_class(tmp_path, rosdistro_url)
     lists = {entry["host"]: entry["items"] for entry in status.checklists(classroom)}

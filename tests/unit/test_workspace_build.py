@@ -21,8 +21,9 @@ from fixtures.fake_ubuntu import FakeUbuntu
 from pyinfra.context import ctx_host
 
 from deploy import workspace as deploy_ws
-from roslab import settings, workspace
-from roslab.ros_env import host_environment
+from roslab import settings
+from roslab.ros import workspace
+from roslab.ros.environment import host_environment
 from test_workspace_sync import USER, LocalDirHost, run_operation
 
 WS = "/home/ubuntu/ros2_ws"

@@ -1,4 +1,4 @@
-"""The workspace sync (roslab.workspace.packages): nodes/ in, commands out.
+"""The workspace sync (roslab.ros.workspace.packages): nodes/ in, commands out.
 
 Most tests run the operation against a "host" that is a temporary directory on this
 machine: the fact's shell command runs locally and the commands the operation yields
@@ -19,7 +19,7 @@ import pytest
 from pyinfra.api import FileUploadCommand, StringCommand
 from pyinfra.context import ctx_host, ctx_state
 
-from roslab import workspace
+from roslab.ros import workspace
 
 USER = getpass.getuser()
 GROUP = grp.getgrgid(os.getgid()).gr_name

@@ -1,7 +1,7 @@
 """pyinfra facts and operations for the login user's underlay workspace (deploy/sources.py).
 
 The underlay holds the third-party repositories of the host's .repos files, each extracted
-from the archive the controller made of its pinned commit (roslab/source_fetch.py) into
+from the archive the controller made of its pinned commit (roslab/sources/fetch.py) into
 `src/<path>`; `.roslab/sources.json` records the sha256 of each extracted archive, so only a
 changed repository is copied again, and a repository that left the .repos files is removed
 (folders of `src/` that roslab did not put there are never touched).
@@ -24,8 +24,8 @@ import shlex
 from pyinfra import host
 from pyinfra.api import FactBase, FileUploadCommand, StringCommand, operation
 
-from roslab.sources import REPO_PATH
-from roslab.workspace import STATE_DIR_NAME, WorkspaceStamps, _write_stamp
+from roslab.sources.repos import REPO_PATH
+from roslab.ros.workspace import STATE_DIR_NAME, WorkspaceStamps, _write_stamp
 
 MANIFEST = f"{STATE_DIR_NAME}/sources.json"
 # Where the archives wait (root's) between their upload and their extraction by the user.

@@ -20,7 +20,7 @@ from pathlib import Path
 import paramiko
 import yaml
 
-from roslab import identity
+from roslab.ssh import identity
 from roslab.network.state import last_known_addresses
 from roslab.reach import add_limit_argument, select_roster_hosts
 from roslab.roster import RosterError, default_roster_path, display_path, load_roster

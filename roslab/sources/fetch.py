@@ -52,7 +52,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from roslab.controller_files import UnreadableFile, read_regular_file
-from roslab.sources import COMMIT, rewritten
+from roslab.sources.repos import COMMIT, rewritten
 
 LOCK_NAME = "sources.lock.json"
 LOCK_MAX_BYTES = 16 * 1024 * 1024  # thousands of repositories' pins

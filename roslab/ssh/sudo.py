@@ -145,7 +145,7 @@ def with_askpass(command: StringCommand, askpass: str) -> StringCommand:
                 *SUDO_WITH_ASKPASS_FLAGS,
             ]
             return StringCommand(*bits, _separator=command.separator, **command.connector_arguments)
-    raise PyinfraError(f"roslab.sudo: pyinfra's sudo command changed shape, refusing to send it: {command}")
+    raise PyinfraError(f"roslab.ssh.sudo: pyinfra's sudo command changed shape, refusing to send it: {command}")
 
 
 def make_unix_command_for_host(state, host, command, **arguments) -> StringCommand:

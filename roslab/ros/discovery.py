@@ -36,7 +36,7 @@ import hashlib
 from dataclasses import dataclass, field
 from xml.sax.saxutils import escape, quoteattr
 
-from roslab import distro as distros
+from roslab.ros import distro as distros
 
 MODES = ("multicast", "static", "discovery_server", "localhost")
 MIDDLEWARES = ("rmw_fastrtps_cpp", "rmw_cyclonedds_cpp", "rmw_zenoh_cpp")
@@ -65,7 +65,7 @@ SERVER_0_PREFIX = "44.53.00.5f.45.50.52.4f.53.49.4d.41"
 # a main with a launch, the ros2 daemon and a few terminals has more participants than that).
 CYCLONE_MAX_PARTICIPANT_INDEX = 32
 
-HEADER = "managed by roslab (roslab/discovery.py): edits here are overwritten; set ros_discovery_mode in the roster"
+HEADER = "managed by roslab (roslab/ros/discovery.py): edits here are overwritten; set ros_discovery_mode in the roster"
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,7 @@ One source, from the same host data the deploys read:
   `workspace_enabled` and `nodes_service_enabled` are on. A TurtleBot3's or a sim main has none.
 - the team's discovery service (`roslab-discovery-server` on a discovery-server team's main,
   `roslab-zenoh-router` on a Zenoh team's main or a Zenoh localhost host), from
-  `roslab.discovery`, when `discovery_enabled` is on.
+  `roslab.ros.discovery`, when `discovery_enabled` is on.
 - the robot profile's own services whose `enabled_if` holds (the rover's `osr_startup`, the
   ESP32's `micro_ros_agent`), when `profile_services_enabled` is on.
 
@@ -20,8 +20,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from roslab import discovery, settings
-from roslab.workspace import NODES_SERVICE
+from roslab import settings
+from roslab.ros import discovery
+from roslab.ros.workspace import NODES_SERVICE
 
 
 @dataclass(frozen=True)
@@ -30,7 +31,7 @@ class HostService:
     what: str  # what it is for, said where it is the cause: "the team's Fast DDS discovery server"
     kind: str  # "nodes", "discovery" or "profile"
     # a profile's service that runs `ros2 launch` (the rover's osr_startup): its nodes can die
-    # and start again while systemd sees the launch running (roslab.launch_journal)
+    # and start again while systemd sees the launch running (roslab.cli.launch_journal)
     launch: bool = False
 
 

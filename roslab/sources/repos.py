@@ -13,7 +13,7 @@ A robot profile's side names its files (`sources:`, beside a built-in profile's 
 relative to the roster for a roster's profile), a roster adds its own (`workspace_sources`,
 relative to the roster). Every problem names the file and line, the host and the field; a
 version that only the upstream can tell is a branch (not a tag) is refused by the controller's
-fetch (roslab/source_fetch.py), naming file, repository and field too.
+fetch (roslab/sources/fetch.py), naming file, repository and field too.
 
 The loader puts the repositories into host data as plain dicts (`REPOSITORY_KEYS`):
 `roslab_profile["sources"]` (the profile's) and `roslab_sources` (the profile's and the
@@ -28,7 +28,7 @@ import stat
 from pathlib import Path
 from urllib.parse import unquote, urlsplit
 
-from roslab import distro as distros
+from roslab.ros import distro as distros
 from roslab.controller_files import kind_of
 from roslab.checked.loading import line_of, load_yaml
 from roslab.checked.problems import Problem, Report, display_path
@@ -44,7 +44,7 @@ COMMIT = re.compile(r"[0-9a-f]{40}", re.ASCII)
 TAG = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+-]{0,99}(?:/[A-Za-z0-9_][A-Za-z0-9_.+-]{0,99}){0,3}", re.ASCII)
 # Names that are branches in every ROS repository (and ROS distros, which name branches):
 # refused without asking upstream. Any other name is asked: a branch there is refused too.
-# The distros roslab has records of are added from roslab.distro (`branch_names()`), so a new
+# The distros roslab has records of are added from roslab.ros.distro (`branch_names()`), so a new
 # record needs no edit here.
 _BRANCH_NAMES = frozenset({
     "HEAD", "master", "main", "develop", "devel", "development", "trunk", "rolling", "ros2", "ros2-devel",

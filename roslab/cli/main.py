@@ -2,12 +2,12 @@
 
     roslab init DIR           make a classroom folder: roster, secrets file, pyinfra entry files
     roslab check [ROSTER]     validate a roster and print the classroom as a table
-    roslab verify [ROSTER]    check that each team's main host hears its robot (roslab.verify)
+    roslab verify [ROSTER]    check that each team's main host hears its robot (roslab.cli.verify)
     roslab seed [ROSTER] --out DIR | --boot-partition PATH | --image FILE
                               first-boot seeds for freshly flashed Pis (roslab.seed)
-    roslab trust [ROSTER]     record the host key of Pis flashed without a seed (roslab.trust)
-    roslab forget HOST        remove a Pi's recorded host key (roslab.trust)
-    roslab status [ROSTER]    every host's state, as a table and an HTML page (roslab.status)
+    roslab trust [ROSTER]     record the host key of Pis flashed without a seed (roslab.cli.trust)
+    roslab forget HOST        remove a Pi's recorded host key (roslab.cli.trust)
+    roslab status [ROSTER]    every host's state, as a table and an HTML page (roslab.cli.status)
 
 `roslab sandbox ...` comes from `roslab.sandbox.cli` when that module is present.
 Exit status: 0 when the roster is valid, 1 when it has errors, 2 on bad usage.
@@ -85,7 +85,7 @@ def run_check(args: argparse.Namespace) -> int:
 
 
 def run_verify(args: argparse.Namespace) -> int:
-    from roslab.verify import run  # connects to hosts: imported only when asked
+    from roslab.cli.verify import run  # connects to hosts: imported only when asked
 
     return run(args)
 
@@ -115,9 +115,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_roster_argument(verify)
     verify.set_defaults(run=run_verify)
 
-    from roslab.init import register as register_init
+    from roslab.cli.init import register as register_init
     from roslab.seed.command import register as register_seed
-    from roslab.trust import register as register_trust
+    from roslab.cli.trust import register as register_trust
 
     register_init(commands)  # roslab init
     register_seed(commands)  # roslab seed
@@ -135,7 +135,7 @@ def build_parser() -> argparse.ArgumentParser:
         "as a table and as one self-contained HTML page with a picture of each team. "
         "Exits 1 if a host is unreachable.",
     )
-    from roslab.status import build_parser as status_arguments, run as run_status
+    from roslab.cli.status import build_parser as status_arguments, run as run_status
 
     status_arguments(status)
     status.set_defaults(run=run_status)

@@ -29,7 +29,7 @@ How it hears about the run:
   end-of-run signal.
 
 A real run (not --dry) also records each host's outcome and time on the controller, in
-`<roster dir>/.roslab-state/runs.yaml` (`roslab.runs`), for `roslab status`; nothing is
+`<roster dir>/.roslab-state/runs.yaml` (`roslab.reporting.runs`), for `roslab status`; nothing is
 written onto the hosts.
 
 It never prints host data: only host names, operation and deploy names, and lines
@@ -56,8 +56,8 @@ from pyinfra.api import HiddenValue
 from pyinfra.api.state import BaseStateCallback, State, StateStage
 from pyinfra.context import ctx_host, ctx_state
 
-from roslab import identity
-from roslab.runs import HostRun, record_runs
+from roslab.ssh import identity
+from roslab.reporting.runs import HostRun, record_runs
 
 OK, CHANGED, FAILED, PLANNED, NOT_RUN = "ok", "changed", "failed", "planned", "not run"
 INTERRUPTED = "interrupted"  # the run was stopped (Ctrl-C, SIGTERM) before the host's last step
@@ -363,7 +363,7 @@ class RunSummary(BaseStateCallback):
                 return op_name(state, op_hash, host), LOST_CONNECTION + said
             return op_name(state, op_hash, host), reason
         if events.connect_error or host not in state.activated_hosts:
-            # A refused host key: roslab.identity's line says what to run.
+            # A refused host key: roslab.ssh.identity's line says what to run.
             reason = identity.refusal(host.name) or events.connect_error or most_useful_line(
                 line.text for line in events.log if line.level >= logging.ERROR
             )
@@ -456,7 +456,7 @@ class RunSummary(BaseStateCallback):
         stream.flush()
 
     def record(self, state: State, when=None) -> list:
-        """Note each host's outcome in runs.yaml beside its roster (`roslab.runs`), for
+        """Note each host's outcome in runs.yaml beside its roster (`roslab.reporting.runs`), for
         `roslab status`. Only a run that executed records: --dry (or a run not confirmed)
         records nothing. Returns the files written."""
         if not state.is_executing:
@@ -730,7 +730,7 @@ def install(state: State | None = None) -> RunSummary:
     confirmation pyinfra asks for on a closed standard input ends with one line, exit 1.
     """
     global _current, _atexit_registered
-    from roslab.reach import quiet_paramiko
+    from roslab.ssh.quiet import quiet_paramiko
 
     quiet_paramiko()  # a host that hangs up is pyinfra's one line, not paramiko's traceback
     state = state if isinstance(state, State) else ctx_state.get()

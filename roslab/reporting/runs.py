@@ -2,7 +2,7 @@
 
     <roster dir>/.roslab-state/runs.yaml
 
-`roslab.summary` records every host of a real run (not a --dry one) when the run ends:
+`roslab.reporting.summary` records every host of a real run (not a --dry one) when the run ends:
 when it ran, how it ended (`ok`, `changed`, `failed` with the step and one line of why,
 `not run` when the run stopped before it), and when it last ended well (`ok` or
 `changed`). `roslab status` reads it. Nothing is written onto the hosts: a timestamp
@@ -33,7 +33,7 @@ import yaml
 from roslab.network.state import STATE_DIR
 
 RUNS_FILE = "runs.yaml"
-HEADER = ("# managed by roslab (roslab/runs.py): the last deploy.py run per host, "
+HEADER = ("# managed by roslab (roslab/reporting/runs.py): the last deploy.py run per host, "
           "written at the end of each run.\n")
 # Results that count as a successful run.
 SUCCESS_RESULTS = ("ok", "changed")

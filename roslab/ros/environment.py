@@ -9,7 +9,7 @@ Values arrive checked by the settings schema; each destination quotes them its o
 
 from __future__ import annotations
 
-from roslab.discovery import host_discovery
+from roslab.ros.discovery import host_discovery
 
 # The host.data keys `ros_variables_of` reads (shell_env's, discovery's, the host's identity); `host_environment`
 # reads these, the resolved robot profile (roslab_profile) and ros_environment.
@@ -21,7 +21,7 @@ ENVIRONMENT_KEYS = (*SETTING_KEYS, "roslab_profile", "ros_environment")
 
 def ros_variables_of(data, distro: str, shell: bool = False) -> dict[str, str]:
     """The ROS variables of a host's data (pyinfra's host.data or a roster host's dict: anything
-    with .get): domain, middleware and discovery mode (roslab.discovery). `shell`: also what the
+    with .get): domain, middleware and discovery mode (roslab.ros.discovery). `shell`: also what the
     command-line tools of a login shell and `roslab verify` need (the discovery server's super client).
     """
     setup = host_discovery(data, distro)

@@ -1,13 +1,13 @@
 """Verify each team's main host hears its robot: a table per team, non-zero exit unless all do.
 
-    roslab verify [ROSTER] [--limit team1 ...]      (or: python -m roslab.verify ...)
+    roslab verify [ROSTER] [--limit team1 ...]      (or: python -m roslab.cli.verify ...)
 
 Read-only and bounded. On every host it asks systemd for the state of the services the
-host runs by its roster and robot profile (`roslab.host_services`: roslab-nodes.service
+host runs by its roster and robot profile (`roslab.cli.host_services`: roslab-nodes.service
 where the profile has a launch there, the team's discovery server or Zenoh router, the
 profile's own services), one unit at a time. On each main host whose profile names a
 topic, as the login user and with the team's ROS environment (the same as the service's,
-`roslab.ros_env`), it lists the topics and waits up to `nodes_verify_timeout` seconds for
+`roslab.ros.environment`), it lists the topics and waits up to `nodes_verify_timeout` seconds for
 one message on `nodes_verify_topic`, with `--no-daemon` so no ros2 daemon is left behind
 (and one the check started anyway is stopped). Every ros2 call runs under `timeout
 --kill-after`, and the whole check under one more bound: a node that ignores SIGTERM cannot
@@ -35,13 +35,13 @@ from pyinfra.api.connect import disconnect_all
 from pyinfra.context import ctx_host
 from pyinfra.facts.server import LinuxDistribution
 
-from roslab.distro import default_distro
+from roslab.ros.distro import default_distro
 # runs_a_launch: verify's own name for it before host_services held it.
-from roslab.host_services import host_services, profile_name, runs_a_launch, runs_nodes  # noqa: F401
+from roslab.cli.host_services import host_services, profile_name, runs_a_launch, runs_nodes  # noqa: F401
 from roslab.operations import as_user
 from roslab.quoting import shell_home_path, shell_word
-from roslab.ros_env import host_environment
-from roslab.workspace import NODES_SERVICE, NodesUnitState
+from roslab.ros.environment import host_environment
+from roslab.ros.workspace import NODES_SERVICE, NodesUnitState
 
 # The demo talker's message: nodes/roslab_demo/roslab_demo/logic.py, CHATTER_FORMAT
 # 'Hello from {robot_name} #{count}' (nodes/README.md documents it). Parsed here the same
@@ -205,7 +205,7 @@ class TeamResult:
     without_service: set = field(default_factory=set)
     # what publishes the topic (the profile's verify_source), named when nothing was heard
     source: str = ""
-    # The other services the team's hosts run by their roster (roslab.host_services: the discovery
+    # The other services the team's hosts run by their roster (roslab.cli.host_services: the discovery
     # server or Zenoh router, the profile's own): (host, HostService, state).
     other_services: list = field(default_factory=list)
     # False when the main's robot profile names no topic to hear (sim: no robot; an ESP32 not

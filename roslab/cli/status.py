@@ -5,7 +5,7 @@
 Per host: whether SSH reaches it, its Ubuntu release, the ROS 2 distros installed, its
 domain ID (the one its `roslab-nodes` service runs with, else the roster's), the address
 it is reached at, the service's state, and the last deploy.py run on it with its time and
-the last successful one (`roslab.runs`, recorded on this machine by each run). A table on
+the last successful one (`roslab.reporting.runs`, recorded on this machine by each run). A table on
 the terminal, and one self-contained HTML page (inline CSS and SVG, no script, no server,
 nothing fetched) with a picture of each team: its main host, its robots, what the main
 host hears. Default page: `<roster dir>/.roslab-state/status.html`.
@@ -15,9 +15,9 @@ ssh user, key, port, known_hosts and host key policy, and a host the network dep
 at its recorded address), all in parallel, each within `HOST_BOUND` seconds, with one
 command (`StatusProbe`, no sudo). A host that cannot be reached is a row that says why.
 `--listen` adds `roslab verify`'s check on each main host whose profile names a topic
-(`roslab.verify.hear`: the topics it lists and whether its robot's message arrives, waiting
+(`roslab.cli.verify.hear`: the topics it lists and whether its robot's message arrives, waiting
 the roster's `nodes_verify_timeout` unless `--listen-timeout` says), a second bounded command.
-Each host is judged by what its roster and robot profile run there (`roslab.host_services`):
+Each host is judged by what its roster and robot profile run there (`roslab.cli.host_services`):
 a TurtleBot3's or a sim main runs no nodes service and is green without one; a stopped
 discovery server, Zenoh router or profile service is named in its row and its team's line.
 
@@ -42,14 +42,14 @@ from pyinfra.api import FactBase
 
 from roslab.roster import Classroom, RosterError, display_path, inventory_groups
 from roslab.profiles.host import RebootRecord, parse_reboot_record, reboot_pending
-from roslab.runs import RunRecord, now_utc, read_runs, runs_path
-from roslab import launch_journal
-from roslab.host_services import host_services, profile_name, runs_nodes
-from roslab.verify import (
+from roslab.reporting.runs import RunRecord, now_utc, read_runs, runs_path
+from roslab.cli import launch_journal
+from roslab.cli.host_services import host_services, profile_name, runs_nodes
+from roslab.cli.verify import (
     CHATTER_TYPE, SERVICE_RUNNING, TeamResult, check_bound, hear, parse_check_output, service_state,
     stopped_service_line,
 )
-from roslab.workspace import NODES_SERVICE
+from roslab.ros.workspace import NODES_SERVICE
 
 # Bounds, in seconds.
 CONNECT_TIMEOUT = 8  # the TCP connection (paramiko's timeout; the deploys use pyinfra's 10)
@@ -91,10 +91,10 @@ class StatusProbe(FactBase):
 
 
 def probe_script(service: str = NODES_SERVICE, others: tuple[str, ...] = (), launches: tuple[str, ...] = ()) -> str:
-    """`others`: the host's other services (roslab.host_services: its discovery server or Zenoh
+    """`others`: the host's other services (roslab.cli.host_services: its discovery server or Zenoh
     router, its profile's), each read into a `## unit <name>` section; `launches`: those that
     run `ros2 launch`, whose journal's last lines go into a `## journal <name>` section (which
-    of the launch's nodes died, roslab.launch_journal)."""
+    of the launch's nodes died, roslab.cli.launch_journal)."""
     return "; ".join([
         "echo '## os-release'",
         "cat /etc/os-release 2>/dev/null",
@@ -190,9 +190,9 @@ class HostStatus:
     error: str | None = None  # why it was not reached, or why the probe came back empty
     probe: dict = field(default_factory=lambda: parse_probe([]))
     run: RunRecord | None = None
-    heard: dict | None = None  # --listen, main hosts: roslab.verify's NodesHeard
+    heard: dict | None = None  # --listen, main hosts: roslab.cli.verify's NodesHeard
     listen_error: str | None = None
-    # What the host runs by its roster and robot profile (roslab.host_services).
+    # What the host runs by its roster and robot profile (roslab.cli.host_services).
     profile: str = "demo"
     runs_nodes: bool = True
     other_services: list = field(default_factory=list)  # HostService, beside roslab-nodes
@@ -555,8 +555,8 @@ def _probe_host(state, host, status: HostStatus, listen: bool, listen_timeout: i
 
 def explained(host_name: str, message: str) -> str:
     """A connection error as deploy.py's log shows it: a refused host key becomes roslab's
-    instruction (`roslab trust ...`, `roslab forget ...`; roslab.identity)."""
-    from roslab import identity
+    instruction (`roslab trust ...`, `roslab forget ...`; roslab.ssh.identity)."""
+    from roslab.ssh import identity
 
     record = logging.LogRecord("pyinfra", logging.ERROR, __file__, 0, f"[{host_name}] {message}", (), None)
     identity.explainer().filter(record)

@@ -1,0 +1,1 @@
+"""The `roslab` command and its subcommands (status, verify, init, trust, forget...); roslab.reach is how each takes ROSTER/--limit."""

@@ -1,0 +1,1 @@
+"""Source workspaces: .repos files checked, repositories fetched once by the controller, the underlay built."""
