@@ -464,14 +464,14 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
 def run(args: argparse.Namespace) -> int:
     """`roslab verify [ROSTER] [--limit NAME ...]`: the roster's hosts, reached as deploy.py
     reaches them (roslab.reach)."""
-    from roslab.reach import RosterProblem, connected_state, limit_problem, load_classroom_groups
+    from roslab.reach import RosterProblem, connected_state, limit_problem, load_classroom_groups, names_of
 
     try:
         classroom, groups = load_classroom_groups(args.roster, "verify")
     except RosterProblem as problem:
         print(problem, file=sys.stderr)
         return 1
-    problem = limit_problem(groups, args.limit, "roslab verify")
+    problem = limit_problem(names_of(groups), args.limit, "roslab verify")
     if problem:
         print(problem, file=sys.stderr)
         return 2

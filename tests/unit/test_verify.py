@@ -537,8 +537,8 @@ def test_the_opencr_step_names_the_robot_and_the_page_shows_the_command_as_code(
     classroom = turtlebot3_and_sim_class(tmp_path, rosdistro_url)
     lists = {entry["host"]: entry["items"] for entry in status.checklists(classroom)}
     (opencr,) = [item for item in lists["blue-robot"] if "OpenCR firmware" in item]
-    assert "`roslab opencr-update blue-robot`" in opencr and "HOST" not in opencr
+    assert "`roslab opencr-update --limit blue-robot`" in opencr and "HOST" not in opencr
     assert "burger.opencr" in opencr
     page = status.render_page(status.page_context("lab", "lab.yaml", [], status.now_utc(),
                                                   checklists=status.checklists(classroom)))
-    assert "<code>roslab opencr-update blue-robot</code>" in page and "`roslab opencr-update" not in page
+    assert "<code>roslab opencr-update --limit blue-robot</code>" in page and "`roslab opencr-update" not in page
