@@ -306,7 +306,14 @@ def stopped_service_line(host: str, service, state: str) -> str:
 
 
 def _service_cell(result: TeamResult, name: str | None) -> str:
-    return result.services.get(name, "?") if name else "-"
+    """The host's nodes service as systemd has it, or, where its roster and profile give it
+    none (a TurtleBot3's or a sim main), that it runs none: "not installed" there is no fault."""
+    if not name:
+        return "-"
+    state = result.services.get(name, "?")
+    if name in result.without_service and state != "?":
+        return f"none ({result.profile} main)" if name == result.main else "none"
+    return state
 
 
 def format_table(results: list[TeamResult]) -> str:
