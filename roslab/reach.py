@@ -7,8 +7,11 @@
 turns a mistake into lines on stderr and an exit status, never a traceback;
 `roster_state` makes the pyinfra State of the roster's hosts as deploy.py's inventory makes
 them (the same groups and connection data), through pyinfra's public API only, and
-`connected_state` connects it. `--limit` selects as pyinfra's does: a group (team, role,
-distro) or a host name, with shell-style wildcards.
+`connected_state` connects it. `--limit` selects as pyinfra's does, through one matcher
+(`limit_selection`) for pyinfra's runs and every command: a group (team, role, distro) or
+host names, with shell-style wildcards; a pattern that selects nothing is one line, exit 2.
+A command that once named its hosts first refuses that older form in one line giving this
+one (`stale_host_form`).
 """
 
 from __future__ import annotations
@@ -18,20 +21,55 @@ import difflib
 import fnmatch
 import os
 import sys
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from roslab.roster import Classroom, RosterError, default_roster_path, display_path, load_roster
 
 ROSTER_HELP = ("roster file (default: $ROSLAB_ROSTER, else classroom.yaml or inventories/classroom.yaml "
                "in this folder if present, else inventories/lab.yaml)")
-LIMIT_HELP = "a team, role, distro or host name, wildcards allowed (pyinfra's --limit; repeatable)"
+LIMIT_HELP = ("a team (`-` written `_`), role or distro group, or host names with wildcards, as pyinfra's "
+              "--limit (repeatable)")
 
 
-def add_roster_argument(parser: argparse.ArgumentParser, limit: bool = True) -> None:
-    """ROSTER (optional, positional) and, with `limit`, --limit NAME (repeatable)."""
+def add_roster_argument(parser: argparse.ArgumentParser, limit: bool = True, what: str = "") -> None:
+    """ROSTER (optional, positional) and, with `limit`, --limit NAME (repeatable; `what`: more help)."""
     parser.add_argument("roster", nargs="?", metavar="ROSTER", help=ROSTER_HELP)
     if limit:
-        parser.add_argument("--limit", action="append", metavar="NAME", help=LIMIT_HELP)
+        add_limit_argument(parser, what)
+
+
+def add_limit_argument(parser: argparse.ArgumentParser, what: str = "") -> None:
+    """--limit NAME (repeatable), as every roslab command that reaches hosts takes it. `--host`,
+    the same option's older name, is still read (not shown in the help)."""
+    parser.add_argument("--limit", action="append", metavar="NAME", help=LIMIT_HELP + what)
+    parser.add_argument("--host", dest="limit", action="append", help=argparse.SUPPRESS)
+
+
+def add_stale_host_form(parser: argparse.ArgumentParser) -> None:
+    """Read (and `stale_host_form` refuses) a command's older shape, which named its hosts first:
+    `roslab COMMAND HOST... [ROSTER]` or `HOST... --roster ROSTER`."""
+    parser.add_argument("stale_words", nargs="*", help=argparse.SUPPRESS)
+    parser.add_argument("--roster", dest="stale_roster", help=argparse.SUPPRESS)
+
+
+def _names_a_roster(word: str) -> bool:
+    return Path(word).suffix in (".yaml", ".yml") or Path(word).is_file()
+
+
+def stale_host_form(args: argparse.Namespace, command: str) -> str | None:
+    """One line giving the command's shape, when it was given hosts the older way (names
+    before or instead of the roster, or `--roster`), else None."""
+    words = [word for word in (args.roster, *args.stale_words) if word]
+    if args.stale_roster is None and len(words) <= 1 and all(_names_a_roster(word) for word in words):
+        return None
+    rosters = [word for word in words if _names_a_roster(word)]
+    roster = args.stale_roster or (rosters[0] if rosters else None)
+    hosts = [word for word in words if word != roster] + list(args.limit or ())
+    shown = " ".join([f"roslab {command}", *([roster] if roster else []),
+                      *(f"--limit {host}" for host in hosts or ["HOST"])])
+    return (f"roslab {command}: hosts are named by --limit, after the roster, as in every roslab "
+            f"command: {shown}")
 
 
 class RosterProblem(Exception):
@@ -81,30 +119,45 @@ def roster_inventory(groups: dict):
                      **{group: (entries, {}) for group, entries in groups.items()})
 
 
-def select_hosts(inventory, patterns: list[str] | None) -> list:
-    """The hosts `--limit` patterns select (all without patterns), as pyinfra's --limit: each
-    pattern a group's name (team, role, distro), else host names with shell-style wildcards."""
-    hosts = list(inventory)
+def limit_selection(groups: Mapping[str, Sequence[str]], patterns) -> tuple[list[str], list[str]]:
+    """(the host names `--limit` patterns select, in the order `groups` lists them, every host
+    without patterns; the patterns that select none). The one matcher of every roslab command,
+    as pyinfra's own --limit (pyinfra_cli `_get_inventory_pattern_matches`): a pattern that names
+    a group (a team, role or distro) selects its hosts, any other pattern the host names
+    it matches with shell-style wildcards. `groups`: group name -> host names
+    (`roslab.roster.group_names`)."""
+    every = list(dict.fromkeys(name for names in groups.values() for name in names))
     if not patterns:
-        return hosts
-    selected: set = set()
+        return every, []
+    chosen: set[str] = set()
+    unmatched = []
     for pattern in patterns:
-        group = inventory.get_group(pattern, None)
-        selected.update(group if group else [host for host in hosts if fnmatch.fnmatch(host.name, pattern)])
-    return [host for host in hosts if host in selected]
+        if pattern in groups:
+            matched = list(groups[pattern])
+        else:
+            matched = [name for name in every if fnmatch.fnmatch(name, pattern)]
+        chosen.update(matched)
+        if not matched:
+            unmatched.append(pattern)
+    return [name for name in every if name in chosen], unmatched
 
 
-def limit_problem(groups: dict, patterns, command: str = "roslab") -> str | None:
+def names_of(groups: dict) -> dict[str, list[str]]:
+    """`roslab.roster.inventory_groups(...)` as group name -> host names."""
+    return {group: [name for name, _ in entries] for group, entries in groups.items()}
+
+
+def limit_problem(groups: Mapping[str, Sequence[str]], patterns, command: str = "roslab") -> str | None:
     """One line naming each `--limit` pattern that selects no host of the roster, or None.
+    `groups`: group name -> host names (`roslab.roster.group_names`, or `names_of`).
 
     pyinfra only warns about such a pattern and goes on with the others (with none left it
     does nothing and exits 0): a typo in a team's name, or `--limit a,b` (one pattern with a
     comma, which pyinfra does not split), would leave hosts out of a run that says it worked."""
-    inventory = roster_inventory(groups)
-    unmatched = [pattern for pattern in patterns or () if not select_hosts(inventory, [pattern])]
+    _, unmatched = limit_selection(groups, patterns)
     if not unmatched:
         return None
-    names = sorted({*(name for name in groups if name != "all"), *(host.name for host in inventory)})
+    names = sorted({*groups, *(name for members in groups.values() for name in members)})
     hints = []
     for pattern in unmatched:
         if "," in pattern:
@@ -120,37 +173,30 @@ def limit_problem(groups: dict, patterns, command: str = "roslab") -> str | None
             f"or host names with wildcards)" + (f"; {'; '.join(hints)}" if hints else "") + "; nothing was run")
 
 
+def limited_hosts(classroom: Classroom, patterns, command: str) -> tuple[list, str | None]:
+    """(the roster's hosts `--limit` patterns select, in roster order; None, or the one line
+    `limit_problem` gives when a pattern selects none) for a command that works from the
+    roster alone, before any host is reached or any file beside the roster is read."""
+    from roslab.roster.inventory import group_names
+
+    groups = group_names(classroom)
+    problem = limit_problem(groups, patterns, command)
+    if problem:
+        return [], problem
+    chosen = set(limit_selection(groups, patterns)[0])
+    return [host for host in classroom.hosts if host.name in chosen], None
+
+
 def refuse_unmatched_limit(groups: dict) -> None:
     """In a pyinfra run's inventory file: stop with exit 2 when a --limit pattern selects no host."""
     from roslab.reporting.summary import cli_option
 
-    problem = limit_problem(groups, cli_option("limit") or ())
+    problem = limit_problem(names_of(groups), cli_option("limit") or ())
     if problem:
         print(problem, file=sys.stderr)
         sys.exit(2)
 
 
-def select_roster_hosts(classroom: Classroom, patterns) -> tuple[list, list[str]]:
-    """(the roster's hosts `--limit` patterns select, in roster order; the patterns that select
-    none), without building pyinfra's inventory: as pyinfra's --limit, a pattern is a team (its
-    name or its group's, `team-1` or `team_1`), a role, a distro, or host names with wildcards."""
-    hosts = list(classroom.hosts)
-    chosen: set[str] = set()
-    unmatched = []
-    for pattern in patterns or ():
-        matched = [host.name for host in hosts if fnmatch.fnmatch(host.name, pattern)
-                   or pattern in (host.team, host.team.replace("-", "_"), host.role, host.distro)]
-        chosen.update(matched)
-        if not matched:
-            unmatched.append(pattern)
-    return ([host for host in hosts if host.name in chosen] if patterns else hosts), unmatched
-
-
-def add_limit_argument(parser: argparse.ArgumentParser, what: str = "") -> None:
-    """--limit NAME (repeatable), as every roslab command that reaches hosts takes it; --host
-    is the same option's older name."""
-    parser.add_argument("--limit", "--host", dest="limit", action="append", metavar="NAME",
-                        help=LIMIT_HELP + what)
 
 
 def roster_state(groups: dict, limit: list[str] | None = None, **config):
@@ -165,7 +211,8 @@ def roster_state(groups: dict, limit: list[str] | None = None, **config):
     quiet_paramiko()
     sudo.install()  # no sudo password on a host's command line, whatever the command
     inventory = roster_inventory(groups)
-    chosen = select_hosts(inventory, limit)
+    names, _ = limit_selection(names_of(groups), limit)
+    chosen = [inventory.get_host(name) for name in names]
     state = State(check_for_changes=False)
     state.cwd = os.getcwd()
     settings = Config(**config)

@@ -6,9 +6,15 @@
     roslab seed [ROSTER] --out DIR | --boot-partition PATH | --image FILE
                               first-boot seeds for freshly flashed Pis (roslab.seed)
     roslab trust [ROSTER]     record the host key of Pis flashed without a seed (roslab.cli.trust)
-    roslab forget HOST        remove a Pi's recorded host key (roslab.cli.trust)
+    roslab forget [ROSTER] --limit NAME
+                              remove a Pi's recorded host key (roslab.cli.trust)
+    roslab opencr-update [ROSTER] --limit NAME
+                              flash a TurtleBot3's OpenCR firmware (roslab.robot_tools.opencr_update)
     roslab status [ROSTER]    every host's state, as a table and an HTML page (roslab.cli.status)
 
+Every command takes the roster and its hosts one way (roslab.reach): ROSTER first, then
+`--limit NAME` (repeatable: a team, role or distro group, or host names with wildcards)
+where it reaches hosts.
 `roslab sandbox ...` comes from `roslab.sandbox.cli` when that module is present.
 Exit status: 0 when the roster is valid, 1 when it has errors, 2 on bad usage.
 """

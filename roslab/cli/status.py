@@ -40,7 +40,7 @@ from pathlib import Path
 import yaml
 from pyinfra.api import FactBase
 
-from roslab.roster import Classroom, RosterError, display_path, inventory_groups
+from roslab.roster import Classroom, RosterError, display_path, group_names, inventory_groups
 from roslab.profiles.host import RebootRecord, parse_reboot_record, reboot_pending
 from roslab.reporting.runs import RunRecord, now_utc, read_runs, runs_path
 from roslab.cli import launch_journal
@@ -434,8 +434,10 @@ def format_table(hosts: list[HostStatus], now: datetime) -> str:
 def host_statuses(classroom: Classroom, groups: dict, limit: list[str] | None = None) -> list[HostStatus]:
     """One HostStatus per roster host (in roster order) that `limit` selects, without
     contacting any host. `groups`: the roster's `inventory_groups`, as deploy.py gets them."""
+    from roslab.reach import limit_selection, names_of
+
     addresses = {name: data["ssh_hostname"] for entries in groups.values() for name, data in entries}
-    selected = None if not limit else set(limited_names(groups, limit))
+    selected = None if not limit else set(limit_selection(names_of(groups), limit)[0])
     statuses = []
     for host in classroom.hosts:
         if selected is not None and host.name not in selected:
@@ -454,13 +456,6 @@ def host_statuses(classroom: Classroom, groups: dict, limit: list[str] | None = 
             listen_timeout=int(host.data.get("nodes_verify_timeout") or LISTEN_TIMEOUT),
         ))
     return statuses
-
-
-def limited_names(groups: dict, limit: list[str]) -> list[str]:
-    """Host names `--limit` selects: pyinfra's own patterns (group or host names, globs)."""
-    from roslab.reach import roster_inventory, select_hosts
-
-    return [host.name for host in select_hosts(roster_inventory(groups), limit)]
 
 
 def probe(groups: dict, statuses: list[HostStatus], listen: bool = False,
@@ -862,7 +857,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         # Once: it also brings the classroom's known_hosts up to date, as deploy.py's inventory does.
         groups = inventory_groups(classroom)
-        problem = limit_problem(groups, args.limit, "roslab status")
+        problem = limit_problem(group_names(classroom), args.limit, "roslab status")
         statuses = [] if problem else host_statuses(classroom, groups, args.limit)
     except RosterError as error:  # a broken addresses.yaml or known_hosts
         print(error, file=sys.stderr)

@@ -1,7 +1,7 @@
 """`roslab trust` and `roslab forget`: the classroom's known_hosts for Pis flashed without a seed.
 
-    roslab trust [ROSTER] [--host NAME ...]   record the key each Pi shows now (prints fingerprints)
-    roslab forget HOST [--roster ROSTER]      remove a Pi's recorded key (re-flashed without a seed)
+    roslab trust [ROSTER] [--limit NAME ...]   record the key each Pi shows now (prints fingerprints)
+    roslab forget [ROSTER] --limit NAME ...    remove a Pi's recorded key (re-flashed without a seed)
 
 `trust` asks each host for its host key over its SSH port (as ssh-keyscan does; no login),
 preferring ed25519, and records it under every address the host is reached at. A host
@@ -22,8 +22,10 @@ import yaml
 
 from roslab.ssh import identity
 from roslab.network.state import last_known_addresses
-from roslab.reach import add_limit_argument, select_roster_hosts
-from roslab.roster import RosterError, default_roster_path, display_path, load_roster
+from roslab.reach import (
+    RosterProblem, add_roster_argument, add_stale_host_form, limited_hosts, load_classroom, stale_host_form,
+)
+from roslab.roster import display_path
 from roslab.roster.inventory import known_addresses
 
 PREFERRED_KEY_TYPES = ["ssh-ed25519", "ecdsa-sha2-nistp256", "rsa-sha2-512", "rsa-sha2-256", "ssh-rsa"]
@@ -44,14 +46,6 @@ def scan_host_key(address: str, port: int, timeout: float = SCAN_TIMEOUT) -> str
         transport.close()
 
 
-def _load(path: Path):
-    try:
-        return load_roster(path)
-    except RosterError as error:
-        print(error, file=sys.stderr)
-        return None
-
-
 def addresses_to_try(host, moved_to: str | None) -> list[str]:
     """Where to ask a host for its key, in order: its last confirmed address, the roster's,
     and the static address the network deploy moves it to. A Pi the last run moved may be
@@ -70,22 +64,32 @@ def scan_first(addresses: list[str], port: int) -> tuple[str, str]:
     raise OSError("; ".join(failures))
 
 
-def run_trust(args: argparse.Namespace) -> int:
-    path = Path(args.roster) if args.roster else default_roster_path()
-    classroom = _load(path)
-    if classroom is None:
+def limited_classroom(args: argparse.Namespace, command: str) -> tuple[Path, list, dict] | int:
+    """(the roster's path, the hosts --limit selects, where the last run moved hosts), or the
+    exit status after saying on stderr what is wrong (1: the roster or its state; 2: --limit)."""
+    try:
+        classroom = load_classroom(args.roster, command)
+    except RosterProblem as problem:
+        print(problem, file=sys.stderr)
         return 1
-    hosts, unknown = select_roster_hosts(classroom, args.limit)
-    if unknown:
-        print(f"roslab trust: --limit {', '.join(map(repr, unknown))} selects no host of {display_path(path)}",
-              file=sys.stderr)
+    hosts, problem = limited_hosts(classroom, args.limit, f"roslab {command}")
+    if problem:
+        print(problem, file=sys.stderr)
         return 2
     try:
-        moved = last_known_addresses(path)
+        moved = last_known_addresses(classroom.path)
     except (OSError, ValueError, yaml.YAMLError) as error:
-        print(f"roslab trust: cannot read where moved hosts are: {getattr(error, 'strerror', None) or error}",
+        print(f"roslab {command}: cannot read where moved hosts are: {getattr(error, 'strerror', None) or error}",
               file=sys.stderr)
         return 1
+    return classroom.path, hosts, moved
+
+
+def run_trust(args: argparse.Namespace) -> int:
+    loaded = limited_classroom(args, "trust")
+    if isinstance(loaded, int):
+        return loaded
+    path, hosts, moved = loaded
     failed = 0
     for host in hosts:
         # The file the run checks this host against (the roster's ssh_known_hosts_file, or the
@@ -117,7 +121,7 @@ def run_trust(args: argparse.Namespace) -> int:
         if identity.other_keys(entries, names, public):
             print(f"{host.name} ({address}): shows {shown}, but another key is recorded for it in "
                   f"{known_hosts}; if the Pi was re-flashed without its seed, run "
-                  f"`roslab forget {host.name} --roster {display_path(path)}` first", file=sys.stderr)
+                  f"`roslab forget {display_path(path)} --limit {host.name}` first", file=sys.stderr)
             failed += 1
             continue
         try:
@@ -136,43 +140,39 @@ def run_trust(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
-def known_hosts_files(path: Path, hosts_or_addresses: list[str]) -> list[Path]:
-    """The known_hosts files `roslab forget` edits: those the run uses for the named hosts
-    (every file the roster uses for an address or a name it does not know), never /dev/null.
-    An unusable roster leaves the classroom's own file."""
-    try:
-        classroom = load_roster(path)
-    except RosterError as error:
-        print(f"roslab forget: the roster has errors, so only the classroom's own known_hosts is "
-              f"edited:\n{error}", file=sys.stderr)
-        return [identity.known_hosts_path(path)]
-    by_name = {host.name: host for host in classroom.hosts}
-    named = [by_name[name] for name in hosts_or_addresses if name in by_name]
-    every = len(named) < len(hosts_or_addresses)
-    files = [identity.known_hosts_of(path, host.data) for host in (classroom.hosts if every else named)]
-    return [file for file in dict.fromkeys(files) if str(file) != os.devnull]
-
-
 def run_forget(args: argparse.Namespace) -> int:
-    path = Path(args.roster) if args.roster else default_roster_path()
-    files = known_hosts_files(path, args.hosts)
+    stale = stale_host_form(args, "forget")
+    if stale or not args.limit:
+        print(stale or "roslab forget: name the hosts whose keys to forget with --limit (a team, role, "
+              "distro or host name): roslab forget [ROSTER] --limit HOST", file=sys.stderr)
+        return 2
+    loaded = limited_classroom(args, "forget")
+    if isinstance(loaded, int):
+        return loaded
+    path, hosts, moved = loaded
     removed_any = False
-    for known_hosts_file in files:
+    for host in hosts:
+        # The file the run checks this host against; under the host's name and under every
+        # address it is reached at, so no other line (the teacher's own) still vouches for it.
+        known_hosts_file = identity.known_hosts_of(path, host.data)
         known_hosts = display_path(known_hosts_file)
+        if str(known_hosts_file) == os.devnull:
+            print(f"{host.name}: its ssh_known_hosts_file is /dev/null: no key is recorded for it")
+            continue
+        names = identity.host_names(host.name, known_addresses(host, moved.get(host.name)),
+                                    host.data.get("ssh_port") or 22)
         try:
-            removed = identity.forget(path, *args.hosts, known_hosts=known_hosts_file)
+            removed = identity.forget(path, *names, known_hosts=known_hosts_file)
         except (OSError, UnicodeDecodeError, identity.IdentityError) as error:
             print(f"roslab forget: cannot edit {known_hosts}: {getattr(error, 'strerror', None) or error}",
                   file=sys.stderr)
             return 1
-        if removed:
-            removed_any = True
-            print(f"removed from {known_hosts}: {', '.join(removed)}")
-    if not removed_any:
-        shown = ", ".join(display_path(file) for file in files) or "no known_hosts file"
-        print(f"roslab forget: {shown} has no key for {', '.join(args.hosts)}")
-        return 0
-    print(f"next: `roslab trust {display_path(path)} --host {args.hosts[0]}` records the key it shows now")
+        removed_any = removed_any or bool(removed)
+        print(f"{host.name}: " + (f"removed from {known_hosts}: {', '.join(removed)}" if removed
+                                  else f"no key recorded in {known_hosts}"))
+    if removed_any:
+        limits = " ".join(f"--limit {pattern}" for pattern in args.limit)
+        print(f"next: `roslab trust {display_path(path)} {limits}` records the key each Pi shows now")
     return 0
 
 
@@ -182,17 +182,17 @@ def register(commands) -> None:
         help="record the SSH host key of Pis flashed without a seed",
         description="Ask each Pi for its SSH host key (no login), print its fingerprint and record it "
         "in the classroom's known_hosts beside the roster, under every address it is reached at. "
-        "A Pi whose recorded key differs is refused: run `roslab forget HOST` first.",
+        "A Pi whose recorded key differs is refused: run `roslab forget --limit HOST` first.",
     )
-    trust.add_argument("roster", nargs="?", metavar="ROSTER", help="roster file (default: as for roslab check)")
-    add_limit_argument(trust)
+    add_roster_argument(trust)
     trust.set_defaults(run=run_trust)
 
     forget = commands.add_parser(
         "forget",
         help="remove a Pi's recorded SSH host key (e.g. re-flashed without a seed)",
-        description="Remove the hosts' (or addresses') keys from the classroom's known_hosts.",
+        description="Remove the keys recorded for the hosts --limit selects (under their names and "
+        "every address they are reached at) from the known_hosts the run checks them against.",
     )
-    forget.add_argument("hosts", nargs="+", metavar="HOST", help="host name or address")
-    forget.add_argument("--roster", metavar="ROSTER", help="roster file (default: as for roslab check)")
+    add_roster_argument(forget)
+    add_stale_host_form(forget)
     forget.set_defaults(run=run_forget)

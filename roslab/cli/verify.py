@@ -306,7 +306,14 @@ def stopped_service_line(host: str, service, state: str) -> str:
 
 
 def _service_cell(result: TeamResult, name: str | None) -> str:
-    return result.services.get(name, "?") if name else "-"
+    """The host's nodes service as systemd has it, or, where its roster and profile give it
+    none (a TurtleBot3's or a sim main), that it runs none: "not installed" there is no fault."""
+    if not name:
+        return "-"
+    state = result.services.get(name, "?")
+    if name in result.without_service and state != "?":
+        return f"none ({result.profile} main)" if name == result.main else "none"
+    return state
 
 
 def format_table(results: list[TeamResult]) -> str:
@@ -464,14 +471,14 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
 def run(args: argparse.Namespace) -> int:
     """`roslab verify [ROSTER] [--limit NAME ...]`: the roster's hosts, reached as deploy.py
     reaches them (roslab.reach)."""
-    from roslab.reach import RosterProblem, connected_state, limit_problem, load_classroom_groups
+    from roslab.reach import RosterProblem, connected_state, limit_problem, load_classroom_groups, names_of
 
     try:
         classroom, groups = load_classroom_groups(args.roster, "verify")
     except RosterProblem as problem:
         print(problem, file=sys.stderr)
         return 1
-    problem = limit_problem(groups, args.limit, "roslab verify")
+    problem = limit_problem(names_of(groups), args.limit, "roslab verify")
     if problem:
         print(problem, file=sys.stderr)
         return 2

@@ -1,4 +1,5 @@
-"""`roslab opencr-update HOST`: flash a TurtleBot3's OpenCR firmware on the robot it is attached to.
+"""`roslab opencr-update [ROSTER] --limit ROBOT`: flash a TurtleBot3's OpenCR firmware on the robot
+it is attached to.
 
 ROBOTIS's way (e-Manual, "OpenCR setup"): download `opencr_update.tar.bz2`, unpack it on the
 robot's Pi and run `./update.sh <port> <model>.opencr` with the board attached by USB; on a
@@ -67,67 +68,94 @@ def update_script(port: str, model: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    """`roslab opencr-update HOST [ROSTER]`: the roster loaded and the robot reached as every
-    roslab command does (roslab.reach), uploads as deploy.py makes them (roslab.remote_files)."""
+    """`roslab opencr-update [ROSTER] [--limit NAME ...]`: the roster loaded and the robots
+    reached as every roslab command does (roslab.reach), uploads as deploy.py makes them
+    (roslab.remote_files). Each TurtleBot3 robot `--limit` selects in turn; one that fails
+    leaves the others to go on."""
     from pyinfra.api.connect import disconnect_all
 
-    from roslab import downloads, remote_files
-    from roslab.reach import RosterProblem, connected_state, load_classroom_groups
+    from roslab import remote_files
+    from roslab.reach import (
+        RosterProblem, connected_state, limited_hosts, load_classroom_groups, stale_host_form,
+    )
 
+    stale = stale_host_form(args, "opencr-update")
+    if stale:
+        print(stale, file=sys.stderr)
+        return 2
     try:
         classroom, groups = load_classroom_groups(args.roster, "opencr-update")
     except RosterProblem as problem:
         print(problem, file=sys.stderr)
         return 1
-    host = next((h for h in classroom.hosts if h.name == args.host), None)
-    if host is None:
-        print(f"roslab opencr-update: {args.host!r} is not a host of {classroom.path}", file=sys.stderr)
+    hosts, problem = limited_hosts(classroom, args.limit, "roslab opencr-update")
+    if problem:
+        print(problem, file=sys.stderr)
         return 2
-    profile = host.data.get("roslab_profile") or {}
-    model = (profile.get("settings") or {}).get("turtlebot3_model")
-    if host.role != "robot" or not model:
-        print(f"roslab opencr-update: {host.name} is not a TurtleBot3 robot in the roster "
-              "(robot_profile: turtlebot3 with turtlebot3_model)", file=sys.stderr)
+    robots = [host for host in hosts if turtlebot3_model(host)]
+    if not robots:
+        shown = ", ".join(host.name for host in hosts)
+        print(f"roslab opencr-update: {shown} {'is' if len(hosts) == 1 else 'are'} not a TurtleBot3 robot "
+              "in the roster (role robot with robot_profile: turtlebot3)", file=sys.stderr)
         return 2
 
     remote_files.install()  # the archive's upload: one command, never through a link
-    state = connected_state(groups, [host.name])
+    state = connected_state(groups, [host.name for host in robots])
     try:
-        (target,) = [h for h in state.inventory.iter_activated_hosts() if h in state.active_hosts] or [None]
-        if target is None:
-            print(f"roslab opencr-update: cannot reach {host.name}", file=sys.stderr)
-            return 1
-        problem = port_problem(host.name, args.port, target.get_fact(UsbSerialPort, port=args.port))
-        if problem:
-            print(problem, file=sys.stderr)
-            return 1
-        try:
-            archive = downloads.kept(args.url, Path(host.data["rosdep_cache_dir"]).expanduser() / "opencr",
-                                     offline=bool(host.data.get("offline"))).data
-        except downloads.DownloadError as error:
-            print(f"roslab opencr-update: {error}", file=sys.stderr)
-            return 1
-        target.run_shell_command(f"mkdir -p {REMOTE_DIR}", _sudo=True)
-        target.put_file(io.BytesIO(archive), f"{REMOTE_DIR}/opencr_update.tar.bz2", _sudo=True)
-        ok, output = target.run_shell_command(update_script(args.port, model), _sudo=True, print_output=True)
-        print(f"{host.name}: OpenCR {'flashed with ' + model + '.opencr' if ok else 'update failed'}")
-        return 0 if ok else 1
+        reached = {target.name: target for target in state.inventory.iter_activated_hosts()
+                   if target in state.active_hosts}
+        failed = 0
+        for host in robots:
+            if host.name not in reached:
+                print(f"roslab opencr-update: cannot reach {host.name}", file=sys.stderr)
+                failed += 1
+            elif not flash(host, reached[host.name], args):
+                failed += 1
+        return 1 if failed else 0
     finally:
         disconnect_all(state)
 
 
+def turtlebot3_model(host) -> str | None:
+    """The robot's `turtlebot3_model`, or None where the host is not a TurtleBot3 robot."""
+    profile = host.data.get("roslab_profile") or {}
+    return (profile.get("settings") or {}).get("turtlebot3_model") if host.role == "robot" else None
+
+
+def flash(host, target, args: argparse.Namespace) -> bool:
+    """Check the robot's port, then run ROBOTIS's update there; one line says how it went."""
+    from roslab import downloads
+
+    model = turtlebot3_model(host)
+    problem = port_problem(host.name, args.port, target.get_fact(UsbSerialPort, port=args.port))
+    if problem:
+        print(problem, file=sys.stderr)
+        return False
+    try:
+        archive = downloads.kept(args.url, Path(host.data["rosdep_cache_dir"]).expanduser() / "opencr",
+                                 offline=bool(host.data.get("offline"))).data
+    except downloads.DownloadError as error:
+        print(f"roslab opencr-update: {error}", file=sys.stderr)
+        return False
+    target.run_shell_command(f"mkdir -p {REMOTE_DIR}", _sudo=True)
+    target.put_file(io.BytesIO(archive), f"{REMOTE_DIR}/opencr_update.tar.bz2", _sudo=True)
+    ok, _ = target.run_shell_command(update_script(args.port, model), _sudo=True, print_output=True)
+    print(f"{host.name}: OpenCR {'flashed with ' + model + '.opencr' if ok else 'update failed'}")
+    return ok
+
+
 def register(commands) -> None:
-    from roslab.reach import add_roster_argument
+    from roslab.reach import add_roster_argument, add_stale_host_form
 
     parser = commands.add_parser(
         "opencr-update",
         help="flash a TurtleBot3's OpenCR firmware on the robot it is attached to",
-        description="Check that the robot's OpenCR is attached (USB 0483:5740 on --port), then run "
-        "ROBOTIS's update.sh <port> <turtlebot3_model>.opencr there. Refuses in one line, naming the "
-        "device, where no OpenCR is attached.",
+        description="For each TurtleBot3 robot --limit selects: check that its OpenCR is attached "
+        "(USB 0483:5740 on --port), then run ROBOTIS's update.sh <port> <turtlebot3_model>.opencr "
+        "there. Refuses in one line, naming the device, where no OpenCR is attached.",
     )
-    parser.add_argument("host", metavar="HOST", help="the robot (a host of the roster)")
-    add_roster_argument(parser, limit=False)
+    add_roster_argument(parser, what=" (the TurtleBot3 robots among them)")
+    add_stale_host_form(parser)
     parser.add_argument("--port", default="/dev/ttyACM0", help="the OpenCR's port (default /dev/ttyACM0)")
     parser.add_argument("--url", default=UPDATE_URL, help="where the controller downloads opencr_update.tar.bz2")
     parser.set_defaults(run=run)

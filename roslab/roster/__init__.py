@@ -17,7 +17,7 @@ from pathlib import Path
 from roslab.network.settings import validate_roster as _validate_network
 from roslab.profiles.packages import check_classroom as _check_ros_packages
 from roslab.roster.checks import Validator, assign_domain_ids, check_classroom
-from roslab.roster.inventory import add_host_lists, default_roster_path, inventory_groups
+from roslab.roster.inventory import add_host_lists, default_roster_path, group_names, inventory_groups
 from roslab.roster.model import ROLES, Classroom, Host, Team
 from roslab.checked.problems import Problem, Report, RosterError, display_path
 from roslab.roster.reader import RosterReader
@@ -50,5 +50,5 @@ def load_roster(path: Path | str, validators: list[Validator] | None = None,
 
 __all__ = [
     "ROLES", "Classroom", "Host", "Problem", "Report", "RosterError", "Team", "Validator",
-    "default_roster_path", "display_path", "inventory_groups", "load_roster",
+    "default_roster_path", "display_path", "group_names", "inventory_groups", "load_roster",
 ]

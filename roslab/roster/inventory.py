@@ -42,8 +42,23 @@ def add_host_lists(classroom: Classroom) -> None:
             host.data["roslab_team_hosts"] = members
 
 
+def group_names(classroom: Classroom) -> dict[str, list[str]]:
+    """The roster's pyinfra groups, by host name: `main`, `robot`, one per team (its name with
+    `-` as `_`), one per expected distro. `inventory_groups` gives the hosts their connection
+    data; every `--limit` selects by these groups (roslab.reach.limit_selection)."""
+    groups: dict[str, list[str]] = {role: [] for role in ROLES}
+    for team in classroom.teams:
+        groups[team.group] = []
+        for host in team.hosts:
+            groups[team.group].append(host.name)
+            groups[host.role].append(host.name)
+            if host.distro:
+                groups.setdefault(host.distro, []).append(host.name)
+    return groups
+
+
 def inventory_groups(classroom: Classroom) -> dict[str, list[tuple[str, dict]]]:
-    """pyinfra inventory groups: `main`, `robot`, one per team, one per expected distro.
+    """pyinfra inventory groups (`group_names`) of (host name, host data).
 
     A host the network deploy has moved is reached at its last confirmed address
     (recorded beside the roster), not at the roster's now stale `address`.
@@ -63,25 +78,20 @@ def inventory_groups(classroom: Classroom) -> dict[str, list[tuple[str, dict]]]:
             "not a mapping of host name to address")
         raise RosterError([Problem(state_file, f"cannot read where moved hosts are: {reason}; "
                                    "fix or delete the file")]) from None
-    groups: dict[str, list[tuple[str, dict]]] = {role: [] for role in ROLES}
     classroom_known_hosts = str(identity.known_hosts_path(classroom.path))
     checked: dict[str, tuple[list[str], int]] = {}
-    for team in classroom.teams:
-        groups[team.group] = []
-        for host in team.hosts:
-            data = {
-                "ssh_known_hosts_file": classroom_known_hosts,
-                "ssh_strict_host_key_checking": "yes",
-                **host.data,
-                "ssh_hostname": moved.get(host.name) or host.address,
-            }
-            if data["ssh_known_hosts_file"] == classroom_known_hosts:
-                checked[host.name] = (known_addresses(host, moved.get(host.name)), data.get("ssh_port") or 22)
-            entry = (host.name, data)
-            groups[team.group].append(entry)
-            groups[host.role].append(entry)
-            if host.distro:
-                groups.setdefault(host.distro, []).append(entry)
+    entries: dict[str, tuple[str, dict]] = {}
+    for host in classroom.hosts:
+        data = {
+            "ssh_known_hosts_file": classroom_known_hosts,
+            "ssh_strict_host_key_checking": "yes",
+            **host.data,
+            "ssh_hostname": moved.get(host.name) or host.address,
+        }
+        if data["ssh_known_hosts_file"] == classroom_known_hosts:
+            checked[host.name] = (known_addresses(host, moved.get(host.name)), data.get("ssh_port") or 22)
+        entries[host.name] = (host.name, data)
+    groups = {group: [entries[name] for name in names] for group, names in group_names(classroom).items()}
     if checked:
         explain_refusals(classroom, checked)
         try:

@@ -1,8 +1,8 @@
 """First-boot seeds: the NoCloud files that boot a freshly flashed Pi into the roster.
 
-    roslab seed [ROSTER] --out DIR                 DIR/<host>/{user-data,network-config,meta-data}
-    roslab seed [ROSTER] --boot-partition PATH --host NAME   a mounted Ubuntu Pi system-boot partition
-    roslab seed [ROSTER] --image FILE --host NAME  a raw Ubuntu Pi image, written with mtools
+    roslab seed [ROSTER] --out DIR                           DIR/<host>/{user-data,network-config,meta-data}
+    roslab seed [ROSTER] --boot-partition PATH --limit NAME  a mounted Ubuntu Pi system-boot partition
+    roslab seed [ROSTER] --image FILE --limit NAME           a raw Ubuntu Pi image, written with mtools
 
     documents.py   the three files of one host, built as data and dumped as YAML
     tools.py       cloud-init's and netplan's own checks, unpacked from Debian's packages

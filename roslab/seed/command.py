@@ -10,7 +10,7 @@ from pathlib import Path
 from roslab.ssh import identity
 from roslab.network.state import last_known_addresses
 from roslab.reach import (
-    RosterProblem, add_limit_argument, add_roster_argument, load_classroom, select_roster_hosts,
+    RosterProblem, add_roster_argument, limited_hosts, load_classroom,
 )
 from roslab.roster import display_path
 from roslab.roster.inventory import known_addresses
@@ -57,10 +57,9 @@ def run_seed(args: argparse.Namespace) -> int:
         print(problem, file=sys.stderr)
         return 1
     path = classroom.path
-    hosts, unknown = select_roster_hosts(classroom, args.limit)
-    if unknown:
-        print(f"roslab seed: --limit {', '.join(map(repr, unknown))} selects no host of {display_path(path)} "
-              f"(it has: {', '.join(sorted(host.name for host in classroom.hosts))})", file=sys.stderr)
+    hosts, problem = limited_hosts(classroom, args.limit, "roslab seed")
+    if problem:
+        print(problem, file=sys.stderr)
         return 2
     if (args.boot_partition or args.image) and (not args.limit or len(hosts) != 1):
         # A card is one Pi's identity: name it, so no card gets another Pi's key by accident.
@@ -176,13 +175,12 @@ def register(commands) -> None:
         "SSH host key (generated once, kept beside the roster), its network, locale, time zone and "
         "time sync. Checked with cloud-init's and netplan's own parsers before anything is written.",
     )
-    add_roster_argument(seed, limit=False)  # --limit below: one host for a card (a card is one Pi)
+    add_roster_argument(seed, what=" (--boot-partition, --image: one host)")
     where = seed.add_mutually_exclusive_group(required=True)
     where.add_argument("--out", metavar="DIR", help="write DIR/<host>/{user-data,network-config,meta-data}")
     where.add_argument("--boot-partition", metavar="PATH",
-                       help="a mounted Ubuntu Pi system-boot partition (with --host)")
+                       help="a mounted Ubuntu Pi system-boot partition (with --limit HOST)")
     where.add_argument("--image", metavar="FILE",
                        help="a raw Ubuntu Pi image: its boot partition is written with mtools, "
-                       "not mounted (with --host)")
-    add_limit_argument(seed, " (--boot-partition, --image: one host)")
+                       "not mounted (with --limit HOST)")
     seed.set_defaults(run=run_seed)

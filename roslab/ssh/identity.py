@@ -430,14 +430,14 @@ class HostTarget:
     def changed_message(self, address: str) -> str:
         return (f"roslab: {self.host} ({address}) answered with another SSH host key than the one "
                 f"recorded in {self.known_hosts}; if it was re-flashed without its seed, run "
-                f"`roslab forget {self.host} --roster {self.roster}` then "
-                f"`roslab trust {self.roster} --host {self.host}` (compare the fingerprint it prints), "
-                f"or flash it again with its seed (`roslab seed {self.roster} --host {self.host} ...`)")
+                f"`roslab forget {self.roster} --limit {self.host}` then "
+                f"`roslab trust {self.roster} --limit {self.host}` (compare the fingerprint it prints), "
+                f"or flash it again with its seed (`roslab seed {self.roster} --limit {self.host} ...`)")
 
     def unknown_message(self, address: str) -> str:
         return (f"roslab: no SSH host key of {self.host} ({address}) is recorded in {self.known_hosts}; "
-                f"run `roslab trust {self.roster} --host {self.host}` (compare the fingerprint it prints), "
-                f"or flash it with its seed (`roslab seed {self.roster} --host {self.host} ...`)")
+                f"run `roslab trust {self.roster} --limit {self.host}` (compare the fingerprint it prints), "
+                f"or flash it with its seed (`roslab seed {self.roster} --limit {self.host} ...`)")
 
 
 _ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")

@@ -254,7 +254,7 @@ def test_status_shows_each_robots_hardware_checklist(sandbox, roster, first_run)
 
 
 def test_opencr_update_refuses_where_no_board_is_attached(sandbox, roster, first_run):
-    result = subprocess.run([sys.executable, "-m", "roslab", "opencr-update", "team1-robot", str(roster)],
+    result = subprocess.run([sys.executable, "-m", "roslab", "opencr-update", str(roster), "--limit", "team1-robot"],
                             cwd=REPO, env=sandbox.env, capture_output=True, text=True, timeout=300)
     assert result.returncode == 1, result.stdout + result.stderr
     assert result.stderr.strip().splitlines()[-1] == (

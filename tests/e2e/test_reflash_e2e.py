@@ -122,7 +122,7 @@ def deploy(roster: Path, host: str) -> tuple[subprocess.CompletedProcess, dict[s
 
 def test_a_host_reflashed_with_its_seed_boots_as_flashed_and_the_deploy_converges(sandbox, classroom_copy):
     seeds = classroom_copy.parent / "seeds"
-    roslab("seed", str(classroom_copy), "--out", str(seeds), "--host", SEEDED)
+    roslab("seed", str(classroom_copy), "--out", str(seeds), "--limit", SEEDED)
     known_hosts = identity.known_hosts_path(classroom_copy)
     stored_key = identity.host_keys(classroom_copy, SEEDED).public_line()
     address = sandbox.host(SEEDED).address
@@ -195,12 +195,12 @@ def test_a_host_reflashed_without_a_seed_is_refused_until_forgotten_and_trusted(
     refused, _ = deploy(roster, UNSEEDED)
     assert refused.returncode != 0
     output = refused.stdout + refused.stderr
-    assert f"roslab forget {UNSEEDED}" in output, output[-4000:]
+    assert "`roslab forget " in output and f"--limit {UNSEEDED}` then" in output, output[-4000:]
     assert "ssh-keygen -R" not in output  # pyinfra's hint edits another known_hosts
     assert roslab("sandbox", "ssh", UNSEEDED, "true", check=False).returncode != 0  # strict there too
 
-    roslab("forget", UNSEEDED, "--roster", str(roster))
-    trusted = roslab("trust", str(roster), "--host", UNSEEDED)
+    roslab("forget", str(roster), "--limit", UNSEEDED)
+    trusted = roslab("trust", str(roster), "--limit", UNSEEDED)
     assert "SHA256:" in trusted.stdout + trusted.stderr  # the fingerprint to compare
 
     reached = subprocess.run(
@@ -238,7 +238,7 @@ def test_trust_and_forget_keep_to_the_known_hosts_file_the_run_reads(sandbox, tm
     state = tmp_path / ".roslab-state"
     state.mkdir()
     (state / "addresses.yaml").write_text(yaml.safe_dump({host: gone}))
-    trusted = roslab("trust", str(roster), "--host", host)
+    trusted = roslab("trust", str(roster), "--limit", host)
     assert f"{host} ({address}): ssh-ed25519 SHA256:" in trusted.stdout
     assert f"recorded in {own}" in trusted.stdout
     assert not identity.known_hosts_path(roster).exists()  # not the classroom's own file
@@ -247,6 +247,6 @@ def test_trust_and_forget_keep_to_the_known_hosts_file_the_run_reads(sandbox, tm
     reached = hostname()
     assert reached.returncode == 0, (reached.stdout + reached.stderr)[-4000:]
 
-    forgotten = roslab("forget", host, "--roster", str(roster))
+    forgotten = roslab("forget", str(roster), "--limit", host)
     assert f"removed from {own}" in forgotten.stdout
     assert hostname().returncode != 0

@@ -123,6 +123,7 @@ def test_the_class_comes_up_with_its_own_names_converges_and_verifies(class_sand
     if not all(served.get(distro, "").startswith("real") for distro in ("jazzy", "humble")):  # the class's
         pytest.skip(f"verify needs real ROS 2 (ROSLAB_SANDBOX_ROS_RUNTIME); the sandbox serves {served}")
     assert verified.returncode == 0, verified.stdout + verified.stderr
+    assert "not installed" not in verified.stdout, verified.stdout  # the mains run none: "none (turtlebot3 main)"
     rows = {line.split()[0]: line for line in verified.stdout.splitlines()[2:] if line.strip()}
     assert "PASS heard a sensor_msgs/msg/LaserScan on /scan" in rows["blue"], verified.stdout
     assert "PASS heard a sensor_msgs/msg/LaserScan on /scan" in rows["green"], verified.stdout

@@ -232,19 +232,98 @@ def test_roslab_commands_name_a_limit_that_selects_no_host(command, capsys):
     assert "--limit team1 --limit team-2" in err and "Traceback" not in err
 
 
-def test_trust_and_seed_take_hosts_by_limit_as_every_command_does(tmp_path, capsys):
-    from roslab.reach import select_roster_hosts
+_PYINFRA_LIMIT_SCRIPT = """
+import json, sys
+from pyinfra.api import State
+from pyinfra.context import ctx_state
+from pyinfra_cli.cli import _get_inventory_pattern_matches
+from pyinfra_cli.inventory import make_inventory_from_files
+
+with ctx_state.use(State()):
+    inventory = make_inventory_from_files(sys.argv[1])
+print(json.dumps({pattern: sorted(host.name for host in _get_inventory_pattern_matches(inventory, [pattern], "--limit"))
+                  for pattern in json.loads(sys.argv[2])}))
+"""
+LIMIT_PATTERNS = ["team1", "team_2", "team-2", "main", "robot", "jazzy", "humble", "all",
+                  "team1-main", "team1-*", "*-main", "team?-*", "nosuch", "team1,team_2"]
+
+
+def test_every_command_selects_by_limit_what_pyinfras_own_limit_selects():
+    from roslab.reach import limit_selection
+    from roslab.roster import group_names, load_roster
+
+    result = subprocess.run(
+        [sys.executable, "-c", _PYINFRA_LIMIT_SCRIPT, str(REPO / "inventories" / "lab.py"), json.dumps(LIMIT_PATTERNS)],
+        cwd=REPO, env={**os.environ, "ROSLAB_ROSTER": str(FIXTURE)}, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    pyinfra_selects = json.loads(result.stdout.splitlines()[-1])
+    groups = group_names(load_roster(FIXTURE))
+    assert {pattern: sorted(limit_selection(groups, [pattern])[0]) for pattern in LIMIT_PATTERNS} == pyinfra_selects
+    assert pyinfra_selects["team-2"] == pyinfra_selects["all"] == [] and len(pyinfra_selects["*-main"]) == 2
+
+
+def test_trust_seed_and_forget_take_hosts_by_limit_as_every_command_does(tmp_path, capsys):
+    from roslab.reach import limited_hosts
     from roslab.roster import load_roster
 
     classroom = load_roster(FIXTURE)
-    names = lambda patterns: [host.name for host in select_roster_hosts(classroom, patterns)[0]]  # noqa: E731
-    assert names(["team-2"]) == names(["team_2"]) == ["team2-main"]  # the team, or its pyinfra group
-    assert names(["robot"]) == ["team1-robot"] and names(["jazzy"]) == ["team1-main", "team1-robot"]
-    assert names(["team1-*"]) == ["team1-main", "team1-robot"] and len(names(None)) == 3
-    assert select_roster_hosts(classroom, ["team1", "nosuch"])[1] == ["nosuch"]
+    names = lambda patterns: [host.name for host in limited_hosts(classroom, patterns, "x")[0]]  # noqa: E731
+    assert names(["team_2"]) == ["team2-main"] and names(["robot"]) == ["team1-robot"]
+    assert names(["jazzy"]) == names(["team1-*"]) == ["team1-main", "team1-robot"] and len(names(None)) == 3
+    hosts, problem = limited_hosts(classroom, ["team1", "team-2"], "roslab x")
+    assert hosts == [] and problem.startswith("roslab x: --limit 'team-2' selects no host of the roster")
+    assert "did you mean 'team_2'?" in problem
 
     out = tmp_path / "seeds"
     assert main(["seed", str(FIXTURE), "--out", str(out), "--limit", "nosuch"]) == 2
-    assert "--limit 'nosuch' selects no host of" in capsys.readouterr().err
-    assert main(["trust", str(FIXTURE), "--limit", "team1,team-2"]) == 2
-    assert "--limit 'team1,team-2' selects no host of" in capsys.readouterr().err
+    assert "roslab seed: --limit 'nosuch' selects no host of the roster" in capsys.readouterr().err
+    assert not out.exists()
+    for command in ("trust", "forget", "opencr-update"):
+        assert main([command, str(FIXTURE), "--limit", "team1,team-2"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"roslab {command}: --limit 'team1,team-2' selects no host of the roster"), err
+        assert "--limit team1 --limit team-2" in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize(("argv", "shape"), [
+    (["forget", "team1-main", "--roster", "R"], "roslab forget R --limit team1-main"),
+    (["forget", "team1-main", "team1-robot"], "roslab forget --limit team1-main --limit team1-robot"),
+    (["forget", "team1-main"], "roslab forget --limit team1-main"),
+    (["opencr-update", "team1-robot", "R"], "roslab opencr-update R --limit team1-robot"),
+    (["opencr-update", "team1-robot"], "roslab opencr-update --limit team1-robot"),
+    (["opencr-update", "R", "team1-robot"], "roslab opencr-update R --limit team1-robot"),
+])
+def test_the_older_host_first_form_is_one_line_giving_the_new_one(argv, shape, capsys):
+    argv = [str(FIXTURE) if word == "R" else word for word in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err == (f"roslab {argv[0]}: hosts are named by --limit, after the roster, as in every roslab "
+                   f"command: {shape.replace(' R ', f' {FIXTURE} ').replace(' R', f' {FIXTURE}')}\n")
+    # ... and the form it gives is the one the command takes.
+    from roslab.cli.main import build_parser
+    from roslab.reach import stale_host_form
+
+    args = build_parser().parse_args(shape.replace(" R ", f" {FIXTURE} ").split()[1:])
+    assert stale_host_form(args, argv[0]) is None and args.limit == [word for word in argv[1:] if word.startswith("team")]
+
+
+def test_forget_without_limit_forgets_nothing_and_says_how(tmp_path, capsys):
+    roster = tmp_path / "classroom.yaml"
+    roster.write_text(FIXTURE.read_text())
+    assert main(["forget", str(roster)]) == 2
+    assert capsys.readouterr().err == ("roslab forget: name the hosts whose keys to forget with --limit (a team, "
+                                       "role, distro or host name): roslab forget [ROSTER] --limit HOST\n")
+    assert not (tmp_path / ".roslab-state").exists()
+
+
+def test_host_is_still_read_as_the_older_name_of_limit_but_only_limit_is_shown(capsys):
+    from roslab.cli.main import build_parser
+
+    for command in ("verify", "status", "trust", "seed", "forget", "opencr-update"):
+        required = ["--out", "seeds"] if command == "seed" else []
+        assert build_parser().parse_args([command, *required, "--host", "team1-main", "--limit", "robot"]).limit == [
+            "team1-main", "robot"]
+        with pytest.raises(SystemExit):
+            build_parser().parse_args([command, "--help"])
+        shown = capsys.readouterr().out
+        assert "--limit NAME" in shown and "--host" not in shown, shown

@@ -189,8 +189,8 @@ def test_a_changed_host_key_is_refused_with_the_roslab_commands(roster, monkeypa
     shown_known = str(known) if not str(known).startswith(str(Path.cwd())) else str(known.relative_to(Path.cwd()))
     assert "REMOTE HOST IDENTIFICATION HAS CHANGED" in output  # pyinfra's warning stays
     assert "ssh-keygen -R" not in output  # it edits another known_hosts
-    assert f"roslab forget team1-main --roster {roster}" in output
-    assert f"roslab trust {roster} --host team1-main" in output
+    assert f"roslab forget {roster} --limit team1-main" in output
+    assert f"roslab trust {roster} --limit team1-main" in output
     assert shown_known in output
     assert "[team1-main] roslab: team1-main (127.0.0.1) answered with another SSH host key" in output
     assert "re-flashed without its seed" in identity.refusal("team1-main")
@@ -213,7 +213,7 @@ def test_an_unknown_host_key_is_refused_with_the_roslab_commands(roster, monkeyp
     assert not host.connected
     assert "No host key for" not in output
     assert "roslab: no SSH host key of team1-main (127.0.0.1) is recorded in" in output
-    assert f"run `roslab trust {roster} --host team1-main`" in output
+    assert f"run `roslab trust {roster} --limit team1-main`" in output
 
 
 # --- roslab trust over real SSH on loopback ------------------------------------------------
@@ -262,21 +262,21 @@ def test_roslab_trust_records_the_key_a_host_shows_and_refuses_a_changed_one(tmp
     port, public = loopback_ssh_server
     roster = tmp_path / "classroom.yaml"
     roster.write_text(ROSTER.format(main=f", ssh_port: {port}"))
-    assert main(["trust", str(roster), "--host", "team1-main"]) == 0
+    assert main(["trust", str(roster), "--limit", "team1-main"]) == 0
     out = capsys.readouterr().out
     assert f"team1-main (127.0.0.1): ssh-ed25519 {identity.fingerprint(public)} recorded" in out
     host_keys = paramiko.HostKeys(str(identity.known_hosts_path(roster)))
     assert host_keys.lookup(f"[127.0.0.1]:{port}")["ssh-ed25519"].get_base64() == public.split()[1]
-    assert main(["trust", str(roster), "--host", "team1-main"]) == 0
+    assert main(["trust", str(roster), "--limit", "team1-main"]) == 0
     assert "already recorded" in capsys.readouterr().out
 
     # The Pi "was re-flashed": another key is recorded than the one it shows.
     identity.trust(roster, "team1-main", ["127.0.0.1"], identity.host_keys(roster, "other").public_line(), port=port)
-    assert main(["trust", str(roster), "--host", "team1-main"]) == 1
+    assert main(["trust", str(roster), "--limit", "team1-main"]) == 1
     err = capsys.readouterr().err
-    assert f"run `roslab forget team1-main --roster {roster}` first" in err
-    assert main(["forget", "team1-main", "--roster", str(roster)]) == 0
-    assert main(["trust", str(roster), "--host", "team1-main"]) == 0
+    assert f"run `roslab forget {roster} --limit team1-main` first" in err
+    assert main(["forget", str(roster), "--limit", "team1-main"]) == 0
+    assert main(["trust", str(roster), "--limit", "team1-main"]) == 0
     assert identity.known_key(roster, "team1-main").key == public.split()[1]
 
 

@@ -386,10 +386,57 @@ def test_opencr_update_refuses_in_one_line_naming_the_device():
 
 def test_opencr_update_refuses_a_host_that_is_not_a_turtlebot3_robot(tmp_path, rosdistro_url, capsys):
     path = tb3_roster(tmp_path, rosdistro_url, "turtlebot3_model: burger\nlds_model: LDS-02")
-    assert main(["opencr-update", "tb3-main", str(path)]) == 2
-    assert "tb3-main is not a TurtleBot3 robot in the roster" in capsys.readouterr().err
-    assert main(["opencr-update", "tb3-robt", str(path)]) == 2
-    assert "'tb3-robt' is not a host of" in capsys.readouterr().err
+    assert main(["opencr-update", str(path), "--limit", "tb3-main"]) == 2
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        "roslab opencr-update: tb3-main is not a TurtleBot3 robot in the roster (role robot with robot_profile: "
+        "turtlebot3)")
+    assert main(["opencr-update", str(path), "--limit", "tb3-robt"]) == 2
+    err = capsys.readouterr().err.splitlines()[-1]
+    assert err.startswith("roslab opencr-update: --limit 'tb3-robt' selects no host of the roster")
+    assert "did you mean 'tb3-robot'?" in err
+
+
+def test_opencr_update_goes_to_each_turtlebot3_robot_the_limit_selects(tmp_path, rosdistro_url, capsys,
+                                                                      monkeypatch):
+    """A team or `robot` selects every TurtleBot3 robot in it; one without its board, or out of
+    reach, is one line and leaves the others to go on."""
+    import pyinfra.api.connect
+
+    from roslab import reach
+    from roslab.robot_tools.opencr_update import UsbSerialPort
+
+    text = tb3_roster(tmp_path, rosdistro_url, "turtlebot3_model: burger\nlds_model: LDS-02").read_text()
+    second = text[text.index("  tb3:"):].replace("tb3", "tb4").replace("ros_domain_id: 30", "ros_domain_id: 31")
+    path = write(tmp_path, text + second)
+    asked = []
+
+    class Robot:
+        def __init__(self, name):
+            self.name = name
+
+        def get_fact(self, fact, port):
+            assert fact is UsbSerialPort and port == "/dev/ttyACM0"
+            return None  # no board attached
+
+    class State:
+        def __init__(self, names):
+            self.active_hosts = [Robot(name) for name in names if name != "tb3-robot"]  # tb3-robot is off
+            self.inventory = type("Inventory", (), {"iter_activated_hosts": lambda _: self.active_hosts})()
+
+    def connected_state(groups, limit):
+        asked.append(limit)
+        return State(limit)
+
+    monkeypatch.setattr(reach, "connected_state", connected_state)
+    monkeypatch.setattr(pyinfra.api.connect, "disconnect_all", lambda state: None)
+    assert main(["opencr-update", str(path), "--limit", "robot"]) == 1
+    assert asked == [["tb3-robot", "tb4-robot"]]
+    assert [line for line in capsys.readouterr().err.splitlines() if "GET /" not in line] == [
+        "roslab opencr-update: cannot reach tb3-robot",
+        "no OpenCR board on tb4-robot: /dev/ttyACM0 does not exist (attach the OpenCR to the Pi by USB and run "
+        "this again)"]
+    assert main(["opencr-update", str(path), "--limit", "tb4"]) == 1  # the team: its robot, not its main
+    assert asked[-1] == ["tb4-robot"]
 
 
 @pytest.mark.parametrize("profile_text, problem", [

@@ -218,7 +218,7 @@ def test_a_folder_that_is_not_a_boot_partition_is_refused(tmp_path, capsys):
     folder = tmp_path / "not-boot"
     folder.mkdir()
     (folder / "user-data").write_text("mine\n")
-    assert seed(roster, "--boot-partition", folder, "--host", "team1-main") == 1
+    assert seed(roster, "--boot-partition", folder, "--limit", "team1-main") == 1
     assert "is not an Ubuntu Raspberry Pi boot partition" in capsys.readouterr().err
     assert sorted(path.name for path in folder.iterdir()) == ["user-data"]
     assert (folder / "user-data").read_text() == "mine\n"
@@ -231,14 +231,14 @@ def test_a_boot_partition_gets_the_seed_and_keeps_ubuntus_files(tmp_path, capsys
     for name, text in {"config.txt": "arm_64bit=1\n", "cmdline.txt": "console=tty1\n",
                        "user-data": "#cloud-config\nubuntu\n", "meta-data": "instance-id: x\n"}.items():
         (boot / name).write_text(text)
-    assert seed(roster, "--boot-partition", boot) == 2  # one host: --host is required
-    assert seed(roster, "--boot-partition", boot, "--host", "team1-main") == 0
+    assert seed(roster, "--boot-partition", boot) == 2  # one host: --limit is required
+    assert seed(roster, "--boot-partition", boot, "--limit", "team1-main") == 0
     assert seed(roster, "--out", tmp_path / "seeds") == 0
     for name in ("user-data", "network-config", "meta-data"):
         assert (boot / name).read_bytes() == (tmp_path / "seeds/team1-main" / name).read_bytes()
     assert (boot / "user-data.before-roslab").read_text() == "#cloud-config\nubuntu\n"
     capsys.readouterr()
-    assert seed(roster, "--boot-partition", boot, "--host", "team1-main") == 0
+    assert seed(roster, "--boot-partition", boot, "--limit", "team1-main") == 0
     assert "unchanged" in capsys.readouterr().out
     assert (boot / "user-data.before-roslab").read_text() == "#cloud-config\nubuntu\n"
 
@@ -281,7 +281,7 @@ def test_an_image_gets_the_seed_in_its_boot_partition_without_mounting(tmp_path,
     image = tmp_path / "ubuntu-24.04-preinstalled-server-arm64+raspi.img"
     offset = build_pi_image(image, offset_sectors=8192)
     assert targets.boot_partition(image) == targets.Partition(1, offset, 40 * 1024 * 1024 - offset, "SYSTEM-BOOT")
-    assert seed(roster, "--image", image, "--host", "team1-main") == 0
+    assert seed(roster, "--image", image, "--limit", "team1-main") == 0
     assert seed(roster, "--out", tmp_path / "seeds") == 0
     for name in ("user-data", "network-config", "meta-data"):
         assert read_from_image(image, offset, name) == (tmp_path / "seeds/team1-main" / name).read_bytes()
@@ -291,7 +291,7 @@ def test_an_image_gets_the_seed_in_its_boot_partition_without_mounting(tmp_path,
     out = capsys.readouterr().out
     assert "Pa55" not in out
     before = image.read_bytes()
-    assert seed(roster, "--image", image, "--host", "team1-main") == 0
+    assert seed(roster, "--image", image, "--limit", "team1-main") == 0
     assert "team1-main: unchanged" in capsys.readouterr().out
     assert image.read_bytes() == before
 
@@ -300,7 +300,7 @@ def test_an_image_without_a_pi_boot_partition_is_refused(tmp_path, capsys):
     roster = write_roster(tmp_path)
     blank = tmp_path / "blank.img"
     blank.write_bytes(b"\0" * 4096)
-    assert seed(roster, "--image", blank, "--host", "team1-main") == 1
+    assert seed(roster, "--image", blank, "--limit", "team1-main") == 1
     assert "has no partition table" in capsys.readouterr().err
 
 

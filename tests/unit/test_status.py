@@ -397,7 +397,7 @@ def test_a_refused_host_key_says_which_roslab_command_to_run():
     message = status.explained("status-test-host", "SSH error (No host key for 127.0.0.99 found in known_hosts)")
     assert message.startswith("no SSH host key of status-test-host (127.0.0.99) is recorded in "
                               ".roslab-state/known_hosts"), message
-    assert "`roslab trust classroom.yaml --host status-test-host`" in message
+    assert "`roslab trust classroom.yaml --limit status-test-host`" in message
     assert status.explained("other", "Could not connect (refused)") == "Could not connect (refused)"
 
 

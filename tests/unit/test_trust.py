@@ -39,7 +39,7 @@ def lookup(known_hosts, name):
 def test_trust_and_forget_use_the_file_the_run_checks_against(classroom, capsys):
     roster, port, public = classroom
     own = roster.parent / OWN_FILE
-    assert main(["trust", str(roster), "--host", "team1-main"]) == 0
+    assert main(["trust", str(roster), "--limit", "team1-main"]) == 0
     out = capsys.readouterr().out
     assert f"recorded in {own}" in out
     assert lookup(own, f"[127.0.0.1]:{port}") == public.split()[1]
@@ -48,7 +48,7 @@ def test_trust_and_forget_use_the_file_the_run_checks_against(classroom, capsys)
     data = dict(inventory_groups(load_roster(roster))["team1"])["team1-main"]
     assert data["ssh_known_hosts_file"] == str(own)
 
-    assert main(["forget", "team1-main", "--roster", str(roster)]) == 0
+    assert main(["forget", str(roster), "--limit", "team1-main"]) == 0
     assert f"removed from {own}" in capsys.readouterr().out
     assert lookup(own, f"[127.0.0.1]:{port}") is None
 
@@ -60,10 +60,12 @@ def test_trust_keeps_other_lines_and_refuses_a_different_key_on_any_line(classro
     own.write_text(f"# the teacher's own\ngitlab.example {other[0]} {other[1]}\n"
                    f"[127.0.0.1]:{port} {other[0]} {other[1]}\n")
     own.chmod(0o600)
-    assert main(["trust", str(roster), "--host", "team1-main"]) == 1
+    assert main(["trust", str(roster), "--limit", "team1-main"]) == 1
     assert "another key is recorded for it" in capsys.readouterr().err
-    assert main(["forget", f"[127.0.0.1]:{port}", "--roster", str(roster)]) == 0
-    assert main(["trust", str(roster), "--host", "team1-main"]) == 0
+    # Forgetting the host takes its address off the teacher's own line too (the line that refused it).
+    assert main(["forget", str(roster), "--limit", "team1-main"]) == 0
+    assert f"team1-main: removed from {own}: [127.0.0.1]:{port}" in capsys.readouterr().out
+    assert main(["trust", str(roster), "--limit", "team1-main"]) == 0
     text = own.read_text()
     assert "# the teacher's own" in text and "gitlab.example" in text and "managed by roslab" not in text
     assert (own.stat().st_mode & 0o777) == 0o600  # the file keeps its mode
@@ -76,7 +78,7 @@ def test_trust_asks_the_roster_address_when_the_last_confirmed_one_is_gone(tmp_p
     roster = tmp_path / "classroom.yaml"
     roster.write_text(ROSTER.format(main=f", ssh_port: {port}"))
     record_address(roster, "team1-main", "127.0.0.2")  # nothing listens there: refused at once
-    assert main(["trust", str(roster), "--host", "team1-main"]) == 0
+    assert main(["trust", str(roster), "--limit", "team1-main"]) == 0
     out = capsys.readouterr().out
     assert "team1-main (127.0.0.1): ssh-ed25519" in out and "recorded" in out
     host_keys = paramiko.HostKeys(str(identity.known_hosts_path(roster)))
@@ -89,7 +91,7 @@ def test_trust_names_every_address_it_tried(tmp_path, capsys):
     roster = tmp_path / "classroom.yaml"
     roster.write_text(ROSTER.format(main=", ssh_port: 9"))  # discard: nothing listens
     record_address(roster, "team1-main", "127.0.0.2")
-    assert main(["trust", str(roster), "--host", "team1-main"]) == 1
+    assert main(["trust", str(roster), "--limit", "team1-main"]) == 1
     err = capsys.readouterr().err
     assert err.startswith("team1-main: no host key: 127.0.0.2: ") and "; 127.0.0.1: " in err
 
@@ -98,5 +100,5 @@ def test_trust_refuses_a_known_hosts_file_of_dev_null(tmp_path, capsys):
     roster = tmp_path / "classroom.yaml"
     roster.write_text(ROSTER.format(main="").replace(
         "classroom:\n", 'classroom:\n  ssh_known_hosts_file: /dev/null\n  ssh_strict_host_key_checking: "no"\n'))
-    assert main(["trust", str(roster), "--host", "team1-main"]) == 1
+    assert main(["trust", str(roster), "--limit", "team1-main"]) == 1
     assert "its ssh_known_hosts_file is /dev/null" in capsys.readouterr().err

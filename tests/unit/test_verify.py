@@ -447,6 +447,7 @@ def test_a_sim_team_has_no_robot_to_hear_and_passes_on_what_its_main_runs():
     assert sim.verdict() == "nothing to hear: robot profile sim names no robot on sim1-main; roslab runs no service there"
     row = verify.format_table([sim]).splitlines()[2]
     assert "PASS nothing to hear" in row and "returned nothing" not in row
+    assert row.split()[2:5] == ["-", "none", "(sim"] and "not installed" not in row
     # Its services still count: a sim main on Zenoh runs its own router.
     router = HostService("roslab-zenoh-router.service", "the team's Zenoh router", "discovery")
     sim.other_services = [("sim1-main", router, "failed (exit-code)")]
@@ -459,6 +460,10 @@ def test_a_main_without_a_nodes_service_passes_whatever_is_left_of_an_old_unit()
                   message_type=SCAN, without_service={"tb3-main"})
     team.services["tb3-main"] = "inactive (dead)"
     assert team.passed
+    row = verify.format_table([team]).splitlines()[2]
+    assert row.split()[3:6] == ["none", "(demo", "main)"] and "inactive" not in row, row
+    team.services["tb3-main"] = "?"  # not reached: nothing to say it runs none
+    assert verify.format_table([team]).splitlines()[2].split()[3] == "?"
 
 
 def test_a_stopped_discovery_server_is_named_as_the_cause():
@@ -537,8 +542,8 @@ def test_the_opencr_step_names_the_robot_and_the_page_shows_the_command_as_code(
     classroom = turtlebot3_and_sim_class(tmp_path, rosdistro_url)
     lists = {entry["host"]: entry["items"] for entry in status.checklists(classroom)}
     (opencr,) = [item for item in lists["blue-robot"] if "OpenCR firmware" in item]
-    assert "`roslab opencr-update blue-robot`" in opencr and "HOST" not in opencr
+    assert "`roslab opencr-update --limit blue-robot`" in opencr and "HOST" not in opencr
     assert "burger.opencr" in opencr
     page = status.render_page(status.page_context("lab", "lab.yaml", [], status.now_utc(),
                                                   checklists=status.checklists(classroom)))
-    assert "<code>roslab opencr-update blue-robot</code>" in page and "`roslab opencr-update" not in page
+    assert "<code>roslab opencr-update --limit blue-robot</code>" in page and "`roslab opencr-update" not in page
