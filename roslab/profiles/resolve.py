@@ -118,9 +118,8 @@ def side_parts(side: Side, values: dict, distro: str, board: str | None) -> list
     return [side, *(block["side"] for block in side.when if _matches(block["if"], conditions))]
 
 
-def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
-                 board: str | None = None, host: str | None = None) -> tuple[dict | None, list[ResolveError]]:
-    """`host`: the host's name, for the checklist's ${host} (else the word HOST)."""
+def placement_problems(profile: Profile, *, distro: str, role: str, board: str | None) -> list[ResolveError]:
+    """Why a host of this distro, role and board cannot run `profile` (none: it can)."""
     problems: list[ResolveError] = []
     if distro not in profile.distros:
         works = " or ".join(f"{p.release} ({p.distro})" for p in PLATFORMS if p.distro in profile.distros)
@@ -141,12 +140,12 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         problems.append(ResolveError(
             "robot_profile", f"profile {profile.name!r} has no {role} side (only {has}): give this host "
                              "another robot_profile (e.g. demo), or leave it out of the team"))
-    values, value_problems = setting_values(profile, given, side)
-    problems += value_problems
-    if problems or distro not in DISTRO_RELEASES:
-        return None, problems
+    return problems
 
-    parts = side_parts(side, values, distro, board)
+
+def merged_parts(parts: list[Side]) -> Side:
+    """The side and its matching `when` blocks as one: lists joined (each item once), the
+    environment merged, a later service replacing an earlier one of its name."""
     merged = Side()
     for part in parts:
         merged.ros_packages += [p for p in part.ros_packages if p not in merged.ros_packages]
@@ -161,21 +160,41 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
             items += [item for item in part.boot_config.get(key, []) if item not in items]
         merged.services = [s for s in merged.services if s["name"] not in {p["name"] for p in part.services}]
         merged.services += part.services
+    return merged
+
+
+def udev_file(profile: Profile, rules: list[dict], values: dict) -> tuple[str, str | None]:
+    """(the udev rules file's text with the settings filled in, "" for no rules; the problem udev
+    would have with it, or None). Each rule was checked as a template; this is what is written."""
+    if not rules:
+        return "", None
+    lines = [f"# managed by roslab (deploy/robot_profile.py) for robot profile {profile.name!r}: "
+             "edits here are overwritten;", "# set the profile's settings in the roster instead."]
+    for rule in rules:
+        if rule["comment"]:
+            lines.append(f"# {rule['comment']}")
+        lines.append(fill(rule["rule"], values))
+    text = "\n".join(lines) + "\n"
+    return text, udev.file_problem(text)
+
+
+def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
+                 board: str | None = None, host: str | None = None) -> tuple[dict | None, list[ResolveError]]:
+    """What a host of this distro, role and board gets from `profile` with the roster's setting
+    values `given` (host.data.roslab_profile), or None and the problems. `host`: the host's
+    name, for the checklist's ${host} (else the word HOST)."""
+    problems = placement_problems(profile, distro=distro, role=role, board=board)
+    side = profile.sides.get(role)
+    values, value_problems = setting_values(profile, given, side)
+    problems += value_problems
+    if problems or distro not in DISTRO_RELEASES:
+        return None, problems
+    parts = side_parts(side, values, distro, board)
+    merged = merged_parts(parts)
+    rules, problem = udev_file(profile, merged.udev_rules, values)
+    if problem:
+        return None, [ResolveError("udev_rules", f"profile {profile.name!r}'s udev rules: {problem}")]
     ros_packages = [fill(name, {"gazebo": gazebo_package(distro)}) for name in merged.ros_packages]
-    rules = ""
-    if merged.udev_rules:
-        lines = [f"# managed by roslab (deploy/robot_profile.py) for robot profile {profile.name!r}: "
-                 "edits here are overwritten;", "# set the profile's settings in the roster instead."]
-        for rule in merged.udev_rules:
-            if rule["comment"]:
-                lines.append(f"# {rule['comment']}")
-            lines.append(fill(rule["rule"], values))
-        rules = "\n".join(lines) + "\n"
-        # The file as udev will read it, settings filled in: each rule was checked as a
-        # template, and this is what is written.
-        problem = udev.file_problem(rules)
-        if problem:
-            return None, [ResolveError("udev_rules", f"profile {profile.name!r}'s udev rules: {problem}")]
     return {
         "name": profile.name,
         "distro": distro,

@@ -774,13 +774,33 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
     settings = dict(base.settings) if base else {}
     settings.update(reader.read_settings(mapping))
     known = set(settings)
+    distros = _read_distros(reader, mapping, base)
+    boards, middlewares, discovery = _read_placement(reader, mapping, base)
+    topic, message_type, verify_if, verify_source = _read_verify(reader, mapping, base, known)
+    tools, dds_only = _read_tools(reader, mapping, base)
+    sides = _read_sides(reader, mapping, base, known)
+    description = mapping.get("description", base.description if base else "")
+    if not reader.ok:
+        return None
+    return Profile(name, str(description or ""), tuple(distros), tuple(boards), tuple(middlewares), discovery,
+                   topic, message_type, dict(verify_if), settings, sides, source, line_of(mapping),
+                   verify_source=verify_source, tools=tuple(tools), dds_only_packages=dict(dds_only))
+
+
+def _read_distros(reader: ProfileReader, mapping, base: Profile | None) -> list[str]:
+    """`distros:` the distros it supports, or `all` (every release record's, now or later)."""
     distros = mapping.get("distros", list(base.declared_distros) if base else None)
-    if distros in (ALL_DISTROS, [ALL_DISTROS]):  # nothing distro-specific: every release's record
-        distros = [ALL_DISTROS]
-    elif not isinstance(distros, list) or not distros or not all(d in DISTRO_RELEASES for d in distros):
+    if distros in (ALL_DISTROS, [ALL_DISTROS]):
+        return [ALL_DISTROS]
+    if not isinstance(distros, list) or not distros or not all(d in DISTRO_RELEASES for d in distros):
         reader.error(f"must list the distros the profile supports (of {', '.join(sorted(DISTRO_RELEASES))}), "
                      f"or be {ALL_DISTROS!r}", mapping, "distros", "distros")
-        distros = []
+        return []
+    return distros
+
+
+def _read_placement(reader: ProfileReader, mapping, base: Profile | None) -> tuple[list, list, str | None]:
+    """(`boards:`, `middlewares:`, `discovery:`): where the profile runs."""
     boards = mapping.get("boards", list(base.boards) if base else list(BOARDS))
     if not isinstance(boards, list) or not all(b in BOARDS for b in boards):
         reader.error(f"must be a list of boards ({', '.join(BOARDS)})", mapping, "boards", "boards")
@@ -793,6 +813,11 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
     discovery = mapping.get("discovery", base.discovery if base else None)
     if discovery is not None and discovery not in DISCOVERY:
         reader.error(f"must be {', '.join(DISCOVERY)} or absent", mapping, "discovery", "discovery")
+    return boards, middlewares, discovery
+
+
+def _read_verify(reader: ProfileReader, mapping, base: Profile | None, known: set[str]) -> tuple:
+    """(`verify_topic:`, `verify_type:`, `verify_if:`, `verify_source:`): what `roslab verify` hears."""
     topic = mapping.get("verify_topic", base.verify_topic if base else None)
     if topic is not None and (not isinstance(topic, str) or formats.ros_topic(topic)):
         reader.error("must be a ROS topic name (or null: nothing to verify)", mapping, "verify_topic",
@@ -809,6 +834,17 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
         if setting not in known:
             reader.error(f"tests {setting!r}, which is not a setting of this profile", verify_if, setting,
                          "verify_if")
+    verify_source = mapping.get("verify_source", base.verify_source if base else "")
+    if not isinstance(verify_source, str) or (verify_source and formats.single_line(verify_source)):
+        reader.error("must be one line of text", mapping, "verify_source", "verify_source")
+        verify_source = ""
+    elif verify_source:
+        reader.check_text(verify_source, known, mapping, "verify_source", "verify_source")
+    return topic, message_type, verify_if, verify_source
+
+
+def _read_tools(reader: ProfileReader, mapping, base: Profile | None) -> tuple[list[str], dict[str, str]]:
+    """(`tools:`, `dds_only_packages:`): the commands the robot brings, its DDS-only packages."""
     tools = mapping.get("tools", list(base.tools) if base else [])
     if not isinstance(tools, list) or any(tool_problem(tool) for tool in tools):
         problems = [tool_problem(tool) for tool in tools] if isinstance(tools, list) else ["must be a list"]
@@ -821,12 +857,11 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
         reader.error("must map ROS package names to what they are, in a few words", mapping,
                      "dds_only_packages", "dds_only_packages")
         dds_only = {}
-    verify_source = mapping.get("verify_source", base.verify_source if base else "")
-    if not isinstance(verify_source, str) or (verify_source and formats.single_line(verify_source)):
-        reader.error("must be one line of text", mapping, "verify_source", "verify_source")
-        verify_source = ""
-    elif verify_source:
-        reader.check_text(verify_source, known, mapping, "verify_source", "verify_source")
+    return tools, dds_only
+
+
+def _read_sides(reader: ProfileReader, mapping, base: Profile | None, known: set[str]) -> dict[str, Side]:
+    """`main:` and `robot:`, each extending the base profile's side of its name."""
     sides = {}
     for side_name in SIDES:
         own = reader.read_side(mapping, side_name, known)
@@ -841,12 +876,7 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
                              mapping.get(side_name) or mapping, "os_tweaks", f"{side_name}.os_tweaks")
     if not sides:
         reader.error("a profile needs a main or a robot side", mapping, None, "")
-    description = mapping.get("description", base.description if base else "")
-    if not reader.ok:
-        return None
-    return Profile(name, str(description or ""), tuple(distros), tuple(boards), tuple(middlewares), discovery,
-                   topic, message_type, dict(verify_if), settings, sides, source, line_of(mapping),
-                   verify_source=verify_source, tools=tuple(tools), dds_only_packages=dict(dds_only))
+    return sides
 
 
 def merged_side(base: Side, own: Side) -> Side:
