@@ -79,7 +79,7 @@ class Service:
     environment: dict[str, str] = field(default_factory=dict)
 
 
-@dataclass(frozen=True)
+@dataclass
 class HostDiscovery:
     mode: str
     middleware: str
@@ -150,65 +150,76 @@ def server_address(data) -> str:
 def host_discovery(data, distro: str) -> HostDiscovery:
     """Everything `data`'s host gets for discovery on `distro` (see the module's docstring)."""
     mode, middleware = mode_of(data), middleware_of(data)
-    variables: dict[str, str] = {}
+    found = HostDiscovery(mode, middleware, {}, {}, {}, None)
     domain = data.get("ros_domain_id")
     if domain is not None:
-        variables["ROS_DOMAIN_ID"] = str(domain)
-    variables["RMW_IMPLEMENTATION"] = middleware
-    shell: dict[str, str] = {}
-    files: dict[str, str] = {}
-    service = None
-    jazzy_era = distros.record(distro).discovery_range
-
+        found.variables["ROS_DOMAIN_ID"] = str(domain)
+    found.variables["RMW_IMPLEMENTATION"] = middleware
     if middleware == ZENOH:
-        port = _get(data, "ros_zenoh_router_port", DEFAULT_ROUTER_PORT)
-        if mode == "localhost":
-            service = zenoh_router(port, listen="127.0.0.1")
-            variables["ZENOH_CONFIG_OVERRIDE"] = zenoh_override(connect=f"tcp/127.0.0.1:{port}")
-        elif is_main(data):
-            service = zenoh_router(port, listen="0.0.0.0")
-            variables["ZENOH_CONFIG_OVERRIDE"] = zenoh_override(connect=f"tcp/127.0.0.1:{port}")
-        else:
-            variables["ZENOH_CONFIG_OVERRIDE"] = zenoh_override(connect=f"tcp/{server_address(data)}:{port}")
-        return HostDiscovery(mode, middleware, variables, shell, files, service)
-
-    if mode == "localhost":
-        if jazzy_era:
-            variables["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-        else:
-            variables["ROS_LOCALHOST_ONLY"] = "1"
+        _zenoh(found, data)
+    elif mode == "localhost":
+        _range(found, distro, "LOCALHOST", ())
     elif mode == "multicast":
-        discovery_range = _get(data, "ros_automatic_discovery_range", "SUBNET")
-        static_peers = list(data.get("ros_static_peers") or ())
-        if jazzy_era:
-            variables["ROS_AUTOMATIC_DISCOVERY_RANGE"] = str(discovery_range)
-            if static_peers:
-                variables["ROS_STATIC_PEERS"] = ";".join(static_peers)
-        elif discovery_range == "LOCALHOST":
-            variables["ROS_LOCALHOST_ONLY"] = "1"
+        _range(found, distro, str(_get(data, "ros_automatic_discovery_range", "SUBNET")),
+               list(data.get("ros_static_peers") or ()))
     elif mode == "static":
-        peers = team_peers(data)
-        if jazzy_era:
-            variables["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-            if peers:
-                variables["ROS_STATIC_PEERS"] = ";".join(peers)
-        elif middleware == CYCLONEDDS:
-            variables["CYCLONEDDS_URI"] = f"file://{CYCLONEDDS_PEERS_XML}"
-            files[CYCLONEDDS_PEERS_XML] = cyclonedds_peers_xml(peers)
-        else:
-            variables[profiles_variable(distro)] = FASTDDS_PEERS_XML
-            files[FASTDDS_PEERS_XML] = fastdds_peers_xml(peers)
+        _static_peers(found, data, distro)
     elif mode == "discovery_server":  # Fast DDS only (refused otherwise before connecting)
-        port = _get(data, "ros_discovery_server_port", DEFAULT_SERVER_PORT)
-        variables["ROS_DISCOVERY_SERVER"] = f"{server_address(data)}:{port}"
-        if not distros.record(distro).fastdds_super_client_variable:  # Fast DDS 2.6: its XML profile
-            shell[profiles_variable(distro)] = FASTDDS_SUPER_CLIENT_XML
-            files[FASTDDS_SUPER_CLIENT_XML] = fastdds_super_client_xml(server_address(data), port)
-        else:
-            shell["ROS_SUPER_CLIENT"] = "TRUE"
-        if is_main(data):
-            service = discovery_server(port)
-    return HostDiscovery(mode, middleware, variables, shell, files, service)
+        _discovery_server(found, data, distro)
+    return found
+
+
+def _range(found: HostDiscovery, distro: str, discovery_range: str, peers) -> None:
+    """Jazzy and later: ROS_AUTOMATIC_DISCOVERY_RANGE (and ROS_STATIC_PEERS); Humble has only
+    ROS_LOCALHOST_ONLY, for LOCALHOST."""
+    if distros.record(distro).discovery_range:
+        found.variables["ROS_AUTOMATIC_DISCOVERY_RANGE"] = discovery_range
+        if peers:
+            found.variables["ROS_STATIC_PEERS"] = ";".join(peers)
+    elif discovery_range == "LOCALHOST":
+        found.variables["ROS_LOCALHOST_ONLY"] = "1"
+
+
+def _static_peers(found: HostDiscovery, data, distro: str) -> None:
+    """Unicast to the team's hosts only: ROS_STATIC_PEERS where the distro has it, else the
+    middleware's own peers file."""
+    peers = team_peers(data)
+    if distros.record(distro).discovery_range:
+        _range(found, distro, "LOCALHOST", peers)
+    elif found.middleware == CYCLONEDDS:
+        found.variables["CYCLONEDDS_URI"] = f"file://{CYCLONEDDS_PEERS_XML}"
+        found.files[CYCLONEDDS_PEERS_XML] = cyclonedds_peers_xml(peers)
+    else:
+        found.variables[profiles_variable(distro)] = FASTDDS_PEERS_XML
+        found.files[FASTDDS_PEERS_XML] = fastdds_peers_xml(peers)
+
+
+def _discovery_server(found: HostDiscovery, data, distro: str) -> None:
+    """Fast DDS's discovery server on the team's main; the shell's tools see the whole graph as
+    super clients (ROS_SUPER_CLIENT, or Fast DDS 2.6's XML profile)."""
+    port = _get(data, "ros_discovery_server_port", DEFAULT_SERVER_PORT)
+    found.variables["ROS_DISCOVERY_SERVER"] = f"{server_address(data)}:{port}"
+    if not distros.record(distro).fastdds_super_client_variable:
+        found.shell_variables[profiles_variable(distro)] = FASTDDS_SUPER_CLIENT_XML
+        found.files[FASTDDS_SUPER_CLIENT_XML] = fastdds_super_client_xml(server_address(data), port)
+    else:
+        found.shell_variables["ROS_SUPER_CLIENT"] = "TRUE"
+    if is_main(data):
+        found.service = discovery_server(port)
+
+
+def _zenoh(found: HostDiscovery, data) -> None:
+    """Zenoh: a router on the team's main (or on each host, for localhost); every host's session
+    connects to it."""
+    port = _get(data, "ros_zenoh_router_port", DEFAULT_ROUTER_PORT)
+    if found.mode == "localhost":
+        found.service = zenoh_router(port, listen="127.0.0.1")
+        found.variables["ZENOH_CONFIG_OVERRIDE"] = zenoh_override(connect=f"tcp/127.0.0.1:{port}")
+    elif is_main(data):
+        found.service = zenoh_router(port, listen="0.0.0.0")
+        found.variables["ZENOH_CONFIG_OVERRIDE"] = zenoh_override(connect=f"tcp/127.0.0.1:{port}")
+    else:
+        found.variables["ZENOH_CONFIG_OVERRIDE"] = zenoh_override(connect=f"tcp/{server_address(data)}:{port}")
 
 
 def profiles_variable(distro: str) -> str:

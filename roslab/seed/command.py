@@ -50,30 +50,54 @@ def grouped(problems: dict, hosts: list, path) -> list[str]:
     return lines
 
 
+class _Stop(Exception):
+    """`roslab seed` ends here: the lines to print on stderr and the exit status."""
+
+    def __init__(self, status: int, *lines: str):
+        super().__init__("\n".join(lines))
+        self.status = status
+
+
 def run_seed(args: argparse.Namespace) -> int:
+    try:
+        classroom, hosts = _selected_hosts(args)
+        path = classroom.path
+        _refuse_what_the_roster_cannot_say(hosts, path)
+        seeds = _checked_seeds(hosts, path)
+        recorded_in = _write_and_record(args, hosts, seeds, path)
+    except _Stop as stop:
+        print(stop, file=sys.stderr)
+        return stop.status
+    if recorded_in:
+        print(f"The keys are recorded in {', '.join(sorted(recorded_in))}; "
+              "pyinfra connects to these Pis with strict host key checking.")
+    return 0
+
+
+def _selected_hosts(args: argparse.Namespace) -> tuple:
+    """The roster and the hosts `--limit` selects; one host for a card or an image."""
     try:
         classroom = load_classroom(args.roster, "seed")
     except RosterProblem as problem:
-        print(problem, file=sys.stderr)
-        return 1
-    path = classroom.path
+        raise _Stop(1, str(problem)) from None
     hosts, problem = limited_hosts(classroom, args.limit, "roslab seed")
     if problem:
-        print(problem, file=sys.stderr)
-        return 2
+        raise _Stop(2, problem)
     if (args.boot_partition or args.image) and (not args.limit or len(hosts) != 1):
         # A card is one Pi's identity: name it, so no card gets another Pi's key by accident.
-        print("roslab seed: --boot-partition and --image take the seed of one host: give --limit HOST "
-              f"(one host; it selects {len(hosts)})", file=sys.stderr)
-        return 2
+        raise _Stop(2, "roslab seed: --boot-partition and --image take the seed of one host: give --limit HOST "
+                       f"(one host; it selects {len(hosts)})")
     try:
         if args.boot_partition:
             targets.check_boot_partition(Path(args.boot_partition))
     except targets.TargetError as error:
-        print(f"roslab seed: {error}; nothing was written", file=sys.stderr)
-        return 1
+        raise _Stop(1, f"roslab seed: {error}; nothing was written") from None
+    return classroom, hosts
 
-    # What the roster cannot say on its own: every host first, before any key or file.
+
+def _refuse_what_the_roster_cannot_say(hosts: list, path: Path) -> None:
+    """Every host checked first (keys, network, console password), before any key or file; a
+    WiFi host without its regulatory domain is a warning."""
     shared: dict[tuple, list[str]] = {}
     for host in hosts:
         for check in (authorized_keys, network_config, console_password_problem):
@@ -84,19 +108,20 @@ def run_seed(args: argparse.Namespace) -> int:
                 if host.name not in names:
                     names.append(host.name)
     if shared:
-        print("\n".join(grouped(shared, hosts, path)), file=sys.stderr)
-        print("roslab seed: nothing was written", file=sys.stderr)
-        return 1
+        raise _Stop(1, *grouped(shared, hosts, path), "roslab seed: nothing was written")
     without_domain = [host.name for host in hosts
                       if host.data.get("network_kind") == "wifi" and not host.data.get("wifi_regulatory_domain")]
     if without_domain:
         print(f"warning: {display_path(path)}: {', '.join(without_domain)} on WiFi without "
               "wifi_regulatory_domain: their WiFi keeps to the channels and power allowed everywhere; "
               "set it to your country's code (like DE)", file=sys.stderr)
-    problems = []
 
+
+def _checked_seeds(hosts: list, path: Path) -> dict:
+    """Each host's seed files, checked by cloud-init's and netplan's own schema before writing."""
     seeds = {host.name: host_seed(host, path) for host in hosts}
     secrets = [secret for host in hosts for secret in _secrets_of(host, path)]
+    problems = []
     try:
         user_problems = tools.check_user_data(
             {name: files["user-data"].content.decode() for name, files in seeds.items()}, secrets)
@@ -107,36 +132,24 @@ def run_seed(args: argparse.Namespace) -> int:
                                                       secrets):
                 problems.append(f"{name}: network-config: netplan: {problem}")
     except tools.SeedToolError as error:
-        print(f"roslab seed: {error}; nothing was written", file=sys.stderr)
-        return 1
+        raise _Stop(1, f"roslab seed: {error}; nothing was written") from None
     if problems:
-        print("\n".join(problems), file=sys.stderr)
-        print("roslab seed: a seed failed its check (a roslab bug: please report it); nothing was written",
-              file=sys.stderr)
-        return 1
+        raise _Stop(1, *problems, "roslab seed: a seed failed its check (a roslab bug: please report it); "
+                                  "nothing was written")
+    return seeds
 
+
+def _write_and_record(args: argparse.Namespace, hosts: list, seeds: dict, path: Path) -> set[str]:
+    """Write each host's seed where the command says, record its host key; the known_hosts files
+    recorded in."""
     try:
         moved = last_known_addresses(path)
     except (OSError, ValueError) as error:
-        print(f"roslab seed: cannot read where moved hosts are: {getattr(error, 'strerror', None) or error}; "
-              "nothing was written", file=sys.stderr)
-        return 1
+        raise _Stop(1, f"roslab seed: cannot read where moved hosts are: "
+                       f"{getattr(error, 'strerror', None) or error}; nothing was written") from None
     recorded_in: set[str] = set()
     for host in hosts:
-        files = seeds[host.name]
-        try:
-            if args.image:
-                where = display_path(args.image)
-                changed = targets.write_image(Path(args.image), files)
-            elif args.boot_partition:
-                where = display_path(args.boot_partition)
-                changed = targets.write_boot_partition(Path(args.boot_partition), files)
-            else:
-                where = display_path(Path(args.out) / host.name)
-                changed = targets.write_directory(Path(args.out) / host.name, files)
-        except (targets.TargetError, OSError) as error:
-            print(f"roslab seed: {host.name}: {error}", file=sys.stderr)
-            return 1
+        where, changed = _write_seed(args, host.name, seeds[host.name])
         public = identity.host_keys(path, host.name).public_line()
         # The file the run checks this host against (ssh_known_hosts_file, or the classroom's own).
         known_hosts = identity.known_hosts_of(path, host.data)
@@ -147,10 +160,9 @@ def run_seed(args: argparse.Namespace) -> int:
                 identity.trust(path, host.name, known_addresses(host, moved.get(host.name)), public,
                                port=host.data.get("ssh_port") or 22, known_hosts=known_hosts)
             except (OSError, identity.IdentityError) as error:
-                print(f"roslab seed: {host.name}: its seed is written, but its key could not be recorded "
-                      f"in {display_path(known_hosts)}: {getattr(error, 'strerror', None) or error}",
-                      file=sys.stderr)
-                return 1
+                raise _Stop(1, f"roslab seed: {host.name}: its seed is written, but its key could not be "
+                               f"recorded in {display_path(known_hosts)}: "
+                               f"{getattr(error, 'strerror', None) or error}") from None
             recorded_in.add(display_path(known_hosts))
         key = f"host key {identity.fingerprint(public)}"
         if changed:
@@ -160,10 +172,19 @@ def run_seed(args: argparse.Namespace) -> int:
         if recorded is not None and recorded.public_line() != " ".join(public.split()[:2]):
             print(f"{host.name}: its recorded host key is now the seeded one: until it boots from this "
                   "seed, pyinfra refuses it")
-    if recorded_in:
-        print(f"The keys are recorded in {', '.join(sorted(recorded_in))}; "
-              "pyinfra connects to these Pis with strict host key checking.")
-    return 0
+    return recorded_in
+
+
+def _write_seed(args: argparse.Namespace, name: str, files) -> tuple[str, list[str]]:
+    """(where the seed went, the files changed): an image, a boot partition or a folder per host."""
+    try:
+        if args.image:
+            return display_path(args.image), targets.write_image(Path(args.image), files)
+        if args.boot_partition:
+            return display_path(args.boot_partition), targets.write_boot_partition(Path(args.boot_partition), files)
+        return display_path(Path(args.out) / name), targets.write_directory(Path(args.out) / name, files)
+    except (targets.TargetError, OSError) as error:
+        raise _Stop(1, f"roslab seed: {name}: {error}") from None
 
 
 def register(commands) -> None:
