@@ -79,6 +79,18 @@ def rule_problem(rule: str) -> str | None:
                 "escapes inside values)")
     if rule.lstrip().startswith("#") or not rule.strip():
         return "a rule is keys and values (a comment goes in 'comment')"
+    pairs = _pairs(rule)
+    if isinstance(pairs, str):
+        return pairs
+    for match in pairs:
+        problem = _pair_problem(*match.group("key", "attribute", "op", "value"))
+        if problem:
+            return problem
+    return _access_problem(pairs)
+
+
+def _pairs(rule: str) -> list[re.Match] | str:
+    """The rule's KEY op "value" pairs as udev reads them, or why udev would not read it so."""
     pairs = []
     position = 0
     while position < len(rule):
@@ -93,53 +105,57 @@ def rule_problem(rule: str) -> str | None:
             return "keys are separated by commas"
     if rule.rstrip().endswith(","):
         return "a rule does not end in a comma"
-    matched_subsystems = []
-    names_the_device = False
-    assigns_access = False
-    for match in pairs:
-        key, attribute, op, value = match.group("key", "attribute", "op", "value")
-        named = f"{key}{{{attribute}}}" if attribute else key
-        if key not in ALLOWED_KEYS:
-            return (f"{named} is not a key a profile's rule may use (allowed: {', '.join(ALLOWED_KEYS)}): a "
-                    "profile's rules match, name and permit devices; they run nothing, write nothing, "
-                    "start nothing")
-        if (attribute is None) == (key in WITH_ATTRIBUTE):
-            return f"{named}: {key} {'needs' if key in WITH_ATTRIBUTE else 'takes no'} {{attribute}}"
-        if op not in ALLOWED_KEYS[key]:
-            return f"{named}{op}: {key} allows {' '.join(ALLOWED_KEYS[key])} only"
-        if "%" in value or ("$" in _PLACEHOLDER.sub("", value)):
-            return f"{named}: udev substitutes $ and % in values: write the value without them"
-        if _PLACEHOLDER.search(value) and op not in MATCH:
-            return f"{named}{op}: a setting (${{...}}) may fill a value that is compared, not one that is set"
-        if key == "ENV" and op == "=" and (attribute not in ENV_ASSIGNABLE or value not in ("0", "1")):
-            return (f"{named}=: a rule may set only {', '.join(ENV_ASSIGNABLE)} (to \"0\" or \"1\"); other "
-                    "variables start units or change how udev treats the device")
-        if key == "TAG" and op == "+=" and value not in TAGS_ASSIGNABLE:
-            return f"TAG+=\"{value}\": a rule may add only the tags {', '.join(TAGS_ASSIGNABLE)}"
-        if key == "SYMLINK" and op == "+=" and not all(_SYMLINK.fullmatch(name) for name in value.split()):
-            return (f"SYMLINK+=\"{value}\": each symlink is one plain name in /dev (letters, digits, _ . + -), "
-                    "no folders")
-        if key == "GROUP" and value not in HARDWARE_GROUPS:
-            return f"GROUP=\"{value}\" is not a hardware-access group ({', '.join(HARDWARE_GROUPS)})"
-        if key == "MODE":
-            if not _MODE.fullmatch(value):
-                return (f"MODE=\"{value}\" is not a plain octal mode like 0660 (no setuid, setgid or "
-                        "sticky bit)")
-            assigns_access = True
-        if key == "GROUP":
-            assigns_access = True
-        if key == "SUBSYSTEM" and op == "==":
-            matched_subsystems.append(value)
-        if attribute is not None and ".." in attribute.split("/"):
-            return f"{named}: an attribute is the device's own (no '..')"
-        if op == "==" and key in ("ATTR", "ATTRS") and value.strip("*?[]|"):
-            names_the_device = True
-        if op == "==" and key in ("KERNEL", "KERNELS") and _names_devices(value):
-            names_the_device = True
-    if assigns_access and not (matched_subsystems and all(name in DEVICE_SUBSYSTEMS for name in matched_subsystems)):
+    return pairs
+
+
+def _pair_problem(key: str, attribute: str | None, op: str, value: str) -> str | None:
+    """Why one KEY{attribute} op "value" is not allowed in a profile's rule, or None."""
+    named = f"{key}{{{attribute}}}" if attribute else key
+    if key not in ALLOWED_KEYS:
+        return (f"{named} is not a key a profile's rule may use (allowed: {', '.join(ALLOWED_KEYS)}): a "
+                "profile's rules match, name and permit devices; they run nothing, write nothing, "
+                "start nothing")
+    if (attribute is None) == (key in WITH_ATTRIBUTE):
+        return f"{named}: {key} {'needs' if key in WITH_ATTRIBUTE else 'takes no'} {{attribute}}"
+    if op not in ALLOWED_KEYS[key]:
+        return f"{named}{op}: {key} allows {' '.join(ALLOWED_KEYS[key])} only"
+    if "%" in value or ("$" in _PLACEHOLDER.sub("", value)):
+        return f"{named}: udev substitutes $ and % in values: write the value without them"
+    if _PLACEHOLDER.search(value) and op not in MATCH:
+        return f"{named}{op}: a setting (${{...}}) may fill a value that is compared, not one that is set"
+    if key == "ENV" and op == "=" and (attribute not in ENV_ASSIGNABLE or value not in ("0", "1")):
+        return (f"{named}=: a rule may set only {', '.join(ENV_ASSIGNABLE)} (to \"0\" or \"1\"); other "
+                "variables start units or change how udev treats the device")
+    if key == "TAG" and op == "+=" and value not in TAGS_ASSIGNABLE:
+        return f"TAG+=\"{value}\": a rule may add only the tags {', '.join(TAGS_ASSIGNABLE)}"
+    if key == "SYMLINK" and op == "+=" and not all(_SYMLINK.fullmatch(name) for name in value.split()):
+        return (f"SYMLINK+=\"{value}\": each symlink is one plain name in /dev (letters, digits, _ . + -), "
+                "no folders")
+    if key == "GROUP" and value not in HARDWARE_GROUPS:
+        return f"GROUP=\"{value}\" is not a hardware-access group ({', '.join(HARDWARE_GROUPS)})"
+    if key == "MODE" and not _MODE.fullmatch(value):
+        return f"MODE=\"{value}\" is not a plain octal mode like 0660 (no setuid, setgid or sticky bit)"
+    if attribute is not None and ".." in attribute.split("/"):
+        return f"{named}: an attribute is the device's own (no '..')"
+    return None
+
+
+def _access_problem(pairs: list[re.Match]) -> str | None:
+    """A rule that sets MODE or GROUP must match a device subsystem and name its device."""
+    assigns_access = any(match.group("key") in ("MODE", "GROUP") for match in pairs)
+    if not assigns_access:
+        return None
+    subsystems = [match.group("value") for match in pairs
+                  if match.group("key") == "SUBSYSTEM" and match.group("op") == "=="]
+    names_the_device = any(
+        match.group("op") == "==" and (
+            (match.group("key") in ("ATTR", "ATTRS") and match.group("value").strip("*?[]|"))
+            or (match.group("key") in ("KERNEL", "KERNELS") and _names_devices(match.group("value"))))
+        for match in pairs)
+    if not (subsystems and all(name in DEVICE_SUBSYSTEMS for name in subsystems)):
         return (f"a rule that sets MODE or GROUP matches SUBSYSTEM==\"...\", one of {', '.join(DEVICE_SUBSYSTEMS)}"
                 " (never a disk, memory or a console)")
-    if assigns_access and not names_the_device:
+    if not names_the_device:
         return ("a rule that sets MODE or GROUP names its device too: ATTRS{idVendor}==, ATTRS{serial}== or "
                 "KERNEL==\"ttyUSB0\" (not every device of its subsystem)")
     return None
