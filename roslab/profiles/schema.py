@@ -242,10 +242,14 @@ class ProfileReader:
         self.report = report
         self.prefix = prefix
         self.base_dir = base_dir  # where its .repos files are (sources:)
-        self.ok = True
+        self.problems = 0  # how many it reported (the report keeps each problem once)
+
+    @property
+    def ok(self) -> bool:
+        return self.problems == 0
 
     def error(self, message: str, mapping, key=None, path: str = "") -> None:
-        self.ok = False
+        self.problems += 1
         self.report.error(message, line=line_of(mapping, key),
                           field=".".join(part for part in (self.prefix, path) if part))
 
@@ -491,60 +495,72 @@ class ProfileReader:
                            mapping, "services", here)
                 continue
             self.unknown_keys(spec, SERVICE_KEYS, here)
-            name = spec.get("name")
-            if not isinstance(name, str) or not _SERVICE_NAME.fullmatch(name):
-                self.error("a service's name is lower-case letters, digits, _ and - (the unit is <name>.service)",
-                           spec, "name", f"{here}.name")
+            service = self.read_service(spec, here, known)
+            if service is None:
                 continue
-            if name in RESERVED_SERVICES or name.startswith(RESERVED_SERVICE_PREFIXES):
-                self.error(f"{name!r} is a unit roslab or the system owns: give the service a name of its own",
-                           spec, "name", f"{here}.name")
+            if any(other["name"] == service["name"] for other in side.services):
+                self.error(f"a second service named {service['name']!r}", spec, "name", f"{here}.name")
                 continue
-            ok = True
-            command = spec.get("command")
-            problem = formats.ascii_text(command) if isinstance(command, str) and command.strip() else \
-                "must be a command line (one line of text)"
-            problem = problem or (formats.single_line(command) if isinstance(command, str) else None)
+            side.services.append(service)
+
+    def read_service(self, spec: dict, here: str, known: set[str]) -> dict | None:
+        """One service: {name, description, command, environment, enabled_if}, or None (reported)."""
+        name = spec.get("name")
+        if not isinstance(name, str) or not _SERVICE_NAME.fullmatch(name):
+            self.error("a service's name is lower-case letters, digits, _ and - (the unit is <name>.service)",
+                       spec, "name", f"{here}.name")
+            return None
+        if name in RESERVED_SERVICES or name.startswith(RESERVED_SERVICE_PREFIXES):
+            self.error(f"{name!r} is a unit roslab or the system owns: give the service a name of its own",
+                       spec, "name", f"{here}.name")
+            return None
+        problems_before = self.problems
+        command = spec.get("command")
+        problem = formats.ascii_text(command) if isinstance(command, str) and command.strip() else \
+            "must be a command line (one line of text)"
+        problem = problem or (formats.single_line(command) if isinstance(command, str) else None)
+        if problem:
+            self.error(problem, spec, "command", f"{here}.command")
+        else:
+            self.check_text(command, known | set(COMMAND_PLACEHOLDERS), spec, "command", f"{here}.command")
+        description = spec.get("description") or ""
+        if not isinstance(description, str) or (description and formats.single_line(description)):
+            self.error("must be one line of text", spec, "description", f"{here}.description")
+        else:
+            self.check_text(description, known, spec, "description", f"{here}.description")
+        env = self.read_service_environment(spec, here, known)
+        condition = self.read_enabled_if(spec, here, known)
+        if self.problems != problems_before:
+            return None
+        return {"name": name, "description": description or "", "command": command,
+                "environment": env, "enabled_if": condition}
+
+    def read_service_environment(self, spec: dict, here: str, known: set[str]) -> dict:
+        env = spec.get("environment") or {}
+        if not isinstance(env, dict):
+            self.error("must be a mapping of VARIABLE -> value", spec, "environment", f"{here}.environment")
+            return {}
+        for variable, text in env.items():
+            problem = variable_problem(variable, text, service=True)
             if problem:
-                self.error(problem, spec, "command", f"{here}.command")
-                ok = False
+                self.error(problem, env, variable, f"{here}.environment.{variable}")
             else:
-                self.check_text(command, known | set(COMMAND_PLACEHOLDERS), spec, "command", f"{here}.command")
-            description = spec.get("description") or ""
-            if not isinstance(description, str) or (description and formats.single_line(description)):
-                self.error("must be one line of text", spec, "description", f"{here}.description")
-                ok = False
-            else:
-                self.check_text(description, known, spec, "description", f"{here}.description")
-            env = spec.get("environment") or {}
-            if not isinstance(env, dict):
-                self.error("must be a mapping of VARIABLE -> value", spec, "environment", f"{here}.environment")
-                env, ok = {}, False
-            for variable, text in env.items():
-                problem = variable_problem(variable, text, service=True)
-                if problem:
-                    self.error(problem, env, variable, f"{here}.environment.{variable}")
-                    ok = False
-                else:
-                    self.check_text(text, known, env, variable, f"{here}.environment.{variable}")
-            condition = spec.get("enabled_if") or {}
-            if not isinstance(condition, dict) or not all(
-                    isinstance(wanted, str) or (isinstance(wanted, list) and all(isinstance(w, str) for w in wanted))
-                    for wanted in condition.values()):
-                self.error("must be a mapping of setting -> value (or list of values)", spec, "enabled_if",
+                self.check_text(text, known, env, variable, f"{here}.environment.{variable}")
+        return dict(env)
+
+    def read_enabled_if(self, spec: dict, here: str, known: set[str]) -> dict:
+        condition = spec.get("enabled_if") or {}
+        if not isinstance(condition, dict) or not all(
+                isinstance(wanted, str) or (isinstance(wanted, list) and all(isinstance(w, str) for w in wanted))
+                for wanted in condition.values()):
+            self.error("must be a mapping of setting -> value (or list of values)", spec, "enabled_if",
+                       f"{here}.enabled_if")
+            return {}
+        for setting in condition:
+            if setting not in known:
+                self.error(f"tests {setting!r}, which is not a setting of this profile", condition, setting,
                            f"{here}.enabled_if")
-                condition, ok = {}, False
-            for setting in condition:
-                if setting not in known:
-                    self.error(f"tests {setting!r}, which is not a setting of this profile", condition, setting,
-                               f"{here}.enabled_if")
-                    ok = False
-            if any(service["name"] == name for service in side.services):
-                self.error(f"a second service named {name!r}", spec, "name", f"{here}.name")
-                ok = False
-            if ok:
-                side.services.append({"name": name, "description": description or "", "command": command,
-                                      "environment": dict(env), "enabled_if": dict(condition)})
+        return dict(condition)
 
     def read_os_tweaks(self, mapping, side: str) -> dict:
         """A side's `os_tweaks`: units to mask, a swap file and the memory below which it is made."""
