@@ -10,6 +10,7 @@ filled into a file or a command is one of the values the profile allows.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TypedDict
 
 from roslab.ros.distro import DISTRO_RELEASES, PLATFORMS
 from roslab.profiles import udev
@@ -27,6 +28,52 @@ UDEV_RULES_PATH = "/etc/udev/rules.d/60-roslab-profile.rules"
 
 
 @dataclass(frozen=True)
+class PythonEnv(TypedDict):
+    venv: str | None  # relative to the login user's home; None: no venv
+    requirements: list[str]  # "name==version"
+
+
+class ResolvedService(TypedDict):
+    name: str  # the unit is <name>.service
+    description: str
+    command: str  # settings filled in, each a shell word
+    environment: dict[str, str]
+    enabled: bool  # its enabled_if settings hold here
+    disabled_because: str  # why not, in words ("" when enabled)
+
+
+class ResolvedProfile(TypedDict):
+    """What one host gets from its robot profile (host.data.roslab_profile), settings filled in.
+
+    A TypedDict, not a dataclass: it travels in pyinfra's host data (its JSON output, `--data`
+    and a hand-made inventory give plain mappings), and every key is declared here once, typed."""
+
+    name: str
+    distro: str
+    settings: dict[str, str]  # the profile's settings: the roster's values, else the defaults
+    ros_packages: list[str]  # ROS package names (${gazebo} filled)
+    packages: list[str]  # the Debian packages: ros-<distro>-..., then the profile's apt packages
+    environment: dict[str, str]  # the profile's variables for shells and units
+    groups: list[str]  # the login user's hardware groups
+    udev_rules: str  # the rules file's text ("" for none)
+    launch: str | None  # "<package> <file>.launch.py" the host's nodes service runs, or None
+    variant: str | None  # the side's ROS variant (desktop, ros-base...)
+    verify_topic: str | None  # what `roslab verify` listens for on the main, None: nothing
+    verify_type: str
+    verify_source: str  # what publishes it, for a main that hears nothing
+    discovery: str | None  # the profile's discovery mode (sim: localhost), or None
+    checklist: list[str]  # hardware steps by hand, ${host} filled
+    os_tweaks: dict  # mask_units, swap_mb, swap_if_memory_mb_at_most
+    sources: list[dict]  # the underlay's repositories (the roster loader fills them)
+    cmake_args: dict[str, list[str]]  # package -> -DNAME=value, for the underlay's build
+    build_dependencies: dict[str, list[str]]  # package -> packages built before it
+    skip_packages: list[str]  # packages of the sources not built
+    python: PythonEnv
+    remove_apt_packages: list[str]
+    boot_config: dict[str, list[str]]  # config_txt lines, cmdline_remove words
+    services: list[ResolvedService]
+
+
 class ResolveError(Exception):
     field: str
     message: str
@@ -179,7 +226,8 @@ def udev_file(profile: Profile, rules: list[dict], values: dict) -> tuple[str, s
 
 
 def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
-                 board: str | None = None, host: str | None = None) -> tuple[dict | None, list[ResolveError]]:
+                 board: str | None = None, host: str | None = None
+                 ) -> tuple[ResolvedProfile | None, list[ResolveError]]:
     """What a host of this distro, role and board gets from `profile` with the roster's setting
     values `given` (host.data.roslab_profile), or None and the problems. `host`: the host's
     name, for the checklist's ${host} (else the word HOST)."""
@@ -228,7 +276,7 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
     }, []
 
 
-def python_data(profile: Profile, side: Side) -> dict:
+def python_data(profile: Profile, side: Side) -> PythonEnv:
     """The side's Python requirements and their venv (deploy/python_env.py).
 
     {"venv": directory relative to the login user's home, "requirements": ["name==version", ...]};
@@ -241,7 +289,7 @@ def python_data(profile: Profile, side: Side) -> dict:
     return {"venv": venv, "requirements": requirements}
 
 
-def resolved_service(service: dict, values: dict, distro: str, profile_name: str) -> dict:
+def resolved_service(service: dict, values: dict, distro: str, profile_name: str) -> ResolvedService:
     """A profile's service for one host: its command with ${distro} and the settings filled in
     (each value one shell word), its environment filled in, and whether it is enabled here
     (its `enabled_if` settings have the values it names) and, if not, why."""

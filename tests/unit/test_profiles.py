@@ -702,3 +702,18 @@ def test_a_new_robot_is_one_profile_file_and_nothing_else(tmp_path, rosdistro_ur
     refused = check()["refused"]
     assert any("mybot4" in line and "ros-jazzy-turtlebot4-nodee" in line and "did you mean ros-jazzy-turtlebot4-node?" in line
                for line in refused), refused
+
+
+def test_every_built_in_side_resolves_to_exactly_the_typed_keys():
+    """host.data.roslab_profile holds the keys ResolvedProfile declares, no more, no fewer."""
+    from roslab.profiles.resolve import ResolvedProfile, ResolvedService
+
+    for profile in builtin_profiles().values():
+        given = {name: setting.allowed[0] if setting.allowed else setting.default or "ABC123"
+                 for name, setting in profile.settings.items()}
+        for role in profile.sides:
+            resolved, problems = resolve_host(profile, given, distro=profile.distros[0], role=role)
+            assert problems == [], (profile.name, role, problems)
+            assert set(resolved) == set(ResolvedProfile.__annotations__), (profile.name, role)
+            for service in resolved["services"]:
+                assert set(service) == set(ResolvedService.__annotations__)
