@@ -386,18 +386,30 @@ def url(schemes: tuple[str, ...], placeholders: tuple[str, ...] = (), file_suffi
 
 
 def _file_url_problem(value: str, parts, context: Context, file_suffix: str | None) -> str | None:
+    return file_url_problem(value, context.roster_dir, "the roster's folder", file_suffix=file_suffix,
+                            why="a file:// URL may name only a file kept beside the roster (it is copied "
+                                "to every Pi)")
+
+
+def file_url_problem(url: str, folder: Path, named: str, *, file_suffix: str | None = None,
+                     why: str = "what the controller fetches is copied to every Pi") -> str | None:
+    """Why a file:// `url` (a URL or a URL prefix) does not lead inside `folder` (the roster's, or
+    a .repos file's), or None; not a file:// URL: None. Never into the roster's .roslab-state.
+    The one check of where a file:// URL may lead: settings, .repos files and rewrites alike."""
     from urllib.parse import unquote
 
+    parts = urlsplit(url)
+    if parts.scheme != "file":
+        return None
     if parts.netloc not in ("", "localhost") or parts.query or parts.fragment:
-        return f"{value!r}: a file:// URL names a file on this machine only (file:///path)"
+        return f"{url!r}: a file:// URL names a path on this machine only (file:///...)"
     path = Path(unquote(parts.path))
-    if not path.is_absolute() or ".." in path.parts:
-        return f"{value!r}: a file:// URL needs an absolute path without '..'"
+    if not path.is_absolute() or ".." in path.parts or "." in parts.path.split("/"):
+        return f"{url!r}: a file:// URL needs an absolute path without '..'"
     if file_suffix and not path.name.endswith(file_suffix):
-        return f"{value!r}: a file:// URL here names a {file_suffix} file"
-    if not _within(path, context.roster_dir) or _within(path, context.state_dir, strictly=False):
-        return (f"{value!r} leads outside the roster's folder ({_real(context.roster_dir)}): a file:// "
-                "URL may name only a file kept beside the roster (it is copied to every Pi)")
+        return f"{url!r}: a file:// URL here names a {file_suffix} file"
+    if not within(path, folder, strictly=False) or within(path, Path(folder) / STATE_DIR, strictly=False):
+        return f"{url!r} leads outside {named} ({_real(folder)}): {why}"
     return None
 
 
@@ -432,7 +444,7 @@ def _real(path: Path) -> Path:
     return Path(os.path.realpath(path))  # never raises, even on a symlink loop
 
 
-def _within(path: Path, folder: Path, strictly: bool = True) -> bool:
+def within(path: Path, folder: Path, strictly: bool = True) -> bool:
     """Whether `path` leads inside `folder` (both resolved); `strictly`: not the folder itself."""
     path, folder = _real(path), _real(folder)
     return (path != folder or not strictly) and (path == folder or folder in path.parents)
@@ -485,7 +497,7 @@ def secrets_file(value: str, context: Context | None = None) -> str | None:
     path = context.controller_path(value)
     if path.suffix not in (".yaml", ".yml"):
         return f"{value!r} is not a .yaml file: the secrets file is YAML, like secrets.yaml"
-    if not _within(path, context.roster_dir) or _within(path, context.state_dir, strictly=False):
+    if not within(path, context.roster_dir) or within(path, context.state_dir, strictly=False):
         return (f"{value!r} leads outside the roster's folder ({_real(context.roster_dir)}): "
                 "keep the secrets file beside the roster (or in a folder below it)")
     if context.roster_file is not None and _real(path) == _real(context.roster_file):
@@ -589,13 +601,13 @@ def cache_dir(value: str, context: Context | None = None) -> str | None:
         return problem
     path = context.controller_path(value)
     places = (_home(), context.roster_dir, Path(tempfile.gettempdir()))
-    if not any(_within(path, place) for place in places):
+    if not any(within(path, place) for place in places):
         return (f"{value!r} ({_real(path)}) is not a folder of its own inside your home directory, "
                 "the roster's folder or the temporary directory")
     for private in (_home() / ".ssh", _home() / ".gnupg", context.state_dir):
-        if _within(path, private, strictly=False):
+        if within(path, private, strictly=False):
             return f"{value!r} is inside {private}, which is not a cache"
-    if _within(context.roster_dir, path, strictly=False):
+    if within(context.roster_dir, path, strictly=False):
         return (f"{value!r} ({_real(path)}) holds the roster's folder (its secrets and .roslab-state): "
                 "a cache is a folder of its own")
     return None
@@ -614,7 +626,7 @@ def nodes_dir(value: str, context: Context | None = None) -> str | None:
     real = _real(path)
     if real == Path(real.anchor) or real == _real(_home()):
         return f"{value!r} is {real}: name the folder that holds your ROS packages"
-    if _within(context.roster_dir, real, strictly=False):
+    if within(context.roster_dir, real, strictly=False):
         return (f"{value!r} ({real}) holds the roster's folder (its secrets and .roslab-state): "
                 "name the folder that holds only your ROS packages")
     try:

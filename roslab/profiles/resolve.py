@@ -27,7 +27,6 @@ from roslab.quoting import shell_word
 UDEV_RULES_PATH = "/etc/udev/rules.d/60-roslab-profile.rules"
 
 
-@dataclass(frozen=True)
 class PythonEnv(TypedDict):
     venv: str | None  # relative to the login user's home; None: no venv
     requirements: list[str]  # "name==version"
@@ -74,6 +73,7 @@ class ResolvedProfile(TypedDict):
     services: list[ResolvedService]
 
 
+@dataclass(frozen=True)
 class ResolveError(Exception):
     field: str
     message: str

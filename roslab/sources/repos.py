@@ -30,6 +30,7 @@ from urllib.parse import unquote, urlsplit
 
 from roslab.ros import distro as distros
 from roslab.controller_files import kind_of
+from roslab.formats import file_url_problem, within
 from roslab.checked.loading import line_of, load_yaml
 from roslab.checked.problems import Problem, Report, display_path
 
@@ -68,11 +69,6 @@ class RepositoryProblem(Exception):
     def __init__(self, message: str, line: int | None = None):
         super().__init__(message)
         self.line = line
-
-
-def _within(path: Path, folder: Path) -> bool:
-    path, folder = Path(os.path.realpath(path)), Path(os.path.realpath(folder))
-    return path == folder or folder in path.parents
 
 
 def _url_text(text: str) -> bool:
@@ -223,7 +219,7 @@ def name_problem(name, base_dir: Path) -> str | None:
         return (f"{name!r} is not a .repos file name: a relative path ending in .repos (letters, digits "
                 "and _ . -), inside the folder it is relative to")
     path = base_dir / name
-    if not _within(path, base_dir):
+    if not within(path, base_dir, strictly=False):
         return f"{name!r} leads outside {base_dir} (a link?)"
     try:
         mode = os.stat(path).st_mode
@@ -285,25 +281,6 @@ def rewrites_problem(value, context=None) -> str | None:
         problem = file_url_problem(replacement, Path(context.roster_dir), "the roster's folder")
         if problem:
             return f"{prefix} -> {problem}"
-    return None
-
-
-def file_url_problem(url: str, folder: Path, named: str) -> str | None:
-    """Why a file:// `url` (a URL or a prefix) does not lead inside `folder` (the roster's, or
-    its .repos file's), or None; not a file:// URL: None. Never into .roslab-state."""
-    from roslab.formats import STATE_DIR
-
-    parts = urlsplit(url)
-    if parts.scheme != "file":
-        return None
-    if parts.netloc not in ("", "localhost") or parts.query or parts.fragment:
-        return f"{url!r}: a file:// URL names a path on this machine (file:///...)"
-    path = Path(unquote(parts.path))
-    if not path.is_absolute() or ".." in path.parts or "." in parts.path.split("/"):
-        return f"{url!r}: a file:// URL needs an absolute path without '..'"
-    if not _within(path, folder) or _within(path, folder / STATE_DIR):
-        return (f"{url!r} leads outside {named} ({os.path.realpath(folder)}): what the controller "
-                "fetches is copied to every Pi")
     return None
 
 
