@@ -62,7 +62,7 @@ def checked_classroom(path: Path):
     inventory file: they are checked here like the roster's own (roslab.roster.overrides).
     An invalid roster or override stops the run here, before pyinfra connects to any host.
     """
-    from roslab import remote_files, sudo, summary
+    from roslab import remote_files, ssh_keepalive, sudo, summary
     from roslab.roster import RosterError, load_roster, overrides
 
     try:
@@ -75,4 +75,5 @@ def checked_classroom(path: Path):
     summary.install()  # before pyinfra connects: a run where no host answers is summarised too
     sudo.install()  # before pyinfra's first command: no sudo password on a host's command line
     remote_files.install()  # every upload: never through a link, never via SFTP or a temp file
+    ssh_keepalive.install()  # a host that goes silent mid-step is lost in seconds, not waited for forever
     return classroom

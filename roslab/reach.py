@@ -171,10 +171,11 @@ def roster_state(groups: dict, limit: list[str] | None = None, **config):
     from pyinfra.api import Config, State
     from pyinfra.context import ctx_config, ctx_inventory, ctx_state
 
-    from roslab import sudo
+    from roslab import ssh_keepalive, sudo
 
     quiet_paramiko()
     sudo.install()  # no sudo password on a host's command line, whatever the command
+    ssh_keepalive.install()  # a host that goes silent is lost in seconds, not waited for forever
     inventory = roster_inventory(groups)
     chosen = select_hosts(inventory, limit)
     state = State(check_for_changes=False)

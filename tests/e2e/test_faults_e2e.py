@@ -39,7 +39,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from roslab import source_fetch
+from roslab import source_fetch, ssh_keepalive
 from roslab.network import state as network_state
 from roslab.network.confirm import ROLLBACK_GRACE
 from roslab.sandbox import git_standins, hosts, lifecycle, upstream
@@ -305,18 +305,35 @@ HOLDS = {
 }
 
 
-@pytest.mark.parametrize("when", list(HOLDS))
+def set_link(sandbox, host: str, state: str) -> None:
+    netns = sandbox.instance.netns(sandbox.host(host))
+    subprocess.run(["ip", "-n", netns, "link", "set", "eth0", state], check=True)
+
+
+@pytest.mark.parametrize("when, silently", [
+    ("while roslab reads it", False),
+    ("while a step runs a command", False),
+    # A Pi's power cut sends nothing, not even the end of its connections (the container's kill
+    # would): its link goes first. The run must not wait for it forever (roslab.ssh_keepalive).
+    ("while a step runs a command", True),
+], ids=["reading", "step", "step-silent"])
 def test_a_host_losing_its_power_mid_step_is_named_lost_in_that_step_and_one_rerun_heals_it(
-        sandbox, roster, converged, when):
+        sandbox, roster, converged, when, silently):
     arm, held, disarm, step = HOLDS[when]
     sandbox.sudo(MAIN, arm, check=True)
     run = start_deploy(sandbox, roster)
     try:
         wait_for(lambda: held(sandbox, MAIN), 120, f"{MAIN} to be held {when}", run)
+        if silently:
+            set_link(sandbox, MAIN, "down")
         lifecycle.power_cut(MAIN, sandbox.instance)
+        cut = time.monotonic()
         stderr = finished(run)
+        assert time.monotonic() - cut < ssh_keepalive.SILENT_FOR + 30  # found lost in seconds
     finally:
         ended(run)
+        if silently:
+            set_link(sandbox, MAIN, "up")
         powered_on(sandbox, MAIN)
         sandbox.sudo(MAIN, disarm)
     assert run.returncode == 1, stderr[-3000:]
