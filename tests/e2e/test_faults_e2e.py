@@ -274,9 +274,9 @@ def lines_naming(stderr: str, host: str) -> list[str]:
     return [line for line in summary_lines(stderr) if line.split(" ", 1)[0] == host]
 
 
-# What holds a host in the middle of a step until its power is cut: (what it holds, the command
-# that arms it on the host, how the test sees the host held, the command that disarms it, the
-# step the summary names).
+# What holds a host in the middle of a step until its power is cut, by when it holds it: (the
+# command that arms it on the host, how the test sees the host held, the command that disarms
+# it, the step the summary names).
 DPKG_HELD_UNIT = "roslab-faults-e2e-dpkg-held"
 APT_GATE = "/run/roslab-faults-e2e-gate"
 APT_GATE_CONF = "/etc/apt/apt.conf.d/00-roslab-faults-e2e-gate"
@@ -299,7 +299,8 @@ HOLDS = {
         "rm -f /var/lib/apt/periodic/update-success-stamp",
         lambda sandbox, host: (root := host_root(sandbox, host)) is not None
         and (root / f"{APT_GATE.lstrip('/')}.reached").exists(),
-        f"rm -f {APT_GATE_CONF} {APT_GATE} {APT_GATE}.reached",
+        # (a host still running lets its held hook go: opened for writing too, the FIFO ends its `cat`)
+        f"rm -f {APT_GATE_CONF}; if [ -p {APT_GATE} ]; then : <> {APT_GATE}; fi; rm -f {APT_GATE} {APT_GATE}.reached",
         "The apt lists are fresh: one apt-get update after every source is written",
     ),
 }

@@ -450,12 +450,13 @@ def test_a_change_whose_controller_was_killed_is_named_once_with_what_the_host_s
         result = run_network(data={"roslab_roster_path": roster}, renderer={**SERVER_2404, "last_change": last_change},
                              files={CLOUD_INIT: "network: {version: 2}\n"})
     (line,) = found_lines(caplog)
-    assert ("roslab: network: found at 10.0.0.200: the network change started 2026-11-26 10:00:00 "
-                           "UTC (from 10.0.0.200 to 10.0.0.11) was not seen to end: the controller stopped during it; ") in line
+    assert ("roslab: network: found at 10.0.0.200: the network change started 2026-11-26 10:00:00 UTC (from "
+            "10.0.0.200 to 10.0.0.11) was not seen to end: the controller stopped during it; ") in line
     assert words in line and "\x1b" not in line
     # and the change is made again: a new record (its own token) replaces the old one when it starts
     operation = the_operation(result)
-    [started] = [c for c in operation.commands if isinstance(c, FunctionCommand) and c.function.__name__ == "change_started"]
+    [started] = [command for command in operation.commands
+                 if isinstance(command, FunctionCommand) and command.function.__name__ == "change_started"]
     assert started.kwargs["token"] and started.kwargs["token"] != "t0k"
     started.function(None, SimpleNamespace(name="pi"), *started.args, **started.kwargs)
     assert network_state.pending_changes(roster)["pi"]["token"] == started.kwargs["token"]
