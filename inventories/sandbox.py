@@ -13,6 +13,7 @@ import sys as _sys
 from pathlib import Path as _Path
 
 from roslab import remote_files as _remote_files
+from roslab.ssh import keepalive as _ssh_keepalive
 from roslab.ssh import sudo as _sudo
 from roslab.reporting import summary as _summary
 from roslab.reach import refuse_unmatched_limit as _refuse_unmatched_limit
@@ -35,6 +36,7 @@ except _RosterError as _error:
 _summary.install()  # before pyinfra connects: a run where no host answers is summarised too
 _sudo.install()  # before pyinfra's first command: no sudo password on a host's command line
 _remote_files.install()  # every upload: never through a link, never via SFTP or a temp file
+_ssh_keepalive.install()  # a host that goes silent mid-step is lost in seconds, not waited for forever
 _groups = _inventory_groups(_classroom)
 _refuse_unmatched_limit(_groups)  # a --limit that selects no host stops here, naming it
 globals().update(_groups)

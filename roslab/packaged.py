@@ -63,6 +63,7 @@ def checked_classroom(path: Path):
     An invalid roster or override stops the run here, before pyinfra connects to any host.
     """
     from roslab import remote_files
+    from roslab.ssh import keepalive as ssh_keepalive
     from roslab.ssh import sudo
     from roslab.reporting import summary
     from roslab.roster import RosterError, load_roster, overrides
@@ -77,4 +78,5 @@ def checked_classroom(path: Path):
     summary.install()  # before pyinfra connects: a run where no host answers is summarised too
     sudo.install()  # before pyinfra's first command: no sudo password on a host's command line
     remote_files.install()  # every upload: never through a link, never via SFTP or a temp file
+    ssh_keepalive.install()  # a host that goes silent mid-step is lost in seconds, not waited for forever
     return classroom

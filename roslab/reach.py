@@ -205,11 +205,13 @@ def roster_state(groups: dict, limit: list[str] | None = None, **config):
     from pyinfra.api import Config, State
     from pyinfra.context import ctx_config, ctx_inventory, ctx_state
 
+    from roslab.ssh import keepalive as ssh_keepalive
     from roslab.ssh import sudo
     from roslab.ssh.quiet import quiet_paramiko
 
     quiet_paramiko()
     sudo.install()  # no sudo password on a host's command line, whatever the command
+    ssh_keepalive.install()  # a host that goes silent is lost in seconds, not waited for forever
     inventory = roster_inventory(groups)
     names, _ = limit_selection(names_of(groups), limit)
     chosen = [inventory.get_host(name) for name in names]

@@ -134,12 +134,21 @@ def _confirm_at_new_address(host, arguments: dict, token: str, new_address: str,
 
 
 def change_started(state, host, old_address: str, new_address: str, confirm_timeout: int,
-                   roster_path: str | None) -> bool:
+                   roster_path: str | None, token: str | None = None) -> bool:
     """Runs on the controller just before the host is told to apply: the change is pending
     until confirm_network_change sees it end (network_state.record_pending)."""
     if roster_path:
         started = time.strftime("%Y-%m-%d %H:%M:%S %Z")
-        network_state.record_pending(roster_path, host.name, old_address, new_address, confirm_timeout, started)
+        network_state.record_pending(roster_path, host.name, old_address, new_address, confirm_timeout, started,
+                                     token=token)
+    return True
+
+
+def change_ended(state, host, roster_path: str | None) -> bool:
+    """Runs on the controller when a run finds the host of a change an earlier run left pending
+    with nothing more to change: that change is over (the run said what became of it)."""
+    if roster_path:
+        network_state.clear_pending(roster_path, host.name)
     return True
 
 

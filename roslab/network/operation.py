@@ -35,9 +35,12 @@ from roslab.network.apply import (
     RUN_DIR,
     SCRIPT_INSTALL_PATH,
     STATE_DIR,
+    STATUS_FILE,
     Plan,
+    Status,
 )
-from roslab.network.confirm import change_started, confirm_network_change
+from roslab.network import state as network_state
+from roslab.network.confirm import change_ended, change_started, confirm_network_change
 from roslab.network.render import (
     CLOUD_INIT_DISABLE_FILE,
     CLOUD_INIT_FILE,
@@ -57,6 +60,7 @@ APPLY_SCRIPT = Path(apply.__file__)
 SCRIPT_PATH = SCRIPT_INSTALL_PATH
 PLAN_PATH = f"{RUN_DIR}/plan.json"
 RECOVERED_PATH = f"{STATE_DIR}/{RECOVERED_FILE}"
+STATUS_PATH = f"{RUN_DIR}/{STATUS_FILE}"
 
 
 class SecretStdin:
@@ -77,7 +81,9 @@ class SecretStdin:
 class NetworkRenderer(FactBase):
     """Who manages the host's network, and whether cloud-init writes it.
 
-    Returns ``{"renderer": RendererFacts(...), "cloud_init": bool}``.
+    Returns ``{"renderer": RendererFacts(...), "cloud_init": bool, "recovered": dict | None,
+    "last_change": Status | None}``: what the boot unit restored (until reported), and how the
+    last change since boot ended as the host's status file says (/run: gone at a restart).
     """
 
     def command(self) -> str:
@@ -90,6 +96,7 @@ class NetworkRenderer(FactBase):
             f"if ls {NETPLAN_DIR}/90-NM-*.yaml >/dev/null 2>&1; then echo nm_profiles=yes; fi; "
             f"if [ -d /etc/cloud ] || [ -e {NETPLAN_DIR}/50-cloud-init.yaml ]; then echo cloud_init=yes; fi; "
             f"if [ -f {RECOVERED_PATH} ]; then echo recovered=$(head -c 2000 {RECOVERED_PATH} | tr -d '\\n'); fi; "
+            f"if [ -f {STATUS_PATH} ]; then echo last_change=$(head -c 2000 {STATUS_PATH} | tr -d '\\n'); fi; "
             "(. /etc/os-release && echo version=$VERSION_ID)"
         )
 
@@ -107,8 +114,14 @@ class NetworkRenderer(FactBase):
             recovered = json.loads(values["recovered"]) if values.get("recovered") else None
         except ValueError:
             recovered = {"reason": "its network configuration was restored at boot (record unreadable)"}
+        try:
+            last = json.loads(values["last_change"]) if values.get("last_change") else None
+            last_change = Status(**last) if isinstance(last, dict) else None
+        except (ValueError, TypeError):
+            last_change = None
         return {"renderer": renderer, "cloud_init": values.get("cloud_init") == "yes",
-                "recovered": recovered if isinstance(recovered, dict) else None}
+                "recovered": recovered if isinstance(recovered, dict) else None,
+                "last_change": last_change}
 
 
 class NetplanFilesConfiguring(FactBase):
@@ -220,6 +233,17 @@ def network_in_effect(
         )
         yield StringCommand("rm", "-f", RECOVERED_PATH)  # reported once
 
+    # A change an earlier run launched and never saw end (its controller was killed): the host
+    # answers here now, so say what became of it. The boot unit's record (above) already says
+    # it when the host restarted; this run's own change, or change_ended, clears the record.
+    unfinished = network_state.pending_changes(roster_path).get(host.name) if roster_path else None
+    if unfinished and not recovered:
+        host.log_styled(
+            f"roslab: network: found at {current_address}: "
+            f"{unfinished_change_words(unfinished, found.get('last_change'))}",
+            fg="yellow", log_func=logger.warning,
+        )
+
     changed = [path for path, content in wanted.files.items()
                if host.get_fact(Sha256File, path=path) != sha256(content)]
     leftover = [path for path in wanted.superseded if host.get_fact(File, path=path)]
@@ -228,7 +252,9 @@ def network_in_effect(
         for path in loose:
             # Same content, wrong owner or mode: fix in place, nothing to apply.
             yield StringCommand("chown", "root:root", path, "&&", "chmod", "0600", path)
-        if not loose and not recovered:
+        if unfinished:
+            yield FunctionCommand(change_ended, (), {"roster_path": roster_path})
+        elif not loose and not recovered:
             host.noop(f"network configuration already in place ({layout.reason})")
         return
 
@@ -264,7 +290,7 @@ def network_in_effect(
     yield FunctionCommand(
         change_started, (),
         {"old_address": current_address, "new_address": reach_address,
-         "confirm_timeout": settings.confirm_timeout, "roster_path": roster_path},
+         "confirm_timeout": settings.confirm_timeout, "roster_path": roster_path, "token": plan.token},
     )
     yield FunctionCommand(
         confirm_network_change,
@@ -277,6 +303,30 @@ def network_in_effect(
             "roster_path": roster_path,
         },
     )
+
+
+def _printable(text, limit: int = 300) -> str:
+    """A host's words for the teacher's terminal: printable characters only, bounded."""
+    return "".join(char for char in str(text or "") if char.isprintable())[:limit]
+
+
+def unfinished_change_words(pending: dict, last_change: Status | None) -> str:
+    """What became of a change the controller launched and did not see end (its record in
+    `.roslab-state/pending-network.yaml`), from the host's status file of the change."""
+    said = (f"the network change started {_printable(pending.get('started'), 40) or '?'} (from "
+            f"{_printable(pending.get('from'), 60) or '?'} to {_printable(pending.get('to'), 60) or '?'}) "
+            "was not seen to end: the controller stopped during it; ")
+    token = pending.get("token")
+    if last_change is None or (token and last_change.token != token):
+        return said + "the host keeps no record of how it ended (it restarted since, or the change never began)"
+    message = _printable(last_change.message)
+    if last_change.state == apply.STATE_ROLLED_BACK:
+        return said + f"the host rolled it back by itself ({message or 'no confirmation'})"
+    if last_change.state == apply.STATE_CONFIRMED:
+        return said + "the host kept it (it was confirmed)"
+    if last_change.state == apply.STATE_WAITING:
+        return said + "the host still waits for its confirmation and restores its previous settings by itself"
+    return said + f"it ended on the host as {_printable(last_change.state, 40)}" + (f": {message}" if message else "")
 
 
 def network_in_effect_reads(settings: NetworkSettings) -> list:

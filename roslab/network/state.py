@@ -101,12 +101,15 @@ def _write_pending(path: Path, pending: dict) -> None:
 
 
 def record_pending(roster_path: str | os.PathLike, host: str, old_address: str, new_address: str,
-                   confirm_timeout: int, started: str) -> None:
-    """Note that `host` is being moved from `old_address` to `new_address` (until it ends)."""
+                   confirm_timeout: int, started: str, token: str | None = None) -> None:
+    """Note that `host` is being moved from `old_address` to `new_address` (until it ends);
+    `token`: the change's, as the host's status file names it (what became of it, later)."""
     with _pending_lock:
         pending = pending_changes(roster_path)
         pending[host] = {"from": old_address, "to": new_address, "started": started,
                          "confirm_timeout": int(confirm_timeout)}
+        if token:
+            pending[host]["token"] = token
         _write_pending(pending_path(roster_path), pending)
 
 

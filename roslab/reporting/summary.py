@@ -162,6 +162,29 @@ def connection_lost(host) -> bool:
         return False
 
 
+def connection_of(host):
+    """The SSH connection (paramiko's transport) pyinfra reaches `host` over now, or None."""
+    client = getattr(getattr(host, "connector", None), "client", None)
+    try:
+        return client.get_transport() if client is not None else None
+    except Exception:  # noqa: BLE001 - a half-closed client: nothing more to learn
+        return None
+
+
+def closed_by_the_host(connection) -> bool:
+    """Whether `connection` ended because its host went away: paramiko keeps the end of file or
+    socket error that stopped it, while a connection the controller closed (the run's end) keeps
+    none. A host killed mid-command may end the command a moment before its connection (its
+    processes die one by one), so the step's failure alone cannot tell; by the summary it can."""
+    if connection is None:
+        return False
+    try:
+        return not connection.is_active() and isinstance(getattr(connection, "saved_exception", None),
+                                                          (EOFError, OSError))
+    except Exception:  # noqa: BLE001 - nothing more to learn
+        return False
+
+
 def pending_network_change(host) -> str | None:
     """The network change the controller started on `host` and did not see end, in words, or None."""
     from roslab.network import state as network_state
@@ -179,6 +202,7 @@ class HostEvents:
     stop: tuple[str, str] | None = None  # (step, message) from record_stop
     connect_error: str | None = None
     lost: bool = False  # the connection was found closed when a step failed
+    connection: Any = None  # the connection a step failed on (closed_by_the_host, at the summary)
     log: deque = field(default_factory=lambda: deque(maxlen=MAX_LOG_LINES))
 
 
@@ -231,6 +255,7 @@ class RunSummary(BaseStateCallback):
         events = self.host(host.name)
         events.error_ops.append(op_hash)
         events.lost = events.lost or connection_lost(host)
+        events.connection = events.connection or connection_of(host)
 
     # roslab's own events
 
@@ -351,13 +376,14 @@ class RunSummary(BaseStateCallback):
 
     def _failure(self, state: State, host) -> tuple[str, str]:
         events = self.host(host.name)
+        lost = events.lost or closed_by_the_host(events.connection)
         if events.stop:
             step, message = events.stop
             return step, stop_reason(message) or "roslab stopped it"
         op_hash = self.failed_op(state, host)
         if op_hash is not None:
             reason = self.op_reason(state, host, op_hash)
-            if events.lost:
+            if lost:
                 # the step's own words, when it had any beyond pyinfra's socket error
                 said = "" if reason == NO_ERROR_PRINTED or _SOCKET_ERROR.search(reason) else f" ({reason})"
                 return op_name(state, op_hash, host), LOST_CONNECTION + said
@@ -377,7 +403,7 @@ class RunSummary(BaseStateCallback):
         # own log line (most_useful_line prefers it).
         errors = [line for line in events.log if line.level >= logging.ERROR]
         reason = most_useful_line(line.text for line in errors)
-        if reason and events.lost:  # "could not load fact: ..." of a host that went away
+        if reason and lost:  # "could not load fact: ..." of a host that went away
             reason = LOST_CONNECTION
         if reason:
             step = next((line.step for line in reversed(errors) if line.step), None)
@@ -920,8 +946,10 @@ class _LogCapture(logging.Handler):
                 # before deploy.py's first host registers the state (no host connected), only
                 # the record's own host is known
                 known = host or (state.inventory.get_host(name, None) if state is not None else None)
-                if known is not None and connection_lost(known):
-                    summary.host(name).lost = True
+                if known is not None:
+                    events = summary.host(name)
+                    events.lost = events.lost or connection_lost(known)
+                    events.connection = events.connection or connection_of(known)
             summary.record_log(name, LogLine(
                 record.levelno,
                 text,

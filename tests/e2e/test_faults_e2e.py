@@ -13,20 +13,39 @@ What a teacher notices, checked here:
   never rebuilt from what upstream says now (a tag moved meanwhile is not taken);
 - a team switching profile (the roster's own `faults_bot`, whose robot has a service and the
   dialout group, to demo) loses the old profile's unit and group, is told so in one line per
-  host, and the next run is a no-op.
+  host, and the next run is a no-op;
+- a host whose power is cut in the middle of a step (held there by something the test holds on
+  the host, never by a race with a sleep), while roslab reads it or while a step runs a command,
+  is named in the summary in one line as lost in that step; the other host converges; once it is
+  powered on again one re-run heals it and the next is a no-op;
+- a controller killed (SIGKILL) after a host applied a network change and before the change was
+  confirmed: the host rolls itself back to its old address within its confirmation window; a run
+  in that window names the address it tried and the pending change; the next run names what
+  became of the change, makes it again and confirms it; the one after is a no-op.
 """
 
 from __future__ import annotations
 
+import json
 import os
+import shlex
+import signal
+import socket
+import subprocess
+import tempfile
+import time
 from pathlib import Path
 
 import pytest
 import yaml
 
 from roslab.sources import fetch as source_fetch
-from roslab.sandbox import git_standins, upstream
-from tests.e2e.conftest import bring_up, summary_lines
+from roslab.ssh import keepalive as ssh_keepalive
+from roslab.network import state as network_state
+from roslab.network.confirm import ROLLBACK_GRACE
+from roslab.sandbox import git_standins, hosts, lifecycle, upstream
+from roslab.reporting.summary import LOST_CONNECTION
+from tests.e2e.conftest import BIN, REPO, bring_up, summary_lines
 
 pytestmark = pytest.mark.e2e
 
@@ -198,3 +217,237 @@ def test_a_team_switching_profile_loses_the_old_units_and_groups_says_so_once_th
     again = deploy(sandbox, roster)
     assert again.returncode == 0 and again.changed == {}, (again.changed, again.stderr[-3000:])
     assert "faults_bot -> demo" not in again.stderr
+
+
+# Issue 28: a host lost in the middle of a step, a controller killed in the middle of a network
+# change. Each test leaves the class as it found it (hosts running at their roster addresses,
+# converged), also when it fails.
+
+MAIN = "team1-main"
+
+
+def start_deploy(sandbox, roster: Path) -> subprocess.Popen:
+    """deploy.py on the class as a teacher runs it, in the background (the test acts meanwhile);
+    its output goes to a file, so a full pipe never holds it."""
+    output = tempfile.TemporaryFile("w+")
+    run = subprocess.Popen([str(BIN / "pyinfra"), "-y", "inventories/lab.py", "deploy.py"], cwd=REPO,
+                           env={**sandbox.env, "ROSLAB_ROSTER": str(roster)},
+                           stdout=subprocess.DEVNULL, stderr=output, text=True)
+    run.output = output
+    return run
+
+
+def finished(run: subprocess.Popen) -> str:
+    """The run's output once it ended by itself."""
+    run.wait(timeout=300)
+    run.output.seek(0)
+    return run.output.read()
+
+
+def ended(run: subprocess.Popen) -> None:
+    """A run still going when a test fails is killed, so nothing of it outlives the test."""
+    if run.poll() is None:
+        run.kill()
+    run.wait()
+    run.output.close()
+
+
+def host_root(sandbox, host: str) -> Path | None:
+    """The host's / as this machine sees it (through its PID 1), or None when it is off."""
+    pid = hosts.container_init_pid(sandbox.instance, host)
+    return Path(f"/proc/{pid}/root") if pid is not None else None
+
+
+def wait_for(predicate, seconds: float, what: str, run: subprocess.Popen | None = None) -> None:
+    deadline = time.monotonic() + seconds
+    while not predicate():
+        assert run is None or run.poll() is None, f"the run ended (exit {run.returncode}) before {what}"
+        assert time.monotonic() < deadline, f"gave up waiting for {what}"
+        time.sleep(0.2)
+
+
+def powered_on(sandbox, host: str) -> None:
+    if not hosts.is_running(sandbox.instance, host):
+        lifecycle.power_on(host, sandbox.instance)
+
+
+def lines_naming(stderr: str, host: str) -> list[str]:
+    return [line for line in summary_lines(stderr) if line.split(" ", 1)[0] == host]
+
+
+# What holds a host in the middle of a step until its power is cut, by when it holds it: (the
+# command that arms it on the host, how the test sees the host held, the command that disarms
+# it, the step the summary names).
+DPKG_HELD_UNIT = "roslab-faults-e2e-dpkg-held"
+APT_GATE = "/run/roslab-faults-e2e-gate"
+APT_GATE_CONF = "/etc/apt/apt.conf.d/00-roslab-faults-e2e-gate"
+HOLDS = {
+    # roslab reads the host in one command (the probe), whose apt-get check waits for the dpkg
+    # lock (apt_lock_timeout): the test holds that lock.
+    "while roslab reads it": (
+        f"systemd-run --unit={DPKG_HELD_UNIT} --collect python3 -c 'import fcntl, time; "
+        "lock = open(\"/var/lib/dpkg/lock-frontend\", \"w\"); fcntl.lockf(lock, fcntl.LOCK_EX); "
+        "time.sleep(3600)'",
+        lambda sandbox, host: sandbox.ssh(host, "pgrep -x apt-get").returncode == 0,
+        f"systemctl stop {DPKG_HELD_UNIT} 2>/dev/null; true",
+        "The host runs an Ubuntu release that has packages for its ROS 2 distro",
+    ),
+    # a step running a command: the lists made stale, apt-get update runs its Pre-Invoke hook,
+    # which waits on a FIFO nobody writes.
+    "while a step runs a command": (
+        f"mkfifo -m 0600 {APT_GATE} && printf '%s\\n' "
+        f"'APT::Update::Pre-Invoke {{\"touch {APT_GATE}.reached; cat {APT_GATE}\";}};' > {APT_GATE_CONF} && "
+        "rm -f /var/lib/apt/periodic/update-success-stamp",
+        lambda sandbox, host: (root := host_root(sandbox, host)) is not None
+        and (root / f"{APT_GATE.lstrip('/')}.reached").exists(),
+        # (a host still running lets its held hook go: opened for writing too, the FIFO ends its `cat`)
+        f"rm -f {APT_GATE_CONF}; if [ -p {APT_GATE} ]; then : <> {APT_GATE}; fi; rm -f {APT_GATE} {APT_GATE}.reached",
+        "The apt lists are fresh: one apt-get update after every source is written",
+    ),
+}
+
+
+def set_link(sandbox, host: str, state: str) -> None:
+    netns = sandbox.instance.netns(sandbox.host(host))
+    subprocess.run(["ip", "-n", netns, "link", "set", "eth0", state], check=True)
+
+
+@pytest.mark.parametrize("when, silently", [
+    ("while roslab reads it", False),
+    ("while a step runs a command", False),
+    # A Pi's power cut sends nothing, not even the end of its connections (the container's kill
+    # would): its link goes first. The run must not wait for it forever (roslab.ssh.keepalive).
+    ("while a step runs a command", True),
+], ids=["reading", "step", "step-silent"])
+def test_a_host_losing_its_power_mid_step_is_named_lost_in_that_step_and_one_rerun_heals_it(
+        sandbox, roster, converged, when, silently):
+    arm, held, disarm, step = HOLDS[when]
+    sandbox.sudo(MAIN, arm, check=True)
+    run = start_deploy(sandbox, roster)
+    try:
+        wait_for(lambda: held(sandbox, MAIN), 120, f"{MAIN} to be held {when}", run)
+        if silently:
+            set_link(sandbox, MAIN, "down")
+        lifecycle.power_cut(MAIN, sandbox.instance)
+        cut = time.monotonic()
+        stderr = finished(run)
+        assert time.monotonic() - cut < ssh_keepalive.SILENT_FOR + 30  # found lost in seconds
+    finally:
+        ended(run)
+        if silently:
+            set_link(sandbox, MAIN, "up")
+        powered_on(sandbox, MAIN)
+        sandbox.sudo(MAIN, disarm)
+    assert run.returncode == 1, stderr[-3000:]
+    (line,) = lines_naming(stderr, MAIN)
+    assert line.startswith(f'{MAIN} failed in "{step}'), line
+    assert line.endswith(f": {LOST_CONNECTION}"), line  # nothing of pyinfra's own words
+    assert lines_naming(stderr, ROBOT) == [f"{ROBOT} ok"], summary_lines(stderr)  # the other host carried on
+
+    healed = deploy(sandbox, roster)
+    assert healed.returncode == 0, healed.stderr[-3000:]
+    assert set(healed.changes_per_host()) <= {MAIN}, healed.changed
+    again = deploy(sandbox, roster)
+    assert again.returncode == 0 and again.changed == {}, (again.changed, again.stderr[-3000:])
+
+
+def answers_ssh(address: str) -> bool:
+    try:
+        with socket.create_connection((address, 22), timeout=3):
+            return True
+    except OSError:
+        return False
+
+
+def network_status(sandbox, host: str) -> dict:
+    """The host's status file of its last network change (roslab.network.apply)."""
+    root = host_root(sandbox, host)
+    try:
+        return json.loads((root / "run/roslab/network/status.json").read_text()) if root else {}
+    except (OSError, ValueError):
+        return {}
+
+
+CONFIRM_TIMEOUT = 60  # the host's window: a run started right after the kill connects well within it
+
+
+def network_roster(sandbox, roster: Path, address: str) -> Path:
+    """The class's roster with the robot's static address: beside the sandbox's own roster, whose
+    known_hosts (and so every address the robot gets) it shares."""
+    folder = sandbox.instance.state_dir
+    (folder / "class.repos").write_text((roster.parent / "class.repos").read_text())
+    data = yaml.safe_load(roster.read_text())
+    data["classroom"]["network_enabled"] = True
+    data["teams"]["team1"]["hosts"][ROBOT].update(
+        network_address=f"{address}/{sandbox.instance.subnet.prefixlen}",
+        network_gateway=str(next(sandbox.instance.subnet.hosts())), network_ipv6="ignore",
+        network_confirm_timeout=CONFIRM_TIMEOUT)
+    path = folder / "roster-faults-network.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def test_a_controller_killed_mid_network_change_the_host_rolls_back_and_the_next_runs_say_so_and_heal(
+        sandbox, roster, converged):
+    robot = sandbox.host(ROBOT)
+    old = robot.address
+    new = str(sandbox.instance.subnet.network_address + 77)
+    moving = network_roster(sandbox, roster, new)
+    blackhole = ["ip", "route", "add", "blackhole", f"{new}/32"]
+    # The controller cannot reach the new address (a switch that does not carry it yet), so the
+    # host waits in its confirmation window for as long as the test needs to kill the controller.
+    subprocess.run(blackhole, check=True)
+    run = start_deploy(sandbox, moving)
+    try:
+        wait_for(lambda: network_status(sandbox, ROBOT).get("state") == "waiting-for-confirmation", 180,
+                 f"{ROBOT} to wait for its network change's confirmation", run)
+        assert network_state.pending_changes(moving)[ROBOT]["to"] == new  # launched, not confirmed
+        run.send_signal(signal.SIGKILL)
+        run.wait(timeout=60)
+        killed = time.monotonic()
+        subprocess.run(["ip", "route", "del", "blackhole", f"{new}/32"], check=True)
+
+        # In the window: the host is at its new address, the next run tries the old one.
+        within = deploy(sandbox, moving)
+        assert network_status(sandbox, ROBOT).get("state") == "waiting-for-confirmation"  # still in the window
+        assert within.returncode == 1, within.stderr[-3000:]
+        (line,) = lines_naming(within.stderr, ROBOT)
+        assert line.startswith(f'{ROBOT} failed in "connect": tried {old}: '), line
+        assert f"(from {old} to {new}) was not seen to end: the controller stopped during it" in line, line
+        assert f"within {CONFIRM_TIMEOUT} s unless it was confirmed, so it answers at {old} or at {new}" in line
+        assert lines_naming(within.stderr, MAIN) == [f"{MAIN} ok"]
+
+        # The host rolls itself back to its old address within its window.
+        wait_for(lambda: network_status(sandbox, ROBOT).get("state") == "rolled-back" and answers_ssh(old),
+                 CONFIRM_TIMEOUT + ROLLBACK_GRACE, f"{ROBOT} to roll back to {old}")
+        assert time.monotonic() - killed < CONFIRM_TIMEOUT + ROLLBACK_GRACE
+
+        healed = deploy(sandbox, moving)
+        assert healed.returncode == 0, healed.stderr[-3000:]
+        said = [line for line in healed.stderr.splitlines() if "network: found at" in line]
+        assert len(said) == 1 and f"[{ROBOT}]" in said[0], said
+        assert f"found at {old}: the network change started " in said[0]
+        assert f"(from {old} to {new}) was not seen to end: the controller stopped during it; the host rolled it " \
+               f"back by itself (the controller did not confirm within {CONFIRM_TIMEOUT} s" in said[0], said[0]
+        assert network_state.last_known_address(moving, ROBOT) == new and answers_ssh(new) and not answers_ssh(old)
+        assert network_state.pending_changes(moving) == {}
+        again = deploy(sandbox, moving)
+        assert again.returncode == 0 and again.changed == {}, (again.changed, again.stderr[-3000:])
+        assert "network: found at" not in again.stderr
+    finally:
+        ended(run)
+        subprocess.run(["ip", "route", "del", "blackhole", f"{new}/32"], capture_output=True)
+        back_to_its_roster_address(sandbox, roster, moving, old, new)
+
+
+def back_to_its_roster_address(sandbox, roster: Path, moving: Path, old: str, new: str) -> None:
+    """The robot at its roster address again for the class's other rosters (whose state does not
+    know it moved): once a change in flight ended, moved back by the same deploy if it is elsewhere."""
+    deadline = time.monotonic() + CONFIRM_TIMEOUT + ROLLBACK_GRACE
+    while network_status(sandbox, ROBOT).get("state") in ("applying", "waiting-for-confirmation") \
+            and time.monotonic() < deadline:
+        time.sleep(1)
+    if not answers_ssh(old):
+        back = deploy(sandbox, network_roster(sandbox, roster, old))
+        assert answers_ssh(old), back.stderr[-3000:]
+    moving.unlink(missing_ok=True)

@@ -15,7 +15,7 @@ from pyinfra.facts.files import File, Sha256File
 from deploy.network import network
 from roslab.network import confirm as network_confirm
 from roslab.network import state as network_state
-from roslab.network.apply import NETPLAN_NM, NM_KEYFILE, Plan
+from roslab.network.apply import NETPLAN_NM, NM_KEYFILE, Plan, Status
 from roslab.network.operation import MaskedFileContents, NetplanFilesConfiguring, NetworkRenderer
 from roslab.network.render import RendererFacts
 from roslab import settings as schema
@@ -416,3 +416,78 @@ def test_a_started_change_is_pending_until_it_ends_and_stays_pending_when_the_ho
     started()
     assert confirm(FakeHost(FakeConnector(lambda address: address == "10.0.0.200", rolled_back)), tmp_path) is False
     assert network_state.pending_changes(roster) == {}
+
+
+# A controller killed during a change (issue 28): the next run that finds the host says what
+# became of the change, from the host's own status file, and then goes on.
+
+def pending_from_a_killed_run(tmp_path, token="t0k") -> str:
+    roster = tmp_path / "roster.yaml"
+    network_state.record_pending(roster, "pi", "10.0.0.200", "10.0.0.11", 40, "2026-11-26 10:00:00 UTC",
+                                 token=token)
+    return str(roster)
+
+
+def found_lines(caplog) -> list[str]:
+    """The distinct "found at" lines (the harness runs an operation's body to plan and to execute)."""
+    return sorted({record.getMessage() for record in caplog.records if "found at" in record.getMessage()})
+
+
+@pytest.mark.parametrize("last_change, words", [
+    (Status("t0k", "rolled-back", "the controller did not confirm within 40 s"),
+     "the host rolled it back by itself (the controller did not confirm within 40 s)"),
+    (Status("t0k", "confirmed"), "the host kept it (it was confirmed)"),
+    (Status("t0k", "waiting-for-confirmation"), "the host still waits for its confirmation"),
+    (Status("t0k", "rollback-failed", "netplan apply failed\x1b[2J"),
+     "it ended on the host as rollback-failed: netplan apply failed[2J"),
+    (Status("an-earlier-run", "rolled-back", "not this change"), "the host keeps no record of how it ended"),
+    (None, "the host keeps no record of how it ended (it restarted since"),
+])
+def test_a_change_whose_controller_was_killed_is_named_once_with_what_the_host_says(
+        caplog, tmp_path, last_change, words):
+    roster = pending_from_a_killed_run(tmp_path)
+    with caplog.at_level(logging.WARNING):
+        result = run_network(data={"roslab_roster_path": roster}, renderer={**SERVER_2404, "last_change": last_change},
+                             files={CLOUD_INIT: "network: {version: 2}\n"})
+    (line,) = found_lines(caplog)
+    assert ("roslab: network: found at 10.0.0.200: the network change started 2026-11-26 10:00:00 UTC (from "
+            "10.0.0.200 to 10.0.0.11) was not seen to end: the controller stopped during it; ") in line
+    assert words in line and "\x1b" not in line
+    # and the change is made again: a new record (its own token) replaces the old one when it starts
+    operation = the_operation(result)
+    [started] = [command for command in operation.commands
+                 if isinstance(command, FunctionCommand) and command.function.__name__ == "change_started"]
+    assert started.kwargs["token"] and started.kwargs["token"] != "t0k"
+    started.function(None, SimpleNamespace(name="pi"), *started.args, **started.kwargs)
+    assert network_state.pending_changes(roster)["pi"]["token"] == started.kwargs["token"]
+
+
+def test_a_killed_runs_change_the_host_kept_is_named_then_cleared_and_the_next_run_is_a_noop(caplog, tmp_path):
+    roster = pending_from_a_killed_run(tmp_path)
+    in_place = {path: content for path, content in reaching_host(run_network()).items() if path.startswith(STAGED)}
+    files = {path[len(STAGED):]: content for path, content in in_place.items()}
+    renderer = {**SERVER_2404, "last_change": Status("t0k", "confirmed")}
+    with caplog.at_level(logging.WARNING):
+        result = run_network(data={"roslab_roster_path": roster}, renderer=renderer, files=files)
+    (line,) = found_lines(caplog)
+    assert "the host kept it (it was confirmed)" in line
+    operation = the_operation(result)
+    assert text(operation) == ["change_ended"]  # nothing reaches the host
+    [ended] = operation.commands
+    ended.function(None, SimpleNamespace(name="pi"), *ended.args, **ended.kwargs)
+    assert network_state.pending_changes(roster) == {}
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        again = run_network(data={"roslab_roster_path": roster}, renderer=renderer, files=files)
+    assert found_lines(caplog) == [] and [op for op in again.operations if op.commands] == []
+
+
+def test_the_hosts_status_of_its_last_change_is_read_with_the_renderer():
+    fact = NetworkRenderer()
+    assert "/run/roslab/network/status.json" in fact.command()
+    status = json.dumps({"token": "t0k", "state": "rolled-back", "message": "m", "backup": None})
+    assert fact.process(["networkd=active", f"last_change={status}"])["last_change"] == Status(
+        "t0k", "rolled-back", "m", None)
+    for garbage in ("{", "[]", '{"token": "t", "unknown": 1}'):
+        assert fact.process(["networkd=active", f"last_change={garbage}"])["last_change"] is None
+    assert fact.process(["networkd=active"])["last_change"] is None

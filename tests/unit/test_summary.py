@@ -592,6 +592,68 @@ def test_a_host_gone_while_roslab_read_it_is_named_as_lost_not_as_a_fact_with_85
     assert "HostProbe" not in line
 
 
+class _Transport:
+    """paramiko's transport: active until it ends, keeping the error that ended it (an end of
+    file when the host went away; none when the controller closed it)."""
+
+    def __init__(self):
+        self.active, self.saved_exception = True, None
+
+    def is_active(self) -> bool:
+        return self.active
+
+
+class _Client:
+    def __init__(self, transport):
+        self.transport = transport
+
+    def get_transport(self):
+        return self.transport
+
+
+@pytest.mark.parametrize("reading", [False, True], ids=["step", "reading"])
+def test_a_host_whose_command_ended_a_moment_before_its_connection_is_named_as_lost(reading):
+    # Its processes die one by one: sshd reports the command killed, then the connection ends.
+    state, handler = classroom("team1-main", "team1-robot")
+    robot = state.inventory.get_host("team1-robot")
+    connection = _Transport()
+    robot.connector.client = _Client(connection)
+    if reading:
+        with ctx_state.use(state), ctx_host.use(robot):
+            robot.current_deploy_name = SUPPORTED
+            logger.error(f"{robot.print_prefix}Error: could not load fact: roslab.probe.HostProbe commands=<31 "
+                         "commands>, marker=3f085e9f")
+            robot.current_deploy_name = None
+        summary.mark_planned(state.inventory.get_host("team1-main"))
+    else:
+        for name in ("team1-main", "team1-robot"):
+            operation_on(state, name, "op-install", INSTALL, changed=True)
+        finished_run(state)
+        executed(state, handler, "team1-main", "op-install", success=True)
+        executed(state, handler, "team1-robot", "op-install", success=False)  # killed: no words of its own
+    state.fail_hosts({robot})
+    connection.active, connection.saved_exception = False, EOFError()  # then it ended: the host is gone
+
+    [line] = [" ".join(line.split()) for line in printed(state, handler) if line.split()[:1] == ["team1-robot"]]
+    step = SUPPORTED if reading else INSTALL
+    assert line == f'team1-robot failed in "{step}": {summary.LOST_CONNECTION}', line
+
+
+def test_a_step_that_failed_on_a_connection_the_run_closed_itself_is_not_called_lost():
+    state, handler = classroom("team1-main", "team1-robot")
+    main = state.inventory.get_host("team1-main")
+    connection = _Transport()
+    main.connector.client = _Client(connection)
+    operation_on(state, "team1-main", "op-net", "Ensure the network", changed=True)
+    finished_run(state)
+    executed(state, handler, "team1-main", "op-net", success=False, output=[("stderr", "E: Unable to locate package")])
+    state.fail_hosts({main})
+    connection.active = False  # pyinfra disconnects every host at the end of the run: no error kept
+
+    [line] = [" ".join(line.split()) for line in printed(state, handler) if line.split()[:1] == ["team1-main"]]
+    assert line == 'team1-main failed in "Ensure the network": E: Unable to locate package', line
+
+
 def test_a_host_unreachable_after_a_killed_network_change_names_the_change_and_the_addresses(tmp_path):
     from roslab.network import state as network_state
 
