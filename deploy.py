@@ -26,9 +26,8 @@ from deploy.ssh_hardening import ssh_hardening
 from deploy.ssh_identity import ssh_identity
 from deploy.workspace import workspace
 from roslab import pyinfra_planning, remote_files
-from roslab.ssh import keepalive as ssh_keepalive
-from roslab.ssh import sudo
 from roslab.reporting import summary
+from roslab.ssh import keepalive as ssh_keepalive, sudo
 
 summary.install()  # once per run, although pyinfra runs this file once per host
 sudo.install()  # for any inventory: the sudo password goes to an askpass file, never a command line
