@@ -51,6 +51,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Iterable, TextIO
 
+import gevent
 import pyinfra
 from pyinfra.api import HiddenValue
 from pyinfra.api.state import BaseStateCallback, State, StateStage
@@ -171,16 +172,27 @@ def connection_of(host):
         return None
 
 
+# How long the summary waits for a host to answer on the connection its step failed on.
+ANSWER_WITHIN = 3.0
+
+
 def closed_by_the_host(connection) -> bool:
-    """Whether `connection` ended because its host went away: paramiko keeps the end of file or
-    socket error that stopped it, while a connection the controller closed (the run's end) keeps
-    none. A host killed mid-command may end the command a moment before its connection (its
-    processes die one by one), so the step's failure alone cannot tell; by the summary it can."""
+    """Whether `connection` ended because its host went away. A host killed mid-command may end
+    the command a moment before its connection (its processes die one by one), so the step's
+    failure alone cannot tell; the summary asks again: a connection that ended keeps the end of
+    file or socket error that stopped it (one the controller closed keeps none), and one still
+    open must carry an answer from the host (sshd answers a keepalive request at once) within
+    ANSWER_WITHIN seconds."""
     if connection is None:
         return False
     try:
-        return not connection.is_active() and isinstance(getattr(connection, "saved_exception", None),
-                                                          (EOFError, OSError))
+        if not connection.is_active():
+            return isinstance(getattr(connection, "saved_exception", None), (EOFError, OSError))
+        with gevent.Timeout(ANSWER_WITHIN):
+            connection.global_request("keepalive@openssh.com", wait=True)
+        return not connection.is_active()
+    except gevent.Timeout:
+        return True  # connected, and silent: the host stopped answering
     except Exception:  # noqa: BLE001 - nothing more to learn
         return False
 
@@ -376,14 +388,13 @@ class RunSummary(BaseStateCallback):
 
     def _failure(self, state: State, host) -> tuple[str, str]:
         events = self.host(host.name)
-        lost = events.lost or closed_by_the_host(events.connection)
         if events.stop:
             step, message = events.stop
             return step, stop_reason(message) or "roslab stopped it"
         op_hash = self.failed_op(state, host)
         if op_hash is not None:
             reason = self.op_reason(state, host, op_hash)
-            if lost:
+            if self.host_lost(host):
                 # the step's own words, when it had any beyond pyinfra's socket error
                 said = "" if reason == NO_ERROR_PRINTED or _SOCKET_ERROR.search(reason) else f" ({reason})"
                 return op_name(state, op_hash, host), LOST_CONNECTION + said
@@ -403,7 +414,7 @@ class RunSummary(BaseStateCallback):
         # own log line (most_useful_line prefers it).
         errors = [line for line in events.log if line.level >= logging.ERROR]
         reason = most_useful_line(line.text for line in errors)
-        if reason and lost:  # "could not load fact: ..." of a host that went away
+        if reason and self.host_lost(host):  # "could not load fact: ..." of a host that went away
             reason = LOST_CONNECTION
         if reason:
             step = next((line.step for line in reversed(errors) if line.step), None)
@@ -412,6 +423,14 @@ class RunSummary(BaseStateCallback):
                              if line.op_hash in state.op_meta), "planning")
             return step, reason
         return "unknown", "pyinfra marked it failed without saying why (see its output above)"
+
+    def host_lost(self, host) -> bool:
+        """Whether the host went away during its failed step (asked once: closed_by_the_host)."""
+        events = self.host(host.name)
+        if not events.lost and events.connection is not None:
+            events.lost = closed_by_the_host(events.connection)
+            events.connection = None
+        return events.lost
 
     def failed_op(self, state: State, host) -> str | None:
         """The operation that failed the host: its first error that was not ignored."""

@@ -11,6 +11,7 @@ import io
 import logging
 from unittest import mock
 
+import gevent
 import pytest
 from fixtures.classroom import host_data, run_deploy_py, with_stand_in_deb
 from fixtures.fake_host import fake_host
@@ -652,6 +653,46 @@ def test_a_step_that_failed_on_a_connection_the_run_closed_itself_is_not_called_
 
     [line] = [" ".join(line.split()) for line in printed(state, handler) if line.split()[:1] == ["team1-main"]]
     assert line == 'team1-main failed in "Ensure the network": E: Unable to locate package', line
+
+
+class _AskedTransport(_Transport):
+    """Still open when the summary asks the host for an answer (a keepalive request)."""
+
+    def __init__(self, answer):
+        super().__init__()
+        self.answer = answer
+
+    def global_request(self, kind, data=None, wait=True):
+        assert kind == "keepalive@openssh.com" and wait
+        return self.answer(self)
+
+
+def _ends(transport):  # the host was going away: the connection ends while the summary asks
+    transport.active, transport.saved_exception = False, EOFError()
+
+
+def _silent(transport):
+    gevent.sleep(5)
+
+
+@pytest.mark.parametrize("answer, lost", [(_ends, True), (_silent, True), (lambda transport: None, False)],
+                         ids=["ends", "silent", "answers"])
+def test_a_connection_still_open_at_the_summary_is_lost_only_if_the_host_does_not_answer(
+        monkeypatch, answer, lost):
+    monkeypatch.setattr(summary, "ANSWER_WITHIN", 0.2)
+    state, handler = classroom("team1-main", "team1-robot")
+    robot = state.inventory.get_host("team1-robot")
+    robot.connector.client = _Client(_AskedTransport(answer))
+    for name in ("team1-main", "team1-robot"):
+        operation_on(state, name, "op-install", INSTALL, changed=True)
+    finished_run(state)
+    executed(state, handler, "team1-main", "op-install", success=True)
+    executed(state, handler, "team1-robot", "op-install", success=False)
+    state.fail_hosts({robot})
+
+    [line] = [" ".join(line.split()) for line in printed(state, handler) if line.split()[:1] == ["team1-robot"]]
+    reason = summary.LOST_CONNECTION if lost else summary.NO_ERROR_PRINTED
+    assert line == f'team1-robot failed in "{INSTALL}": {reason}', line
 
 
 def test_a_host_unreachable_after_a_killed_network_change_names_the_change_and_the_addresses(tmp_path):
