@@ -91,6 +91,10 @@ def inventory_groups(classroom: Classroom) -> dict[str, list[tuple[str, dict]]]:
         if data["ssh_known_hosts_file"] == classroom_known_hosts:
             checked[host.name] = (known_addresses(host, moved.get(host.name)), data.get("ssh_port") or 22)
         entries[host.name] = (host.name, data)
+    unknown_moves = [problem for host in classroom.hosts
+                     for problem in _move_without_key(classroom, host, entries[host.name][1])]
+    if unknown_moves:
+        raise RosterError(unknown_moves)
     groups = {group: [entries[name] for name in names] for group, names in group_names(classroom).items()}
     if checked:
         explain_refusals(classroom, checked)
@@ -101,6 +105,31 @@ def inventory_groups(classroom: Classroom) -> dict[str, list[tuple[str, dict]]]:
             raise RosterError([Problem(shown, f"cannot update the classroom's known hosts: "
                                        f"{getattr(error, 'strerror', None) or error}")]) from None
     return groups
+
+
+def _move_without_key(classroom: Classroom, host, data: dict) -> list[Problem]:
+    """A network change to an address the roster's own known_hosts file (ssh_known_hosts_file)
+    has no key for: pyinfra would refuse the host there, and the change would roll back on every
+    run. roslab adds a moved host's addresses only to the classroom's own file, so say it now."""
+    own = data.get("ssh_known_hosts_file")
+    new = (data.get("network_address") or "").split("/")[0]
+    if (own in (None, str(identity.known_hosts_path(classroom.path)), os.devnull) or not new
+            or not data.get("network_enabled", True) or new == data["ssh_hostname"]
+            or data.get("ssh_strict_host_key_checking") not in (None, "yes")):
+        return []
+    port = data.get("ssh_port") or 22
+    try:
+        known = identity.knows_address(identity.read_known_hosts(classroom.path, Path(own)), new, port)
+    except identity.IdentityError:
+        return []  # an unreadable file is pyinfra's to report, naming it
+    if known:
+        return []
+    return [Problem(display_path(classroom.path), f"its network change moves it to {new}, and "
+                    f"{display_path(own)} (ssh_known_hosts_file) holds no key for {new}: pyinfra would refuse "
+                    "the host there and the change would roll back; add its key for that address "
+                    "(ssh-keyscan), or leave ssh_known_hosts_file unset (roslab then records it)",
+                    line=host.lines.get("network_address") or host.line, team=host.team, host=host.name,
+                    field="network_address")]
 
 
 def known_addresses(host, moved_to: str | None) -> list[str]:

@@ -270,6 +270,12 @@ def _name_matches(name: str, wanted: str) -> bool:
         return False
 
 
+def knows_address(entries: list[KnownHost], address: str, port: int = 22) -> bool:
+    """Whether a known_hosts file's lines (plain or hashed names) hold a key for `address`."""
+    wanted = address if port == 22 else f"[{address}]:{port}"
+    return any(_name_matches(name, wanted) for entry in entries for name in entry.names)
+
+
 def host_names(host_name: str, addresses: Iterable[str], port: int = 22) -> list[str]:
     """The known_hosts names of a host: its name and addresses (`[addr]:port` too off port 22)."""
     names: list[str] = []

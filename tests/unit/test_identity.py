@@ -17,7 +17,7 @@ from paramiko import BadHostKeyException, Ed25519Key, SSHException
 
 from roslab.ssh import identity
 from roslab.cli.main import main
-from roslab.roster import inventory_groups, load_roster
+from roslab.roster import RosterError, inventory_groups, load_roster
 
 ROSTER = textwrap.dedent("""\
     classroom:
@@ -301,3 +301,37 @@ def test_a_classroom_without_known_hosts_yet_gets_no_warning_about_the_missing_f
     finally:
         pyinfra.logger.removeHandler(handler)
     assert records == ["Failed to load host keys from /elsewhere: [Errno 2] No such file"]
+
+
+@pytest.mark.parametrize("lines, refused", [
+    (["192.0.2.12 {key}"], True),  # the roster's address only: the new one is unknown
+    (["192.0.2.12,192.0.2.42 {key}"], False),
+    (["192.0.2.12 {key}", "{hashed} {key}"], False),  # HashKnownHosts: the new address hashed
+])
+def test_a_move_to_an_address_the_rosters_own_known_hosts_lacks_is_refused_before_connecting(
+        tmp_path, lines, refused):
+    """ssh_known_hosts_file is the teacher's file, which roslab does not add addresses to: a
+    network change to an address it holds no key for would be refused by pyinfra and roll back on
+    every run, so the roster is refused, naming the host, its line and network_address."""
+    import base64
+    import hashlib
+    import hmac
+
+    key = "ssh-ed25519 " + identity.host_keys(tmp_path, "team1-robot").public_line().split()[1]
+    salt = b"0123456789abcdef0123"
+    hashed = "|1|{}|{}".format(base64.b64encode(salt).decode(), base64.b64encode(
+        hmac.new(salt, b"192.0.2.42", hashlib.sha1).digest()).decode())
+    own = tmp_path / "lab_known_hosts"
+    own.write_text("".join(line.format(key=key, hashed=hashed) + "\n" for line in lines))
+    path = tmp_path / "classroom.yaml"
+    path.write_text(ROSTER.format(main="").replace("classroom:\n", "classroom:\n  ssh_known_hosts_file: lab_known_hosts\n"))
+    if not refused:
+        data = dict(inventory_groups(load_roster(path))["team1"])
+        assert data["team1-robot"]["ssh_known_hosts_file"] == str(own)
+        return
+    with pytest.raises(RosterError) as raised:
+        inventory_groups(load_roster(path))
+    (problem,) = [str(p) for p in raised.value.problems]
+    assert "classroom.yaml:8: team 'team1', host 'team1-robot', field 'network_address': " in problem
+    assert "lab_known_hosts (ssh_known_hosts_file) holds no key for 192.0.2.42" in problem
+    assert own.read_text().count("\n") == len(lines)  # the teacher's file is not written
