@@ -30,7 +30,10 @@ _ROS_PACKAGE = re.compile(r"[a-z][a-z0-9_]*|\$\{gazebo\}")
 BUILTIN_CONDITIONS = ("distro", "board")
 
 TOP_KEYS = ("profile", "extends", "description", "distros", "boards", "middlewares", "discovery", "verify_topic",
-            "verify_type", "verify_if", "verify_source", "settings", *SIDES)
+            "verify_type", "verify_if", "verify_source", "underlay_build_memory_mb", "settings", *SIDES)
+# `underlay_build_memory_mb`: the memory (MiB) a host needs to build the profile's underlay;
+# a smaller host never builds it, it receives the build of a host of its group (issue 31).
+UNDERLAY_BUILD_MEMORY_MB = (256, 65536)
 SETTING_KEYS = ("doc", "allowed", "pattern", "required", "default")
 SIDE_KEYS = ("variant", "boards", "ros_packages", "apt_packages", "remove_apt_packages", "environment", "groups",
              "udev_rules", "boot_config", "services", "launch", "checklist", "os_tweaks", "sources",
@@ -185,6 +188,8 @@ class Profile:
     # What publishes the verify topic, named when the main hears nothing (one line of text; the
     # profile's ${settings} filled): "the ESP32 board, through micro_ros_agent on ...".
     verify_source: str = ""
+    # The memory (MiB) a host needs to build the underlay (None: any host may build it).
+    underlay_build_memory_mb: int | None = None
 
 
 # A profile's text refers to its settings as ${name} (braces only: udev's own $attr{...} and
@@ -785,11 +790,17 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
     if not sides:
         reader.error("a profile needs a main or a robot side", mapping, None, "")
     description = mapping.get("description", base.description if base else "")
+    build_memory = mapping.get("underlay_build_memory_mb", base.underlay_build_memory_mb if base else None)
+    low, high = UNDERLAY_BUILD_MEMORY_MB
+    if build_memory is not None and (isinstance(build_memory, bool) or not isinstance(build_memory, int)
+                                     or not low <= build_memory <= high):
+        reader.error(f"must be the memory in MiB a host needs to build the underlay ({low} to {high}), "
+                     f"not {build_memory!r}", mapping, "underlay_build_memory_mb", "underlay_build_memory_mb")
     if not reader.ok:
         return None
     return Profile(name, str(description or ""), tuple(distros), tuple(boards), tuple(middlewares), discovery,
                    topic, message_type, dict(verify_if), settings, sides, source, line_of(mapping),
-                   verify_source=verify_source)
+                   verify_source=verify_source, underlay_build_memory_mb=build_memory)
 
 
 def merged_side(base: Side, own: Side) -> Side:
