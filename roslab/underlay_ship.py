@@ -201,7 +201,8 @@ def _pull(state, digest: str, builder: str, cache_dir: Path, underlay_dir: str, 
         raise ShipError(f"its group's builder {builder} did not build it in this run (stopped before its "
                         "build: its own line says why)")
     op_meta = entry[1]
-    if source in state.failed_hosts or not op_meta.is_complete() or not op_meta.did_succeed():
+    # (a build that had nothing to do may be left incomplete by pyinfra: only a failure counts)
+    if source in state.failed_hosts or (op_meta.is_complete() and not op_meta.did_succeed()):
         raise ShipError(f"its group's builder {builder} failed to build it: {build_failure(op_meta)}; "
                         "this host receives its underlay from there")
     op_data = state.get_op_data_for_host(source, op_meta._hash)
