@@ -65,9 +65,12 @@ def real_agent(sandbox) -> bool:
     return sandbox.real_ros and AGENT_URL in sandbox.real_repositories
 
 
-def write_roster(sandbox, path: Path, lab_pin: str = "v1.0.0", builder: str | None = None) -> Path:
+def write_roster(sandbox, path: Path, lab_pin: str = "v1.0.0", builder: str | None = None,
+                 offline: bool = False) -> Path:
     data = yaml.safe_load(sandbox.roster_path.read_text())
     data["classroom"]["sources_cache_dir"] = str(path.parent / "sources-cache")
+    if offline:
+        data["classroom"]["offline"] = True
     teams = data["teams"]
     assert sorted(teams) == ["team1", "team2"], teams
     for name, team in teams.items():
@@ -92,8 +95,8 @@ def roster(sandbox, tmp_path_factory):
     return write_roster(sandbox, tmp_path_factory.mktemp("underlay") / "roster.yaml")
 
 
-def deploy(sandbox, roster: Path):
-    return sandbox.pyinfra(inventory="inventories/lab.py", env={"ROSLAB_ROSTER": str(roster)})
+def deploy(sandbox, roster: Path, *args: str):
+    return sandbox.pyinfra(*args, inventory="inventories/lab.py", env={"ROSLAB_ROSTER": str(roster)})
 
 
 def colcon_runs(sandbox, host: str) -> int:
@@ -178,12 +181,38 @@ def test_status_shows_where_each_underlay_came_from(sandbox, roster, first_run):
     assert re.search(r"shipped from team1-main [0-9a-f]{12}\b", rows["team2-main"]), rows
 
 
-def test_a_rerun_builds_nothing_and_changes_nothing(sandbox, roster, first_run):
-    again = deploy(sandbox, roster)
+def test_a_rerun_builds_nothing_and_changes_nothing_in_a_few_commands_per_host(sandbox, roster, first_run):
+    from collections import Counter
+
+    from tests.e2e.test_classroom_e2e import NOOP_COMMANDS_PER_HOST, REMOTE_COMMAND
+
+    again = deploy(sandbox, roster, "--debug")
     assert again.returncode == 0, again.stderr[-3000:]
     assert again.changed == {}, again.changed
+    # the group's facts (architecture) are in each host's one read: a converged class asks no peer
+    commands = Counter(REMOTE_COMMAND.findall(again.stderr))
+    assert set(commands) == {host.name for host in sandbox.hosts}, commands
+    assert max(commands.values()) <= NOOP_COMMANDS_PER_HOST, commands
     runs = {host.name: colcon_runs(sandbox, host.name) for host in sandbox.hosts}
     assert runs == {"team1-robot": 1, "team2-robot": 0, "team1-main": 1, "team2-main": 0}, runs
+
+
+def test_offline_a_host_that_lost_its_underlay_receives_it_from_the_cache_and_nothing_builds(
+        sandbox, roster, first_run):
+    before = {host.name: colcon_runs(sandbox, host.name) for host in sandbox.hosts}
+    # a re-imaged Pi, as far as its underlay goes
+    sandbox.ssh("team2-robot", f"rm -rf {UNDERLAY}/install {UNDERLAY}/install-* {UNDERLAY}/.roslab/build.sha256",
+                check=True)
+    run = deploy(sandbox, write_roster(sandbox, roster, offline=True))
+    try:
+        assert run.returncode == 0, run.stderr[-3000:]
+        assert set(run.changes_per_host()) == {"team2-robot"}, run.changed
+        assert {host.name: colcon_runs(sandbox, host.name) for host in sandbox.hosts} == before
+        assert underlay_state(sandbox, "team2-robot")["origin"].startswith("shipped from team1-robot ")
+        assert {"micro_ros_agent", "microxrcedds_agent"} <= set(
+            sandbox.ssh("team2-robot", f"ls {UNDERLAY}/install", check=True).stdout.split())
+    finally:
+        write_roster(sandbox, roster)
 
 
 def test_a_changed_pin_rebuilds_once_on_the_named_builder(sandbox, roster, first_run):
