@@ -88,10 +88,15 @@ def underlay_identity() -> str:
 def sources():
     """Copy the host's pinned repositories into the underlay, install their dependencies, build it.
 
+    One host of the group that needs the same underlay builds it; the others receive its
+    install tree from the controller (roslab/underlay_groups.py, roslab/underlay_ship.py).
+
     Reads host.data: sources_enabled, roslab_sources, sources_underlay_dir, sources_cache_dir,
     source_url_rewrites, sources_fetch_timeout, sources_rosdep_install, offline,
     workspace_colcon_args, roslab_profile (cmake_args, build_dependencies,
-    skip_packages), login_user, ssh_user, ros_distro.
+    skip_packages, underlay_build_memory_mb, name), underlay_builder, login_user, ssh_user,
+    ros_distro; of every host in the run with the same underlay inputs: the same, and its
+    architecture and memory (facts) when this host needs a build.
     """
     if not should_run("sources_enabled"):
         return

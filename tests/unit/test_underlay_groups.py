@@ -176,3 +176,20 @@ def test_two_hosts_of_one_group_naming_different_builders_are_refused(tmp_path):
     assert len(errors) == 1, errors
     assert "host 'team2-robot', field 'underlay_builder'" in errors[0]
     assert "'team1-robot' of the same group names 'team1-robot': a group has one builder" in errors[0]
+
+
+@pytest.mark.parametrize("value", ["lots", True, 10, 10**9, 1.5, [1536], None])
+def test_a_profiles_build_memory_is_a_number_of_mib_in_range(value):
+    from roslab.profiles.schema import read_profile
+    from roslab.roster.problems import Report
+
+    mapping = {"profile": "bot", "distros": ["jazzy"], "robot": {"variant": "ros-base"},
+               "underlay_build_memory_mb": value}
+    report = Report("lab.yaml")
+    profile = read_profile(mapping, report, "profiles.bot", "the roster")
+    if value is None:  # absent: any host may build
+        assert profile is not None and profile.underlay_build_memory_mb is None
+        return
+    assert profile is None
+    (problem,) = [str(p) for p in report.errors]
+    assert "field 'profiles.bot.underlay_build_memory_mb'" in problem and "256 to 65536" in problem, problem
