@@ -18,6 +18,7 @@ from pathlib import Path
 
 from pyinfra import host, logger
 from pyinfra.api import deploy
+from pyinfra.facts.server import Arch
 
 from deploy.common import (
     as_login_user,
@@ -31,8 +32,11 @@ from deploy.common import (
 )
 from roslab import probe, settings
 from roslab.sources import fetch as source_fetch
+from roslab.sources import groups as underlay_groups
+from roslab.sources import ship as underlay_ship
 from roslab.sources import underlay as underlay_ops
 from roslab.ros import workspace as ws_ops
+from roslab.profiles.host import MemoryTotal
 
 DEFAULTS = settings.defaults("sources")
 # The controller's warnings about the class's sources, each said once per run (not per host).
@@ -87,10 +91,15 @@ def underlay_identity() -> str:
 def sources():
     """Copy the host's pinned repositories into the underlay, install their dependencies, build it.
 
+    One host of the group that needs the same underlay builds it; the others receive its
+    install tree from the controller (roslab/sources/groups.py, roslab/sources/ship.py).
+
     Reads host.data: sources_enabled, roslab_sources, sources_underlay_dir, sources_cache_dir,
     source_url_rewrites, sources_fetch_timeout, sources_rosdep_install, offline,
     workspace_colcon_args, roslab_profile (cmake_args, build_dependencies,
-    skip_packages), login_user, ssh_user, ros_distro.
+    skip_packages, underlay_build_memory_mb, name), underlay_builder, login_user, ssh_user,
+    ros_distro; of every host in the run with the same underlay inputs: the same, and its
+    architecture and memory (facts) when this host needs a build.
     """
     if not should_run("sources_enabled"):
         return
@@ -127,19 +136,27 @@ def sources():
     distro = host_distro()
     directory = underlay_dir(home)
     digests = {item.path: item.sha256 for item in fetched}
-    underlay_ops.sources(
-        name=f"Ensure {directory}/src holds the pinned repositories ({', '.join(sorted(digests))})",
-        underlay_dir=directory,
-        repositories=[{"path": item.path, "sha256": item.sha256, "archive": item.archive} for item in fetched],
-        user=user,
-    )
     colcon_args = list(host.data.get("workspace_colcon_args") or [])
     # the profile's CMake settings per package (the micro-ROS agent's superbuild off, say) and
     # the build-order edges the packages' manifests forget
     cmake_args = profile.get("cmake_args") or {}
     build_dependencies = profile.get("build_dependencies") or {}
     stamp = underlay_ops.build_stamp(digests, distro, colcon_args, cmake_args, build_dependencies)
+    machine = host.get_fact(Arch) or "unknown"
+    digest = underlay_groups.input_digest(stamp, machine, directory)
+    stamps = host.get_fact(ws_ops.WorkspaceStamps, workspace_dir=directory)
+    holds = bool(stamps.get("build") == stamp and stamps.get("installed"))
+    builder = underlay_builder(digest, machine, cache_dir, holds)
+    if builder is None:
+        return
+    underlay_ops.sources(
+        name=f"Ensure {directory}/src holds the pinned repositories ({', '.join(sorted(digests))})",
+        underlay_dir=directory,
+        repositories=[{"path": item.path, "sha256": item.sha256, "archive": item.archive} for item in fetched],
+        user=user,
+    )
     if host.data.get("sources_rosdep_install", True):
+        # on a host that receives its build too: the run dependencies the shipped tree needs
         ws_ops.dependencies(
             name="Ensure the underlay's system dependencies are installed (rosdep)",
             workspace_dir=directory,
@@ -149,16 +166,59 @@ def sources():
             user=user,
             ros_home=posixpath.join(home, ".ros"),
         )
-    underlay_ops.built(
-        name=f"Ensure {directory} is built from these sources (colcon)",
-        underlay_dir=directory,
-        distro=distro,
-        colcon_args=colcon_args,
-        stamp=stamp,
-        cmake_args=cmake_args,
-        build_dependencies=build_dependencies,
-        **as_login_user(user),
-    )
+    if holds or builder == host.name:
+        build = underlay_ops.built(
+            name=f"Ensure {directory} is built from these sources (colcon)",
+            underlay_dir=directory,
+            distro=distro,
+            colcon_args=colcon_args,
+            stamp=stamp,
+            cmake_args=cmake_args,
+            build_dependencies=build_dependencies,
+            slot=underlay_ops.slot_name(digest),
+            digest=digest,
+            **as_login_user(user),
+        )
+        underlay_ship.note_build(host.state, digest, host.name, build)
+    # after the build in pyinfra's order: the builder has built when its group receives
+    if not holds and builder != host.name:
+        underlay_ship.received(
+            name=f"Ensure {directory} holds the underlay built on {builder} ({underlay_groups.short(digest)})",
+            underlay_dir=directory,
+            digest=digest,
+            stamp=stamp,
+            user=user,
+            cache_dir=str(cache_dir),
+            builder=builder,
+        )
+
+
+def underlay_builder(digest: str, machine: str, cache_dir: Path, holds: bool) -> str | None:
+    """Which host builds this host's underlay: this host when it holds the build already, the
+    builder the controller's cache records when it has the build, else the group's builder
+    (roslab.sources.groups.choose_builder). None when there is none: the host is stopped."""
+    if holds:
+        return host.name
+    kept = underlay_ship.cached(cache_dir, digest)
+    if kept is not None:
+        return kept["builder"]
+    mine = underlay_groups.roster_inputs(host.data)
+    peers = [peer for peer in host.state.inventory
+             if peer in host.state.active_hosts and underlay_groups.roster_inputs(peer.data) == mine]
+    named = next((peer.data.get("underlay_builder") for peer in peers if peer.data.get("underlay_builder")), None)
+    members = []
+    for peer in peers:
+        # the architecture and memory of the others: read only when this host needs a build
+        peer_machine = machine if peer.name == host.name else (peer.get_fact(Arch) or "unknown")
+        if peer_machine == machine:
+            memory = host.get_fact(MemoryTotal) if peer.name == host.name else peer.get_fact(MemoryTotal)
+            members.append(underlay_groups.Member(peer.name, memory))
+    profile = host.data.get("roslab_profile") or {}
+    choice = underlay_groups.choose_builder(members, named, profile.get("underlay_build_memory_mb"),
+                                            profile.get("name") or "")
+    if choice.builder is None:
+        stop_host(f"{where()}: sources: underlay: {choice.problem}; nothing was changed on it")
+    return choice.builder
 
 
 @probe.reader
@@ -171,4 +231,5 @@ def sources_reads() -> list:
     reads = [probe.read(underlay_ops.UnderlaySources, underlay_dir=directory)]
     if repositories():
         reads.append(probe.read(ws_ops.WorkspaceStamps, workspace_dir=directory))
+        reads.append(probe.read(Arch))
     return reads

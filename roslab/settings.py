@@ -337,6 +337,12 @@ SCHEMA: list[Setting] = [
          "The login user's underlay workspace (inside their home): the repositories in src/, built with "
          "colcon; the student's workspace (workspace_dir) overlays it.", f.home_path,
          {"allowed": "~/ and a path inside the home"}),
+        ("underlay_builder", None, str,
+         "The host that builds the underlay for every host that needs the same one (same distro, "
+         "architecture, pinned sources, build settings, underlay path), which receive its build from the "
+         "controller; None: the group's first host in the roster with the memory the profile asks for. "
+         "It must need the same underlay as the hosts it is set on.",
+         f.host_label, {"nullable": True, "allowed": "a host of the same underlay group"}),
         ("sources_rosdep_install", True, bool,
          "Run `rosdep install --from-paths src --ignore-src -y` in the underlay when its sources changed."),
         ("sources_fetch_timeout", 300, int,

@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import re
 import shlex
 import sys
 from dataclasses import dataclass, field
@@ -83,19 +84,23 @@ class StatusProbe(FactBase):
     def default():
         return parse_probe([])
 
-    def command(self, service: str = NODES_SERVICE, others: tuple[str, ...] = (), launches: tuple[str, ...] = ()) -> str:
-        return probe_script(service, others, launches)
+    def command(self, service: str = NODES_SERVICE, others: tuple[str, ...] = (), launches: tuple[str, ...] = (),
+                underlay: str = "") -> str:
+        return probe_script(service, others, launches, underlay)
 
     def process(self, output):
         return parse_probe(output)
 
 
-def probe_script(service: str = NODES_SERVICE, others: tuple[str, ...] = (), launches: tuple[str, ...] = ()) -> str:
+def probe_script(service: str = NODES_SERVICE, others: tuple[str, ...] = (), launches: tuple[str, ...] = (),
+                 underlay: str = "") -> str:
     """`others`: the host's other services (roslab.cli.host_services: its discovery server or Zenoh
     router, its profile's), each read into a `## unit <name>` section; `launches`: those that
     run `ros2 launch`, whose journal's last lines go into a `## journal <name>` section (which
-    of the launch's nodes died, roslab.cli.launch_journal)."""
+    of the launch's nodes died, roslab.cli.launch_journal); `underlay`: the shell word naming its
+    underlay's origin record (`origin_file`), read into `## underlay`."""
     return "; ".join([
+        *((f"echo '## underlay'", f"head -c 200 {underlay} 2>/dev/null; echo") if underlay else ()),
         "echo '## os-release'",
         "cat /etc/os-release 2>/dev/null",
         "echo '## ros'",
@@ -165,7 +170,37 @@ def parse_probe(lines) -> dict:
         "journals": {name.removeprefix("journal "): lines for name, lines in sections.items()
                      if name.startswith("journal ")},
         "reboot": parse_reboot_record(sections.get("reboot", [])),
+        "underlay": parse_origin(sections.get("underlay", [])),
     }
+
+
+# "built here <digest>" or "shipped from <host> <digest>" (roslab.sources.underlay.origin_line)
+_ORIGIN = re.compile(r"(built here|shipped from ([A-Za-z0-9][A-Za-z0-9.-]{0,252})) ([0-9a-f]{64})", re.ASCII)
+
+
+def parse_origin(lines) -> dict | None:
+    """{"builder": host or None (built here), "digest"} from the underlay's origin record, or None."""
+    for line in lines:
+        match = _ORIGIN.fullmatch(line.strip())
+        if match:
+            return {"builder": match.group(2), "digest": match.group(3)}
+    return None
+
+
+def origin_file(data: dict) -> str:
+    """The shell word naming the host's underlay origin record (roslab.sources.underlay.ORIGIN), read
+    as the SSH user: `~user/...` for a folder in the login user's home; "" without an underlay."""
+    from roslab.sources.underlay import ORIGIN
+    from roslab.sources.groups import roster_inputs
+
+    if roster_inputs(data) is None:
+        return ""
+    user = data.get("login_user") or data.get("ssh_user") or ""
+    folder = str(data.get("sources_underlay_dir") or "~/roslab_underlay")
+    if not re.fullmatch(r"[a-z_][a-z0-9_-]{0,31}", user):
+        return ""
+    inside = f"{folder[2:]}/{ORIGIN}" if folder.startswith("~/") else None
+    return f"~{user}/{shlex.quote(inside)}" if inside else shlex.quote(f"{folder}/{ORIGIN}")
 
 
 # What was found
@@ -198,6 +233,8 @@ class HostStatus:
     other_services: list = field(default_factory=list)  # HostService, beside roslab-nodes
     listens: bool = True  # a main whose profile names a topic to hear (not sim)
     listen_timeout: int = LISTEN_TIMEOUT  # --listen: seconds its check waits for a message
+    # The shell word naming its underlay's origin record (origin_file); "" when it builds none.
+    underlay: str = ""
 
     @property
     def release(self) -> str | None:
@@ -288,7 +325,7 @@ class Cell:
 
 
 COLUMNS = ("TEAM", "HOST", "ROLE", "ADDRESS", "SSH", "UBUNTU", "ROS", "DOMAIN", "DISCOVERY", "NODES",
-           "LAST RUN", "LAST SUCCESS", "NOTE")
+           "UNDERLAY", "LAST RUN", "LAST SUCCESS", "NOTE")
 
 
 def ago(moment: datetime | None, now: datetime) -> str:
@@ -385,6 +422,8 @@ def host_cells(host: HostStatus, now: datetime) -> dict[str, Cell]:
     failures = host.launch_failures() if probed else []
     notes += failures
 
+    cells["UNDERLAY"] = underlay_cell(host, probed)
+
     run = host.run
     if run is None or run.last_run is None:
         cells["LAST RUN"] = Cell("never", "muted")
@@ -406,6 +445,22 @@ def host_cells(host: HostStatus, now: datetime) -> dict[str, Cell]:
              else "warn" if host.reboot_needed or failures or (probed and host.services_stopped()) else "plain")
     cells["NOTE"] = Cell("; ".join(notes), level)
     return cells
+
+
+def underlay_cell(host: HostStatus, probed: bool) -> Cell:
+    """Where the host's underlay came from: built here, or shipped from its group's builder
+    (roslab.sources.ship), with its digest (short); "-" for a host that builds none."""
+    from roslab.sources.groups import short
+
+    if not host.underlay:
+        return Cell("-", "muted")
+    if not probed:
+        return Cell("?", "muted")
+    origin = host.probe.get("underlay")
+    if origin is None:
+        return Cell("none yet", "warn")
+    where = f"shipped from {origin['builder']}" if origin["builder"] else "built here"
+    return Cell(f"{where} {short(origin['digest'])}", "ok")
 
 
 def discovery_cell(host: HostStatus, notes: list[str]) -> Cell:
@@ -454,6 +509,7 @@ def host_statuses(classroom: Classroom, groups: dict, limit: list[str] | None = 
             other_services=[service for service in host_services(host.data) if service.kind != "nodes"],
             listens=bool(host.data.get("nodes_verify_topic")),
             listen_timeout=int(host.data.get("nodes_verify_timeout") or LISTEN_TIMEOUT),
+            underlay=origin_file(host.data),
         ))
     return statuses
 
@@ -524,6 +580,7 @@ def _probe_host(state, host, status: HostStatus, listen: bool, listen_timeout: i
                 state, host, StatusProbe,
                 kwargs={"others": tuple(service.unit for service in status.other_services),
                         "launches": tuple(service.unit for service in status.other_services if service.launch),
+                        "underlay": status.underlay,
                         "_sudo": False, "_timeout": min(PROBE_TIMEOUT, bound), "_ignore_errors": True},
                 apply_failed_hosts=False,
             )

@@ -71,6 +71,7 @@ class ResolvedProfile(TypedDict):
     remove_apt_packages: list[str]
     boot_config: dict[str, list[str]]  # config_txt lines, cmdline_remove words
     services: list[ResolvedService]
+    underlay_build_memory_mb: int | None  # a host with less memory never builds the underlay
 
 
 @dataclass(frozen=True)
@@ -269,6 +270,8 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         # {package: [packages built before it]} and the packages not built (deploy/sources.py)
         "build_dependencies": merged_build_dependencies([part.build_dependencies for part in parts]),
         "skip_packages": list(dict.fromkeys(name for part in parts for name in part.skip_packages)),
+        # the memory (MiB) a host needs to build the underlay; a smaller one receives it
+        "underlay_build_memory_mb": profile.underlay_build_memory_mb,
         "python": python_data(profile, side),
         "remove_apt_packages": merged.remove_apt_packages,
         "boot_config": {key: items for key, items in merged.boot_config.items() if items},

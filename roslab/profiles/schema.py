@@ -49,8 +49,11 @@ ALL_DISTROS = "all"
 BUILTIN_CONDITIONS = ("distro", "board")
 
 TOP_KEYS = ("profile", "extends", "description", "distros", "tools", "boards", "middlewares", "dds_only_packages",
-            "discovery", "verify_topic",
-            "verify_type", "verify_if", "verify_source", "settings", *SIDES)
+            "discovery", "verify_topic", "verify_type", "verify_if", "verify_source", "underlay_build_memory_mb",
+            "settings", *SIDES)
+# `underlay_build_memory_mb`: the memory (MiB) a host needs to build the profile's underlay;
+# a smaller host never builds it, it receives the build of a host of its group (issue 31).
+UNDERLAY_BUILD_MEMORY_MB = (256, 65536)
 SETTING_KEYS = ("doc", "allowed", "pattern", "required", "default")
 SIDE_KEYS = ("variant", "boards", "ros_packages", "apt_packages", "remove_apt_packages", "environment", "groups",
              "udev_rules", "boot_config", "services", "launch", "checklist", "os_tweaks", "sources",
@@ -216,6 +219,8 @@ class Profile:
     # ROS packages of this robot that speak DDS only, with what they are in words: a roster that
     # names one (its nodes_launch, ros_extra_packages) under rmw_zenoh_cpp is refused.
     dds_only_packages: dict[str, str] = field(default_factory=dict)
+    # The memory (MiB) a host needs to build the underlay (None: any host may build it).
+    underlay_build_memory_mb: int | None = None
 
     @property
     def distros(self) -> tuple[str, ...]:
@@ -794,13 +799,15 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
     boards, middlewares, discovery = _read_placement(reader, mapping, base)
     topic, message_type, verify_if, verify_source = _read_verify(reader, mapping, base, known)
     tools, dds_only = _read_tools(reader, mapping, base)
+    build_memory = _read_build_memory(reader, mapping, base)
     sides = _read_sides(reader, mapping, base, known)
     description = mapping.get("description", base.description if base else "")
     if not reader.ok:
         return None
     return Profile(name, str(description or ""), tuple(distros), tuple(boards), tuple(middlewares), discovery,
                    topic, message_type, dict(verify_if), settings, sides, source, line_of(mapping),
-                   verify_source=verify_source, tools=tuple(tools), dds_only_packages=dict(dds_only))
+                   verify_source=verify_source, tools=tuple(tools), dds_only_packages=dict(dds_only),
+                   underlay_build_memory_mb=build_memory)
 
 
 def _read_distros(reader: ProfileReader, mapping, base: Profile | None) -> list[str]:
@@ -874,6 +881,18 @@ def _read_tools(reader: ProfileReader, mapping, base: Profile | None) -> tuple[l
                      "dds_only_packages", "dds_only_packages")
         dds_only = {}
     return tools, dds_only
+
+
+def _read_build_memory(reader: ProfileReader, mapping, base: Profile | None) -> int | None:
+    """`underlay_build_memory_mb`: the memory a host needs to build the underlay (None: any host)."""
+    build_memory = mapping.get("underlay_build_memory_mb", base.underlay_build_memory_mb if base else None)
+    low, high = UNDERLAY_BUILD_MEMORY_MB
+    if build_memory is not None and (isinstance(build_memory, bool) or not isinstance(build_memory, int)
+                                     or not low <= build_memory <= high):
+        reader.error(f"must be the memory in MiB a host needs to build the underlay ({low} to {high}), "
+                     f"not {build_memory!r}", mapping, "underlay_build_memory_mb", "underlay_build_memory_mb")
+        return None
+    return build_memory
 
 
 def _read_sides(reader: ProfileReader, mapping, base: Profile | None, known: set[str]) -> dict[str, Side]:

@@ -21,9 +21,10 @@ from roslab.roster.inventory import add_host_lists, default_roster_path, group_n
 from roslab.roster.model import ROLES, Classroom, Host, Team
 from roslab.checked.problems import Problem, Report, RosterError, display_path
 from roslab.roster.reader import RosterReader
+from roslab.sources.groups import check_underlay_builders as _check_underlay_builders
 
 # Checks across the classroom that live with their concern, each `(classroom, report)`.
-VALIDATORS: list[Validator] = [_validate_network, _check_ros_packages]
+VALIDATORS: list[Validator] = [_validate_network, _check_ros_packages, _check_underlay_builders]
 
 
 def load_roster(path: Path | str, validators: list[Validator] | None = None,

@@ -119,15 +119,16 @@ def _move_without_key(classroom: Classroom, host, data: dict) -> list[Problem]:
         return []
     port = data.get("ssh_port") or 22
     try:
-        known = identity.knows_address(identity.read_known_hosts(classroom.path, Path(own)), new, port)
+        entries = identity.read_known_hosts(classroom.path, Path(own))
     except identity.IdentityError:
         return []  # an unreadable file is pyinfra's to report, naming it
-    if known:
-        return []
+    if identity.knows_address(entries, new, port) or not identity.knows_address(entries, data["ssh_hostname"], port):
+        return []  # known there already; or unknown where it is now: refused with the trust hint
     return [Problem(display_path(classroom.path), f"its network change moves it to {new}, and "
-                    f"{display_path(own)} (ssh_known_hosts_file) holds no key for {new}: pyinfra would refuse "
-                    "the host there and the change would roll back; add its key for that address "
-                    "(ssh-keyscan), or leave ssh_known_hosts_file unset (roslab then records it)",
+                    f"{display_path(own)} (ssh_known_hosts_file) holds its key for {data['ssh_hostname']} but "
+                    f"none for {new}: pyinfra would refuse the host there and the change would roll back; run "
+                    f"`roslab trust --limit {host.name}` (it records the key at every address the host is "
+                    "reached at), or leave ssh_known_hosts_file unset (roslab then records it)",
                     line=host.lines.get("network_address") or host.line, team=host.team, host=host.name,
                     field="network_address")]
 

@@ -6,9 +6,10 @@ from the archive the controller made of its pinned commit (roslab/sources/fetch.
 changed repository is copied again, and a repository that left the .repos files is removed
 (folders of `src/` that roslab did not put there are never touched).
 
-The build keeps the last good install usable: colcon builds into one of two install trees
-(`install-a`, `install-b`), the one `install` does not point to, and `install` is switched to
-it (one rename) only when the whole build succeeded. A failed build leaves `install` where it
+The build keeps the last good install usable: colcon builds into an install tree named for
+what it is built from (`install-<digest>`, `slot`; the same name on every host of a group, so a
+tree shipped to another host lands where it was built: roslab/sources/ship.py), and `install`
+is switched to it (one rename) only when the whole build succeeded; then the other trees go. A failed build leaves `install` where it
 was, and the host fails with the package and its first error line. The build stamp (the
 sha256 of every repository's archive, the distro and colcon's arguments) is written only
 then, so an interrupted or failed build is tried again on the next run.
@@ -34,7 +35,27 @@ BUILD_LOG = "log/roslab-underlay-build.log"
 # The profile's CMake settings per package, as colcon-metadata reads them (`--metas`); in
 # roslab's own folder, so a colcon.meta the user keeps beside src/ is never touched.
 COLCON_META = f"{STATE_DIR_NAME}/colcon.meta"
-SLOTS = ("install-a", "install-b")
+# Where each underlay records where its install came from: "built here <digest>" or
+# "shipped from <host> <digest>" (`roslab status` shows it).
+ORIGIN = f"{STATE_DIR_NAME}/underlay-origin"
+
+
+def origin_line(digest: str, builder: str | None = None) -> str:
+    return f"shipped from {builder} {digest}" if builder else f"built here {digest}"
+
+
+def switch_script(slot: str) -> list[str]:
+    """Shell lines making `install` point to `slot` (a shell word: `"$slot"`) in one rename and
+    removing the other trees: the install trees and build folders of earlier builds."""
+    q = slot
+    return [
+        # a real folder left by a hand-made build is replaced by the link (the link: one rename)
+        'if [ -e install ] && [ ! -L install ]; then rm -rf install; fi',
+        f"ln -sfn {q} install.roslab-new && mv -T install.roslab-new install",
+        "for tree in install-* build-install-*; do",
+        f'  case "$tree" in {q}|build-{q}) ;; *) [ -e "$tree" ] && rm -rf "$tree" ;; esac',
+        "done",
+    ]
 
 
 def _checked_paths(paths) -> list[str]:
@@ -167,33 +188,47 @@ def build_stamp(digests: dict[str, str], distro: str, colcon_args: list[str],
     return hashlib.sha256(text.encode()).hexdigest()
 
 
+def keep_in_use(slot: str) -> list[str]:
+    """Shell lines moving the tree `install` points to aside (and `install` with it) when it is
+    the one about to be made (`slot`, a shell word): a switch interrupted before its stamp."""
+    return [f'if [ "$(readlink install 2>/dev/null)" = {slot} ]; then rm -rf {slot}.old && mv {slot} {slot}.old '
+            f'&& ln -sfn {slot}.old install.roslab-new && mv -T install.roslab-new install; fi']
+
+
+def slot_name(digest: str) -> str:
+    """The install tree of a build: named for its inputs, the same on every host of a group."""
+    return f"install-{digest[:12]}"
+
+
 def build_script(underlay_dir: str, distro: str, colcon_args: list[str], stamp: str,
                  cmake_args: dict[str, list[str]] | None = None,
-                 build_dependencies: dict[str, list[str]] | None = None) -> str:
-    """Build into the install tree not in use; switch `install` to it only on success."""
+                 build_dependencies: dict[str, list[str]] | None = None,
+                 slot: str | None = None, digest: str | None = None) -> str:
+    """Build into the install tree `slot` (never the one in use); switch `install` to it only
+    on success, and record that this host built it (`ORIGIN`)."""
     state_dir = STATE_DIR_NAME
     stamp_file = posixpath.join(state_dir, "build.sha256")
+    slot = slot or slot_name(stamp)
     meta = colcon_meta(cmake_args or {}, build_dependencies)
     # colcon reads the packages' CMake settings only from a meta file it is pointed at
     metas = ["--metas", COLCON_META] if meta else []
     colcon = " ".join(shlex.quote(arg) for arg in ["colcon", "build", *colcon_args, *metas])
-    a, b = SLOTS
     write_meta = (f"printf '%s' {shlex.quote(meta)} > {COLCON_META}" if meta else f"rm -f {COLCON_META}")
     return "\n".join([
         f"cd {shlex.quote(underlay_dir)} || exit 1",
         f"mkdir -p log {state_dir}",
         f"rm -f {stamp_file}",  # no stamp while building: an interrupted build is tried again
         write_meta,
-        f'if [ "$(readlink install 2>/dev/null)" = {a} ]; then slot={b}; else slot={a}; fi',
+        f"slot={shlex.quote(slot)}",
+        # the tree in use is never built into: an interrupted switch left `install` on it, so
+        # the build goes beside it
+        *keep_in_use("$slot"),
         'rm -rf "$slot" "build-$slot"',
         f"source /opt/ros/{shlex.quote(distro)}/setup.bash || exit 1",
         f'if {colcon} --base-paths src --build-base "build-$slot" --install-base "$slot" > {BUILD_LOG} 2>&1; then',
-        # a real folder left by a hand-made build is replaced by the link (the link: one rename)
-        '  if [ -e install ] && [ ! -L install ]; then rm -rf install; fi',
-        '  ln -sfn "$slot" install.roslab-new && mv -T install.roslab-new install',
-        f'  other={a}; [ "$slot" = {a} ] && other={b}',
-        '  rm -rf "$other" "build-$other"',
+        *(f"  {line}" for line in switch_script('"$slot"')),
         f"  {_write_stamp(stamp_file, stamp)}",
+        f"  {_write_stamp(ORIGIN, origin_line(digest or stamp))}",
         "else",
         "  status=$?",
         f"  failed=$(sed -n 's/^Failed *<<< \\([^ ]*\\) .*/\\1/p' {BUILD_LOG} | head -n 1)",
@@ -221,7 +256,8 @@ def build_script(underlay_dir: str, distro: str, colcon_args: list[str], stamp: 
 @operation()
 def built(underlay_dir: str, distro: str, colcon_args: list[str], stamp: str,
           cmake_args: dict[str, list[str]] | None = None,
-          build_dependencies: dict[str, list[str]] | None = None):
+          build_dependencies: dict[str, list[str]] | None = None,
+          slot: str | None = None, digest: str | None = None):
     """
     Build an underlay (colcon) when its sources changed since the last successful build.
 
@@ -233,6 +269,8 @@ def built(underlay_dir: str, distro: str, colcon_args: list[str], stamp: str,
       ``.roslab/colcon.meta`` and given to colcon with ``--metas``
     + build_dependencies: build-order edges per package (``{package: [built before it]}``),
       in the same colcon.meta
+    + slot: the install tree to build into (``slot_name(digest)``)
+    + digest: the group's input digest (roslab.sources.groups), recorded as this host's build
 
     Run it as the underlay's owner (``_sudo_user``). A failed build leaves the last good
     install in use and fails with the package and its first error line.
@@ -242,4 +280,4 @@ def built(underlay_dir: str, distro: str, colcon_args: list[str], stamp: str,
         host.noop(f"{underlay_dir} is built from these sources already")
         return
     yield StringCommand("bash", "-c", shlex.quote(build_script(underlay_dir, distro, colcon_args, stamp,
-                                                               cmake_args, build_dependencies)))
+                                                               cmake_args, build_dependencies, slot, digest)))

@@ -32,7 +32,7 @@ EXPECTED = {
     "team2-robot": ("22.04 jammy", "humble", "12"),
 }
 COLUMNS = ("TEAM", "HOST", "ROLE", "ADDRESS", "SSH", "UBUNTU", "ROS", "DOMAIN", "DISCOVERY", "NODES",
-           "LAST RUN", "LAST SUCCESS", "NOTE")
+           "UNDERLAY", "LAST RUN", "LAST SUCCESS", "NOTE")
 
 
 @pytest.fixture(scope="module")

@@ -305,6 +305,7 @@ def test_a_classroom_without_known_hosts_yet_gets_no_warning_about_the_missing_f
 
 @pytest.mark.parametrize("lines, refused", [
     (["192.0.2.12 {key}"], True),  # the roster's address only: the new one is unknown
+    ([], False),  # not known at all: refused when connecting, with the `roslab trust` hint
     (["192.0.2.12,192.0.2.42 {key}"], False),
     (["192.0.2.12 {key}", "{hashed} {key}"], False),  # HashKnownHosts: the new address hashed
 ])
@@ -333,5 +334,6 @@ def test_a_move_to_an_address_the_rosters_own_known_hosts_lacks_is_refused_befor
         inventory_groups(load_roster(path))
     (problem,) = [str(p) for p in raised.value.problems]
     assert "classroom.yaml:8: team 'team1', host 'team1-robot', field 'network_address': " in problem
-    assert "lab_known_hosts (ssh_known_hosts_file) holds no key for 192.0.2.42" in problem
+    assert "lab_known_hosts (ssh_known_hosts_file) holds its key for 192.0.2.12 but none for 192.0.2.42" in problem
+    assert "roslab trust --limit team1-robot" in problem
     assert own.read_text().count("\n") == len(lines)  # the teacher's file is not written

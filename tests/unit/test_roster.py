@@ -145,7 +145,7 @@ def test_host_data_holds_identity_connection_and_every_setting_with_its_default(
             "verify_source": "", "discovery": None, "checklist": [], "os_tweaks": {}, "remove_apt_packages": [],
             "boot_config": {}, "services": [],
             "sources": [],
-            "cmake_args": {}, "build_dependencies": {}, "skip_packages": [],
+            "cmake_args": {}, "build_dependencies": {}, "skip_packages": [], "underlay_build_memory_mb": None,
             "python": {"venv": None, "requirements": []},
         },
         "roslab_sources": [],  # the repositories of its .repos files (roslab.sources.repos): none

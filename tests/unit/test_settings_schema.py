@@ -81,6 +81,7 @@ BAD_VALUES: dict[str, list] = {
     "python_wheelhouse_dir": [NEWLINE, "/etc/wheels"],
     "python_sdist_build_packages": [["-y"], ["gcc; id"], ["Python3-dev"]],
     "apt_cache_host": ["team1 main", "team1-main\n", "-oProxy", SUBSHELL, "a.b"],
+    "underlay_builder": ["team1 main", "team1-main\n", "-oProxy", SUBSHELL, "a.b", "../x"],
     "apt_cache_port": [0, 65536],
     "apt_cache_upstream_ports": [[0], [80, 70000]],
     "ros_domain_id": [102, -1, 214, 233],

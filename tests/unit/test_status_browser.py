@@ -35,7 +35,7 @@ def test_the_browser_shows_every_team_host_and_state(tmp_path):
     assert list(cells) == ["team1-main", "team1-robot", "team1-robot2", "team2-main"]
     assert cells["team1-main"][4:10] == ["ok", "24.04 noble", "jazzy", "11", "-", "active (running)"]
     assert cells["team1-robot2"][4] == "unreachable"
-    assert cells["team2-main"][9:12] == ["not installed", "never", "never"]
+    assert cells["team2-main"][9:13] == ["not installed", "-", "never", "never"]
     assert dom.count('class="arrow unknown"') == 2  # two robots -> main, not listened
 
 

@@ -1,0 +1,166 @@
+"""A class compiles once: the hosts that need the same underlay, and which one of them builds it.
+
+Hosts whose underlays would come out the same form a *group*: the same ROS distro, machine
+architecture (`uname -m`), repositories at the same pins (each archive's sha256), colcon
+arguments, per-package CMake settings, build-order edges and skipped packages, and the same
+install path (the login user's home and `sources_underlay_dir`: colcon and CMake write the
+install path into the tree, so a tree works only where it was built). The group's *input
+digest* (`input_digest`) names what it builds; the controller keeps each group's build as a
+tar under `sources_cache_dir` keyed by it (deploy/sources.py).
+
+One host per group builds (`choose_builder`): the one the roster names (`underlay_builder`),
+else the first of the group in roster order whose memory is at least the profile's
+`underlay_build_memory_mb`. A host under that never builds; when no host of a group may build,
+the group's hosts fail naming what to do.
+
+The roster knows all of this but the architecture and the archives' digests, so the roster
+check (`check_underlay_builders`) groups hosts by what the roster says (`roster_inputs`) and
+refuses, before any host is touched, a named builder that is not a host of the roster, needs
+no underlay, or needs another one than the host naming it; and two hosts of one group naming
+different builders. What only the hosts can tell (architecture, memory) is checked when the
+deploy plans, still before any host is changed.
+"""
+
+from __future__ import annotations
+
+import difflib
+import hashlib
+import json
+from dataclasses import dataclass
+
+from roslab.checked.problems import Report
+
+FIELD = "underlay_builder"
+# The digest as `roslab status` and messages show it.
+SHORT = 12
+# Bumped when what a shipped tree holds changes (an old cache entry is then never used).
+FORMAT = "roslab-underlay-1"
+
+
+def short(digest: str | None) -> str:
+    return (digest or "")[:SHORT]
+
+
+def roster_inputs(data: dict) -> str | None:
+    """What the roster says a host's underlay is built from (one canonical text), or None when
+    the host builds no underlay. Hosts with the same text form a group, as far as the roster
+    can tell (the architecture and the archives' digests are known only when the deploy runs)."""
+    if not data.get("sources_enabled", True):
+        return None
+    repositories = data.get("roslab_sources") or []
+    if not repositories:
+        return None
+    profile = data.get("roslab_profile") or {}
+    return json.dumps({
+        "distro": data.get("ros_distro") or data.get("roslab_expected_distro"),
+        "repositories": sorted([repo["path"], repo["url"], repo["version"]] for repo in repositories),
+        "colcon_args": list(data.get("workspace_colcon_args") or []),
+        "cmake_args": profile.get("cmake_args") or {},
+        "build_dependencies": profile.get("build_dependencies") or {},
+        "skip_packages": sorted(profile.get("skip_packages") or []),
+        "user": data.get("login_user") or data.get("ssh_user"),
+        "underlay_dir": data.get("sources_underlay_dir"),
+    }, sort_keys=True)
+
+
+def input_digest(build_stamp: str, machine: str, underlay_dir: str) -> str:
+    """The group's name: the build stamp (archives, distro, colcon and CMake settings:
+    roslab.sources.underlay.build_stamp), the machine architecture and the install path."""
+    text = "\0".join([FORMAT, build_stamp, machine, underlay_dir])
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+@dataclass(frozen=True)
+class Member:
+    """A host of a group, as the deploy sees it: its name and memory (MiB; None: unknown)."""
+
+    name: str
+    memory_mb: int | None = None
+
+
+@dataclass(frozen=True)
+class Choice:
+    """The group's builder, or why there is none (`problem`, one line saying what to do)."""
+
+    builder: str | None
+    problem: str | None = None
+
+
+def may_build(member: Member, min_memory_mb: int | None) -> bool:
+    """A host builds only with the memory the profile asks for (unknown memory: it may)."""
+    return min_memory_mb is None or member.memory_mb is None or member.memory_mb >= min_memory_mb
+
+
+def choose_builder(members: list[Member], named: str | None = None, min_memory_mb: int | None = None,
+                   profile: str = "") -> Choice:
+    """The builder of a group (`members` in roster order): `named` if it is a member with enough
+    memory, else the first member with enough memory."""
+    need = f"the {min_memory_mb} MiB" + (f" profile {profile!r}" if profile else " the profile") + \
+        " asks for to build the underlay"
+    if named:
+        member = next((m for m in members if m.name == named), None)
+        if member is None:
+            names = ", ".join(m.name for m in members)
+            return Choice(None, f"{FIELD} {named!r} is not a host of this group in this run "
+                                f"(same distro, architecture, sources and build settings: {names})")
+        if not may_build(member, min_memory_mb):
+            return Choice(None, f"{FIELD} {named!r} has {member.memory_mb} MiB of memory, under {need}: "
+                                "name a host with more memory (a desktop main, say)")
+        return Choice(named)
+    for member in members:
+        if may_build(member, min_memory_mb):
+            return Choice(member.name)
+    return Choice(None, f"no host of this group has {need} (a host with less never builds it): name a host "
+                        f"with more memory as {FIELD} (a desktop main, say) with the same distro and sources")
+
+
+def check_underlay_builders(classroom, report: Report) -> None:
+    """One of the roster's checks across hosts (`classroom`: a roslab.roster Classroom, read as
+    the other concerns' checks read it, so sources/ needs nothing of roster/).
+
+    `underlay_builder` names a host of the roster that needs the same underlay as the host it
+    is set on; the hosts of one group name the same builder. One error per host, naming the
+    roster line, team, host and field."""
+    by_name = {host.name: host for host in classroom.hosts}
+    inputs = {host.name: roster_inputs(host.data) for host in classroom.hosts}
+    named_by_group: dict[str, tuple[str, str]] = {}
+    for host in classroom.hosts:
+        named = host.data.get(FIELD)
+        own = inputs[host.name]
+        if not named or own is None:
+            continue  # a host without an underlay builds nothing: a classroom-wide value is fine
+        where = {"team": host.team, "host": host.name, "field": FIELD, "line": host.lines.get(FIELD)}
+        builder = by_name.get(named)
+        if builder is None:
+            close = difflib.get_close_matches(named, sorted(by_name), n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            report.error(f"{named!r} is not a host of this roster{hint}", **where)
+            continue
+        if inputs[named] is None:
+            report.error(f"{named!r} builds no underlay (no sources, or sources_enabled false), so it cannot "
+                         f"build {host.name!r}'s", **where)
+            continue
+        if inputs[named] != own:
+            report.error(f"{named!r} needs another underlay than {host.name!r} ({difference(builder.data, host.data)}): "
+                         "a builder must be a host of the same group (same distro, sources and build settings)",
+                         **where)
+            continue
+        first = named_by_group.setdefault(own, (named, host.name))
+        if first[0] != named:
+            report.error(f"names {named!r}, but {first[1]!r} of the same group names {first[0]!r}: "
+                         "a group has one builder", **where)
+
+
+def difference(builder: dict, host: dict) -> str:
+    """What differs between two hosts' underlay inputs, in words (the first difference)."""
+    a, b = json.loads(roster_inputs(builder) or "{}"), json.loads(roster_inputs(host) or "{}")
+    for key in ("distro", "repositories", "user", "underlay_dir", "colcon_args", "cmake_args",
+                "build_dependencies", "skip_packages"):
+        if a.get(key) != b.get(key):
+            if key == "repositories":
+                theirs, ours = {r[0]: r[2] for r in a[key]}, {r[0]: r[2] for r in b[key]}
+                for path in sorted(set(theirs) | set(ours)):
+                    if theirs.get(path) != ours.get(path):
+                        return f"repository {path!r}: {theirs.get(path) or 'none'} there, {ours.get(path) or 'none'} here"
+            return f"{key}: {a.get(key)!r} there, {b.get(key)!r} here"
+    return "inputs differ"
