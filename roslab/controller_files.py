@@ -9,6 +9,7 @@ report in well under a second.
 from __future__ import annotations
 
 import errno
+import hashlib
 import os
 import stat
 from pathlib import Path
@@ -71,3 +72,13 @@ def _size_text(limit: int) -> str:
 
 
 __all__ = ["MAX_SMALL_FILE_BYTES", "UnreadableFile", "kind_of", "read_regular_file"]
+
+
+def file_sha256(path: Path | str) -> str:
+    """The sha256 of a file on the controller, read in 1 MiB blocks (a packed underlay, a workspace
+    file): hex, as the hosts' sha256sum prints it."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as stream:
+        for block in iter(lambda: stream.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()

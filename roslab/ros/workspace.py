@@ -35,6 +35,7 @@ from pyinfra import host, logger, state
 from pyinfra.api import FactBase, FileUploadCommand, OperationError, StringCommand, operation
 from pyinfra.facts.files import FileContents
 from pyinfra.operations.util.files import generate_color_diff
+from roslab.controller_files import file_sha256
 
 MANIFEST_NAME = ".roslab-manifest"
 MANIFEST_HEADER = (
@@ -72,14 +73,6 @@ class LocalFile:
     mode: str  # "644" or "755": only the owner's execute bit carries over
 
 
-def _sha256_of(path: str) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for chunk in iter(lambda: handle.read(1 << 16), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
 def _is_excluded(name: str) -> bool:
     return name in EXCLUDED_NAMES or name.endswith(EXCLUDED_SUFFIXES)
 
@@ -111,7 +104,7 @@ def local_packages(nodes_dir: str | os.PathLike) -> dict[str, dict[str, LocalFil
                     continue
                 mode = "755" if os.stat(full).st_mode & 0o100 else "644"
                 relative = Path(full).relative_to(root).as_posix()
-                files[relative] = LocalFile(full, _sha256_of(full), mode)
+                files[relative] = LocalFile(full, file_sha256(full), mode)
         packages[package_dir.name] = files
     if not packages:
         raise OperationError(f"workspace_nodes_dir {str(root)!r} holds no ROS packages")

@@ -32,6 +32,7 @@ from pyinfra import host, logger
 from pyinfra.api import FileUploadCommand, FunctionCommand, StringCommand, operation
 from pyinfra.api.arguments import CONNECTOR_ARGUMENT_KEYS
 
+from roslab.controller_files import file_sha256
 from roslab.sources.underlay import ARCHIVE_DIR, ORIGIN, _as_user, keep_in_use, origin_line, switch_script
 from roslab.sources.groups import short
 from roslab.ros.workspace import STATE_DIR_NAME, _write_stamp
@@ -59,14 +60,6 @@ def cache_paths(cache_dir: Path, digest: str) -> tuple[Path, Path]:
     return folder / f"{digest}.tar.gz", folder / f"{digest}.json"
 
 
-def _sha256_of(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as stream:
-        for block in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 _verified: dict[tuple, dict] = {}
 
 
@@ -85,7 +78,7 @@ def cached(cache_dir: Path, digest: str) -> dict | None:
         return None
     key = (str(tar), stat.st_size, stat.st_mtime_ns, meta["sha256"])
     if key not in _verified:
-        if _sha256_of(tar) != meta["sha256"]:
+        if file_sha256(tar) != meta["sha256"]:
             return None
         _verified[key] = meta
     return dict(meta)
