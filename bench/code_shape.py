@@ -50,7 +50,6 @@ def shape(root: Path) -> dict:
 
 
 def folder_cycles(root: Path) -> list[list[str]]:
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests" / "unit"))
     import importlib.util
 
     spec = importlib.util.spec_from_file_location(

@@ -19,7 +19,7 @@ import unicodedata
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from urllib.parse import urlsplit
+from urllib.parse import unquote, urlsplit
 
 from roslab.ros import distro as distros
 from roslab.controller_files import MAX_SMALL_FILE_BYTES, UnreadableFile, read_regular_file
@@ -396,8 +396,6 @@ def file_url_problem(url: str, folder: Path, named: str, *, file_suffix: str | N
     """Why a file:// `url` (a URL or a URL prefix) does not lead inside `folder` (the roster's, or
     a .repos file's), or None; not a file:// URL: None. Never into the roster's .roslab-state.
     The one check of where a file:// URL may lead: settings, .repos files and rewrites alike."""
-    from urllib.parse import unquote
-
     parts = urlsplit(url)
     if parts.scheme != "file":
         return None

@@ -7,6 +7,7 @@ built-in one, the roster for a roster's), so a typo in a profile reads like one 
 from __future__ import annotations
 
 import difflib
+import functools
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,6 +33,7 @@ TOOLS_DIR = Path(__file__).resolve().parent.parent / "robot_tools"
 TOOL_NAME = re.compile(r"[a-z][a-z0-9]*(-[a-z0-9]+){0,5}", re.ASCII)
 
 
+@functools.cache
 def known_tools() -> list[str]:
     return sorted(path.stem.replace("_", "-") for path in TOOLS_DIR.glob("*.py") if path.stem != "__init__")
 
@@ -336,15 +338,20 @@ class ProfileReader:
                 self.error(f"names ${{{name}}}, which is not a setting of this profile{hint}",
                            mapping, key, path)
 
+    def read_checked(self, mapping, key: str, path: str, check) -> str | None:
+        """A string value that `check` (a roslab.formats check) accepts; None: absent or reported."""
+        value = mapping.get(key)
+        if value is None:
+            return None
+        problem = check(value) if isinstance(value, str) else "must be a string"
+        if problem:
+            self.error(problem, mapping, key, f"{path}.{key}")
+            return None
+        return value
+
     def read_launch(self, mapping, path: str, side: Side) -> None:
         """`launch: <package> <file>.launch.py`, into `side`."""
-        launch = mapping.get("launch")
-        if launch is not None:
-            problem = formats.launch(launch) if isinstance(launch, str) else "must be a string"
-            if problem:
-                self.error(problem, mapping, "launch", f"{path}.launch")
-            else:
-                side.launch = launch
+        side.launch = self.read_checked(mapping, "launch", path, formats.launch) or side.launch
 
     def read_parts(self, mapping, path: str, known: set[str], side: Side, when_ok: bool) -> None:
         """The list and environment keys of a side or a `when` block, into `side`."""
@@ -638,23 +645,13 @@ class ProfileReader:
         side = Side()
         self.read_parts(value, name, known, side, when_ok=True)
         self.read_launch(value, name, side)
-        variant = value.get("variant")
-        if variant is not None:
-            problem = formats.ros_variant(variant) if isinstance(variant, str) else "must be a string"
-            if problem:
-                self.error(problem, value, "variant", f"{name}.variant")
-            else:
-                side.variant = variant
+        side.variant = self.read_checked(value, "variant", name, formats.ros_variant) or side.variant
         side.os_tweaks = self.read_os_tweaks(value, name)
         side.sources = self.read_sources(value, name)
         side.python_packages = self.read_python_packages(value, name)
-        venv = value.get("python_venv")
+        venv = self.read_checked(value, "python_venv", name, formats.venv_dir)
         if venv is not None:
-            problem = formats.venv_dir(venv) if isinstance(venv, str) else "must be a string"
-            if problem:
-                self.error(problem, value, "python_venv", f"{name}.python_venv")
-            else:
-                side.python_venv = venv[2:] if venv.startswith("~/") else venv.rstrip("/")
+            side.python_venv = venv[2:] if venv.startswith("~/") else venv.rstrip("/")
         boards = value.get("boards")
         if boards is not None:
             if not isinstance(boards, list) or not boards or not all(b in BOARDS for b in boards):
@@ -869,8 +866,8 @@ def _read_verify(reader: ProfileReader, mapping, base: Profile | None, known: se
 def _read_tools(reader: ProfileReader, mapping, base: Profile | None) -> tuple[list[str], dict[str, str]]:
     """(`tools:`, `dds_only_packages:`): the commands the robot brings, its DDS-only packages."""
     tools = mapping.get("tools", list(base.tools) if base else [])
-    if not isinstance(tools, list) or any(tool_problem(tool) for tool in tools):
-        problems = [tool_problem(tool) for tool in tools] if isinstance(tools, list) else ["must be a list"]
+    problems = [tool_problem(tool) for tool in tools] if isinstance(tools, list) else ["must be a list"]
+    if any(problems):
         reader.error(next(problem for problem in problems if problem), mapping, "tools", "tools")
         tools = []
     dds_only = mapping.get("dds_only_packages", dict(base.dds_only_packages) if base else {})

@@ -91,8 +91,9 @@ def inventory_groups(classroom: Classroom) -> dict[str, list[tuple[str, dict]]]:
         if data["ssh_known_hosts_file"] == classroom_known_hosts:
             checked[host.name] = (known_addresses(host, moved.get(host.name)), data.get("ssh_port") or 22)
         entries[host.name] = (host.name, data)
+    own_files: dict[str, list] = {}  # each roster-named known_hosts file read once
     unknown_moves = [problem for host in classroom.hosts
-                     for problem in _move_without_key(classroom, host, entries[host.name][1])]
+                     for problem in _move_without_key(classroom, host, entries[host.name][1], own_files)]
     if unknown_moves:
         raise RosterError(unknown_moves)
     groups = {group: [entries[name] for name in names] for group, names in group_names(classroom).items()}
@@ -107,7 +108,7 @@ def inventory_groups(classroom: Classroom) -> dict[str, list[tuple[str, dict]]]:
     return groups
 
 
-def _move_without_key(classroom: Classroom, host, data: dict) -> list[Problem]:
+def _move_without_key(classroom: Classroom, host, data: dict, own_files: dict[str, list]) -> list[Problem]:
     """A network change to an address the roster's own known_hosts file (ssh_known_hosts_file)
     has no key for: pyinfra would refuse the host there, and the change would roll back on every
     run. roslab adds a moved host's addresses only to the classroom's own file, so say it now."""
@@ -119,7 +120,9 @@ def _move_without_key(classroom: Classroom, host, data: dict) -> list[Problem]:
         return []
     port = data.get("ssh_port") or 22
     try:
-        entries = identity.read_known_hosts(classroom.path, Path(own))
+        if own not in own_files:
+            own_files[own] = identity.read_known_hosts(classroom.path, Path(own))
+        entries = own_files[own]
     except identity.IdentityError:
         return []  # an unreadable file is pyinfra's to report, naming it
     if identity.knows_address(entries, new, port) or not identity.knows_address(entries, data["ssh_hostname"], port):

@@ -594,8 +594,8 @@ def ros_archive(extra_keys: set[str], runtime: ros_runtime.Runtime | None = None
                 package = debian_name(distro, key)
                 files, depends = standin_launch_files(distro, key), [
                     debian_name(distro, dep) for dep in VARIANT_DEPENDS.get(key, [])]
-                if simulator_of(distro, key):
-                    depends.append(simulator_of(distro, key))
+                if simulator := simulator_of(distro, key):
+                    depends.append(simulator)
                 if key == ROS_WORKSPACE_KEY:
                     prefix = f"/opt/ros/{distro}"
                     files = {f"{prefix}/{name}": setup_script(distro)
@@ -647,8 +647,8 @@ def _real_ros_packages(work: Path, codename: str, distro: str, keys: list[str],
         depends = [debian_name(distro, dep) for dep in VARIANT_DEPENDS.get(key, [])] or [core]
         depends += ros_runtime.LINTER_DEPENDS.get(key, ())
         depends += real_sources.BUILD_DEPENDS.get(key, ())  # what Ubuntu's deb brings along
-        if simulator_of(distro, key):
-            depends.append(simulator_of(distro, key))
+        if simulator := simulator_of(distro, key):
+            depends.append(simulator)
         files = {**standin_launch_files(distro, key), **real_sources.standin_executable_files(distro, key)}
         what = "stand-in launch files or executables" if files else "no files of its own"
         _build_deb(work, package, version, f"{STANDIN_NOTE}: {key} for ROS 2 {distro} ({what}; "

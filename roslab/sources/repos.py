@@ -30,7 +30,7 @@ from urllib.parse import unquote, urlsplit
 
 from roslab.ros import distro as distros
 from roslab.controller_files import kind_of
-from roslab.formats import file_url_problem, within
+from roslab.formats import Context, file_url_problem, within
 from roslab.checked.loading import line_of, load_yaml
 from roslab.checked.problems import Problem, Report, display_path
 
@@ -262,8 +262,6 @@ def rewrites_problem(value, context=None) -> str | None:
     """A mapping of URL prefix -> URL prefix (http, https or file), each one line of ASCII; a
     file:// replacement leads inside the roster's folder (not .roslab-state), like a file://
     source: what the controller fetches is copied to every Pi."""
-    from roslab.formats import Context
-
     context = context or Context()
     if not isinstance(value, dict):
         return "must be a mapping of URL prefix -> replacement prefix"
@@ -289,8 +287,6 @@ rewrites_problem.allowed = "URL prefix: replacement prefix (http, https, file)"
 
 def repos_file_problem(value, context=None) -> str | None:
     """A .repos file inside the roster's folder (relative to the roster)."""
-    from roslab.formats import Context
-
     context = context or Context()
     return name_problem(value, Path(context.roster_dir))
 
