@@ -20,13 +20,17 @@ usual way. Values are handed out as copies: a caller that edits one changes noth
 
 from __future__ import annotations
 
+import base64
 import copy
+import dataclasses
 import datetime
 import functools
+import gzip
 import inspect
 import posixpath
 import re
 import secrets
+import zlib
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -76,7 +80,15 @@ def own_copy(value: Any) -> Any:
         return set(value)  # hashable items: nothing in them to change
     if kind is tuple:
         return tuple(own_copy(item) for item in value)
+    if _is_frozen_dataclass(kind) and all(
+            type(getattr(value, name)) in _UNCHANGEABLE for name in kind.__dataclass_fields__):
+        return value  # a workspace entry, say: nothing in it can change
     return copy.deepcopy(value)
+
+
+@functools.cache
+def _is_frozen_dataclass(kind: type) -> bool:
+    return dataclasses.is_dataclass(kind) and kind.__dataclass_params__.frozen
 
 
 @functools.cache
@@ -87,7 +99,22 @@ def _signature(command: Callable) -> inspect.Signature:
 
 def _normalized(fact: type[FactBase], arguments: dict) -> tuple | None:
     """The fact's arguments as pyinfra binds them (defaults filled in), hashable; None if
-    they do not fit its command."""
+    they do not fit its command. Bound once per fact and arguments: every fact an operation
+    asks on every host comes through here."""
+    given = (fact, tuple((name, _hashable(arguments[name])) for name in sorted(arguments)))
+    try:
+        return _NORMALIZED[given]
+    except KeyError:
+        normalized = _NORMALIZED[given] = _bound(fact, arguments)
+        return normalized
+    except TypeError:  # an argument that no hashable form holds (a set, say)
+        return _bound(fact, arguments)
+
+
+_NORMALIZED: dict[tuple, tuple | None] = {}
+
+
+def _bound(fact: type[FactBase], arguments: dict) -> tuple | None:
     command = getattr(fact, "command", None)
     if not callable(command):
         return () if not arguments else None
@@ -111,8 +138,29 @@ class Read:
         return dict(self.arguments)
 
 
+# Names through which a fact's command could read the host it runs for (pyinfra's `host`,
+# its context): such a command is not a function of the fact's arguments alone.
+_HOST_NAMES = frozenset({"host", "ctx_host", "context", "state", "ctx_state"})
+
+
+@functools.cache
+def asks_the_host(fact: type[FactBase]) -> bool:
+    """Whether the fact's command (or its requires_command) reads the host it runs for, as
+    pyinfra's Uptime, Mounts and Port do: its command text then differs from host to host."""
+    for method in (getattr(fact, "command", None), getattr(fact, "requires_command", None)):
+        code = getattr(method, "__code__", None)
+        if code is not None and _HOST_NAMES & set(code.co_names):
+            return True
+    return False
+
+
 def read(fact: type[FactBase], **arguments) -> Read:
-    """The read of `fact` with `arguments`, e.g. ``read(File, path="/etc/hosts")``."""
+    """The read of `fact` with `arguments`, e.g. ``read(File, path="/etc/hosts")``.
+
+    A fact whose command reads the host is not read ahead: the probe builds each read's
+    command once per run, for every host alike."""
+    if asks_the_host(fact):
+        raise TypeError(f"{fact.__name__}'s command reads the host: it cannot be read ahead")
     normalized = _normalized(fact, arguments)
     if normalized is None:
         raise TypeError(f"{fact.__name__} takes no arguments {sorted(arguments)}")
@@ -150,6 +198,37 @@ class Commands(tuple):
     __str__ = __repr__
 
 
+def sections_script(commands: tuple, marker: str) -> str:
+    """The shell that runs each command in its own subshell, stdin closed, and ends its output
+    with the marker, its index and its exit status."""
+    return "\n".join(
+        [f"echo {marker}"]
+        + [f"( {command}\n) </dev/null; printf '%s\\n' \"{marker} {index} $?\""
+           for index, command in enumerate(commands)]
+    )
+
+
+# What `gzip | base64` output starts with: gzip's magic number and method (1f 8b 08).
+GZIP_BASE64 = "H4sI"
+
+
+def unpacked(output: list[str]) -> list[str]:
+    """The probe's output lines as the host printed them: decoded and split the way pyinfra
+    splits a command's output (at "\\n", which is dropped) when it came gzipped as one base64
+    line; as they are when the host sent them plain. [] when they cannot be decoded (every
+    fact is then read on its own)."""
+    if len(output) != 1 or not output[0].startswith(GZIP_BASE64):
+        return output
+    try:
+        text = gzip.decompress(base64.b64decode(output[0], validate=True)).decode("utf-8")
+    except (ValueError, OSError, EOFError, zlib.error):
+        return []
+    lines = text.split("\n")
+    if lines[-1] == "":
+        lines.pop()
+    return lines
+
+
 class HostProbe(FactBase):
     """
     Runs several facts' commands in one remote command.
@@ -168,13 +247,15 @@ class HostProbe(FactBase):
         return []
 
     def command(self, commands: tuple, marker: str) -> str:
-        return "\n".join(
-            [f"echo {marker}"]
-            + [f"( {command}\n) </dev/null; printf '%s\\n' \"{marker} {index} $?\""
-               for index, command in enumerate(commands)]
-        )
+        # The sections travel gzipped, as one base64 line: pyinfra and paramiko cost CPU per
+        # line of output (a queue, a thread switch, a readline each), and a host's installed
+        # packages alone are hundreds of lines. A host without gzip or base64 sends them plain.
+        return (f"roslab_probe() {{\n{sections_script(commands, marker)}\n}}\n"
+                "if command -v gzip >/dev/null 2>&1 && command -v base64 >/dev/null 2>&1; "
+                "then roslab_probe | gzip -1 -c | base64 -w 0; else roslab_probe; fi")
 
     def process(self, output):
+        output = unpacked(output)
         # The first line is the marker: a random word per run, so no file can forge it.
         if not output:
             return []
@@ -213,6 +294,22 @@ def values_of(reads: list[tuple[Read, FactBase]], sections: list) -> dict[Read, 
     return values
 
 
+# Each read's command and the fact instance whose `process` reads its output, built once
+# per run for every host (`read` takes only facts whose command is a function of their
+# arguments; an instance keeps no more than its arguments): building them per host was a
+# third of a converged host's planning CPU (pyinfra's File command runs shlex on every call).
+_SECTIONS: dict[Read, tuple[str, FactBase]] = {}
+
+
+def section(item: Read) -> tuple[str, FactBase]:
+    """The read's command as pyinfra would run it, and the fact instance that made it."""
+    built = _SECTIONS.get(item)
+    if built is None:
+        fact = item.fact()
+        built = _SECTIONS[item] = (_section_command(item, fact), fact)
+    return built
+
+
 def run_probe(reads: list[Read], **connection) -> dict[Read, Any]:
     """Run `reads` on the current host in one remote command; their values by read.
 
@@ -222,11 +319,11 @@ def run_probe(reads: list[Read], **connection) -> dict[Read, Any]:
     commands = []
     kept = []
     for item in reads:
-        fact = item.fact()
         try:
-            commands.append(_section_command(item, fact))
+            command, fact = section(item)
         except Exception:  # noqa: BLE001 - a bad argument raises where the fact is asked
             continue
+        commands.append(command)
         kept.append((item, fact))
     if not kept:
         return {}
@@ -238,7 +335,10 @@ def run_probe(reads: list[Read], **connection) -> dict[Read, Any]:
 # --- serving the read ---------------------------------------------------------------
 
 def _changes(state, host) -> int:
-    """How many operations have run commands on `host` so far."""
+    """How many operations have run commands on `host` so far (none before pyinfra executes:
+    planning runs facts' commands only)."""
+    if not state.is_executing:
+        return 0
     return sum(1 for op in state.ops.get(host, {}).values() if op.operation_meta.executed)
 
 
@@ -315,12 +415,8 @@ def declared_packages(data, codename: str) -> list[str]:
 
 
 def registered_reads() -> list[Read]:
-    reads: list[Read] = []
-    for function in READERS:
-        for item in function() or ():
-            if item not in reads:
-                reads.append(item)
-    return reads
+    """Every registered reader's reads, in order, each once."""
+    return list(dict.fromkeys(item for function in READERS for item in function() or ()))
 
 
 def read_ahead(reads: Iterable[Read], **connection) -> None:

@@ -28,7 +28,7 @@ import os
 import posixpath
 import re
 import shlex
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from pyinfra import host, logger, state
@@ -96,15 +96,16 @@ def local_packages(nodes_dir: str | os.PathLike) -> dict[str, dict[str, LocalFil
                 "(lowercase letters, digits and underscores)"
             )
         files = {}
+        root_prefix = len(str(root)) + 1  # os.walk's dirpath starts with package_dir, under root
         for dirpath, dirnames, filenames in os.walk(package_dir):
             dirnames[:] = sorted(d for d in dirnames if not _is_excluded(d))
+            relative_dir = dirpath[root_prefix:]
             for filename in sorted(filenames):
                 full = os.path.join(dirpath, filename)
                 if _is_excluded(filename) or os.path.islink(full):
                     continue
                 mode = "755" if os.stat(full).st_mode & 0o100 else "644"
-                relative = Path(full).relative_to(root).as_posix()
-                files[relative] = LocalFile(full, file_sha256(full), mode)
+                files[f"{relative_dir}/{filename}"] = LocalFile(full, file_sha256(full), mode)
         packages[package_dir.name] = files
     if not packages:
         raise OperationError(f"workspace_nodes_dir {str(root)!r} holds no ROS packages")
@@ -141,7 +142,7 @@ def workspace_path(home: str, workspace_dir: str) -> str:
 # -------------------------------------------
 
 
-@dataclass
+@dataclass(frozen=True)
 class RemoteEntry:
     kind: str  # find's %y: f (file), d (directory), l (symlink), ...
     mode: str
@@ -203,7 +204,7 @@ class WorkspacePackages(FactBase):
         for line in sections.get("sums", []):
             digest, path = _parse_sha256sum_line(line)
             if path in entries:
-                entries[path].sha256 = digest
+                entries[path] = replace(entries[path], sha256=digest)
         manifest = [
             line.strip() for line in sections.get("manifest", []) if PACKAGE_NAME.match(line.strip())
         ]

@@ -8,6 +8,10 @@ import datetime
 import io
 import subprocess
 from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
 
 from fixtures.fake_host import fake_host, plan
 from pyinfra import host
@@ -173,3 +177,87 @@ def test_a_served_value_is_the_callers_own_copy_at_every_level():
     served["file"]["mode"] = 600
     served["by_default"]["k"].append("w")
     assert read == before
+
+
+def without_gzip(tmp_path) -> str:
+    """A PATH like this machine's, without gzip: a host that cannot pack the probe's output."""
+    tools = tmp_path / "bin-without-gzip"
+    tools.mkdir()
+    for folder in ("/usr/local/bin", "/usr/bin", "/bin"):
+        for tool in Path(folder).iterdir():
+            if tool.name != "gzip" and not (tools / tool.name).exists():
+                (tools / tool.name).symlink_to(tool)
+    return str(tools)
+
+
+def test_the_output_travels_packed_in_one_line_and_unpacks_to_the_plain_sections(tmp_path):
+    (tmp_path / "lines").write_text("one\ntwo\n\n")
+    (tmp_path / "no-newline").write_text("last")
+    reads = [probe.read(FileContents, path=str(tmp_path / "lines")),
+             probe.read(FileContents, path=str(tmp_path / "no-newline")),
+             probe.read(Fails), probe.read(File, path=str(tmp_path / "lines"))]
+    commands = probe.Commands(probe.section(item)[0] for item in reads)
+    packed = output_lines(probe.HostProbe().command(commands, "a" * 32))
+    plain = output_lines(probe.sections_script(commands, "a" * 32))
+    assert len(packed) == 1 and packed[0].startswith(probe.GZIP_BASE64)
+    assert len(plain) > 6
+    assert probe.unpacked(packed) == plain
+    assert probe.HostProbe().process(packed) == probe.HostProbe().process(plain)
+
+    # A host without gzip sends the sections plain; the values are the same.
+    env = {"PATH": without_gzip(tmp_path)}
+    unpacked = subprocess.run(["/bin/sh", "-c", probe.HostProbe().command(commands, "a" * 32)],
+                              capture_output=True, text=True, env=env, check=False).stdout
+    assert [line.rstrip("\n") for line in io.StringIO(unpacked)] == plain
+    # Output that is not what gzip packed (cut short, say) gives no values: each fact is read alone.
+    assert probe.unpacked([packed[0][:40]]) == []
+    assert probe.HostProbe().process([packed[0][:40]]) == []
+
+
+class AsksTheHost(FactBase):
+    def command(self):
+        return f"uname -r # {host.name}"
+
+
+def test_a_fact_whose_command_reads_the_host_is_not_read_ahead():
+    # Its command differs from host to host; the probe builds each read's command once per run.
+    from pyinfra.facts.server import Uptime
+
+    for fact in (AsksTheHost, Uptime):
+        with pytest.raises(TypeError, match="reads the host"):
+            probe.read(fact)
+    assert not probe.asks_the_host(File) and not probe.asks_the_host(FileContents)
+
+
+def test_each_reads_command_is_built_once_for_every_host(monkeypatch):
+    built = []
+    command = File.command
+
+    def counted(self, path):
+        built.append(path)
+        return command(self, path)
+
+    monkeypatch.setattr(File, "command", counted)
+    monkeypatch.setattr(probe, "_SECTIONS", {})
+    item = probe.read(File, path="/etc/roslab-once")
+    first, second = probe.section(item), probe.section(probe.read(File, path="/etc/roslab-once"))
+    assert first == second and built == ["/etc/roslab-once"]
+
+
+@dataclass(frozen=True)
+class Entry:
+    kind: str
+    sha256: str | None = None
+
+
+@dataclass(frozen=True)
+class Holder:
+    items: list
+
+
+def test_a_frozen_value_of_unchangeable_fields_is_served_as_it_is_and_others_are_copied():
+    entry = Entry("f", "aa")
+    assert probe.own_copy({"a": entry})["a"] is entry
+    holder = Holder(["x"])
+    served = probe.own_copy(holder)
+    assert served == holder and served is not holder and served.items is not holder.items
