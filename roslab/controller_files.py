@@ -11,6 +11,7 @@ from __future__ import annotations
 import errno
 import hashlib
 import os
+import time
 import stat
 from pathlib import Path
 
@@ -74,11 +75,28 @@ def _size_text(limit: int) -> str:
 __all__ = ["MAX_SMALL_FILE_BYTES", "UnreadableFile", "kind_of", "read_regular_file"]
 
 
+# Digests by file identity and change times: deploy.py runs once per host and hashes the same
+# workspace files for each; a file that is written again gets a new ctime, so a new digest.
+_DIGESTS: dict[tuple, str] = {}
+# The kernel stamps files from a coarse clock (a tick: 4 to 10 ms): a file changed this recently
+# could change again with the same ctime, so its digest is not kept (git's "racily clean").
+RECENT_CHANGE_NS = 100_000_000
+
+
 def file_sha256(path: Path | str) -> str:
     """The sha256 of a file on the controller, read in 1 MiB blocks (a packed underlay, a workspace
-    file): hex, as the hosts' sha256sum prints it."""
-    digest = hashlib.sha256()
+    file): hex, as the hosts' sha256sum prints it. Read once while the file is unchanged (same
+    device, inode, size, mtime and ctime, as make and git judge it)."""
     with open(path, "rb") as stream:
+        reading_since = time.time_ns()
+        status = os.fstat(stream.fileno())
+        key = (status.st_dev, status.st_ino, status.st_size, status.st_mtime_ns, status.st_ctime_ns)
+        known = _DIGESTS.get(key)
+        if known is not None:
+            return known
+        digest = hashlib.sha256()
         for block in iter(lambda: stream.read(1 << 20), b""):
             digest.update(block)
+    if status.st_ctime_ns < reading_since - RECENT_CHANGE_NS:
+        _DIGESTS[key] = digest.hexdigest()
     return digest.hexdigest()

@@ -12,6 +12,7 @@ import grp
 import os
 import shutil
 import subprocess
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -290,3 +291,33 @@ def test_diff_mode_shows_the_changed_lines(nodes, src, caplog):
             host=LocalDirHost(),
         )
     assert "setup(name='demo')" in caplog.text
+
+
+def test_a_file_rewritten_in_the_same_instant_with_the_same_size_gets_its_new_digest(tmp_path):
+    """The controller hashes a file once while it is unchanged (deploy.py runs once per host);
+    an edit is always seen, even one that keeps the size and the modification time."""
+    import hashlib
+
+    from roslab.controller_files import file_sha256
+
+    from roslab import controller_files
+
+    path = tmp_path / "talker.py"
+    path.write_text("print('a')\n")
+    stamp = path.stat()
+    assert file_sha256(path) == hashlib.sha256(b"print('a')\n").hexdigest()
+    assert not [key for key in controller_files._DIGESTS if key[1] == stamp.st_ino]  # just written: not kept
+    for _ in range(3):  # rewritten within the same clock tick, size and mtime kept
+        path.write_text("print('b')\n")
+        os.utime(path, ns=(stamp.st_atime_ns, stamp.st_mtime_ns))
+        assert file_sha256(path) == hashlib.sha256(b"print('b')\n").hexdigest()
+        path.write_text("print('a')\n")
+        os.utime(path, ns=(stamp.st_atime_ns, stamp.st_mtime_ns))
+        assert file_sha256(path) == hashlib.sha256(b"print('a')\n").hexdigest()
+
+    settled = tmp_path / "listener.py"
+    settled.write_text("print('c')\n")
+    os.utime(settled, ns=(0, 0))
+    time.sleep(1.5 * controller_files.RECENT_CHANGE_NS / 1e9)  # a file last changed a while ago is kept
+    assert file_sha256(settled) == file_sha256(settled) == hashlib.sha256(b"print('c')\n").hexdigest()
+    assert [key for key in controller_files._DIGESTS if key[1] == settled.stat().st_ino]
