@@ -139,6 +139,13 @@ def host_data_lookup(host):
 
     def lookup(key, default):
         for layer in layers:
+            if type(layer) is dict:
+                # A plain dict's get() finds what [] finds, without raising KeyError for
+                # each of the ~30 global arguments that no layer sets (most of them).
+                value = layer.get(key, _NOT_IN_DATA)
+                if value is not _NOT_IN_DATA:
+                    return copy.copy(value)
+                continue
             try:
                 return copy.copy(layer[key])
             except KeyError:

@@ -317,3 +317,23 @@ def test_a_bad_global_argument_is_refused_as_pyinfra_refuses_it():
             pop(state, host, {"_sudo_user": 42})
         errors.append(str(raised.value))
     assert errors[0] == errors[1] and "_sudo_user" in errors[0]
+
+
+def test_the_data_lookup_finds_what_host_data_finds_in_every_kind_of_layer():
+    """Plain dicts are searched with get(); any other mapping as pyinfra does, with [] (a
+    defaultdict answers every key there)."""
+    from collections import defaultdict
+    from types import SimpleNamespace
+
+    from pyinfra.api.host import HostData
+
+    data = HostData(None, {"set_to_none": None}, lambda: {"from_callable": [1], "set_to_none": "hidden"},
+                    defaultdict(lambda: "made", {"in_default": 2}), {"last": 3})
+    lookup = pyinfra_planning.host_data_lookup(SimpleNamespace(data=data))
+    missing = object()
+    for key in ("set_to_none", "from_callable", "in_default", "last", "anything"):
+        assert lookup(key, missing) == getattr(data, key, missing), key
+    assert lookup("anything", missing) == "made"
+    served = lookup("from_callable", missing)
+    served.append(2)  # a shallow copy, as HostData gives
+    assert lookup("from_callable", missing) == [1]
