@@ -362,81 +362,28 @@ def service_level(service: str) -> str:
 
 
 def host_cells(host: HostStatus, now: datetime) -> dict[str, Cell]:
-    """The host's row, the same for the terminal and the page."""
+    """The host's row, the same for the terminal and the page. Each cell that finds trouble adds
+    its note to `notes`, in column order, for the NOTE cell at the end."""
     notes: list[str] = []
-    unknown = Cell("?", "muted")
+    probed = host.reachable and host.probe["probed"]
     cells = {
         "TEAM": Cell(host.team), "HOST": Cell(host.name), "ROLE": Cell(host.role),
         "ADDRESS": Cell(host.address),
     }
-    if not host.reachable:
-        cells["SSH"] = Cell(UNREACHABLE, "bad")
-        notes.append(host.error or UNREACHABLE)
-    elif not host.probe["probed"]:
-        cells["SSH"] = Cell("ok", "ok")
-        notes.append(host.error or "the status command returned nothing")
-    else:
-        cells["SSH"] = Cell("ok", "ok")
-    probed = host.reachable and host.probe["probed"]
-
-    if not probed:
-        cells["UBUNTU"] = unknown
-    elif not host.is_ubuntu:
-        name = host.probe["os"].get("PRETTY_NAME") or host.probe["os"].get("ID") or "not Ubuntu"
-        cells["UBUNTU"] = Cell(name, "bad")
-        notes.append("not Ubuntu")
-    else:
-        text = " ".join(part for part in (host.release, host.codename) if part) or "?"
-        level = "ok"
-        if host.expected_release and host.release != host.expected_release:
-            level = "bad"
-            notes.append(f"the roster expects Ubuntu {host.expected_release}")
-        cells["UBUNTU"] = Cell(text, level)
-
-    if not probed:
-        cells["ROS"] = unknown
-    elif not host.distros:
-        cells["ROS"] = Cell("none", "warn")
-    else:
-        level = "ok" if not host.expected_distro or host.expected_distro in host.distros else "warn"
-        if level == "warn":
-            notes.append(f"the roster expects ROS 2 {host.expected_distro}")
-        cells["ROS"] = Cell(", ".join(host.distros), level)
-
-    roster_domain = "-" if host.roster_domain is None else str(host.roster_domain)
-    if host.domain is None:
-        cells["DOMAIN"] = Cell(f"{roster_domain} ({'auto' if host.domain_assigned else 'roster'})", "muted")
-    elif host.roster_domain is not None and host.domain != host.roster_domain:
-        cells["DOMAIN"] = Cell(str(host.domain), "bad")
-        notes.append(f"its nodes run on domain {host.domain}, the roster says {roster_domain}")
-    else:
-        cells["DOMAIN"] = Cell(str(host.domain), "ok")
-
+    cells["SSH"] = ssh_cell(host, notes)
+    cells["UBUNTU"] = ubuntu_cell(host, probed, notes)
+    cells["ROS"] = ros_cell(host, probed, notes)
+    cells["DOMAIN"] = domain_cell(host, notes)
     cells["DISCOVERY"] = discovery_cell(host, notes)
-    if host.runs_nodes:
-        cells["NODES"] = Cell(host.service, service_level(host.service))
-    else:
-        cells["NODES"] = Cell(host.nodes, "ok" if probed else "muted")
+    cells["NODES"] = nodes_cell(host, probed)
     for service, state in host.services_stopped() if probed else ():
         notes.append(stopped_service_line(host.name, service, state))
     failures = host.launch_failures() if probed else []
     notes += failures
 
     cells["UNDERLAY"] = underlay_cell(host, probed)
-
-    run = host.run
-    if run is None or run.last_run is None:
-        cells["LAST RUN"] = Cell("never", "muted")
-    else:
-        result = run.result or "?"
-        level = "bad" if result in FAILED_RESULTS else {"ok": "ok", "changed": "ok"}.get(result, "warn")
-        cells["LAST RUN"] = Cell(f"{result} {when(run.last_run, now)}", level)
-        if result in FAILED_RESULTS and (run.step or run.reason):
-            notes.append(f"last run {result} in \"{run.step or '?'}\": {run.reason or '?'}")
-    if run is None or run.last_success is None:
-        cells["LAST SUCCESS"] = Cell("never", "warn" if run is not None and run.last_run else "muted")
-    else:
-        cells["LAST SUCCESS"] = Cell(when(run.last_success, now), "ok")
+    cells["LAST RUN"] = last_run_cell(host.run, now, notes)
+    cells["LAST SUCCESS"] = last_success_cell(host.run, now)
     if host.reboot_needed:
         notes.append(f"reboot needed: {host.reboot_needed}")
     if host.listen_error:
@@ -445,6 +392,81 @@ def host_cells(host: HostStatus, now: datetime) -> dict[str, Cell]:
              else "warn" if host.reboot_needed or failures or (probed and host.services_stopped()) else "plain")
     cells["NOTE"] = Cell("; ".join(notes), level)
     return cells
+
+
+def ssh_cell(host: HostStatus, notes: list[str]) -> Cell:
+    """Whether the host answered over SSH; a host that answered but whose probe said nothing gets a note."""
+    if not host.reachable:
+        notes.append(host.error or UNREACHABLE)
+        return Cell(UNREACHABLE, "bad")
+    if not host.probe["probed"]:
+        notes.append(host.error or "the status command returned nothing")
+    return Cell("ok", "ok")
+
+
+def ubuntu_cell(host: HostStatus, probed: bool, notes: list[str]) -> Cell:
+    """The host's Ubuntu release, checked against the one the roster expects."""
+    if not probed:
+        return Cell("?", "muted")
+    if not host.is_ubuntu:
+        name = host.probe["os"].get("PRETTY_NAME") or host.probe["os"].get("ID") or "not Ubuntu"
+        notes.append("not Ubuntu")
+        return Cell(name, "bad")
+    text = " ".join(part for part in (host.release, host.codename) if part) or "?"
+    level = "ok"
+    if host.expected_release and host.release != host.expected_release:
+        level = "bad"
+        notes.append(f"the roster expects Ubuntu {host.expected_release}")
+    return Cell(text, level)
+
+
+def ros_cell(host: HostStatus, probed: bool, notes: list[str]) -> Cell:
+    """The ROS 2 distros installed; a warning when the roster's is not among them."""
+    if not probed:
+        return Cell("?", "muted")
+    if not host.distros:
+        return Cell("none", "warn")
+    level = "ok" if not host.expected_distro or host.expected_distro in host.distros else "warn"
+    if level == "warn":
+        notes.append(f"the roster expects ROS 2 {host.expected_distro}")
+    return Cell(", ".join(host.distros), level)
+
+
+def domain_cell(host: HostStatus, notes: list[str]) -> Cell:
+    """The ROS domain the host's nodes run on, checked against the roster's (or the roster's alone,
+    saying where it came from, when the host does not tell)."""
+    roster_domain = "-" if host.roster_domain is None else str(host.roster_domain)
+    if host.domain is None:
+        return Cell(f"{roster_domain} ({'auto' if host.domain_assigned else 'roster'})", "muted")
+    if host.roster_domain is not None and host.domain != host.roster_domain:
+        notes.append(f"its nodes run on domain {host.domain}, the roster says {roster_domain}")
+        return Cell(str(host.domain), "bad")
+    return Cell(str(host.domain), "ok")
+
+
+def nodes_cell(host: HostStatus, probed: bool) -> Cell:
+    """The nodes' service state on a host that runs them; what the roster gives it otherwise."""
+    if host.runs_nodes:
+        return Cell(host.service, service_level(host.service))
+    return Cell(host.nodes, "ok" if probed else "muted")
+
+
+def last_run_cell(run: RunRecord | None, now: datetime, notes: list[str]) -> Cell:
+    """The last recorded run's result and time; a failed run notes the step and reason it gave."""
+    if run is None or run.last_run is None:
+        return Cell("never", "muted")
+    result = run.result or "?"
+    level = "bad" if result in FAILED_RESULTS else {"ok": "ok", "changed": "ok"}.get(result, "warn")
+    if result in FAILED_RESULTS and (run.step or run.reason):
+        notes.append(f"last run {result} in \"{run.step or '?'}\": {run.reason or '?'}")
+    return Cell(f"{result} {when(run.last_run, now)}", level)
+
+
+def last_success_cell(run: RunRecord | None, now: datetime) -> Cell:
+    """When the host last ran without failing; a warning if it has runs but no success."""
+    if run is None or run.last_success is None:
+        return Cell("never", "warn" if run is not None and run.last_run else "muted")
+    return Cell(when(run.last_success, now), "ok")
 
 
 def underlay_cell(host: HostStatus, probed: bool) -> Cell:
@@ -680,15 +702,52 @@ def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = 
     main = next((host for host in hosts if host.role == "main"), None)
     robots = [host for host in hosts if host.role != "main"]
     rows = max(1, len(robots))
-    boxes, arrows = [], []
     main_y = MARGIN + (rows - 1) * (BOX_HEIGHT + BOX_GAP) // 2
-    if main is not None:
-        boxes.append(host_box(main, MAIN_X, main_y))
-    else:
-        boxes.append({"x": MAIN_X, "y": main_y, "width": BOX_WIDTH, "height": BOX_HEIGHT, "level": "muted",
-                      "title": "no main host", "host": "", "lines": [
-                          {"text": "no main host", "class": "name", "x": MAIN_X + 12, "y": main_y + 22}]})
+    boxes = [main_box(main, main_y)]
+    result = team_result(team, hosts, main, robots, topic, message_type, listen_timeout)
+    # Listened for real: the main host answered with a ROS 2 runtime (else nothing is known).
+    listened = listen and main is not None and bool((main.heard or {}).get("ros"))
+    nothing_to_hear = main is not None and not main.listens
+    heard_robots = result.heard_robots()
+    arrows = []
+    for index, robot in enumerate(robots):
+        y = MARGIN + index * (BOX_HEIGHT + BOX_GAP)
+        boxes.append(host_box(robot, ROBOT_X, y))
+        state, label = robot_heard(robot, heard_robots, topic, listened, nothing_to_hear)
+        arrows.append(robot_arrow(index, len(robots), y, main_y, state, label))
 
+    # What the main host hears, under its box.
+    topics_y = main_y + BOX_HEIGHT + 22
+    topic_lines = heard_lines(main, result, listen, nothing_to_hear)
+    texts = [{"x": MAIN_X + 4, "y": topics_y + index * LINE, "text": clip(line, 60)}
+             for index, line in enumerate(topic_lines)]
+    if not robots:
+        texts.append({"x": ROBOT_X, "y": main_y + BOX_HEIGHT // 2 + 4, "text": "no robot in this team"})
+    height = max(MARGIN + rows * (BOX_HEIGHT + BOX_GAP), topics_y + len(topic_lines) * LINE) + MARGIN
+    verdict, verdict_level = team_verdict(hosts, result, listen, listened, nothing_to_hear)
+    return {
+        "name": team, "width": ROBOT_X + BOX_WIDTH + MARGIN, "height": height,
+        "boxes": boxes, "arrows": arrows, "texts": texts,
+        "verdict": verdict, "verdict_level": verdict_level,
+        "domain": next((str(h.roster_domain) + (" auto" if h.domain_assigned else "")
+                        for h in hosts if h.roster_domain is not None), "-"),
+        "discovery": team_discovery(hosts),
+        "no_robot": not robots,
+    }
+
+
+def main_box(main: HostStatus | None, main_y: int) -> dict:
+    """The main host's box, or a muted placeholder saying the team has none."""
+    if main is not None:
+        return host_box(main, MAIN_X, main_y)
+    return {"x": MAIN_X, "y": main_y, "width": BOX_WIDTH, "height": BOX_HEIGHT, "level": "muted",
+            "title": "no main host", "host": "", "lines": [
+                {"text": "no main host", "class": "name", "x": MAIN_X + 12, "y": main_y + 22}]}
+
+
+def team_result(team: str, hosts: list[HostStatus], main: HostStatus | None, robots: list[HostStatus],
+                topic: str, message_type: str, listen_timeout: int | None) -> TeamResult:
+    """The team's check as roslab verify judges it, from what the status probe read on its hosts."""
     result = TeamResult(team, main=main.name if main else None, robots=sorted(r.name for r in robots),
                         topic=topic, services={host.name: host.service for host in hosts},
                         message_type=message_type,
@@ -703,50 +762,53 @@ def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = 
             result.error = f"{main.name} is {UNREACHABLE}"
         elif main.listen_error:
             result.error = main.listen_error
-    heard_robots = result.heard_robots()
-    # Listened for real: the main host answered with a ROS 2 runtime (else nothing is known).
-    listened = listen and main is not None and bool((main.heard or {}).get("ros"))
-    nothing_to_hear = main is not None and not main.listens
-    for index, robot in enumerate(robots):
-        y = MARGIN + index * (BOX_HEIGHT + BOX_GAP)
-        boxes.append(host_box(robot, ROBOT_X, y))
-        if nothing_to_hear:
-            state, label = "unknown", "nothing to hear"
-        elif not listened:
-            state, label = "unknown", f"{topic}: not checked"
-        elif robot.name in heard_robots:
-            state, label = "ok", f"{topic}: heard"
-        else:
-            state, label = "bad", f"{topic}: not heard"
-        # Each robot's arrow ends at its own point of the main box's edge, so labels stay apart.
-        start = (ROBOT_X - 2, y + BOX_HEIGHT // 2)
-        end = (MAIN_X + BOX_WIDTH + 8, main_y + (index + 1) * BOX_HEIGHT // (len(robots) + 1))
-        arrows.append({"x1": start[0], "y1": start[1], "x2": end[0], "y2": end[1], "state": state,
-                       "label": clip(label, 28), "label_x": (start[0] + end[0]) // 2,
-                       "label_y": (start[1] + end[1]) // 2 - 7})
+    return result
 
-    # What the main host hears, under its box.
-    heard = (main.heard if main is not None else None) or parse_check_output([])
-    topics_y = main_y + BOX_HEIGHT + 22
+
+def robot_heard(robot: HostStatus, heard_robots: list[str], topic: str, listened: bool,
+                nothing_to_hear: bool) -> tuple[str, str]:
+    """A robot's arrow: its state (ok, bad, unknown) and label, from what the main host heard."""
     if nothing_to_hear:
-        topic_lines = [f"topics heard: nothing to hear (robot profile {main.profile})"]
-    elif not listen:
-        topic_lines = ["topics heard: not checked (roslab status --listen)"]
-    elif main is None or main.heard is None:
-        topic_lines = [f"topics heard: {result.verdict()}"]
-    elif not heard["ros"]:
-        topic_lines = ["topics heard: no ROS 2 runtime on the main host"]
-    else:
-        topics = [name for name in heard["topics"] if name not in BACKGROUND_TOPICS]
-        topic_lines = ["topics heard:" if topics else "topics heard: none"]
-        topic_lines += [f"  {name}" for name in topics[:MAX_TOPICS]]
-        if len(topics) > MAX_TOPICS:
-            topic_lines.append(f"  and {len(topics) - MAX_TOPICS} more")
-    texts = [{"x": MAIN_X + 4, "y": topics_y + index * LINE, "text": clip(line, 60)}
-             for index, line in enumerate(topic_lines)]
-    if not robots:
-        texts.append({"x": ROBOT_X, "y": main_y + BOX_HEIGHT // 2 + 4, "text": "no robot in this team"})
-    height = max(MARGIN + rows * (BOX_HEIGHT + BOX_GAP), topics_y + len(topic_lines) * LINE) + MARGIN
+        return "unknown", "nothing to hear"
+    if not listened:
+        return "unknown", f"{topic}: not checked"
+    if robot.name in heard_robots:
+        return "ok", f"{topic}: heard"
+    return "bad", f"{topic}: not heard"
+
+
+def robot_arrow(index: int, robot_count: int, y: int, main_y: int, state: str, label: str) -> dict:
+    """The arrow from the robot box at `y` to the main box, its label halfway."""
+    # Each robot's arrow ends at its own point of the main box's edge, so labels stay apart.
+    start = (ROBOT_X - 2, y + BOX_HEIGHT // 2)
+    end = (MAIN_X + BOX_WIDTH + 8, main_y + (index + 1) * BOX_HEIGHT // (robot_count + 1))
+    return {"x1": start[0], "y1": start[1], "x2": end[0], "y2": end[1], "state": state,
+            "label": clip(label, 28), "label_x": (start[0] + end[0]) // 2,
+            "label_y": (start[1] + end[1]) // 2 - 7}
+
+
+def heard_lines(main: HostStatus | None, result: TeamResult, listen: bool, nothing_to_hear: bool) -> list[str]:
+    """The lines under the main host's box: the topics it hears, or why none are shown."""
+    heard = (main.heard if main is not None else None) or parse_check_output([])
+    if nothing_to_hear:
+        return [f"topics heard: nothing to hear (robot profile {main.profile})"]
+    if not listen:
+        return ["topics heard: not checked (roslab status --listen)"]
+    if main is None or main.heard is None:
+        return [f"topics heard: {result.verdict()}"]
+    if not heard["ros"]:
+        return ["topics heard: no ROS 2 runtime on the main host"]
+    topics = [name for name in heard["topics"] if name not in BACKGROUND_TOPICS]
+    lines = ["topics heard:" if topics else "topics heard: none"]
+    lines += [f"  {name}" for name in topics[:MAX_TOPICS]]
+    if len(topics) > MAX_TOPICS:
+        lines.append(f"  and {len(topics) - MAX_TOPICS} more")
+    return lines
+
+
+def team_verdict(hosts: list[HostStatus], result: TeamResult, listen: bool, listened: bool,
+                 nothing_to_hear: bool) -> tuple[str, str]:
+    """The team's one-line verdict and its level; hosts whose last run failed come first."""
     if listen or nothing_to_hear:
         verdict = result.verdict()
         verdict_level = "ok" if result.passed else "bad" if listened or nothing_to_hear else "warn"
@@ -756,15 +818,7 @@ def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = 
     if failed:
         verdict = f"{failed} of {len(hosts)} hosts failed their last run; " + verdict
         verdict_level = "bad"
-    return {
-        "name": team, "width": ROBOT_X + BOX_WIDTH + MARGIN, "height": height,
-        "boxes": boxes, "arrows": arrows, "texts": texts,
-        "verdict": verdict, "verdict_level": verdict_level,
-        "domain": next((str(h.roster_domain) + (" auto" if h.domain_assigned else "")
-                        for h in hosts if h.roster_domain is not None), "-"),
-        "discovery": team_discovery(hosts),
-        "no_robot": not robots,
-    }
+    return verdict, verdict_level
 
 
 def services_verdict(hosts: list[HostStatus]) -> tuple[str, str]:
@@ -906,10 +960,10 @@ def run(args: argparse.Namespace) -> int:
         print(problem, file=sys.stderr)
         return 1
     path = classroom.path
-    for option, value in (("--timeout", args.timeout), ("--listen-timeout", args.listen_timeout)):
-        if value is not None and not 1 <= value <= 600:
-            print(f"roslab status: {option} must be 1 to 600 seconds", file=sys.stderr)
-            return 2
+    bad_timeout = timeout_problem(args)
+    if bad_timeout:
+        print(bad_timeout, file=sys.stderr)
+        return 2
     warnings = [str(warning) for warning in classroom.warnings]
     try:
         # Once: it also brings the classroom's known_hosts up to date, as deploy.py's inventory does.
@@ -922,37 +976,13 @@ def run(args: argparse.Namespace) -> int:
     if problem or not statuses:
         print(problem or f"roslab status: {display_path(path)} has no host", file=sys.stderr)
         return 2
-    try:
-        runs = read_runs(classroom.path)
-    except (OSError, ValueError, yaml.YAMLError) as error:
-        runs = {}
-        warnings.append(f"{display_path(runs_path(classroom.path))}: cannot read the recorded runs "
-                        f"({getattr(error, 'strerror', None) or 'not a mapping of host to run'})")
-    for status in statuses:
-        status.run = runs.get(status.name)
+    attach_recorded_runs(classroom, statuses, warnings)
 
     probe(groups, statuses, listen=args.listen, listen_timeout=args.listen_timeout, host_bound=args.timeout)
 
     now = now_utc()
-    topics = {host.team: host.data.get("nodes_verify_topic") or "/chatter"
-              for host in classroom.hosts if host.role == "main"}
-    message_types = {host.team: host.data.get("nodes_verify_type") or CHATTER_TYPE
-                     for host in classroom.hosts if host.role == "main"}
-    context = page_context(classroom.name, display_path(path), statuses, now, args.listen, topics, warnings,
-                           checklists(classroom, {status.name for status in statuses}), message_types,
-                           args.listen_timeout)
-    for warning in warnings:
-        print(f"warning: {warning}", file=sys.stderr)
-    title = f"Classroom {classroom.name!r}" if classroom.name else "Classroom"
-    print(f"{title} ({display_path(path)}), {now.astimezone().strftime('%Y-%m-%d %H:%M:%S')}")
-    print(format_table(statuses, now))
-    if context["checklists"]:
-        print()
-        print(format_checklists(context["checklists"]))
-    if args.listen:
-        print()
-        for picture in context["teams"]:
-            print(f"team {picture['name']}: {picture['verdict']}")
+    context = status_context(classroom, statuses, now, args, warnings)
+    print_status(classroom, statuses, now, context, args.listen, warnings)
 
     page = Path(args.html) if args.html else default_page_path(classroom.path)
     try:
@@ -965,6 +995,56 @@ def run(args: argparse.Namespace) -> int:
     for problem in problems:
         print(problem, file=sys.stderr)
     return 1 if problems else 0
+
+
+def timeout_problem(args: argparse.Namespace) -> str | None:
+    """What is wrong with --timeout or --listen-timeout, if anything (both are bounded seconds)."""
+    for option, value in (("--timeout", args.timeout), ("--listen-timeout", args.listen_timeout)):
+        if value is not None and not 1 <= value <= 600:
+            return f"roslab status: {option} must be 1 to 600 seconds"
+    return None
+
+
+def attach_recorded_runs(classroom: Classroom, statuses: list[HostStatus], warnings: list[str]) -> None:
+    """Give each host its last recorded run; an unreadable record is a warning, not a failure."""
+    try:
+        runs = read_runs(classroom.path)
+    except (OSError, ValueError, yaml.YAMLError) as error:
+        runs = {}
+        warnings.append(f"{display_path(runs_path(classroom.path))}: cannot read the recorded runs "
+                        f"({getattr(error, 'strerror', None) or 'not a mapping of host to run'})")
+    for status in statuses:
+        status.run = runs.get(status.name)
+
+
+def status_context(classroom: Classroom, statuses: list[HostStatus], now: datetime,
+                   args: argparse.Namespace, warnings: list[str]) -> dict:
+    """The page's data, with each team's topic and message type from its main host's settings."""
+    topics = {host.team: host.data.get("nodes_verify_topic") or "/chatter"
+              for host in classroom.hosts if host.role == "main"}
+    message_types = {host.team: host.data.get("nodes_verify_type") or CHATTER_TYPE
+                     for host in classroom.hosts if host.role == "main"}
+    return page_context(classroom.name, display_path(classroom.path), statuses, now, args.listen, topics,
+                        warnings, checklists(classroom, {status.name for status in statuses}), message_types,
+                        args.listen_timeout)
+
+
+def print_status(classroom: Classroom, statuses: list[HostStatus], now: datetime, context: dict,
+                 listen: bool, warnings: list[str]) -> None:
+    """The terminal's report: warnings, the title, the table, checklists and, with --listen, each
+    team's verdict."""
+    for warning in warnings:
+        print(f"warning: {warning}", file=sys.stderr)
+    title = f"Classroom {classroom.name!r}" if classroom.name else "Classroom"
+    print(f"{title} ({display_path(classroom.path)}), {now.astimezone().strftime('%Y-%m-%d %H:%M:%S')}")
+    print(format_table(statuses, now))
+    if context["checklists"]:
+        print()
+        print(format_checklists(context["checklists"]))
+    if listen:
+        print()
+        for picture in context["teams"]:
+            print(f"team {picture['name']}: {picture['verdict']}")
 
 
 def status_problems(statuses: list[HostStatus]) -> list[str]:

@@ -172,30 +172,47 @@ def confirm_network_change(
     status = _confirm_at_new_address(host, arguments, token, new_address, old_address, deadline)
 
     if status is not None and status.state == STATE_CONFIRMED:
-        if old_client is not None and old_client is not host.connector.client:
-            old_client.close()
-        if roster_path:
-            network_state.record_address(roster_path, host.name, new_address)
-            network_state.clear_pending(roster_path, host.name)
-        host.log_styled(
-            f"Network change confirmed: reachable at {new_address}; "
-            f"the previous files are kept in {status.backup}",
-            fg="green",
-            log_func=logger.info,
-        )
+        _settle_confirmed(host, status, old_client, new_address, roster_path)
         return True
 
     # No confirmation: the host restores its previous configuration by itself.
+    status = _final_status_at_old_address(host, arguments, token, old_address, status, deadline)
+    if status is not None and roster_path:  # it ended: rolled back or failed, the host says which
+        network_state.clear_pending(roster_path, host.name)
+    _report_unconfirmed(host, status, new_address, old_address)
+    return False
+
+
+def _settle_confirmed(host, status: Status, old_client, new_address: str, roster_path: str | None) -> None:
+    """The host kept the change: stay connected at the new address and remember it beside the roster."""
+    if old_client is not None and old_client is not host.connector.client:
+        old_client.close()
+    if roster_path:
+        network_state.record_address(roster_path, host.name, new_address)
+        network_state.clear_pending(roster_path, host.name)
+    host.log_styled(
+        f"Network change confirmed: reachable at {new_address}; "
+        f"the previous files are kept in {status.backup}",
+        fg="green",
+        log_func=logger.info,
+    )
+
+
+def _final_status_at_old_address(host, arguments: dict, token: str, old_address: str,
+                                 status: Status | None, deadline: float) -> Status | None:
+    """How the unconfirmed change ended, read at the old address once the host answers there again
+    (None: it does not answer within the host's own deadline and the rollback's grace)."""
     if status is None:
         wait = max(0.0, deadline - time.monotonic()) + ROLLBACK_GRACE
     else:
         wait = ROLLBACK_GRACE  # the host is re-applying its old files right now
-    status = None
     if _connect_within(host, old_address, wait):
-        status = _wait_for_final_status(host, arguments, token, wait=ROLLBACK_GRACE)
+        return _wait_for_final_status(host, arguments, token, wait=ROLLBACK_GRACE)
+    return None
 
-    if status is not None and roster_path:  # it ended: rolled back or failed, the host says which
-        network_state.clear_pending(roster_path, host.name)
+
+def _report_unconfirmed(host, status: Status | None, new_address: str, old_address: str) -> None:
+    """One line for the teacher: rolled back, failed on the host, or not heard from at either address."""
     if status is not None and status.state == STATE_ROLLED_BACK:
         host.log_styled(
             f"Network change rolled back: {status.message}. The host is reachable again at "
@@ -218,4 +235,3 @@ def confirm_network_change(
             fg="red",
             log_func=logger.error,
         )
-    return False

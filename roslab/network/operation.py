@@ -214,56 +214,84 @@ def network_in_effect(
         )
     """
     found = host.get_fact(NetworkRenderer)
-    try:
-        layout = choose_layout(settings.backend, found["renderer"])
-    except ValueError as exc:
-        raise OperationError(f"{host.name}: {exc}") from None
+    layout = _layout_for(settings, found)
     configuring = host.get_fact(NetplanFilesConfiguring, interface=settings.interface) if layout.uses_netplan else []
     wanted = desired_files(settings, layout, found["cloud_init"], tuple(configuring))
 
     recovered = found.get("recovered")
     if recovered:
-        # The host restarted during an earlier change's confirmation window: the boot unit
-        # put the previous configuration back, so it answers where it did before.
-        # The record is the host's: printable characters only reach the teacher's terminal.
-        said = "".join(char for char in str(recovered.get("reason") or "") if char.isprintable())[:300]
-        host.log_styled(
-            f"roslab: network: found at {current_address}: {said or 'an unconfirmed change was undone at boot'}",
-            fg="yellow", log_func=logger.warning,
-        )
-        yield StringCommand("rm", "-f", RECOVERED_PATH)  # reported once
-
-    # A change an earlier run launched and never saw end (its controller was killed): the host
-    # answers here now, so say what became of it. The boot unit's record (above) already says
-    # it when the host restarted; this run's own change, or change_ended, clears the record.
+        yield from _report_recovered(recovered, current_address)
     unfinished = network_state.pending_changes(roster_path).get(host.name) if roster_path else None
     if unfinished and not recovered:
-        host.log_styled(
-            f"roslab: network: found at {current_address}: "
-            f"{unfinished_change_words(unfinished, found.get('last_change'))}",
-            fg="yellow", log_func=logger.warning,
-        )
+        _report_unfinished(unfinished, found.get("last_change"), current_address)
 
     changed = [path for path, content in wanted.files.items()
                if host.get_fact(Sha256File, path=path) != sha256(content)]
     leftover = [path for path in wanted.superseded if host.get_fact(File, path=path)]
     if not changed and not leftover:
-        loose = [path for path in wanted.files if not _is_private(host.get_fact(File, path=path))]
-        for path in loose:
-            # Same content, wrong owner or mode: fix in place, nothing to apply.
-            yield StringCommand("chown", "root:root", path, "&&", "chmod", "0600", path)
-        if unfinished:
-            yield FunctionCommand(change_ended, (), {"roster_path": roster_path})
-        elif not loose and not recovered:
-            host.noop(f"network configuration already in place ({layout.reason})")
+        yield from _settle_unchanged(wanted, layout, unfinished, recovered, roster_path)
         return
 
     if state.config.DIFF:
-        for path in changed:
-            _print_masked_diff(path, wanted.files[path])
-        for path in leftover:
-            host.log(f"Will move {path} aside (kept under {BACKUP_ROOT})", logger.info)
+        _show_planned_change(wanted, changed, leftover)
+    yield from _launch_change(settings, layout, wanted, current_address, roster_path)
 
+
+def _layout_for(settings: NetworkSettings, found: dict):
+    """The layout the host's network manager calls for; a host roslab cannot configure fails here."""
+    try:
+        return choose_layout(settings.backend, found["renderer"])
+    except ValueError as exc:
+        raise OperationError(f"{host.name}: {exc}") from None
+
+
+def _report_recovered(recovered: dict, current_address: str):
+    """The host restarted during an earlier change's confirmation window: the boot unit
+    put the previous configuration back, so it answers where it did before. Say so, once."""
+    # The record is the host's: printable characters only reach the teacher's terminal.
+    said = _printable(recovered.get("reason"))
+    host.log_styled(
+        f"roslab: network: found at {current_address}: {said or 'an unconfirmed change was undone at boot'}",
+        fg="yellow", log_func=logger.warning,
+    )
+    yield StringCommand("rm", "-f", RECOVERED_PATH)  # reported once
+
+
+def _report_unfinished(unfinished: dict, last_change: Status | None, current_address: str) -> None:
+    """A change an earlier run launched and never saw end (its controller was killed): the host
+    answers here now, so say what became of it. The boot unit's record already says it when the
+    host restarted (the caller skips this then); this run's own change, or change_ended, clears
+    the record."""
+    host.log_styled(
+        f"roslab: network: found at {current_address}: "
+        f"{unfinished_change_words(unfinished, last_change)}",
+        fg="yellow", log_func=logger.warning,
+    )
+
+
+def _settle_unchanged(wanted, layout, unfinished: dict | None, recovered: dict | None, roster_path: str | None):
+    """The files are in place already: only their owner or mode, or an earlier run's record, may need work."""
+    loose = [path for path in wanted.files if not _is_private(host.get_fact(File, path=path))]
+    for path in loose:
+        # Same content, wrong owner or mode: fix in place, nothing to apply.
+        yield StringCommand("chown", "root:root", path, "&&", "chmod", "0600", path)
+    if unfinished:
+        yield FunctionCommand(change_ended, (), {"roster_path": roster_path})
+    elif not loose and not recovered:
+        host.noop(f"network configuration already in place ({layout.reason})")
+
+
+def _show_planned_change(wanted, changed: list[str], leftover: list[str]) -> None:
+    """pyinfra's --diff: what the change writes (WiFi passwords masked) and which files it moves aside."""
+    for path in changed:
+        _print_masked_diff(path, wanted.files[path])
+    for path in leftover:
+        host.log(f"Will move {path} aside (kept under {BACKUP_ROOT})", logger.info)
+
+
+def _launch_change(settings: NetworkSettings, layout, wanted, current_address: str, roster_path: str | None):
+    """Ship the plan and the apply script, stage and launch the change on the host, then confirm it
+    from the controller at the address the host will answer at (or learn that it rolled back)."""
     reach_address = str(settings.address.ip) if settings.address else current_address
     plan = Plan(
         token=uuid4().hex,

@@ -61,61 +61,77 @@ def _read_extending(specs: dict, profiles: dict[str, Profile], others: dict[str,
     extends its own name extends the built-in one). A loop is reported as one, naming the chain.
 
     `read(name, mapping, report, base)` checks one mapping; `report_of(name)` is its Report."""
-    state: dict[str, str] = {}  # name -> "reading" | "done"
+    reader = _ExtendingReader(specs, profiles, others, report_of, read, prefix)
+    for name in specs:
+        reader.visit(name, [])
 
-    def field(name: str) -> str:
-        return f"{prefix}{name}.extends" if prefix else "extends"
 
-    def visit(name: str, chain: list[str]) -> Profile | None:
-        if state.get(name) == "done":
-            return profiles.get(name)
-        spec = specs[name]
-        report = report_of(name)
-        state[name] = "reading"
+class _ExtendingReader:
+    """One pass of _read_extending: which profiles are being read or done, so that each is read
+    once, after its base, and a profile met again while it is being read closes a loop."""
+
+    def __init__(self, specs: dict, profiles: dict[str, Profile], others: dict[str, Profile], report_of, read,
+                 prefix: str):
+        self.specs, self.profiles, self.others = specs, profiles, others
+        self.report_of, self.read, self.prefix = report_of, read, prefix
+        self.state: dict[str, str] = {}  # name -> "reading" | "done"
+
+    def field(self, name: str) -> str:
+        return f"{self.prefix}{name}.extends" if self.prefix else "extends"
+
+    def visit(self, name: str, chain: list[str]) -> Profile | None:
+        if self.state.get(name) == "done":
+            return self.profiles.get(name)
+        spec = self.specs[name]
+        report = self.report_of(name)
+        self.state[name] = "reading"
         base = None
         extends = spec.get("extends")
         if extends is not None:
-            if not isinstance(extends, str):
-                report.error("must be the name of a profile", line=line_of(spec, "extends"), field=field(name))
-                state[name] = "done"
+            base = self.base_of(name, spec, extends, report, chain)
+            if base is None:
+                self.state[name] = "done"
                 return None
-            if extends in specs and extends != name:
-                if state.get(extends) == "reading":
-                    loop = " -> ".join([*chain[chain.index(extends):], name, extends]) if extends in chain \
-                        else f"{name} -> {extends}"
-                    report.error(f"extends {extends!r}, which extends it in turn: a loop ({loop})",
-                                 line=line_of(spec, "extends"), field=field(name))
-                    state[name] = "done"
-                    return None
-                base = visit(extends, [*chain, name])
-                if base is None:
-                    report.error(f"extends {extends!r}, which has problems of its own (above)",
-                                 line=line_of(spec, "extends"), field=field(name))
-                    state[name] = "done"
-                    return None
-            elif extends == name and extends not in others:
-                report.error(f"extends itself: a loop ({name} -> {name})", line=line_of(spec, "extends"),
-                             field=field(name))
-                state[name] = "done"
-                return None
-            else:
-                base = others.get(extends)
-                if base is None:
-                    known = sorted({*specs, *others})
-                    close = difflib.get_close_matches(extends, known, n=1)
-                    hint = f" (did you mean {close[0]!r}?)" if close else ""
-                    report.error(f"extends {extends!r}, which is not a profile{hint}",
-                                 line=line_of(spec, "extends"), field=field(name))
-                    state[name] = "done"
-                    return None
-        profile = read(name, spec, report, base)
-        state[name] = "done"
+        profile = self.read(name, spec, report, base)
+        self.state[name] = "done"
         if profile is not None:
-            profiles[name] = profile
+            self.profiles[name] = profile
         return profile
 
-    for name in specs:
-        visit(name, [])
+    def base_of(self, name: str, spec, extends, report: Report, chain: list[str]) -> Profile | None:
+        """The profile `name` extends; None, reported, when it has none to extend."""
+        if not isinstance(extends, str):
+            report.error("must be the name of a profile", line=line_of(spec, "extends"), field=self.field(name))
+            return None
+        if extends in self.specs and extends != name:
+            return self.base_in_specs(name, spec, extends, report, chain)
+        if extends == name and extends not in self.others:
+            report.error(f"extends itself: a loop ({name} -> {name})", line=line_of(spec, "extends"),
+                         field=self.field(name))
+            return None
+        base = self.others.get(extends)
+        if base is None:
+            known = sorted({*self.specs, *self.others})
+            close = difflib.get_close_matches(extends, known, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            report.error(f"extends {extends!r}, which is not a profile{hint}",
+                         line=line_of(spec, "extends"), field=self.field(name))
+        return base
+
+    def base_in_specs(self, name: str, spec, extends: str, report: Report, chain: list[str]) -> Profile | None:
+        """A base among the same specs, read first; None, reported, when it closes a loop or has
+        problems of its own."""
+        if self.state.get(extends) == "reading":
+            loop = " -> ".join([*chain[chain.index(extends):], name, extends]) if extends in chain \
+                else f"{name} -> {extends}"
+            report.error(f"extends {extends!r}, which extends it in turn: a loop ({loop})",
+                         line=line_of(spec, "extends"), field=self.field(name))
+            return None
+        base = self.visit(extends, [*chain, name])
+        if base is None:
+            report.error(f"extends {extends!r}, which has problems of its own (above)",
+                         line=line_of(spec, "extends"), field=self.field(name))
+        return base
 
 
 def roster_profiles(mapping, report: Report, roster_dir: Path | None = None) -> dict[str, Profile]:

@@ -367,6 +367,28 @@ class ProfileReader:
             if isinstance(item, str):
                 self.check_text(item, known | set(CHECKLIST_PLACEHOLDERS), mapping, "checklist",
                                 f"{path}.checklist")
+        self.read_environment(mapping, path, known, side)
+        self.read_udev_rules(mapping, path, known, side)
+        side.remove_apt_packages += self.string_list(mapping, "remove_apt_packages", f"{path}.remove_apt_packages",
+                                                     formats.debian_package)
+        kept = set(side.apt_packages) & set(side.remove_apt_packages)
+        if kept:
+            self.error(f"{', '.join(sorted(kept))} is both installed and removed", mapping,
+                       "remove_apt_packages", f"{path}.remove_apt_packages")
+        self.read_boot_config(mapping, path, side)
+        self.read_services(mapping, path, known, side)
+        self.read_cmake_args(mapping, path, side)
+        self.read_build_dependencies(mapping, path, side)
+        side.skip_packages += [name for name in self.string_list(
+            mapping, "skip_packages", f"{path}.skip_packages",
+            lambda name: None if _UNDERLAY_PACKAGE.fullmatch(name) else
+            f"{name!r} is not a package name (lower-case letters, digits, _)")
+            if _UNDERLAY_PACKAGE.fullmatch(name) and name not in side.skip_packages]
+        if not when_ok and "when" in mapping:
+            self.error("a when block cannot hold another", mapping, "when", f"{path}.when")
+
+    def read_environment(self, mapping, path: str, known: set[str], side: Side) -> None:
+        """`environment`: {VARIABLE: value} for the nodes, each value's placeholders checked, into `side`."""
         env = mapping.get("environment") or {}
         if not isinstance(env, dict):
             self.error("must be a mapping of VARIABLE -> value", mapping, "environment", f"{path}.environment")
@@ -379,6 +401,9 @@ class ProfileReader:
                 continue
             self.check_text(value, known, env, name, where)
             side.environment[name] = value
+
+    def read_udev_rules(self, mapping, path: str, known: set[str], side: Side) -> None:
+        """`udev_rules`: a list of {rule, comment}, each one line udev reads as written, into `side`."""
         rules = mapping.get("udev_rules") or []
         if not isinstance(rules, list):
             self.error("must be a list of {rule, comment}", mapping, "udev_rules", f"{path}.udev_rules")
@@ -402,23 +427,6 @@ class ProfileReader:
                 self.error(problem, rule, "rule", f"{path}.udev_rules")
                 continue
             side.udev_rules.append({"rule": rule["rule"], "comment": str(rule.get("comment") or "")})
-        side.remove_apt_packages += self.string_list(mapping, "remove_apt_packages", f"{path}.remove_apt_packages",
-                                                     formats.debian_package)
-        kept = set(side.apt_packages) & set(side.remove_apt_packages)
-        if kept:
-            self.error(f"{', '.join(sorted(kept))} is both installed and removed", mapping,
-                       "remove_apt_packages", f"{path}.remove_apt_packages")
-        self.read_boot_config(mapping, path, side)
-        self.read_services(mapping, path, known, side)
-        self.read_cmake_args(mapping, path, side)
-        self.read_build_dependencies(mapping, path, side)
-        side.skip_packages += [name for name in self.string_list(
-            mapping, "skip_packages", f"{path}.skip_packages",
-            lambda name: None if _UNDERLAY_PACKAGE.fullmatch(name) else
-            f"{name!r} is not a package name (lower-case letters, digits, _)")
-            if _UNDERLAY_PACKAGE.fullmatch(name) and name not in side.skip_packages]
-        if not when_ok and "when" in mapping:
-            self.error("a when block cannot hold another", mapping, "when", f"{path}.when")
 
     def read_cmake_args(self, mapping, path: str, side: Side) -> None:
         """`cmake_args`: {ROS package name: ["-DNAME=value", ...]} for the underlay's build."""

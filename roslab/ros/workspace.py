@@ -337,6 +337,12 @@ def packages(nodes_dir: str, src_dir: str, user: str):
     if state.config.DIFF:
         _log_sync_diff(plan, local_files, remote, remote_path)
 
+    yield from _sync_commands(plan, local, local_files, remote_path, user)
+
+
+def _sync_commands(plan: SyncPlan, local: dict, local_files: dict, remote_path, user: str):
+    """The commands that carry out `plan`: removals first, then folders, uploads, modes, the
+    manifest, and owners last (over everything the plan touched)."""
     removals = [remote_path(p) for p in plan.remove_packages + plan.remove_paths]
     if removals:
         yield StringCommand("rm", "-rf", "--", *(shlex.quote(p) for p in removals))
@@ -353,17 +359,22 @@ def packages(nodes_dir: str, src_dir: str, user: str):
         paths = [shlex.quote(remote_path(p)) for p, m in plan.chmod if m == mode]
         yield StringCommand("chmod", mode, "--", *paths)
     if plan.write_manifest:
-        manifest = remote_path(MANIFEST_NAME)
-        yield FileUploadCommand(
-            io.StringIO(manifest_text(local)),
-            manifest,
-            remote_temp_filename=host.get_temp_filename(manifest),
-        )
-        yield StringCommand("chmod", "644", shlex.quote(manifest))
-        yield StringCommand("chown", f"{shlex.quote(user)}:", shlex.quote(manifest))
+        yield from _manifest_commands(local, remote_path, user)
     if plan.chown_packages:
         paths = [shlex.quote(remote_path(p)) for p in plan.chown_packages]
         yield StringCommand("chown", "-R", f"{shlex.quote(user)}:", "--", *paths)
+
+
+def _manifest_commands(local: dict, remote_path, user: str):
+    """Write src/.roslab-manifest, the list of packages roslab put there (so it removes only those later)."""
+    manifest = remote_path(MANIFEST_NAME)
+    yield FileUploadCommand(
+        io.StringIO(manifest_text(local)),
+        manifest,
+        remote_temp_filename=host.get_temp_filename(manifest),
+    )
+    yield StringCommand("chmod", "644", shlex.quote(manifest))
+    yield StringCommand("chown", f"{shlex.quote(user)}:", shlex.quote(manifest))
 
 
 def _log_sync_diff(plan: SyncPlan, local_files, remote, remote_path) -> None:

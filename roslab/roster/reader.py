@@ -325,6 +325,44 @@ class RosterReader:
 
     def read_host(self, name, host_map, team: Team, outer: list[dict], line) -> Host | None:
         where = {"team": team.name, "host": str(name)}
+        own = self.read_host_level(name, host_map, line, where)
+        if own is None:
+            return None
+        self.check_host_discovery_mode(own, where)
+        resolved: dict[str, Value] = {}
+        for level in (*outer, own, self.command_line):
+            resolved.update(level)
+        role = own["role"].value
+        address = own["address"].value if own.get("address") and own["address"].value else name
+
+        data = self.host_data(resolved)
+        release = data["ubuntu_release"]
+        codename = distros.UBUNTU_CODENAMES.get(str(release))
+        expected = (data["ros_distro"] or distros.DEFAULT_DISTRO.get(codename)) if codename else None
+        variant = data["ros_variant"] or data[f"ros_variant_{role}"]
+        data.update({
+            "roslab_team": team.name,
+            "roslab_role": role,
+            "roslab_hostname": name,
+            "roslab_ubuntu_release": release,
+            "roslab_expected_distro": expected,
+            "roslab_roster_path": str(self.path.resolve()),
+            "ros_domain_id": team.ros_domain_id,
+            "ssh_hostname": address,
+        })
+        if data.get("ssh_user") not in (None, "root"):
+            data["_sudo"] = True  # a Pi's default user provisions through sudo
+        lines = {key: item.line for key, item in resolved.items()}
+        self.warn_deprecated(outer, own, lines, team)
+        set_here = {key for level in (*outer[1:], own) for key in level}  # team and host, not classroom
+        self.apply_profile(data, resolved, set_here, lines, line, where)
+        self.apply_sources(data, resolved, lines, line, where)
+        variant = data["ros_variant"] or variant
+        return Host(name, team.name, role, address, release, expected, variant, data, line, lines)
+
+    def read_host_level(self, name, host_map, line, where: dict) -> dict[str, Value] | None:
+        """The host's own checked values; None (reported) when its name or mapping is unusable or
+        it has no role, so nothing else is read for it."""
         ambiguous = isinstance(name, (Ambiguous, bool)) or name is None
         problem = (name_problem(name, "host name") if ambiguous else None) or formats.host_label(name)
         if problem:
@@ -341,19 +379,20 @@ class RosterReader:
                 self.report.error("every host needs a role (main or robot)", field="role",
                                   line=line_of(host_map) or line, **where)
             return None
+        return own
 
+    def check_host_discovery_mode(self, own: dict[str, Value], where: dict) -> None:
+        """A host of its own may only keep discovery on itself (localhost); other modes are the team's."""
         own_mode = own.get("ros_discovery_mode")
         if own_mode is not None and own_mode.value != "localhost":
             # A team's hosts share one mode (one server or router, each other as peers).
             self.report.error(f"a host may only be set to localhost (a simulation-only host); set "
                               f"{own_mode.value} on its team, where its team mates get it too",
                               field="ros_discovery_mode", line=own_mode.line, **where)
-        resolved: dict[str, Value] = {}
-        for level in (*outer, own, self.command_line):
-            resolved.update(level)
-        role = own["role"].value
-        address = own["address"].value if own.get("address") and own["address"].value else name
 
+    def host_data(self, resolved: dict[str, Value]) -> dict:
+        """roslab's defaults with the host's resolved settings over them: controller paths made
+        absolute, secrets resolved, pins merged with roslab's known ones."""
         data = dict(self.defaults)
         for key, item in resolved.items():
             if key in ("name", "secrets_file", "role", "address") or key not in settings.SETTINGS:
@@ -375,35 +414,17 @@ class RosterReader:
         data["teacher_ssh_keys"] = self.teacher_keys(data["teacher_ssh_keys"])
         if data["ros_apt_source_cache_dir"]:
             data["ros_apt_source_cache_dir"] = os.path.expanduser(data["ros_apt_source_cache_dir"])
+        return data
 
-        release = data["ubuntu_release"]
-        codename = distros.UBUNTU_CODENAMES.get(str(release))
-        expected = (data["ros_distro"] or distros.DEFAULT_DISTRO.get(codename)) if codename else None
-        variant = data["ros_variant"] or data[f"ros_variant_{role}"]
-        data.update({
-            "roslab_team": team.name,
-            "roslab_role": role,
-            "roslab_hostname": name,
-            "roslab_ubuntu_release": release,
-            "roslab_expected_distro": expected,
-            "roslab_roster_path": str(self.path.resolve()),
-            "ros_domain_id": team.ros_domain_id,
-            "ssh_hostname": address,
-        })
-        if data.get("ssh_user") not in (None, "root"):
-            data["_sudo"] = True  # a Pi's default user provisions through sudo
-        lines = {key: item.line for key, item in resolved.items()}
+    def warn_deprecated(self, outer: list[dict], own: dict[str, Value], lines: dict, team: Team) -> None:
+        """One warning per deprecated key the classroom, team or host sets (the command line's are
+        not the roster's to fix)."""
         for old_key, new_key in DEPRECATED.items():
             if any(level.get(old_key) is not None and level[old_key].value is not None
                    for level in (*outer, own)):
                 self.report.warning(f"{old_key} is deprecated: set {new_key} (on the host, or in a robot "
                                     "profile's side); it is honoured for now", field=old_key,
                                     line=lines.get(old_key), team=team.name)
-        set_here = {key for level in (*outer[1:], own) for key in level}  # team and host, not classroom
-        self.apply_profile(data, resolved, set_here, lines, line, where)
-        self.apply_sources(data, resolved, lines, line, where)
-        variant = data["ros_variant"] or variant
-        return Host(name, team.name, role, address, release, expected, variant, data, line, lines)
 
     # --- pyinfra's command line ---
 
@@ -529,12 +550,7 @@ class RosterReader:
                   "robot_profile")
             data["roslab_profile"] = None
             return
-        given = {key: item.value for key, item in resolved.items() if key in self.profile_settings}
-        for key in sorted(set(given) - set(profile.settings)):
-            if key in set_here:
-                owners = ", ".join(self.profile_settings[key])
-                error(f"{key} is a setting of profile {owners}, not of this host's profile {name!r}", key)
-            del given[key]
+        given = self.profile_settings_given(name, profile, resolved, set_here, error)
         distro = data["roslab_expected_distro"]
         if distro is None:  # an unknown release: reported by its own check
             data["roslab_profile"] = None
@@ -552,15 +568,7 @@ class RosterReader:
         data["roslab_profile"] = result
         if result is None:
             return
-        role = data["roslab_role"]
-        # Role-free keys: the host's own value, else the deprecated role-named key the roster set,
-        # else the profile's side.
-        for key, profile_value in (("nodes_launch", result["launch"]), ("ros_variant", result["variant"])):
-            old_key = f"{key}_{role}"
-            if data.get(key) is None and old_key in resolved and data.get(old_key) is not None:
-                data[key] = data[old_key]
-            elif data.get(key) is None:
-                data[key] = profile_value or data.get(old_key)
+        apply_profile_defaults(data, resolved, result)
         venv = (result.get("python") or {}).get("venv")
         workspace = str(data.get("workspace_dir") or "")[2:].rstrip("/")
         if venv and workspace and (workspace == venv or workspace.startswith(venv + "/")):
@@ -568,18 +576,49 @@ class RosterReader:
             error(f"profile {name!r} puts its Python venv in ~/{venv}, which holds the workspace "
                   f"(workspace_dir ~/{workspace}): give the profile's python_venv another directory",
                   "workspace_dir")
-        if data.get("nodes_verify_topic") is None:
-            data["nodes_verify_topic"] = result["verify_topic"]
-        if data.get("nodes_verify_type") is None:
-            data["nodes_verify_type"] = result["verify_type"]
-        # what publishes the profile's topic, for `roslab verify` to name when nothing comes
-        data["roslab_verify_source"] = result["verify_source"] if data["nodes_verify_topic"] == \
-            result["verify_topic"] else ""
-        if result["discovery"] == "localhost" and "ros_automatic_discovery_range" not in resolved \
-                and "ros_discovery_mode" not in set_here:
-            # The profile keeps discovery on the host (sim) unless the team or host chose a mode.
-            data["ros_discovery_mode"] = "localhost"
-            data["ros_automatic_discovery_range"] = "LOCALHOST"
+        apply_profile_verify_and_discovery(data, resolved, set_here, result)
+
+    def profile_settings_given(self, name: str, profile, resolved: dict, set_here: set, error) -> dict:
+        """The values the roster gives the profile's own settings. One the team or host sets for
+        another profile is an error; one from the classroom or command line, meant for the other
+        teams' profiles, is dropped quietly."""
+        given = {key: item.value for key, item in resolved.items() if key in self.profile_settings}
+        for key in sorted(set(given) - set(profile.settings)):
+            if key in set_here:
+                owners = ", ".join(self.profile_settings[key])
+                error(f"{key} is a setting of profile {owners}, not of this host's profile {name!r}", key)
+            del given[key]
+        return given
+
+
+def apply_profile_defaults(data: dict, resolved: dict, result) -> None:
+    """The resolved profile's side fills the host's launch file and ROS variant."""
+    role = data["roslab_role"]
+    # Role-free keys: the host's own value, else the deprecated role-named key the roster set,
+    # else the profile's side.
+    for key, profile_value in (("nodes_launch", result["launch"]), ("ros_variant", result["variant"])):
+        old_key = f"{key}_{role}"
+        if data.get(key) is None and old_key in resolved and data.get(old_key) is not None:
+            data[key] = data[old_key]
+        elif data.get(key) is None:
+            data[key] = profile_value or data.get(old_key)
+
+
+def apply_profile_verify_and_discovery(data: dict, resolved: dict, set_here: set, result) -> None:
+    """The resolved profile's topic for `roslab verify` and its discovery, where the roster
+    sets neither."""
+    if data.get("nodes_verify_topic") is None:
+        data["nodes_verify_topic"] = result["verify_topic"]
+    if data.get("nodes_verify_type") is None:
+        data["nodes_verify_type"] = result["verify_type"]
+    # what publishes the profile's topic, for `roslab verify` to name when nothing comes
+    data["roslab_verify_source"] = result["verify_source"] if data["nodes_verify_topic"] == \
+        result["verify_topic"] else ""
+    if result["discovery"] == "localhost" and "ros_automatic_discovery_range" not in resolved \
+            and "ros_discovery_mode" not in set_here:
+        # The profile keeps discovery on the host (sim) unless the team or host chose a mode.
+        data["ros_discovery_mode"] = "localhost"
+        data["ros_automatic_discovery_range"] = "LOCALHOST"
 
 
 def profile_setting_word(value):

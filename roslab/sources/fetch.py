@@ -387,60 +387,96 @@ def _fetch(repo: dict, cache_dir: Path, fetch_url: str, offline: bool, timeout: 
     lock = read_lock(cache_dir).get(url, {})
     tag, notes = None, []
     expected = version if COMMIT.fullmatch(version) else (lock.get("tags") or {}).get(version)
-    if (not fresh_mirror and expected and expected in (lock.get("commits") or {}) and mirror.exists()
+    if not fresh_mirror:
+        _refuse_damaged_mirror(mirror, expected, lock, timeout)
+    if COMMIT.fullmatch(version):
+        commit = version
+        _fetch_commit(mirror, fetch_url, commit, offline, timeout)
+    else:
+        tag = version
+        commit = _tag_commit(mirror, cache_dir, fetch_url, url, tag, lock, offline, fresh_mirror, digest,
+                             timeout, notes)
+    archive, sha256 = _verified_archive(mirror, commit, lock, cache_dir, timeout)
+    with _lock:
+        _record(cache_dir, url, tag, commit, sha256)
+        if tag is not None and not offline and not notes:
+            _mark_checked(cache_dir, digest, url, tag)
+    return Fetched(repo["path"], url, version, commit, sha256, archive, tuple(notes))
+
+
+def _refuse_damaged_mirror(mirror: Path, expected: str | None, lock: dict, timeout: float) -> None:
+    """Raise _MirrorDamaged when the mirror lost a commit it once held (the lock has its digest)
+    and git fsck finds damage: fetching around a damaged object store would leave it damaged."""
+    if (expected and expected in (lock.get("commits") or {}) and mirror.exists()
             and not _has_commit(mirror, expected, timeout)):
-        # The mirror held this commit once (the lock has its digest): fetching around a damaged
-        # object store would leave it damaged.
         damage = _damage(mirror, timeout)
         if damage:
             raise _MirrorDamaged(f"the controller's mirror {mirror} lost commit {expected}: {damage}", damage)
-    if COMMIT.fullmatch(version):
-        commit = version
+
+
+def _fetch_commit(mirror: Path, fetch_url: str, commit: str, offline: bool, timeout: float) -> None:
+    """Make the mirror hold a pinned commit, fetching it unless it does already."""
+    if _has_commit(mirror, commit, timeout):
+        return
+    if offline:
+        raise SourceError("offline, and the controller's cache does not hold this commit "
+                          f"({mirror}): run once with the network")
+    try:
+        _fetch_into(mirror, fetch_url, [commit], timeout)
+    except SourceError:
+        # a server that does not serve single commits (git's dumb HTTP): everything
+        _fetch_into(mirror, fetch_url, ["+refs/heads/*:refs/heads/*", "+refs/tags/*:refs/tags/*"], timeout)
+    if not _has_commit(mirror, commit, timeout):
+        raise SourceError(f"upstream has no commit {commit}")
+
+
+def _tag_commit(mirror: Path, cache_dir: Path, fetch_url: str, url: str, tag: str, lock: dict, offline: bool,
+                fresh_mirror: bool, digest: str, timeout: float, notes: list[str]) -> str:
+    """The commit a tag names, in the mirror: the lock's when offline or already checked with this
+    set of pins, else upstream's, refused if it moved from what the class recorded."""
+    recorded = (lock.get("tags") or {}).get(tag)
+    held = bool(recorded) and _has_commit(mirror, recorded, timeout)
+    if offline:
+        if not held:
+            raise SourceError(f"offline, and the controller's cache has no commit for tag {tag!r} "
+                              f"({Path(cache_dir) / LOCK_NAME}): run once with the network")
+        return recorded
+    if held and not fresh_mirror and _tag_checked(cache_dir, digest, url, tag):
+        return recorded  # checked with this set of pins: upstream is not asked again
+    commit = _upstream_tag_commit(fetch_url, url, tag, recorded, held, timeout, notes)
+    if recorded and recorded != commit:
+        raise SourceError(f"tag {tag!r} now resolves to {commit}, but the class recorded {recorded} "
+                          f"in {Path(cache_dir) / LOCK_NAME}: someone moved the tag; pin the commit "
+                          "you want (or delete the repository's entry from the lock file to accept it)")
+    if not _has_commit(mirror, commit, timeout):
+        _fetch_into(mirror, fetch_url, [f"+refs/tags/{tag}:refs/tags/{tag}"], timeout)
         if not _has_commit(mirror, commit, timeout):
-            if offline:
-                raise SourceError("offline, and the controller's cache does not hold this commit "
-                                  f"({mirror}): run once with the network")
-            try:
-                _fetch_into(mirror, fetch_url, [commit], timeout)
-            except SourceError:
-                # a server that does not serve single commits (git's dumb HTTP): everything
-                _fetch_into(mirror, fetch_url, ["+refs/heads/*:refs/heads/*", "+refs/tags/*:refs/tags/*"], timeout)
-            if not _has_commit(mirror, commit, timeout):
-                raise SourceError(f"upstream has no commit {commit}")
-    else:
-        tag = version
-        recorded = (lock.get("tags") or {}).get(tag)
-        held = bool(recorded) and _has_commit(mirror, recorded, timeout)
-        if offline:
-            if not held:
-                raise SourceError(f"offline, and the controller's cache has no commit for tag {tag!r} "
-                                  f"({Path(cache_dir) / LOCK_NAME}): run once with the network")
-            commit = recorded
-        elif held and not fresh_mirror and _tag_checked(cache_dir, digest, url, tag):
-            commit = recorded  # checked with this set of pins: upstream is not asked again
-        else:
-            try:
-                commit, is_branch = remote_refs(fetch_url, tag, timeout)
-            except SourceError as error:
-                if not held:
-                    raise
-                # Upstream is down: the lock and the mirror hold the pin, checked when it was locked.
-                notes.append(f"upstream of {url} cannot be reached ({error}): tag {tag!r} is taken as the lock "
-                             f"records it ({recorded}), not checked against upstream in this run")
-                commit, is_branch = recorded, False
-            if commit is None and is_branch:
-                raise SourceError(f"field 'version': {tag!r} is a branch upstream, not a tag: pin a commit "
-                                  "(40 hex digits) or a tag in the .repos file")
-            if commit is None:
-                raise SourceError(f"upstream has no tag {tag!r}")
-            if recorded and recorded != commit:
-                raise SourceError(f"tag {tag!r} now resolves to {commit}, but the class recorded {recorded} "
-                                  f"in {Path(cache_dir) / LOCK_NAME}: someone moved the tag; pin the commit "
-                                  "you want (or delete the repository's entry from the lock file to accept it)")
-            if not _has_commit(mirror, commit, timeout):
-                _fetch_into(mirror, fetch_url, [f"+refs/tags/{tag}:refs/tags/{tag}"], timeout)
-                if not _has_commit(mirror, commit, timeout):
-                    raise SourceError(f"tag {tag!r} ({commit}) did not arrive from upstream")
+            raise SourceError(f"tag {tag!r} ({commit}) did not arrive from upstream")
+    return commit
+
+
+def _upstream_tag_commit(fetch_url: str, url: str, tag: str, recorded: str | None, held: bool,
+                         timeout: float, notes: list[str]) -> str:
+    """The commit upstream's tag names; the lock's (with a note) when upstream cannot be reached."""
+    try:
+        commit, is_branch = remote_refs(fetch_url, tag, timeout)
+    except SourceError as error:
+        if not held:
+            raise
+        # Upstream is down: the lock and the mirror hold the pin, checked when it was locked.
+        notes.append(f"upstream of {url} cannot be reached ({error}): tag {tag!r} is taken as the lock "
+                     f"records it ({recorded}), not checked against upstream in this run")
+        commit, is_branch = recorded, False
+    if commit is None and is_branch:
+        raise SourceError(f"field 'version': {tag!r} is a branch upstream, not a tag: pin a commit "
+                          "(40 hex digits) or a tag in the .repos file")
+    if commit is None:
+        raise SourceError(f"upstream has no tag {tag!r}")
+    return commit
+
+
+def _verified_archive(mirror: Path, commit: str, lock: dict, cache_dir: Path, timeout: float) -> tuple[bytes, str]:
+    """The commit's tree as a tar and its sha256, refused if the class recorded another digest for it."""
     archive = _git(["archive", "--format=tar", commit], timeout, cwd=mirror)
     sha256 = hashlib.sha256(archive).hexdigest()
     recorded_digest = (lock.get("commits") or {}).get(commit)
@@ -448,11 +484,7 @@ def _fetch(repo: dict, cache_dir: Path, fetch_url: str, offline: bool, timeout: 
         raise SourceError(f"commit {commit} now has sha256 {sha256}, but the class recorded {recorded_digest} "
                           f"in {Path(cache_dir) / LOCK_NAME}: the sources differ from what was verified "
                           "before; nothing of it is copied")
-    with _lock:
-        _record(cache_dir, url, tag, commit, sha256)
-        if tag is not None and not offline and not notes:
-            _mark_checked(cache_dir, digest, url, tag)
-    return Fetched(repo["path"], url, version, commit, sha256, archive, tuple(notes))
+    return archive, sha256
 
 
 # -- what of a fetched repository a host gets -----------------------------------------------

@@ -130,13 +130,36 @@ def version_problem(version) -> str | None:
 def parse_repos(path: Path, report: Report) -> list[dict]:
     """The repositories of one .repos file (dicts of REPOSITORY_KEYS); problems to `report`
     (whose path is the file), each with its line."""
+    repositories = _repositories_mapping(path, report)
+    if repositories is None:
+        return []
+    repos_dir = Path(path).resolve().parent
+    result = []
+    seen: dict[str, str] = {}
+    for name, spec in repositories.items():
+        field = f"repositories.{name}"
+        line = line_of(repositories, name)
+        if not _repository_path_ok(name, seen, report, line, field):
+            continue
+        if not isinstance(spec, dict):
+            report.error("must be a mapping {type: git, url, version}", line=line, field=field)
+            continue
+        if _repository_spec_ok(spec, repos_dir, report, line, field):
+            result.append({"path": name, "type": "git", "url": spec["url"], "version": spec["version"],
+                           "file": display_path(path), "line": line_of(spec, "version") or line})
+    return result
+
+
+def _repositories_mapping(path: Path, report: Report):
+    """The file's `repositories:` mapping; None (reported) when the file is not a .repos file
+    roslab can read. Unknown top-level keys and repeated repositories are reported, not fatal."""
     mapping = load_yaml(path, report)
     if report.errors:
-        return []
+        return None
     if not isinstance(mapping, dict) or "repositories" not in mapping:
         report.error("is not a vcstool .repos file: it needs a top-level 'repositories:' mapping of "
                      "path -> {type: git, url, version}", line=line_of(mapping) if mapping else None)
-        return []
+        return None
     for key in mapping:
         if key != "repositories":
             report.error(f"unknown top-level key {key!r} (a .repos file holds 'repositories:')",
@@ -145,54 +168,53 @@ def parse_repos(path: Path, report: Report) -> list[dict]:
     if not isinstance(repositories, dict) or not repositories:
         report.error("'repositories' must be a mapping of path -> {type: git, url, version}",
                      line=line_of(mapping, "repositories"), field="repositories")
-        return []
+        return None
     if len(repositories) > MAX_REPOSITORIES:
         report.error(f"lists {len(repositories)} repositories; at most {MAX_REPOSITORIES}",
                      line=line_of(mapping, "repositories"), field="repositories")
-        return []
+        return None
     for key, dup_line, first in getattr(repositories, "duplicates", []):
         report.error(f"repository {key!r} appears twice (also at line {first})", line=dup_line,
                      field=f"repositories.{key}")
-    repos_dir = Path(path).resolve().parent
-    result = []
-    seen: dict[str, str] = {}
-    for name, spec in repositories.items():
-        field = f"repositories.{name}"
-        line = line_of(repositories, name)
-        if not isinstance(name, str) or not REPO_PATH.fullmatch(name) or ".." in name.split("/"):
-            report.error(f"{name!r} is not a safe path in src/ (relative; letters, digits and _ . + -, "
-                         "each part starting with a letter, digit or _)", line=line, field=field)
-            continue
-        lowered = name.lower()
-        for other in seen:
-            if lowered == other or lowered.startswith(other + "/") or other.startswith(lowered + "/"):
-                report.error(f"{name!r} overlaps repository {seen[other]!r}: each takes a folder of its own",
-                             line=line, field=field)
-        seen[lowered] = name
-        if not isinstance(spec, dict):
-            report.error("must be a mapping {type: git, url, version}", line=line, field=field)
-            continue
-        for key in spec:
-            if key not in ("type", "url", "version"):
-                report.error(f"unknown key {key!r} (a repository has type, url, version)",
-                             line=line_of(spec, key), field=f"{field}.{key}")
-        kind = spec.get("type")
-        if kind != "git":
-            report.error(f"type must be git (the only kind roslab fetches), not {kind!r}",
-                         line=line_of(spec, "type") or line, field=f"{field}.type")
-        problem = url_problem(spec.get("url"), repos_dir) if "url" in spec else "is missing: the repository's URL"
-        if problem:
-            report.error(problem, line=line_of(spec, "url") or line, field=f"{field}.url")
-        if "version" not in spec:
-            vproblem = "is missing: pin the commit (40 hex digits) or the tag the class builds"
-        else:
-            vproblem = version_problem(spec.get("version"))
-        if vproblem:
-            report.error(vproblem, line=line_of(spec, "version") or line, field=f"{field}.version")
-        if kind == "git" and not problem and not vproblem:
-            result.append({"path": name, "type": "git", "url": spec["url"], "version": spec["version"],
-                           "file": display_path(path), "line": line_of(spec, "version") or line})
-    return result
+    return repositories
+
+
+def _repository_path_ok(name, seen: dict[str, str], report: Report, line, field: str) -> bool:
+    """Whether a repository's path is a safe folder in src/; one that overlaps another's
+    (case-insensitively) is reported but still read, so its spec's problems show too."""
+    if not isinstance(name, str) or not REPO_PATH.fullmatch(name) or ".." in name.split("/"):
+        report.error(f"{name!r} is not a safe path in src/ (relative; letters, digits and _ . + -, "
+                     "each part starting with a letter, digit or _)", line=line, field=field)
+        return False
+    lowered = name.lower()
+    for other in seen:
+        if lowered == other or lowered.startswith(other + "/") or other.startswith(lowered + "/"):
+            report.error(f"{name!r} overlaps repository {seen[other]!r}: each takes a folder of its own",
+                         line=line, field=field)
+    seen[lowered] = name
+    return True
+
+
+def _repository_spec_ok(spec: dict, repos_dir: Path, report: Report, line, field: str) -> bool:
+    """Whether a repository's {type, url, version} is one roslab fetches; every problem reported."""
+    for key in spec:
+        if key not in ("type", "url", "version"):
+            report.error(f"unknown key {key!r} (a repository has type, url, version)",
+                         line=line_of(spec, key), field=f"{field}.{key}")
+    kind = spec.get("type")
+    if kind != "git":
+        report.error(f"type must be git (the only kind roslab fetches), not {kind!r}",
+                     line=line_of(spec, "type") or line, field=f"{field}.type")
+    problem = url_problem(spec.get("url"), repos_dir) if "url" in spec else "is missing: the repository's URL"
+    if problem:
+        report.error(problem, line=line_of(spec, "url") or line, field=f"{field}.url")
+    if "version" not in spec:
+        vproblem = "is missing: pin the commit (40 hex digits) or the tag the class builds"
+    else:
+        vproblem = version_problem(spec.get("version"))
+    if vproblem:
+        report.error(vproblem, line=line_of(spec, "version") or line, field=f"{field}.version")
+    return kind == "git" and not problem and not vproblem
 
 
 class ReposFiles:
