@@ -100,7 +100,7 @@ def probe_script(service: str = NODES_SERVICE, others: tuple[str, ...] = (), lau
     of the launch's nodes died, roslab.cli.launch_journal); `underlay`: the shell word naming its
     underlay's origin record (`origin_file`), read into `## underlay`."""
     return "; ".join([
-        *((f"echo '## underlay'", f"head -c 200 {underlay} 2>/dev/null; echo") if underlay else ()),
+        *(("echo '## underlay'", f"head -c 200 {underlay} 2>/dev/null; echo") if underlay else ()),
         "echo '## os-release'",
         "cat /etc/os-release 2>/dev/null",
         "echo '## ros'",

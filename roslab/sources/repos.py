@@ -26,7 +26,7 @@ import os
 import re
 import stat
 from pathlib import Path
-from urllib.parse import unquote, urlsplit
+from urllib.parse import urlsplit
 
 from roslab.ros import distro as distros
 from roslab.controller_files import kind_of
