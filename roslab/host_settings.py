@@ -26,7 +26,7 @@ from roslab import settings
 from roslab.host_fields import HostSettings
 from roslab.profiles.resolve import ResolvedProfile
 
-__all__ = ["HostSettings", "HostSettingsError", "host_settings", "settings_of"]
+__all__ = ["HostSettings", "HostSettingsError", "host_settings", "peer_settings", "settings_of"]
 
 
 class HostSettingsError(ValueError):
@@ -46,6 +46,16 @@ def host_settings(host) -> HostSettings:
     if built is None:
         built = _BUILT[real] = settings_of(real.name, real.data.dict())
     return built
+
+
+def peer_settings(other) -> HostSettings | None:
+    """Another host's settings, for a deploy that looks at the run's other hosts (the apt cache,
+    the underlay's builder); None when its data is wrong: that host stops itself on it
+    (deploy.common.supported_host), it never stops this one."""
+    try:
+        return host_settings(other)
+    except HostSettingsError:
+        return None
 
 
 def _problem(value, kind: type, item: type | None = None) -> str | None:
