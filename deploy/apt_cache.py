@@ -117,9 +117,9 @@ def apt_cache_server():
              f"ports {', '.join(map(str, typed.apt_cache_upstream_ports))}",
         src=StringIO(render(
             "apt-cacher-ng-roslab.conf.j2",
-            port=int(typed.apt_cache_port),
+            port=typed.apt_cache_port,
             upstream_ports=[int(port) for port in typed.apt_cache_upstream_ports],
-            offline=bool(typed.offline),
+            offline=typed.offline,
         )),
         dest=SERVER_CONFIG,
         mode="644",
@@ -163,8 +163,8 @@ def apt_cache_client():
         stop_host(f"{where()}: apt_cache_host {cache_host!r} is not a host of this roster; "
                   "nothing was changed on it")
         return
-    port = int(typed.apt_cache_port)
-    offline = bool(typed.offline)
+    port = typed.apt_cache_port
+    offline = typed.offline
     files.put(
         name="Ensure the apt proxy script finds the classroom's apt cache (or DIRECT when it is down)",
         src=StringIO(render(

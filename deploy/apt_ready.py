@@ -123,7 +123,7 @@ def apt_lists():
     source changed).
     """
     typed = host_settings(host)
-    ready = bool(typed.apt_ready_enabled)
+    ready = typed.apt_ready_enabled
     if not host_is_active() or not (ready or typed.ros_apt_source_enabled):
         return
     arguments = dict(

@@ -100,7 +100,7 @@ def python_env():
     if python.requirements:
         try:
             house = wheelhouse.wheelhouse(python.requirements, target, typed.python_index_url,
-                                          typed.python_wheelhouse_dir, offline=bool(typed.offline))
+                                          typed.python_wheelhouse_dir, offline=typed.offline)
         except wheelhouse.WheelhouseError as error:
             stop_host(f"{where()}: python_packages: {error}; nothing was changed on it")
             return

@@ -82,7 +82,7 @@ def dearmored(key: bytes) -> bytes:
 def _package_mode(codename: str) -> list | None:
     typed = host_settings(host)
     version = typed.ros_apt_source_version
-    pins = typed.ros_apt_source_sha256 or {}
+    pins = typed.ros_apt_source_sha256
     if codename not in pins:
         stop_host(f"{where()}: ros_apt_source_sha256 has no sha256 for Ubuntu {codename} "
                   f"(ros2-apt-source {version}); nothing was changed on it")
@@ -91,7 +91,7 @@ def _package_mode(codename: str) -> list | None:
     name = deb_name(version, codename)
     try:
         deb = downloads.pinned(url, pins[codename], Path(typed.ros_apt_source_cache_dir), name,
-                               "ros_apt_source_sha256", offline=bool(typed.offline))
+                               "ros_apt_source_sha256", offline=typed.offline)
     except downloads.DownloadError as error:
         stop_host(f"{where()}: ros2-apt-source: {error}; nothing was changed on it")
         return None

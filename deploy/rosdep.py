@@ -123,7 +123,7 @@ def _rosdep_from_controller(user: str, home: str) -> None:
     try:
         data = rosdep_data.for_distro(
             typed.rosdep_sources_list_url, typed.rosdistro_index_url, host_distro(),
-            Path(typed.rosdep_cache_dir).expanduser(), offline=bool(typed.offline),
+            Path(typed.rosdep_cache_dir).expanduser(), offline=typed.offline,
             max_age=typed.rosdep_update_max_age,
         )
     except rosdep_data.RosdepDataError as error:

@@ -104,3 +104,9 @@ def test_the_settings_are_frozen():
     built = typed.host_settings(Inventory(([("pi", {})], {})).get_host("pi"))
     with pytest.raises(AttributeError):
         built.locale = "C.UTF-8"
+
+
+def test_another_hosts_wrong_data_is_none_for_its_peers_not_an_error():
+    inventory = Inventory(([("pi1", {}), ("pi2", {"apt_cache_port": "3142"})], {}))
+    assert typed.peer_settings(inventory.get_host("pi1")).apt_cache_port == 3142
+    assert typed.peer_settings(inventory.get_host("pi2")) is None
