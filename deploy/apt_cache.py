@@ -229,7 +229,8 @@ def planned_packages(data, codename: str) -> list[str]:
 
 def _settings_of(some_host) -> dict:
     """A host's settings with every deploy's default under them (a hand-made inventory may
-    set only some; a roster's hosts have them all)."""
+    set only some; a roster's hosts have them all), as a mapping read now, not host_settings'
+    snapshot: the packages a step declares depend on this run's notes too (_roslab_python_sdist)."""
     return {**settings.defaults(), **some_host.data.dict()}
 
 
