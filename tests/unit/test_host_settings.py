@@ -110,3 +110,16 @@ def test_another_hosts_wrong_data_is_none_for_its_peers_not_an_error():
     inventory = Inventory(([("pi1", {}), ("pi2", {"apt_cache_port": "3142"})], {}))
     assert typed.peer_settings(inventory.get_host("pi1")).apt_cache_port == 3142
     assert typed.peer_settings(inventory.get_host("pi2")) is None
+
+
+@pytest.mark.parametrize("concern", ["locale", "apt_cache", "workspace"])
+def test_the_settings_are_the_same_whichever_deploy_asks_first(concern):
+    """pyinfra overlays a @deploy's data_defaults on host data while it runs; the typed
+    settings have the schema's defaults under them anyway, so the first asker does not matter."""
+    data = {"ssh_user": "lab", "locale": "de_DE.UTF-8"}
+    outside = typed.host_settings(Inventory(([("pi", data)], {})).get_host("pi"))
+    inside_host = Inventory(([("pi", data)], {})).get_host("pi")
+    inside_host.current_deploy_data = settings.defaults(concern)
+    inside = typed.host_settings(inside_host)
+    assert inside == outside
+    assert inside.locale == "de_DE.UTF-8" and inside.apt_cache_port == 3142
