@@ -42,6 +42,7 @@ from roslab.operations import (
 )
 from roslab.quoting import shell_word
 from roslab.templating import render
+from roslab.host_settings import HostSettings, host_settings, peer_settings
 
 DEFAULTS = settings.defaults("apt_cache")
 
@@ -60,7 +61,7 @@ _warned: set[str] = set()
 
 def cache_address(cache_host: str) -> str | None:
     """Where the hosts reach the cache host: its address in the roster (after a move, the new one)."""
-    for entry in host.data.get("roslab_classroom_hosts") or []:
+    for entry in host_settings(host).roslab_classroom_hosts or []:
         if entry.get("name") == cache_host:
             return entry.get("address") or cache_host
     return None
@@ -73,7 +74,7 @@ def proxy_url(address: str, port: int) -> str:
 def cache_in_this_run(cache_host: str) -> bool:
     """True when this run reaches the cache host: it is converged (and its cache started)
     before any host's apt needs it."""
-    return any((other.data.get("roslab_hostname") or other.name) == cache_host
+    return any(((typed := peer_settings(other)) is not None and typed.roslab_hostname or other.name) == cache_host
                for other in state.active_hosts)
 
 
@@ -81,17 +82,18 @@ def cache_in_this_run(cache_host: str) -> bool:
 def apt_cache_server():
     """Install and run apt-cacher-ng on the host apt_cache_host names (no other host).
 
-    Reads host.data: apt_cache_enabled, apt_cache_host, apt_cache_port, apt_cache_upstream_ports,
+    Reads host_settings(host): apt_cache_enabled, apt_cache_host, apt_cache_port, apt_cache_upstream_ports,
     offline, apt_enable_universe, apt_extra_suites, apt_lock_timeout, roslab_hostname.
     """
-    if not should_run("apt_cache_enabled") or not host.data.apt_cache_host:
+    typed = host_settings(host)
+    if not should_run("apt_cache_enabled") or not typed.apt_cache_host:
         return
-    if host.data.apt_cache_host != (host.data.get("roslab_hostname") or host.name):
+    if typed.apt_cache_host != (typed.roslab_hostname or host.name):
         return
-    lock_timeout = host.data.apt_lock_timeout
+    lock_timeout = typed.apt_lock_timeout
     if PACKAGE not in (host.get_fact(DebPackages) or {}):
         # apt-cacher-ng is in universe: the cache host's apt gets it before apt_ready runs.
-        if not host.data.apt_enable_universe:
+        if not typed.apt_enable_universe:
             stop_host(f"{where()}: apt_cache_host needs the universe component for {PACKAGE}, but "
                       "apt_enable_universe is false; nothing was changed on it")
             return
@@ -99,7 +101,7 @@ def apt_cache_server():
             name="Ensure the Ubuntu apt sources enable universe (the apt cache's package is there)",
             codename=host_codename(),
             components=["universe"],
-            suites=list(host.data.apt_extra_suites),
+            suites=list(typed.apt_extra_suites),
         )
         apt_lists_updated(
             name=f"Ensure the apt lists are fresh before {PACKAGE} is installed",
@@ -111,13 +113,13 @@ def apt_cache_server():
         extra_install_args=apt_install_options(lock_timeout),
     )
     config = files.put(
-        name=f"Ensure {PACKAGE} listens on port {host.data.apt_cache_port} and may fetch from "
-             f"ports {', '.join(map(str, host.data.apt_cache_upstream_ports))}",
+        name=f"Ensure {PACKAGE} listens on port {typed.apt_cache_port} and may fetch from "
+             f"ports {', '.join(map(str, typed.apt_cache_upstream_ports))}",
         src=StringIO(render(
             "apt-cacher-ng-roslab.conf.j2",
-            port=int(host.data.apt_cache_port),
-            upstream_ports=[int(port) for port in host.data.apt_cache_upstream_ports],
-            offline=bool(host.data.offline),
+            port=typed.apt_cache_port,
+            upstream_ports=[int(port) for port in typed.apt_cache_upstream_ports],
+            offline=typed.offline,
         )),
         dest=SERVER_CONFIG,
         mode="644",
@@ -141,12 +143,13 @@ def apt_cache_server():
 def apt_cache_client():
     """Make apt use the classroom's apt cache as its proxy, with a fallback to direct downloads.
 
-    Reads host.data: apt_cache_enabled, apt_cache_host, apt_cache_port, offline,
+    Reads host_settings(host): apt_cache_enabled, apt_cache_host, apt_cache_port, offline,
     roslab_classroom_hosts.
     """
+    typed = host_settings(host)
     if not should_run("apt_cache_enabled"):
         return
-    cache_host = host.data.apt_cache_host
+    cache_host = typed.apt_cache_host
     if not cache_host:
         if host.get_fact(File, path=PROXY_CONFIG):  # left by a roster that had a cache
             files.file(
@@ -160,8 +163,8 @@ def apt_cache_client():
         stop_host(f"{where()}: apt_cache_host {cache_host!r} is not a host of this roster; "
                   "nothing was changed on it")
         return
-    port = int(host.data.apt_cache_port)
-    offline = bool(host.data.offline)
+    port = typed.apt_cache_port
+    offline = typed.offline
     files.put(
         name="Ensure the apt proxy script finds the classroom's apt cache (or DIRECT when it is down)",
         src=StringIO(render(
@@ -226,13 +229,14 @@ def planned_packages(data, codename: str) -> list[str]:
 
 def _settings_of(some_host) -> dict:
     """A host's settings with every deploy's default under them (a hand-made inventory may
-    set only some; a roster's hosts have them all)."""
+    set only some; a roster's hosts have them all), as a mapping read now, not host_settings'
+    snapshot: the packages a step declares depend on this run's notes too (_roslab_python_sdist)."""
     return {**settings.defaults(), **some_host.data.dict()}
 
 
-def _codename_of(data) -> str | None:
+def _codename_of(typed: HostSettings) -> str | None:
     try:
-        return codename_for(data.get("ubuntu_release"))
+        return codename_for(typed.ubuntu_release)
     except DistroError:
         return None  # that host is stopped by supported_host before it installs anything
 
@@ -240,19 +244,20 @@ def _codename_of(data) -> str | None:
 def release_peers() -> list:
     """The hosts in this run that install through the same cache as this host and run the
     same Ubuntu release as the roster says, in inventory order (this host included)."""
-    cache_host, codename = host.data.apt_cache_host, _codename_of(host.data)
+    cache_host, codename = host_settings(host).apt_cache_host, _codename_of(host_settings(host))
     return [
         other for other in state.inventory
-        if other in state.active_hosts
-        and other.data.get("apt_cache_enabled") and other.data.get("apt_cache_host") == cache_host
-        and _codename_of(other.data) == codename
+        if other in state.active_hosts and (typed := peer_settings(other)) is not None
+        and typed.apt_cache_enabled and typed.apt_cache_host == cache_host
+        and _codename_of(typed) == codename
     ]
 
 
 def updates_through_the_class_cache() -> bool:
     """True on a host whose apt asks the class cache in this run."""
-    return bool(should_run("apt_cache_enabled") and host.data.apt_cache_host
-                and cache_in_this_run(host.data.apt_cache_host))
+    typed = host_settings(host)
+    return bool(should_run("apt_cache_enabled") and typed.apt_cache_host
+                and cache_in_this_run(typed.apt_cache_host))
 
 
 def fills_the_class_cache() -> bool:
@@ -276,7 +281,7 @@ def apt_cache_filled():
     from what it holds, so each .deb is downloaded once for the class. The filling host
     installs its own packages from what it downloaded here.
 
-    Reads host.data: apt_cache_enabled, apt_cache_host, apt_lock_timeout, ubuntu_release;
+    Reads host_settings(host): apt_cache_enabled, apt_cache_host, apt_lock_timeout, ubuntu_release;
     of every host in the run on the same cache and release: apt_cache_enabled,
     apt_cache_host, ubuntu_release, locale_enabled, ros_install_enabled, ros_distro,
     ros_variant, ros_variant_main, ros_variant_robot, ros_dev_tools, ros_extra_packages,
@@ -294,7 +299,7 @@ def apt_cache_filled():
              f"({len(packages)} packages and their dependencies, downloaded here once)",
         packages=packages,
         installed_here=planned_packages(_settings_of(host), codename),
-        lock_timeout=host.data.apt_lock_timeout,
+        lock_timeout=host_settings(host).apt_lock_timeout,
         _serial=True,
     )
 
@@ -311,7 +316,7 @@ def apt_cache_reads() -> list:
     no change (roslab.probe)."""
     if not should_run("apt_cache_enabled"):
         return []
-    cache_host = host.data.apt_cache_host
+    cache_host = host_settings(host).apt_cache_host
     if not cache_host:
         return [probe.read(File, path=PROXY_CONFIG)]
     reads = [*probe.put_reads(DETECT_SCRIPT), *probe.put_reads(PROXY_CONFIG)]

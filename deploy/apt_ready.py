@@ -17,6 +17,7 @@ from deploy.common import (
 )
 from deploy.apt_cache import fills_the_class_cache, updates_through_the_class_cache
 from deploy.ros_apt_source import OLD_METHOD_FILES, old_method_moved_aside
+from roslab.host_settings import host_settings
 from roslab import probe, settings
 from roslab.facts import AptProblem
 from roslab.operations import (
@@ -41,14 +42,15 @@ def apt_ready():
     First it waits for cloud-init to finish a freshly seeded Pi's first boot (bounded by
     apt_lock_timeout, in the same probe command: free on a host where cloud-init is done).
 
-    Reads host.data: apt_ready_enabled, apt_lock_timeout, apt_enable_universe,
+    Reads host_settings(host): apt_ready_enabled, apt_lock_timeout, apt_enable_universe,
     apt_extra_suites, ros_apt_source_enabled (the old ROS 2 source files are moved aside
     here, before the update they would fail). The update itself is `apt_lists`, after
     every source is written.
     """
+    typed = host_settings(host)
     if not should_run("apt_ready_enabled"):
         return
-    lock_timeout = host.data.apt_lock_timeout
+    lock_timeout = typed.apt_lock_timeout
 
     problem = host.get_fact(AptProblem, lock_timeout=lock_timeout)
     cloud_init = (problem or {}).get("cloud_init")
@@ -95,10 +97,10 @@ def apt_ready():
     sources = [ubuntu_apt_sources(
         name="Ensure the Ubuntu apt sources enable universe and the -updates/-backports suites",
         codename=host_codename(),
-        components=["universe"] if host.data.apt_enable_universe else [],
-        suites=list(host.data.apt_extra_suites),
+        components=["universe"] if typed.apt_enable_universe else [],
+        suites=list(typed.apt_extra_suites),
     )]
-    if host.data.ros_apt_source_enabled:
+    if typed.ros_apt_source_enabled:
         # The pre-2025 ROS source fails every `apt-get update` (expired key, conflicting
         # Signed-By): gone before the update in apt_lists, not after it.
         sources.append(old_method_moved_aside())
@@ -116,16 +118,17 @@ def apt_lists():
     Runs after every step that writes apt sources (deploy.py) and before any install. With
     a class apt cache, the first host of each release (deploy.apt_cache.fills_the_class_cache)
     updates before the others, one release at a time, and then the others one at a time.
-    Reads host.data: apt_ready_enabled, apt_lock_timeout, apt_cache_max_age,
+    Reads host_settings(host): apt_ready_enabled, apt_lock_timeout, apt_cache_max_age,
     apt_cache_enabled, apt_cache_host, ubuntu_release, ros_apt_source_enabled (without apt_ready, the lists are updated only after the ROS 2
     source changed).
     """
-    ready = bool(host.data.apt_ready_enabled)
-    if not host_is_active() or not (ready or host.data.ros_apt_source_enabled):
+    typed = host_settings(host)
+    ready = typed.apt_ready_enabled
+    if not host_is_active() or not (ready or typed.ros_apt_source_enabled):
         return
     arguments = dict(
-        lock_timeout=host.data.apt_lock_timeout,
-        max_age=host.data.apt_cache_max_age if ready else None,
+        lock_timeout=typed.apt_lock_timeout,
+        max_age=typed.apt_cache_max_age if ready else None,
         sources=apt_sources_written(),
     )
     if fills_the_class_cache():
@@ -159,12 +162,13 @@ def apt_lists():
 @probe.reader
 def apt_reads() -> list:
     """What apt_ready and apt_lists read on a host that needs no change."""
+    typed = host_settings(host)
     if not host_is_active():
         return []
     reads = []
-    if host.data.apt_ready_enabled:
-        reads += [probe.read(AptProblem, lock_timeout=host.data.apt_lock_timeout),
+    if typed.apt_ready_enabled:
+        reads += [probe.read(AptProblem, lock_timeout=typed.apt_lock_timeout),
                   *ubuntu_apt_sources_reads(), *apt_lists_updated_reads()]
-    if host.data.ros_apt_source_enabled:
+    if typed.ros_apt_source_enabled:
         reads += files_moved_aside_reads(OLD_METHOD_FILES)
     return reads

@@ -1,8 +1,10 @@
 """What every host deploy shares: the login user, the host's distro, running as the login
 user, and stopping one host (not the whole run) when it cannot be provisioned.
 
-Settings are plain `host.data`: the roster loader checked every value against
-`roslab.settings` and merged in every default before pyinfra connected.
+Settings are typed: `host_settings(host)` (roslab/host_settings.py), built once per host from
+its data; the roster loader checked every value against `roslab.settings` and merged in every
+default before pyinfra connected. Only this run's own notes (`_roslab_*`, the host's codename)
+live in `host.data`.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from roslab.reporting import summary
 from roslab.operations import as_user
 from roslab.probe import read, read_ahead, registered_reads
 from roslab.ros.distro import DistroError, UBUNTU_CODENAMES, check_distro, codename_for, default_distro
+from roslab.host_settings import HostSettingsError, host_settings
 
 DEFAULTS = settings.defaults("common")
 
@@ -25,7 +28,10 @@ def where() -> str:
     """Names the host for error messages: roster host and team."""
     if not ctx_host.isset():  # rendering outside a deploy (tests, `roslab check`)
         return "roster"
-    team = host.data.get("roslab_team")
+    try:
+        team = host_settings(host).roslab_team
+    except HostSettingsError:  # the host is being stopped for that very error
+        team = None
     return f"host {host.name}" + (f" (team {team})" if team else "")
 
 
@@ -48,7 +54,7 @@ def host_is_active() -> bool:
 
 def should_run(enabled_key: str) -> bool:
     """True when the host is still active and the deploy's `<concern>_enabled` is on."""
-    return host_is_active() and bool(host.data.get(enabled_key))
+    return host_is_active() and bool(getattr(host_settings(host), enabled_key))
 
 
 def apt_sources_written(*operations) -> list:
@@ -62,7 +68,8 @@ def apt_sources_written(*operations) -> list:
 
 
 def login_user() -> str:
-    return host.data.get("login_user") or host.data.get("ssh_user") or host.get_fact(User)
+    typed = host_settings(host)
+    return typed.login_user or typed.ssh_user or host.get_fact(User)
 
 
 def as_login_user(user: str) -> dict:
@@ -103,7 +110,7 @@ def host_codename() -> str | None:
 def host_distro() -> str:
     """The ROS 2 distro for this host: `ros_distro` if set, else its Ubuntu release's default."""
     codename = host_codename()
-    return host.data.get("ros_distro") or default_distro(codename)
+    return host_settings(host).ros_distro or default_distro(codename)
 
 
 def host_problem() -> str | None:
@@ -116,7 +123,7 @@ def host_problem() -> str | None:
         )
     if codename not in UBUNTU_CODENAMES.values():
         return f"Ubuntu {codename} is not supported (supported: {', '.join(sorted(UBUNTU_CODENAMES))})"
-    expected = host.data.get("ubuntu_release")
+    expected = host_settings(host).ubuntu_release
     if expected:
         try:
             expected_codename = codename_for(expected)
@@ -143,13 +150,19 @@ def host_problem() -> str | None:
 def supported_host() -> bool:
     """Stop this host (only) when it cannot get the ROS 2 the roster asks for.
 
-    Reads host.data: ubuntu_release, ros_distro, login_user, ssh_user.
+    Reads host_settings(host): ubuntu_release, ros_distro, login_user, ssh_user; a value of the
+    wrong type (a hand-made inventory, --data) stops this host with the error naming the key.
     Returns whether the host is still active.
 
     Reads the host in two remote commands (roslab.probe): its release and the login
     user's home (no sudo needed), then, for a host that can be provisioned, everything the
     deploys' operations read when nothing needs changing (under sudo: apt's lock, root's files).
     """
+    try:
+        host_settings(host)
+    except HostSettingsError as error:
+        stop_host(f"{error}; nothing was changed on it")
+        return False
     read_ahead([read(LinuxDistribution), read(Home, user=login_user())], _sudo=False)
     problem = host_problem()
     if problem:

@@ -25,6 +25,7 @@ from pyinfra.facts.files import File
 from pyinfra.operations import files, systemd
 
 from deploy.common import existing_login_home, host_distro, login_home, login_user, should_run, stop_host, where
+from roslab.host_settings import host_settings
 from roslab import probe, settings
 from roslab.ros import discovery
 from roslab.ros import workspace as ws_ops
@@ -59,7 +60,7 @@ def service_unit_text(service: discovery.Service, *, distro: str, user: str, hom
 
 
 def host_setup() -> discovery.HostDiscovery:
-    return discovery.host_discovery({**DEFAULTS, **host.data.dict()}, host_distro())
+    return discovery.host_discovery(host_settings(host).data, host_distro())
 
 
 @deploy("The team's discovery: the middleware's files, the discovery server or Zenoh router on its main",
@@ -67,7 +68,7 @@ def host_setup() -> discovery.HostDiscovery:
 def discovery_in_place():
     """Write the host's discovery files and run (or retire) its team's discovery service.
 
-    Reads host.data: discovery_enabled, ros_middleware, ros_discovery_mode, ros_discovery_server_port,
+    Reads host_settings(host): discovery_enabled, ros_middleware, ros_discovery_mode, ros_discovery_server_port,
     ros_zenoh_router_port, ros_domain_id, ros_automatic_discovery_range, ros_static_peers,
     roslab_team_hosts, roslab_hostname, roslab_role, ros_distro, login_user, ssh_user.
     """

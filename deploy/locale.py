@@ -13,6 +13,7 @@ from roslab import probe, settings
 from roslab.operations import apt_install_options, locale_generated, locale_generated_reads
 from roslab.quoting import shell_word
 from roslab.templating import render
+from roslab.host_settings import host_settings
 
 DEFAULTS = settings.defaults("locale")
 
@@ -29,17 +30,18 @@ def locale_packages(data, codename) -> list[str]:
 def system_locale():
     """Generate the locale and make it the system default in /etc/default/locale.
 
-    Reads host.data: locale_enabled, locale, apt_lock_timeout.
+    Reads host_settings(host): locale_enabled, locale, apt_lock_timeout.
     (`locale` is a UTF-8 locale name: roslab.formats.utf8_locale checked it.)
     """
+    typed = host_settings(host)
     if not should_run("locale_enabled"):
         return
-    locale = host.data.locale
+    locale = typed.locale
 
     apt.packages(
         name="Ensure the locales package is installed",
-        packages=locale_packages(host.data, None),
-        extra_install_args=apt_install_options(host.data.apt_lock_timeout),
+        packages=locale_packages(typed.data, None),
+        extra_install_args=apt_install_options(typed.apt_lock_timeout),
     )
     locale_generated(name=f"Ensure the locale {locale} is generated", locale=locale)
     files.put(

@@ -18,29 +18,31 @@ from roslab import probe
 from roslab import settings as schema
 from roslab.network.operation import network_in_effect, network_in_effect_reads
 from roslab.network.settings import NetworkSettingError, network_settings
+from roslab.host_settings import host_settings
 
 DEFAULTS = schema.defaults("network")
 
 
 def current_address() -> str:
     """Where pyinfra reaches the host now."""
-    return str(host.data.get("ssh_hostname") or host.name)
+    return str(host_settings(host).ssh_hostname or host.name)
 
 
 @deploy("Each host has its fixed address from the roster and is reached there", data_defaults=DEFAULTS)
 def network():
     """Write the host's network configuration and move the connection to its new address.
 
-    Reads host.data: network_enabled, network_backend, network_interface, network_kind,
+    Reads host_settings(host): network_enabled, network_backend, network_interface, network_kind,
     network_method, network_address, network_prefix, network_gateway, network_nameservers,
     network_ipv6, wifi_ssid, wifi_password_secret, wifi_password (the resolved secret),
     network_confirm_timeout, network_disable_cloud_init, network_backups_keep, ssh_hostname,
     roslab_roster_path.
     """
+    typed = host_settings(host)
     if not should_run("network_enabled"):
         return
     try:
-        settings = network_settings(host.data)
+        settings = network_settings(typed.data)
     except NetworkSettingError as error:
         stop_host(f"{where()}: field {error.field!r}: {error.message}; the network was not changed")
         return
@@ -52,7 +54,7 @@ def network():
         name=f"Ensure the host's {settings.kind} network is configured and it answers at {target}",
         settings=settings,
         current_address=current_address(),
-        roster_path=host.data.get("roslab_roster_path"),
+        roster_path=typed.roslab_roster_path,
     )
 
 
@@ -62,7 +64,7 @@ def network_reads() -> list:
     if not should_run("network_enabled"):
         return []
     try:
-        settings = network_settings(host.data)
+        settings = network_settings(host_settings(host).data)
     except NetworkSettingError:
         return []  # the step stops this host, reading nothing
     return network_in_effect_reads(settings) if settings is not None else []

@@ -29,6 +29,8 @@ from roslab.quoting import shell_word, systemd_value
 from roslab.service_units import NODE_RESTARTS, unit_values
 from roslab.ros.environment import host_environment
 from roslab.templating import render
+from roslab.host_settings import host_settings
+from roslab.profiles.resolve import ResolvedService
 
 DEFAULTS = settings.defaults("profile_services")
 UNIT_DIR = "/etc/systemd/system"
@@ -38,8 +40,9 @@ def unit_path(name: str) -> str:
     return posixpath.join(UNIT_DIR, f"{name}.service")
 
 
-def profile_services() -> list[dict]:
-    return (host.data.get("roslab_profile") or {}).get("services") or []
+def profile_services() -> list[ResolvedService]:
+    profile = host_settings(host).roslab_profile
+    return profile.services if profile is not None else []
 
 
 def exec_script(*, distro: str, workspace_dir: str, command: str, venv_dir: str | None = None) -> str:
@@ -55,17 +58,17 @@ def exec_script(*, distro: str, workspace_dir: str, command: str, venv_dir: str 
     ])
 
 
-def unit_text(*, service: dict, profile: str, user: str, home: str, workspace_dir: str, distro: str,
+def unit_text(*, service: ResolvedService, profile: str, user: str, home: str, workspace_dir: str, distro: str,
               environment: dict[str, str], venv_dir: str | None = None) -> str:
     """templates/profile-service.service.j2 with every value written for systemd."""
-    script = exec_script(distro=distro, workspace_dir=workspace_dir, command=service["command"],
+    script = exec_script(distro=distro, workspace_dir=workspace_dir, command=service.command,
                          venv_dir=venv_dir)
-    merged = {**environment, **service["environment"]}
+    merged = {**environment, **service.environment}
     return render(
         "profile-service.service.j2",
         profile=systemd_value(profile),
-        service=f"{service['name']}.service",
-        description=systemd_value(service["description"]),
+        service=f"{service.name}.service",
+        description=systemd_value(service.description),
         **unit_values(user=user, home=home, environment=merged, script=script, restarts=NODE_RESTARTS),
     )
 
@@ -76,10 +79,11 @@ def profile_services_in_place():
     """Write each service of the host's profile side as a unit; enable and start it when its
     `enabled_if` holds, else stop and disable it (saying why).
 
-    Reads host.data: profile_services_enabled, roslab_profile (name, services, python),
+    Reads host_settings(host): profile_services_enabled, roslab_profile (name, services, python),
     python_env_enabled, workspace_dir, login_user, ssh_user, ros_distro and what
     roslab.ros.environment.host_environment reads.
     """
+    typed = host_settings(host)
     services = profile_services()
     if not services or not should_run("profile_services_enabled"):
         return
@@ -89,39 +93,39 @@ def profile_services_in_place():
                   "nothing was changed by this step")
         return
     user, distro = login_user(), host_distro()
-    name = (host.data.get("roslab_profile") or {}).get("name") or "demo"
-    workspace_dir = ws_ops.workspace_path(home, host.data.workspace_dir)
+    name = typed.roslab_profile.name
+    workspace_dir = ws_ops.workspace_path(home, typed.workspace_dir)
     try:  # before any change: a value a unit cannot carry stops this host only
-        units = {service["name"]: unit_text(
+        units = {service.name: unit_text(
             service=service, profile=name, user=user, home=home, workspace_dir=workspace_dir, distro=distro,
-            environment=host_environment(host.data, distro),
+            environment=host_environment(typed.data, distro),
             venv_dir=filled_venv(home)) for service in services}
     except ValueError as error:
         stop_host(f"{where()}: profile services: {error}; nothing was changed by this step")
         return
-    foreign = [service["name"] for service in services if not ours_to_write(service["name"])]
+    foreign = [service.name for service in services if not ours_to_write(service.name)]
     if foreign:
         stop_host(f"{where()}: profile services: {', '.join(f'{name}.service' for name in foreign)} is a unit "
                   f"of this host that roslab did not write (a package's, or someone's own): robot profile {name} "
                   "will not replace it; rename the profile's service; nothing was changed by this step")
         return
     for service in services:
-        unit_name = f"{service['name']}.service"
+        unit_name = f"{service.name}.service"
         unit = files.put(
-            name=f"Ensure {unit_name} runs {service['command']} as {user} (robot profile {name})",
-            src=StringIO(units[service["name"]]), dest=unit_path(service["name"]),
+            name=f"Ensure {unit_name} runs {service.command} as {user} (robot profile {name})",
+            src=StringIO(units[service.name]), dest=unit_path(service.name),
             user="root", group="root", mode="644",
         )
         systemd.daemon_reload(name=f"Ensure systemd has read the changed {unit_name}", _if=unit.did_change)
-        if service["enabled"]:
+        if service.enabled:
             systemd.service(name=f"Ensure {unit_name} is enabled and running", service=unit_name,
                             enabled=True, running=True)
             systemd.service(name=f"Ensure {unit_name} runs its current unit", service=unit_name,
                             restarted=True, _if=unit.did_change)
         else:
             service_installed_not_running(
-                name=f"Ensure {unit_name} is stopped and disabled ({service['disabled_because']})",
-                service=unit_name, because=service["disabled_because"])
+                name=f"Ensure {unit_name} is stopped and disabled ({service.disabled_because})",
+                service=unit_name, because=service.disabled_because)
 
 
 MANAGED_MARK = "# managed by roslab (deploy/profile_services.py)"
@@ -145,8 +149,8 @@ def profile_services_reads() -> list:
         return []
     reads = []
     for service in services:
-        reads += [*probe.put_reads(unit_path(service["name"])), *probe.service_reads(f"{service['name']}.service"),
-                  probe.read(FileContents, path=unit_path(service["name"])),
-                  *(probe.read(File, path=posixpath.join(folder, f"{service['name']}.service"))
+        reads += [*probe.put_reads(unit_path(service.name)), *probe.service_reads(f"{service.name}.service"),
+                  probe.read(FileContents, path=unit_path(service.name)),
+                  *(probe.read(File, path=posixpath.join(folder, f"{service.name}.service"))
                     for folder in PACKAGE_UNIT_DIRS)]
     return reads

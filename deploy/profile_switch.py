@@ -18,29 +18,31 @@ from deploy.profile_services import MANAGED_MARK
 from roslab import probe, settings
 from roslab.profiles.host import CONFIG_TXT, UserGroups
 from roslab.profiles.switch import ProfileRecord, profile_recorded, profile_units_gone, user_left_groups
+from roslab.host_settings import host_settings
+from roslab.profiles.resolve import ResolvedProfile
 
 DEFAULTS = settings.defaults("robot_profile")
 
 
-def profile() -> dict:
-    return host.data.get("roslab_profile") or {}
+def profile() -> ResolvedProfile | None:
+    return host_settings(host).roslab_profile
 
 
 def wanted_record(previous: dict, current_groups: list[str] | None) -> dict:
     """What roslab wrote for the host's profile as of this run: the groups it added are those of
     the profile the user was not in before roslab (kept from the record while still named)."""
-    groups = set(profile().get("groups") or [])
+    resolved, typed = profile(), host_settings(host)
+    groups = set(resolved.groups if resolved else [])
     added = set(previous.get("groups_added") or []) & groups
     if current_groups is not None:
         added |= {group for group in groups if group not in current_groups}
-    python = profile().get("python") or {}
-    tweaks = (profile().get("os_tweaks") or {}) if host.data.get("profile_os_tweaks") else {}
+    tweaks = resolved.os_tweaks if resolved and typed.profile_os_tweaks else {}
     return {
-        "profile": profile().get("name") or "demo",
+        "profile": resolved.name if resolved else "demo",
         "groups_added": sorted(added),
-        "boot_config": list((profile().get("boot_config") or {}).get("config_txt") or []),
-        "venv": python.get("venv") if host.data.get("python_env_enabled", True) else None,
-        "sources": bool((profile().get("sources") or [])),
+        "boot_config": list(resolved.boot_config.get("config_txt") or []) if resolved else [],
+        "venv": resolved.python.venv if resolved and typed.python_env_enabled else None,
+        "sources": bool(resolved and resolved.sources),
         "masked_units": sorted(tweaks.get("mask_units") or []),
     }
 
@@ -68,7 +70,7 @@ def profile_switch_cleaned():
     """Remove the units and groups an earlier robot profile left, say what stays, and record
     what this profile wrote.
 
-    Reads host.data: robot_profile_enabled, profile_services_enabled, python_env_enabled,
+    Reads host_settings(host): robot_profile_enabled, profile_services_enabled, python_env_enabled,
     roslab_profile (name, groups, services, boot_config, python, sources), login_user, ssh_user.
     """
     if not should_run("robot_profile_enabled"):
@@ -81,13 +83,13 @@ def profile_switch_cleaned():
     record = wanted_record(previous, current_groups)
     removed = []
     if should_run("profile_services_enabled"):
-        named = {service["name"] for service in profile().get("services") or []}
+        named = {service.name for service in (profile().services if profile() else [])}
         stale = [unit for unit in seen["units"] if unit not in named]
         if stale:
             profile_units_gone(name=f"Ensure {', '.join(f'{unit}.service' for unit in stale)} of an earlier robot "
                                     "profile is stopped, disabled and removed", units=stale)
             removed += [f"{unit}.service" for unit in stale]
-    leave = sorted(group for group in set(previous.get("groups_added") or []) - set(profile().get("groups") or [])
+    leave = sorted(group for group in set(previous.get("groups_added") or []) - set(profile().groups if profile() else [])
                    if current_groups is not None and group in current_groups)
     if leave:
         user_left_groups(name=f"Ensure {user} is no longer in {', '.join(leave)} (added for robot profile "

@@ -29,6 +29,8 @@ from roslab.python_env.venv import (
     venv_requirements_installed_reads,
 )
 from roslab.quoting import shell_word
+from roslab.host_settings import host_settings
+from roslab.profiles.resolve import PythonEnv
 
 DEFAULTS = settings.defaults("python_env")
 
@@ -42,11 +44,17 @@ def python_of(data) -> dict:
     return profile.get("python") or {"venv": None, "requirements": []}
 
 
+def profile_python() -> PythonEnv:
+    """This host's profile's Python environment (no venv, no requirements without a profile)."""
+    profile = host_settings(host).roslab_profile
+    return profile.python if profile is not None else PythonEnv(venv=None, requirements=[])
+
+
 def filled_venv(home: str) -> str | None:
     """The profile's venv under `home` (the login user's home, or "~") when this step fills
     it, else None: what the ~/.bashrc block and the units put on PYTHONPATH."""
-    venv = python_of(host.data)["venv"]
-    return posixpath.join(home, venv) if venv and host.data.get("python_env_enabled", True) else None
+    venv = profile_python().venv
+    return posixpath.join(home, venv) if venv and host_settings(host).python_env_enabled else None
 
 
 @probe.installs
@@ -71,14 +79,15 @@ def python_env_packages(data, codename) -> list[str]:
 def python_env():
     """Make the profile's venv and install its pinned requirements from the class's wheelhouse.
 
-    Reads host.data: python_env_enabled, roslab_profile (its "python": venv, requirements),
+    Reads host_settings(host): python_env_enabled, roslab_profile (its "python": venv, requirements),
     python_index_url, python_wheelhouse_dir, python_sdist_build_packages, offline, login_user,
     apt_lock_timeout.
     """
+    typed = host_settings(host)
     if not should_run("python_env_enabled"):
         return
-    python = python_of(host.data)
-    if not python["venv"]:  # the profile has no Python requirements or venv: nothing to do
+    python = profile_python()
+    if not python.venv:  # the profile has no Python requirements or venv: nothing to do
         return
     user, home = login_user(), login_home()
     if home is None:
@@ -88,10 +97,10 @@ def python_env():
         stop_host(f"{where()}: python_packages: {target.problem()}; nothing was changed on it")
         return
     house = None
-    if python["requirements"]:
+    if python.requirements:
         try:
-            house = wheelhouse.wheelhouse(python["requirements"], target, host.data.python_index_url,
-                                          host.data.python_wheelhouse_dir, offline=bool(host.data.get("offline")))
+            house = wheelhouse.wheelhouse(python.requirements, target, typed.python_index_url,
+                                          typed.python_wheelhouse_dir, offline=typed.offline)
         except wheelhouse.WheelhouseError as error:
             stop_host(f"{where()}: python_packages: {error}; nothing was changed on it")
             return
@@ -100,10 +109,12 @@ def python_env():
     apt.packages(
         name="Ensure Python's venv module is installed"
              + (" (and what building an sdist needs)" if house and house.has_sdist else ""),
-        packages=python_env_packages(host.data, None),
-        extra_install_args=apt_install_options(host.data.apt_lock_timeout),
+        # this run's own note, made just above: the snapshot host_settings holds predates it
+        packages=python_env_packages({**typed.data, "_roslab_python_sdist": bool(house and house.has_sdist)},
+                                     None),
+        extra_install_args=apt_install_options(typed.apt_lock_timeout),
     )
-    venv = posixpath.join(home, python["venv"])
+    venv = posixpath.join(home, python.venv)
     if house is None:
         venv_requirements_installed(name=f"Ensure the venv {venv} exists", venv=venv, python=target.python,
                                     **as_login_user(user))
@@ -122,7 +133,7 @@ def python_env():
         _if=any_changed(*pushed),
     )
     venv_requirements_installed(
-        name=f"Ensure {', '.join(python['requirements'])} are installed in {venv}",
+        name=f"Ensure {', '.join(python.requirements)} are installed in {venv}",
         venv=venv, python=target.python, wheelhouse=WHEELHOUSE, requirements_file=REQUIREMENTS,
         stamp=house.digest, **as_login_user(user),
     )
@@ -140,17 +151,17 @@ def python_env_reads() -> list:
     """What python_env's operations read on a host that needs no change."""
     if not should_run("python_env_enabled"):
         return []
-    python = python_of(host.data)
+    python = profile_python()
     home = existing_login_home()
-    if not python["venv"] or home is None:
+    if not python.venv or home is None:
         return []
     reads = [*python_target_reads(), *probe.packages_reads(),
-             *venv_requirements_installed_reads(posixpath.join(home, python["venv"]))]
-    if python["requirements"]:
+             *venv_requirements_installed_reads(posixpath.join(home, python.venv))]
+    if python.requirements:
         # The files are known once the controller has the wheelhouse; its folder and the
         # requirements file always, the wheels through their names in a kept wheelhouse.
         reads += probe.put_reads(REQUIREMENTS)
-        for name in _kept_file_names(python["requirements"]):
+        for name in _kept_file_names(python.requirements):
             reads += probe.put_reads(f"{WHEELHOUSE}/{name}")
     return reads
 
@@ -161,8 +172,9 @@ def _kept_file_names(requirements: list[str]) -> list[str]:
     The probe runs before the host's platform is read, so the kept wheelhouses of these
     requirements for every platform are looked at (a name read in vain costs a line of the probe).
     """
+    typed = host_settings(host)
     names: list[str] = []
-    for kept in wheelhouse.kept_for_any_target(requirements, host.data.python_index_url,
-                                               host.data.python_wheelhouse_dir):
+    for kept in wheelhouse.kept_for_any_target(requirements, typed.python_index_url,
+                                               typed.python_wheelhouse_dir):
         names += [item.name for item in kept.files if item.name not in names]
     return names

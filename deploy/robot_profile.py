@@ -6,7 +6,7 @@ block and cmdline.txt words, recorded as "reboot needed": roslab never reboots),
 The profile's packages are ros_install's (deploy/ros_install.py `ros_packages`), its variables
 are in the shell block and the service's unit (roslab.ros.environment.host_environment), its launch
 is the workspace's service (deploy/workspace.py): this step adds what belongs to none of them.
-Everything comes resolved from the roster (`host.data.roslab_profile`, see roslab/profiles).
+Everything comes resolved from the roster (`host_settings(host).roslab_profile`, see roslab/profiles).
 """
 
 from __future__ import annotations
@@ -42,6 +42,8 @@ from roslab.profiles.host import (
     user_in_groups_reads,
 )
 from roslab.profiles.resolve import UDEV_RULES_PATH
+from roslab.host_settings import host_settings
+from roslab.profiles.resolve import ResolvedProfile
 
 DEFAULTS = settings.defaults("robot_profile")
 SWAP_FILE = "/swapfile"
@@ -50,8 +52,8 @@ FSTAB_LABEL = "robot profile swap file"
 BOOT_CONFIG_LABEL = "robot profile boot config"
 
 
-def profile() -> dict:
-    return host.data.get("roslab_profile") or {}
+def profile() -> ResolvedProfile | None:
+    return host_settings(host).roslab_profile
 
 
 @deploy("The robot profile's udev rules, groups, removed packages, boot config and opted-in OS tweaks "
@@ -61,18 +63,19 @@ def robot_profile():
     remove the apt packages it removes, keep its boot config (a reboot it needs is recorded and
     reported, never done) and, where the roster opts in, apply the profile's OS tweaks.
 
-    Reads host.data: robot_profile_enabled, roslab_profile (udev_rules, groups, name, os_tweaks,
+    Reads host_settings(host): robot_profile_enabled, roslab_profile (udev_rules, groups, name, os_tweaks,
     remove_apt_packages, boot_config), profile_os_tweaks, login_user, ssh_user.
     """
     if not should_run("robot_profile_enabled"):
         return
-    name = profile().get("name") or "demo"
-    removed = profile().get("remove_apt_packages") or []
+    resolved = profile()
+    name = resolved.name if resolved else "demo"
+    removed = resolved.remove_apt_packages if resolved else []
     if removed:
         # Before the udev rules: brltty's own rules claim CP210x and CH340 adapters.
         apt.packages(name=f"Ensure {', '.join(removed)} is not installed (robot profile {name})",
                      packages=removed, present=False)
-    rules = profile().get("udev_rules") or ""
+    rules = resolved.udev_rules if resolved else ""
     if rules:
         written = files.put(
             name=f"Ensure {UDEV_RULES_PATH} holds robot profile {name}'s udev rules",
@@ -87,12 +90,12 @@ def robot_profile():
         written = None
     if written is not None:
         udev_reloaded(name="Ensure udev has read the robot profile's rules", _if=written.did_change)
-    groups = profile().get("groups") or []
+    groups = resolved.groups if resolved else []
     if groups and existing_login_home() is not None:
         user = login_user()
         user_in_groups(name=f"Ensure {user} is in {', '.join(groups)} (robot profile {name})",
                        user=user, groups=groups)
-    boot_config_kept(name, profile().get("boot_config") or {})
+    boot_config_kept(name, resolved.boot_config if resolved else {})
     tweaks = os_tweaks()
     if tweaks:
         os_tweaks_applied(name, tweaks)
@@ -128,7 +131,8 @@ def boot_config_kept(name: str, boot: dict) -> None:
 
 def os_tweaks() -> dict:
     """The profile's OS tweaks for this host, or {} when the roster has not opted in."""
-    return (profile().get("os_tweaks") or {}) if host.data.get("profile_os_tweaks") else {}
+    resolved = profile()
+    return resolved.os_tweaks if resolved and host_settings(host).profile_os_tweaks else {}
 
 
 def swap_wanted(tweaks: dict, memory_mb: int | None) -> bool:
@@ -158,13 +162,14 @@ def robot_profile_reads() -> list:
     """What robot_profile's operations read on a host that needs no change."""
     if not should_run("robot_profile_enabled"):
         return []
-    reads = probe.put_reads(UDEV_RULES_PATH) if profile().get("udev_rules") else \
+    resolved = profile()
+    reads = probe.put_reads(UDEV_RULES_PATH) if resolved and resolved.udev_rules else \
         [probe.read(File, path=UDEV_RULES_PATH)]
-    if profile().get("groups") and existing_login_home() is not None:
+    if resolved and resolved.groups and existing_login_home() is not None:
         reads += user_in_groups_reads(login_user())
-    if profile().get("remove_apt_packages"):
+    if resolved and resolved.remove_apt_packages:
         reads += probe.packages_reads()
-    boot = profile().get("boot_config") or {}
+    boot = resolved.boot_config if resolved else {}
     if boot:
         reads += [probe.read(RebootRecord), probe.read(File, path=CONFIG_TXT)]
         if boot.get("config_txt"):

@@ -24,6 +24,7 @@ from roslab import downloads, probe, settings
 from roslab.operations import apt_install_options, files_moved_aside, files_moved_aside_reads
 from roslab.quoting import deb822_value
 from roslab.templating import render
+from roslab.host_settings import host_settings
 
 DEFAULTS = settings.defaults("ros_apt_source")
 
@@ -79,17 +80,18 @@ def dearmored(key: bytes) -> bytes:
 
 
 def _package_mode(codename: str) -> list | None:
-    version = host.data.ros_apt_source_version
-    pins = host.data.ros_apt_source_sha256 or {}
+    typed = host_settings(host)
+    version = typed.ros_apt_source_version
+    pins = typed.ros_apt_source_sha256
     if codename not in pins:
         stop_host(f"{where()}: ros_apt_source_sha256 has no sha256 for Ubuntu {codename} "
                   f"(ros2-apt-source {version}); nothing was changed on it")
         return None
-    url = host.data.ros_apt_source_url.format(version=version, codename=codename)
+    url = typed.ros_apt_source_url.format(version=version, codename=codename)
     name = deb_name(version, codename)
     try:
-        deb = downloads.pinned(url, pins[codename], Path(host.data.ros_apt_source_cache_dir), name,
-                               "ros_apt_source_sha256", offline=bool(host.data.get("offline")))
+        deb = downloads.pinned(url, pins[codename], Path(typed.ros_apt_source_cache_dir), name,
+                               "ros_apt_source_sha256", offline=typed.offline)
     except downloads.DownloadError as error:
         stop_host(f"{where()}: ros2-apt-source: {error}; nothing was changed on it")
         return None
@@ -112,8 +114,9 @@ def _package_mode(codename: str) -> list | None:
 
 
 def _mirror_mode(codename: str) -> list | None:
-    mirror_url = host.data.ros_apt_mirror_url
-    key_file = host.data.ros_apt_mirror_key_file
+    typed = host_settings(host)
+    mirror_url = typed.ros_apt_mirror_url
+    key_file = typed.ros_apt_mirror_key_file
     for field, value in (("ros_apt_mirror_url", mirror_url), ("ros_apt_mirror_key_file", key_file)):
         if not value:
             stop_host(f"{where()}: ros_apt_source_mode is 'mirror' but {field} is not set; "
@@ -130,7 +133,7 @@ def _mirror_mode(codename: str) -> list | None:
         packages=[PACKAGE],
         present=False,
         purge=True,
-        extra_uninstall_args=apt_install_options(host.data.apt_lock_timeout),
+        extra_uninstall_args=apt_install_options(typed.apt_lock_timeout),
     )
     keyring = files.put(
         name="Ensure the mirror's signing key is in the ROS 2 keyring",
@@ -158,7 +161,7 @@ def _mirror_mode(codename: str) -> list | None:
 def ros_apt_source():
     """Install the ROS 2 apt source and move the old method's leftovers aside.
 
-    Reads host.data: ros_apt_source_enabled, ros_apt_source_mode, ros_apt_source_version,
+    Reads host_settings(host): ros_apt_source_enabled, ros_apt_source_mode, ros_apt_source_version,
     ros_apt_source_sha256, ros_apt_source_url, ros_apt_source_cache_dir,
     ros_apt_mirror_url, ros_apt_mirror_key_file, apt_lock_timeout, offline (the .deb only
     from the controller's cache).
@@ -173,7 +176,7 @@ def ros_apt_source():
     old_method = old_method_moved_aside()
     # A file the controller cannot get stops this host here: pyinfra then runs none of its
     # operations, so nothing changes on it.
-    if host.data.ros_apt_source_mode == "mirror":
+    if host_settings(host).ros_apt_source_mode == "mirror":
         changes = _mirror_mode(codename)
     else:
         changes = _package_mode(codename)
@@ -186,12 +189,13 @@ def ros_apt_source():
 @probe.reader
 def ros_apt_source_reads() -> list:
     """What ros_apt_source's operations read on a host that needs no change."""
+    typed = host_settings(host)
     if not should_run("ros_apt_source_enabled"):
         return []
     reads = files_moved_aside_reads(OLD_METHOD_FILES)
-    if host.data.ros_apt_source_mode == "mirror":
+    if typed.ros_apt_source_mode == "mirror":
         return [*reads, *probe.packages_reads(), *probe.put_reads(KEYRING), *probe.put_reads(SOURCES)]
     codename = host_codename()
-    host_deb = f"{HOST_DEB_DIR}/{deb_name(host.data.ros_apt_source_version, codename)}"
+    host_deb = f"{HOST_DEB_DIR}/{deb_name(typed.ros_apt_source_version, codename)}"
     return [*reads, *files_moved_aside_reads([SOURCES]), *probe.put_reads(host_deb),
             *probe.deb_reads(host_deb)]

@@ -11,6 +11,7 @@ from roslab.ros.discovery import middleware_of, middleware_package
 from roslab.ros.distro import default_distro
 from roslab.operations import packages_installed
 from roslab.quoting import apt_arguments
+from roslab.host_settings import host_settings
 
 DEFAULTS = settings.defaults("ros_install")
 
@@ -54,19 +55,20 @@ def ros_install_packages(data, codename: str) -> list[str]:
 def ros_install():
     """Install ros-<distro>-<variant>, ros-dev-tools and the classroom's extra packages.
 
-    Reads host.data: ros_install_enabled, ros_distro, ros_variant, ros_variant_main,
+    Reads host_settings(host): ros_install_enabled, ros_distro, ros_variant, ros_variant_main,
     ros_variant_robot, ros_dev_tools, ros_extra_packages, ros_middleware, roslab_role, roslab_profile,
     apt_lock_timeout.
     (ubuntu_release is checked by deploy.common.supported_host.)
     """
+    typed = host_settings(host)
     if not should_run("ros_install_enabled"):
         return
     distro = host_distro()
-    packages = ros_install_packages(host.data.dict(), host_codename())  # as declared for the class cache
+    packages = ros_install_packages(typed.data, host_codename())  # as declared for the class cache
     packages_installed(
         name=f"Ensure ROS 2 {distro} is installed ({', '.join(packages)})",
         packages=packages,
-        lock_timeout=host.data.apt_lock_timeout,
+        lock_timeout=typed.apt_lock_timeout,
     )
 
 

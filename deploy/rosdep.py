@@ -29,6 +29,7 @@ from deploy.common import (
     stop_host,
     where,
 )
+from roslab.host_settings import host_settings
 from roslab import downloads, probe, settings
 from roslab.ros import rosdep_data
 from roslab.operations import (
@@ -48,20 +49,21 @@ DEFAULTS = settings.defaults("rosdep")
 def rosdep():
     """Install rosdep if missing, initialise it, update the login user's cache when stale.
 
-    Reads host.data: rosdep_enabled, rosdep_package, rosdep_sources_list_url,
+    Reads host_settings(host): rosdep_enabled, rosdep_package, rosdep_sources_list_url,
     rosdistro_index_url, rosdep_data_from_controller, rosdep_cache_dir, offline,
     rosdep_update_max_age, login_user, apt_lock_timeout.
     """
+    typed = host_settings(host)
     if not should_run("rosdep_enabled"):
         return
     user, home = login_user(), login_home()
     if home is None:  # the login user does not exist there: the host is stopped
         return
-    if host.data.rosdep_data_from_controller or host.data.get("offline"):
+    if typed.rosdep_data_from_controller or typed.offline:
         _rosdep_from_controller(user, home)
         return
-    index_url = host.data.rosdistro_index_url
-    sources_list_url = host.data.rosdep_sources_list_url
+    index_url = typed.rosdistro_index_url
+    sources_list_url = typed.rosdep_sources_list_url
     sources_list = None
     if sources_list_url:
         # Fetched by the controller once per run; a failure stops the hosts that need it.
@@ -92,7 +94,7 @@ def rosdep():
     rosdep_cache_updated(
         name=f"Ensure {user}'s rosdep cache is younger than rosdep_update_max_age",
         home=home,
-        max_age=host.data.rosdep_update_max_age,
+        max_age=typed.rosdep_update_max_age,
         rosdistro_index_url=index_url,
         **as_login_user(user),
     )
@@ -100,11 +102,12 @@ def rosdep():
 
 def _rosdep_installed() -> None:
     """Both ways of getting rosdep's data install it the same way, once their data is in hand."""
+    typed = host_settings(host)
     command_installed(
         name="Ensure rosdep is installed",
         command="rosdep",
-        package=host.data.rosdep_package,
-        lock_timeout=host.data.apt_lock_timeout,
+        package=typed.rosdep_package,
+        lock_timeout=typed.apt_lock_timeout,
     )
 
 
@@ -116,11 +119,12 @@ UNPACK = (f"set -e; rm -rf {rosdep_data.HOST_DIR}.new; mkdir -p {rosdep_data.HOS
 
 def _rosdep_from_controller(user: str, home: str) -> None:
     """rosdep's data downloaded once by the controller, copied here, and rosdep pointed at it."""
+    typed = host_settings(host)
     try:
         data = rosdep_data.for_distro(
-            host.data.rosdep_sources_list_url, host.data.rosdistro_index_url, host_distro(),
-            Path(host.data.rosdep_cache_dir).expanduser(), offline=bool(host.data.get("offline")),
-            max_age=host.data.rosdep_update_max_age,
+            typed.rosdep_sources_list_url, typed.rosdistro_index_url, host_distro(),
+            Path(typed.rosdep_cache_dir).expanduser(), offline=typed.offline,
+            max_age=typed.rosdep_update_max_age,
         )
     except rosdep_data.RosdepDataError as error:
         stop_host(f"{where()}: rosdep's data: {error}; nothing was changed on it")
@@ -157,7 +161,7 @@ def _rosdep_from_controller(user: str, home: str) -> None:
     rosdep_cache_updated(
         name=f"Ensure {user}'s rosdep cache is younger than rosdep_update_max_age",
         home=home,
-        max_age=host.data.rosdep_update_max_age,
+        max_age=typed.rosdep_update_max_age,
         rosdistro_index_url=data.index_url,
         **as_login_user(user),
     )
@@ -166,12 +170,13 @@ def _rosdep_from_controller(user: str, home: str) -> None:
 @probe.reader
 def rosdep_reads() -> list:
     """What rosdep's operations read on a host that needs no change."""
+    typed = host_settings(host)
     home = existing_login_home() if should_run("rosdep_enabled") else None
     if home is None:
         return []
-    if host.data.rosdep_data_from_controller or host.data.get("offline"):
+    if typed.rosdep_data_from_controller or typed.offline:
         sources = [*probe.put_reads(ARCHIVE), *probe.put_reads(ROSDEP_SOURCES_LIST)]
-    elif host.data.rosdep_sources_list_url:
+    elif typed.rosdep_sources_list_url:
         sources = probe.put_reads(ROSDEP_SOURCES_LIST)
     else:
         sources = rosdep_initialized_reads()

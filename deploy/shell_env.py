@@ -27,6 +27,7 @@ from deploy.sources import repositories
 from roslab.python_env.venv import venv_on_pythonpath
 from roslab.ros.environment import host_environment
 from roslab.templating import render
+from roslab.host_settings import host_settings
 
 BLOCK_LABEL = "ROS 2 environment"
 
@@ -68,13 +69,14 @@ def render_ros_environment(
 def shell_env():
     """Write the ROS 2 environment block into the login user's ~/.bashrc.
 
-    Reads host.data: shell_env_enabled, ros_domain_id, ros_automatic_discovery_range,
+    Reads host_settings(host): shell_env_enabled, ros_domain_id, ros_automatic_discovery_range,
     ros_static_peers, ros_middleware, ros_discovery_mode, ros_discovery_server_port,
     ros_zenoh_router_port, roslab_team_hosts, roslab_hostname, roslab_role, ros_distro,
     workspace_dir, rosdistro_index_url, login_user, ssh_user, roslab_profile (its environment),
     ros_environment, roslab_sources and sources_underlay_dir (the underlay, sourced before the workspace),
     python_env_enabled and roslab_profile's python venv (first on PYTHONPATH).
     """
+    typed = host_settings(host)
     if not should_run("shell_env_enabled"):
         return
     user = login_user()
@@ -85,10 +87,10 @@ def shell_env():
         distro = host_distro()
         block = render_ros_environment(
             distro=distro,
-            workspace_dir=host.data.workspace_dir,
-            rosdistro_index_url=host.data.rosdistro_index_url,
-            variables=host_environment(host.data, distro, shell=True),
-            underlay_dir=host.data.get("sources_underlay_dir") if repositories() else None,
+            workspace_dir=typed.workspace_dir,
+            rosdistro_index_url=typed.rosdistro_index_url,
+            variables=host_environment(typed.data, distro, shell=True),
+            underlay_dir=typed.sources_underlay_dir if repositories() else None,
             venv_dir=filled_venv("~"),
         )
     except ValueError as error:  # a value no shell word can carry (only `--data` skips the schema)

@@ -37,6 +37,7 @@ from roslab.sources import ship as underlay_ship
 from roslab.sources import underlay as underlay_ops
 from roslab.ros import workspace as ws_ops
 from roslab.profiles.host import MemoryTotal
+from roslab.host_settings import host_settings, peer_settings
 
 DEFAULTS = settings.defaults("sources")
 # The controller's warnings about the class's sources, each said once per run (not per host).
@@ -57,20 +58,22 @@ def class_pins() -> frozenset:
     is what makes the controller check the class's tags against upstream again."""
     pins = set()
     for each in host.state.inventory:
-        if each.data.get("sources_enabled", True):
-            pins.update((repo["url"], repo["version"]) for repo in each.data.get("roslab_sources") or [])
+        typed = peer_settings(each)
+        if typed is not None and typed.sources_enabled:
+            pins.update((repo["url"], repo["version"]) for repo in typed.roslab_sources or [])
     return frozenset(pins)
 
 
 def repositories() -> list[dict]:
     """The host's repositories (the roster loader's `roslab_sources`), none when switched off."""
-    if not host.data.get("sources_enabled", True):
+    typed = host_settings(host)
+    if not typed.sources_enabled:
         return []
-    return list(host.data.get("roslab_sources") or [])
+    return list(typed.roslab_sources or [])
 
 
 def underlay_dir(home: str) -> str:
-    return ws_ops.workspace_path(home, host.data.get("sources_underlay_dir") or DEFAULTS["sources_underlay_dir"])
+    return ws_ops.workspace_path(home, host_settings(host).sources_underlay_dir)
 
 
 def underlay_setup(home: str) -> str | None:
@@ -94,7 +97,7 @@ def sources():
     One host of the group that needs the same underlay builds it; the others receive its
     install tree from the controller (roslab/sources/groups.py, roslab/sources/ship.py).
 
-    Reads host.data: sources_enabled, roslab_sources, sources_underlay_dir, sources_cache_dir,
+    Reads host_settings(host): sources_enabled, roslab_sources, sources_underlay_dir, sources_cache_dir,
     source_url_rewrites, sources_fetch_timeout, sources_rosdep_install, offline,
     workspace_colcon_args, roslab_profile (cmake_args, build_dependencies,
     skip_packages, underlay_build_memory_mb, name), underlay_builder, login_user, ssh_user,
@@ -116,18 +119,18 @@ def sources():
     home = login_home()
     if home is None:  # the login user does not exist: login_home() stopped this host
         return
-    profile = host.data.get("roslab_profile") or {}
-    cache_dir = Path(host.data.sources_cache_dir).expanduser()
-    timeout = host.data.get("sources_fetch_timeout") or DEFAULTS["sources_fetch_timeout"]
+    typed = host_settings(host)
+    profile = typed.roslab_profile
+    cache_dir = Path(typed.sources_cache_dir).expanduser()
+    timeout = typed.sources_fetch_timeout
     fetched = []
     pins = class_pins()
     for repo in wanted:
         try:
             item = source_fetch.fetched(
-                repo, cache_dir, rewrites=host.data.get("source_url_rewrites") or {},
-                offline=bool(host.data.get("offline")), timeout=timeout, pins=pins)
+                repo, cache_dir, rewrites=typed.source_url_rewrites, offline=typed.offline, timeout=timeout, pins=pins)
             # the packages the profile does not build never reach the host (a ROS 1 leftover)
-            fetched.append(source_fetch.for_host(item, cache_dir, profile.get("skip_packages") or (), timeout))
+            fetched.append(source_fetch.for_host(item, cache_dir, profile.skip_packages if profile else (), timeout))
         except source_fetch.SourceError as error:
             stop_host(f"{where()}: sources: {error}; nothing was changed on it")
             return
@@ -136,11 +139,11 @@ def sources():
     distro = host_distro()
     directory = underlay_dir(home)
     digests = {item.path: item.sha256 for item in fetched}
-    colcon_args = list(host.data.get("workspace_colcon_args") or [])
+    colcon_args = list(typed.workspace_colcon_args)
     # the profile's CMake settings per package (the micro-ROS agent's superbuild off, say) and
     # the build-order edges the packages' manifests forget
-    cmake_args = profile.get("cmake_args") or {}
-    build_dependencies = profile.get("build_dependencies") or {}
+    cmake_args = profile.cmake_args if profile else {}
+    build_dependencies = profile.build_dependencies if profile else {}
     stamp = underlay_ops.build_stamp(digests, distro, colcon_args, cmake_args, build_dependencies)
     machine = host.get_fact(Arch) or "unknown"
     digest = underlay_groups.input_digest(stamp, machine, directory)
@@ -155,7 +158,7 @@ def sources():
         repositories=[{"path": item.path, "sha256": item.sha256, "archive": item.archive} for item in fetched],
         user=user,
     )
-    if host.data.get("sources_rosdep_install", True):
+    if host_settings(host).sources_rosdep_install:
         # on a host that receives its build too: the run dependencies the shipped tree needs
         ws_ops.dependencies(
             name="Ensure the underlay's system dependencies are installed (rosdep)",
@@ -202,10 +205,12 @@ def underlay_builder(digest: str, machine: str, cache_dir: Path, holds: bool) ->
     kept = underlay_ship.cached(cache_dir, digest)
     if kept is not None:
         return kept["builder"]
-    mine = underlay_groups.roster_inputs(host.data)
-    peers = [peer for peer in host.state.inventory
-             if peer in host.state.active_hosts and underlay_groups.roster_inputs(peer.data) == mine]
-    named = next((peer.data.get("underlay_builder") for peer in peers if peer.data.get("underlay_builder")), None)
+    mine = underlay_groups.roster_inputs(host_settings(host).data)
+    typed_peers = [(peer, peer_settings(peer)) for peer in host.state.inventory if peer in host.state.active_hosts]
+    typed_peers = [(peer, typed) for peer, typed in typed_peers
+                   if typed is not None and underlay_groups.roster_inputs(typed.data) == mine]
+    peers = [peer for peer, _ in typed_peers]
+    named = next((typed.underlay_builder for _, typed in typed_peers if typed.underlay_builder), None)
     members = []
     for peer in peers:
         # the architecture and memory of the others: read only when this host needs a build
@@ -213,9 +218,9 @@ def underlay_builder(digest: str, machine: str, cache_dir: Path, holds: bool) ->
         if peer_machine == machine:
             memory = host.get_fact(MemoryTotal) if peer.name == host.name else peer.get_fact(MemoryTotal)
             members.append(underlay_groups.Member(peer.name, memory))
-    profile = host.data.get("roslab_profile") or {}
-    choice = underlay_groups.choose_builder(members, named, profile.get("underlay_build_memory_mb"),
-                                            profile.get("name") or "")
+    profile = host_settings(host).roslab_profile
+    choice = underlay_groups.choose_builder(members, named, profile.underlay_build_memory_mb if profile else None,
+                                            profile.name if profile else "")
     if choice.builder is None:
         stop_host(f"{where()}: sources: underlay: {choice.problem}; nothing was changed on it")
     return choice.builder

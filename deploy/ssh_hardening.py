@@ -9,6 +9,7 @@ from pyinfra.operations import server
 from deploy.common import should_run, stop_host, where
 from roslab import probe, settings
 from roslab.ssh.sshd import DROPIN, KeyLogin, SshdLoginSettings, sshd_key_only
+from roslab.host_settings import host_settings
 
 DEFAULTS = settings.defaults("ssh_hardening")
 
@@ -21,13 +22,14 @@ def ssh_hardening():
     after a key-only login from this machine worked in this run and sshd accepts the new
     configuration; see roslab.ssh.sshd.sshd_key_only.
 
-    Reads host.data: ssh_hardening_enabled, ssh_password_login, ssh_permit_root_login,
+    Reads host_settings(host): ssh_hardening_enabled, ssh_password_login, ssh_permit_root_login,
     ssh_user, ssh_hostname, ssh_port, ssh_key, ssh_known_hosts_file, ssh_strict_host_key_checking.
     """
+    typed = host_settings(host)
     if not should_run("ssh_hardening_enabled"):
         return
-    login = KeyLogin.from_host_data(host.data, host.name)
-    permit_root_login = host.data.ssh_permit_root_login
+    login = KeyLogin.from_host_data(typed.data, host.name)
+    permit_root_login = typed.ssh_permit_root_login
     if login.user == "root" and permit_root_login == "no":
         stop_host(
             f"{where()}: field 'ssh_permit_root_login': roslab logs in as root (ssh_user), and "
@@ -35,7 +37,7 @@ def ssh_hardening():
             "ssh_permit_root_login: prohibit-password; sshd was not changed"
         )
         return
-    password_login = host.data.ssh_password_login
+    password_login = typed.ssh_password_login
     hardened = sshd_key_only(
         name=(f"Ensure sshd allows {'passwords and keys' if password_login else 'keys only'} "
               f"and root login {permit_root_login} ({DROPIN})"),

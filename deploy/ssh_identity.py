@@ -12,6 +12,7 @@ from pyinfra.operations import apt, server, systemd
 from deploy.common import existing_login_home, login_home, login_user, should_run
 from roslab import probe, settings
 from roslab.operations import apt_install_options, managed_block, managed_block_reads
+from roslab.host_settings import host_settings
 
 DEFAULTS = settings.defaults("ssh_identity")
 
@@ -51,16 +52,17 @@ def ssh_identity_packages(data, codename) -> list[str]:
 def ssh_identity():
     """Install and run sshd, authorise the teacher's keys, set hostname and /etc/hosts.
 
-    Reads host.data: ssh_identity_enabled, teacher_ssh_keys (key lines: the roster loader
+    Reads host_settings(host): ssh_identity_enabled, teacher_ssh_keys (key lines: the roster loader
     read the .pub files), manage_hostname, manage_etc_hosts, login_user, roslab_hostname,
     roslab_classroom_hosts, apt_lock_timeout.
     """
+    typed = host_settings(host)
     if not should_run("ssh_identity_enabled"):
         return
     apt.packages(
         name="Ensure openssh-server is installed",
-        packages=ssh_identity_packages(host.data, None),
-        extra_install_args=apt_install_options(host.data.apt_lock_timeout),
+        packages=ssh_identity_packages(typed.data, None),
+        extra_install_args=apt_install_options(typed.apt_lock_timeout),
     )
     unit = sshd_unit()
     systemd.service(
@@ -70,7 +72,7 @@ def ssh_identity():
         enabled=True,
     )
 
-    keys = list(host.data.teacher_ssh_keys)
+    keys = list(typed.teacher_ssh_keys)
     if keys:
         user = login_user()
         if login_home() is None:  # no such user on the host: it is stopped
@@ -81,12 +83,12 @@ def ssh_identity():
             public_keys=keys,
         )
 
-    hostname = host.data.get("roslab_hostname") or host.name
-    if host.data.manage_hostname:
+    hostname = typed.roslab_hostname or host.name
+    if typed.manage_hostname:
         server.hostname(name=f"Ensure the hostname is {hostname}", hostname=hostname)
 
-    if host.data.manage_etc_hosts:
-        lines = etc_hosts_lines(host.data.get("roslab_classroom_hosts"))
+    if typed.manage_etc_hosts:
+        lines = etc_hosts_lines(typed.roslab_classroom_hosts)
         if lines:
             managed_block(
                 name="Ensure /etc/hosts lists every classroom host",
@@ -102,15 +104,16 @@ def ssh_identity():
 @probe.reader
 def ssh_identity_reads() -> list:
     """What ssh_identity's operations read on a host that needs no change."""
+    typed = host_settings(host)
     if not should_run("ssh_identity_enabled"):
         return []
     # Both units: which one sshd_unit() picks is part of this very read.
     reads = [*probe.packages_reads(), *probe.service_reads(SSHD_SOCKET), *probe.service_reads("ssh.service")]
     home = existing_login_home()
-    if host.data.teacher_ssh_keys and home:
+    if typed.teacher_ssh_keys and home:
         reads += probe.authorized_keys_reads(login_user(), home)
-    if host.data.manage_hostname:
+    if typed.manage_hostname:
         reads += probe.hostname_reads()
-    if host.data.manage_etc_hosts:
+    if typed.manage_etc_hosts:
         reads += managed_block_reads("/etc/hosts")
     return reads

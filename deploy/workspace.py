@@ -48,6 +48,7 @@ from roslab.ros.discovery import host_discovery
 from roslab.ros.environment import host_environment
 from roslab.templating import render
 from roslab.ros.workspace import NODES_SERVICE, NODES_UNIT_PATH
+from roslab.host_settings import host_settings
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -59,7 +60,7 @@ DEFAULTS = settings.defaults("workspace")
 
 def nodes_dir() -> str:
     """The controller directory whose packages are copied (absolute: the roster made it so)."""
-    value = host.data.workspace_nodes_dir
+    value = host_settings(host).workspace_nodes_dir
     return str(Path(value) if value else packaged.nodes_dir())  # the checkout's or the installed nodes/
 
 
@@ -115,20 +116,22 @@ def files_digest(contents: dict[str, str]) -> str:
 
 def discovery_files(distro: str) -> dict[str, str]:
     """The discovery files this host's nodes read (none when the discovery deploy is switched off)."""
-    if not host.data.get("discovery_enabled", True):
+    typed = host_settings(host)
+    if not typed.discovery_enabled:
         return {}
-    return host_discovery({**settings.defaults("discovery"), **host.data.dict()}, distro).files
+    return host_discovery(typed.data, distro).files
 
 
 def role_launch() -> str | None:
     """What this host's service runs ("<package> <launch file>"), or None for no service:
     nodes_launch, which the roster loader resolved (the host's own, a deprecated
     nodes_launch_<role>, else its robot profile's launch for its side)."""
-    if not host.data.nodes_service_enabled:
+    if not host_settings(host).nodes_service_enabled:
         return None
-    role = host.data.roslab_role
-    launch = host.data.get("nodes_launch") or host.data.get(f"nodes_launch_{role}")
-    if launch is None and host.data.get("roslab_profile") is None:
+    typed = host_settings(host)
+    role = typed.roslab_role
+    launch = typed.nodes_launch or getattr(typed, f"nodes_launch_{role}", None)
+    if launch is None and typed.roslab_profile is None:
         # A hand-made inventory (no roster, so no resolved profile): the default profile's launch.
         side = builtin_profiles()[DEFAULT_PROFILE].sides.get(role)
         launch = side.launch if side else None
@@ -136,7 +139,8 @@ def role_launch() -> str | None:
 
 
 def profile_name() -> str:
-    return (host.data.get("roslab_profile") or {}).get("name") or "demo"
+    profile = host_settings(host).roslab_profile
+    return profile.name if profile is not None else "demo"
 
 
 @deploy("The demo nodes are built in the login user's workspace and run as the role's service",
@@ -144,7 +148,7 @@ def profile_name() -> str:
 def workspace():
     """Copy nodes/ into the workspace, install its dependencies, build it, run the role's launch.
 
-    Reads host.data: workspace_enabled, workspace_dir, workspace_nodes_dir,
+    Reads host_settings(host): workspace_enabled, workspace_dir, workspace_nodes_dir,
     workspace_colcon_args, workspace_rosdep_install, nodes_service_enabled,
     nodes_launch (nodes_launch_<role> in hand-made inventories), login_user, ssh_user, ros_distro,
     ros_domain_id, ros_automatic_discovery_range, ros_static_peers, ros_middleware,
@@ -153,6 +157,7 @@ def workspace():
     roslab_sources and sources_underlay_dir (the underlay it overlays, deploy/sources.py),
     python_env_enabled and roslab_profile's python venv (first on the nodes' PYTHONPATH).
     """
+    typed = host_settings(host)
     if not should_run("workspace_enabled"):
         return
     user = login_user()
@@ -160,8 +165,8 @@ def workspace():
     if home is None:  # the login user does not exist: login_home() stopped this host
         return
     distro = host_distro()
-    role = host.data.roslab_role
-    workspace_dir = ws_ops.workspace_path(home, host.data.workspace_dir)
+    role = typed.roslab_role
+    workspace_dir = ws_ops.workspace_path(home, typed.workspace_dir)
     src_dir = posixpath.join(workspace_dir, "src")
     source_dir = nodes_dir()
     try:
@@ -175,7 +180,7 @@ def workspace():
     try:  # before any change: a value the unit cannot carry stops this host only
         unit_file = unit_text(
             role=role, user=user, home=home, workspace_dir=workspace_dir, distro=distro,
-            launch=launch, environment=host_environment(host.data, distro),
+            launch=launch, environment=host_environment(typed.data, distro),
             discovery_files=discovery_files(distro), underlay_setup=underlay,
             venv_dir=filled_venv(home),
         ) if launch else None
@@ -199,7 +204,7 @@ def workspace():
         src_dir=src_dir,
         user=user,
     )
-    if host.data.workspace_rosdep_install:
+    if typed.workspace_rosdep_install:
         ws_ops.dependencies(
             name="Ensure the packages' system dependencies are installed (rosdep)",
             workspace_dir=workspace_dir,
@@ -217,7 +222,7 @@ def workspace():
         # Only roslab's packages: a student's broken package in src/ must not fail the
         # classroom's deploy. (`--paths` is colcon-core's; `--packages-up-to` needs an
         # extension that not every colcon install has.)
-        colcon_args=[*host.data.workspace_colcon_args, "--paths", *managed],
+        colcon_args=[*typed.workspace_colcon_args, "--paths", *managed],
         # a changed underlay (a new pin) rebuilds the overlay too
         sources_hash=ws_ops.tree_hash(packages) + (f"\n{underlay_identity()}" if underlay else ""),
         python_paths=managed,
@@ -227,7 +232,7 @@ def workspace():
 
     if unit_file is None:
         if host.get_fact(File, path=NODES_UNIT_PATH):
-            why = "nodes_service_enabled is off" if not host.data.nodes_service_enabled else \
+            why = "nodes_service_enabled is off" if not typed.nodes_service_enabled else \
                 f"robot profile {profile_name()!r} runs nothing on a {role}"
             systemd.service(
                 name=f"Ensure {NODES_SERVICE} is stopped and disabled ({why})",
@@ -279,7 +284,7 @@ def workspace_reads() -> list:
     if home is None:
         return []
     user = login_user()
-    workspace_dir = ws_ops.workspace_path(home, host.data.workspace_dir)
+    workspace_dir = ws_ops.workspace_path(home, host_settings(host).workspace_dir)
     src_dir = posixpath.join(workspace_dir, "src")
     try:
         packages = ws_ops.local_packages(nodes_dir())

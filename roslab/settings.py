@@ -3,10 +3,11 @@
 Each `Setting` has its default, its type (with the element type of a list), the
 format check its value must pass, and the doc line the README's table shows. The
 roster loader checks every value set at every level against it before any host is
-touched, and merges the defaults into each host's data once; a deploy reads plain
-`host.data` and its `data_defaults` are `defaults(concern)`.
+touched, and merges the defaults into each host's data once; a deploy reads them typed,
+through `roslab.host_settings.host_settings(host)` (the dataclass `roslab/host_fields.py`
+generated from here), and its `data_defaults` are `defaults(concern)`.
 
-    python -m roslab.settings_doc --write   # regenerate the README's table from here
+    python -m roslab.settings_doc --write   # regenerate the README's table and host_fields.py
 """
 
 from __future__ import annotations
@@ -527,7 +528,61 @@ if len(SETTINGS) != len(SCHEMA):  # a key declared twice would silently shadow t
 
 # The concerns whose settings are deploy settings (not the roster's own keys).
 ROSTER_CONCERNS = ("roster", "connection")
+# The settings a host's data holds: the roster's own keys (name, role, address...) are not host
+# data, the loader turns them into roslab_role, ssh_hostname and the like (HOST_KEYS).
+HOST_SETTINGS = [s for s in SCHEMA if s.concern != "roster"]
 DEPLOY_CONCERNS = tuple(dict.fromkeys(s.concern for s in SCHEMA if s.concern not in ROSTER_CONCERNS))
+
+
+@dataclass(frozen=True)
+class HostKey:
+    """A key of a host's data that no roster sets and the deploys read: the roster loader
+    derives it (the host's identity, the lists of hosts, the resolved profile). It is a field
+    of roslab.host_settings.HostSettings beside the settings; None when a hand-made inventory
+    lacks it."""
+
+    key: str
+    annotation: str  # the field's type, as roslab/host_fields.py writes it
+    kind: type  # what a value must be (checked when a host's settings are built)
+    doc: str
+
+
+HOST_KEYS: list[HostKey] = [
+    HostKey("roslab_team", "str", str, "The host's team (also a pyinfra group, `-` becomes `_`)."),
+    HostKey("roslab_role", "str", str, "main or robot (also a pyinfra group)."),
+    HostKey("roslab_hostname", "str", str, "The host's name in the roster (= pyinfra's host name)."),
+    HostKey("roslab_classroom_hosts", "list[dict[str, str | None]]", list,
+            "Every host of the roster, {name, address} (for /etc/hosts)."),
+    HostKey("roslab_team_hosts", "list[dict[str, str | None]]", list,
+            "The hosts of the host's own team, {name, address, role}."),
+    HostKey("roslab_ubuntu_release", "str", str, "The Ubuntu release the roster expects, e.g. 24.04."),
+    HostKey("roslab_expected_distro", "str", str,
+            "The ROS distro the roster implies (ros_distro, else the release's default)."),
+    HostKey("roslab_roster_path", "str", str, "The roster file (moved addresses are recorded beside it)."),
+    HostKey("roslab_sources", "list[dict[str, Any]]", list,
+            "The repositories of the host's .repos files (its profile side's and workspace_sources)."),
+    HostKey("roslab_verify_source", "str", str, "What publishes the profile's verify topic, for verify to name."),
+    HostKey("roslab_profile", "ResolvedProfile", dict,
+            "The host's robot profile resolved for its side, distro and settings (roslab.profiles.resolve); "
+            "host data carries it as a plain mapping, this field as the dataclass."),
+    HostKey("ssh_hostname", "str", str, "Where pyinfra connects to the host (its roster address or the "
+            "last confirmed one)."),
+]
+
+
+def annotation(setting: Setting) -> str:
+    """A setting's type as Python writes it: `str | None`, `list[str]`, `dict[str, str]`.
+
+    A roster or connection key may be absent from a host's data (pyinfra's own default), so
+    it may be None whatever its declaration says."""
+    names = {str: "str", int: "int", bool: "bool"}
+    if setting.kind is list:
+        text = f"list[{names[setting.item]}]"
+    elif setting.kind is dict:
+        text = "dict[str, str]"  # every mapping setting maps names to text (their checks say so)
+    else:
+        text = names[setting.kind]
+    return text + (" | None" if setting.nullable or setting.concern in ROSTER_CONCERNS else "")
 
 
 def defaults(concern: str | None = None) -> dict:

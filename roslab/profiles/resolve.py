@@ -1,4 +1,5 @@
-"""A host's profile, resolved for its side, distro and settings into plain host data.
+"""A host's profile, resolved for its side, distro and settings into plain host data
+(`ResolvedProfile`'s keys; a deploy reads it as that dataclass).
 
 `resolve()` returns what the deploys read as `host.data.roslab_profile`: Debian package
 names for the distro, the environment with the settings filled in, the udev rules file's
@@ -9,8 +10,8 @@ filled into a file or a command is one of the values the profile allows.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import TypedDict
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
 
 from roslab.ros.distro import DISTRO_RELEASES, PLATFORMS
 from roslab.profiles import udev
@@ -27,12 +28,23 @@ from roslab.quoting import shell_word
 UDEV_RULES_PATH = "/etc/udev/rules.d/60-roslab-profile.rules"
 
 
-class PythonEnv(TypedDict):
+def _fields_of(cls, data: Mapping) -> dict:
+    """Each field of dataclass `cls` from the mapping `data` (KeyError: one is missing)."""
+    return {item.name: data[item.name] for item in fields(cls)}
+
+
+@dataclass(frozen=True)
+class PythonEnv:
     venv: str | None  # relative to the login user's home; None: no venv
     requirements: list[str]  # "name==version"
 
+    @classmethod
+    def from_data(cls, data: Mapping) -> PythonEnv:
+        return cls(**_fields_of(cls, data))
 
-class ResolvedService(TypedDict):
+
+@dataclass(frozen=True)
+class ResolvedService:
     name: str  # the unit is <name>.service
     description: str
     command: str  # settings filled in, each a shell word
@@ -40,12 +52,19 @@ class ResolvedService(TypedDict):
     enabled: bool  # its enabled_if settings hold here
     disabled_because: str  # why not, in words ("" when enabled)
 
+    @classmethod
+    def from_data(cls, data: Mapping) -> ResolvedService:
+        return cls(**_fields_of(cls, data))
 
-class ResolvedProfile(TypedDict):
-    """What one host gets from its robot profile (host.data.roslab_profile), settings filled in.
 
-    A TypedDict, not a dataclass: it travels in pyinfra's host data (its JSON output, `--data`
-    and a hand-made inventory give plain mappings), and every key is declared here once, typed."""
+@dataclass(frozen=True)
+class ResolvedProfile:
+    """What one host gets from its robot profile, settings filled in.
+
+    `resolve_host` makes it as a plain mapping with these keys: that is what travels in pyinfra's
+    host data (`host.data.roslab_profile`: its JSON output, `--data` and a hand-made inventory give
+    plain mappings), and what the roster, status and verify read. A deploy reads this dataclass,
+    `roslab.host_settings.host_settings(host).roslab_profile`, made by `from_data`."""
 
     name: str
     distro: str
@@ -72,6 +91,15 @@ class ResolvedProfile(TypedDict):
     boot_config: dict[str, list[str]]  # config_txt lines, cmdline_remove words
     services: list[ResolvedService]
     underlay_build_memory_mb: int | None  # a host with less memory never builds the underlay
+
+    @classmethod
+    def from_data(cls, data: Mapping) -> ResolvedProfile:
+        """The dataclass of a resolved profile's mapping (host data's roslab_profile).
+        KeyError when a key is missing, TypeError when a part is not a mapping."""
+        values = _fields_of(cls, data)
+        values["python"] = PythonEnv.from_data(values["python"])
+        values["services"] = [ResolvedService.from_data(service) for service in values["services"]]
+        return cls(**values)
 
 
 @dataclass(frozen=True)
@@ -228,7 +256,7 @@ def udev_file(profile: Profile, rules: list[dict], values: dict) -> tuple[str, s
 
 def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
                  board: str | None = None, host: str | None = None
-                 ) -> tuple[ResolvedProfile | None, list[ResolveError]]:
+                 ) -> tuple[dict | None, list[ResolveError]]:
     """What a host of this distro, role and board gets from `profile` with the roster's setting
     values `given` (host.data.roslab_profile), or None and the problems. `host`: the host's
     name, for the checklist's ${host} (else the word HOST)."""
@@ -279,7 +307,7 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
     }, []
 
 
-def python_data(profile: Profile, side: Side) -> PythonEnv:
+def python_data(profile: Profile, side: Side) -> dict:
     """The side's Python requirements and their venv (deploy/python_env.py).
 
     {"venv": directory relative to the login user's home, "requirements": ["name==version", ...]};
@@ -292,7 +320,7 @@ def python_data(profile: Profile, side: Side) -> PythonEnv:
     return {"venv": venv, "requirements": requirements}
 
 
-def resolved_service(service: dict, values: dict, distro: str, profile_name: str) -> ResolvedService:
+def resolved_service(service: dict, values: dict, distro: str, profile_name: str) -> dict:
     """A profile's service for one host: its command with ${distro} and the settings filled in
     (each value one shell word), its environment filled in, and whether it is enabled here
     (its `enabled_if` settings have the values it names) and, if not, why."""

@@ -62,3 +62,16 @@ def test_a_dpkg_interrupted_on_an_earlier_run_is_healed_and_the_run_converges(tm
     names = [op.name for op in result.operations]
     assert "install dpkg was interrupted in is finished" in names[0]
     assert any("Ensure ROS 2 jazzy is installed" in name for name in result.changing())
+
+
+def test_a_wrong_typed_data_value_stops_that_host_in_one_line_naming_the_key(tmp_path):
+    """A hand-made inventory or --data bypasses the roster's checks: the typed settings refuse
+    the value for this host only, before anything is read or changed on it."""
+    host = with_stand_in_deb(FakeUbuntu())
+    result = plan(run_deploy_py, host.facts(), host_data(tmp_path, apt_lock_timeout="600"),
+                  hosts_after=(("pi2", host_data(tmp_path)),))
+    assert result.failed and result.operations == []
+    (error,) = result.errors
+    assert "host pi: apt_lock_timeout must be an integer, not '600' (remove the quotes)" in error
+    assert "nothing was changed on it" in error and "\n" not in error
+    assert result.facts_asked == []  # refused before the host is read

@@ -705,8 +705,11 @@ def test_a_new_robot_is_one_profile_file_and_nothing_else(tmp_path, rosdistro_ur
 
 
 def test_every_built_in_side_resolves_to_exactly_the_typed_keys():
-    """host.data.roslab_profile holds the keys ResolvedProfile declares, no more, no fewer."""
-    from roslab.profiles.resolve import ResolvedProfile, ResolvedService
+    """host.data.roslab_profile holds the fields ResolvedProfile declares, no more, no fewer, and
+    the dataclass a deploy reads is made from it with every value kept."""
+    from dataclasses import asdict, fields
+
+    from roslab.profiles.resolve import PythonEnv, ResolvedProfile, ResolvedService
 
     for profile in builtin_profiles().values():
         given = {name: setting.allowed[0] if setting.allowed else setting.default or "ABC123"
@@ -714,6 +717,10 @@ def test_every_built_in_side_resolves_to_exactly_the_typed_keys():
         for role in profile.sides:
             resolved, problems = resolve_host(profile, given, distro=profile.distros[0], role=role)
             assert problems == [], (profile.name, role, problems)
-            assert set(resolved) == set(ResolvedProfile.__annotations__), (profile.name, role)
+            assert set(resolved) == {item.name for item in fields(ResolvedProfile)}, (profile.name, role)
+            assert set(resolved["python"]) == {item.name for item in fields(PythonEnv)}
             for service in resolved["services"]:
-                assert set(service) == set(ResolvedService.__annotations__)
+                assert set(service) == {item.name for item in fields(ResolvedService)}
+            typed = ResolvedProfile.from_data(resolved)
+            assert asdict(typed) == resolved, (profile.name, role)
+            assert all(isinstance(service, ResolvedService) for service in typed.services)

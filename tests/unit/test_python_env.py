@@ -270,9 +270,14 @@ def host_facts(venv_state: dict, files: dict, installed=("python3-venv", "python
 
 
 def host_data(tmp_path, requirements=("ina260==0.0.3", "smbus==1.1.post2")) -> dict:
+    from roslab.profiles.library import builtin_profiles
+    from roslab.profiles.resolve import resolve_host
+
+    # a whole resolved profile (host_settings reads every key), with these requirements
+    profile, _ = resolve_host(builtin_profiles()["demo"], {}, distro="jazzy", role="robot")
     return {**settings.defaults("python_env"), "login_user": "ubuntu", "apt_lock_timeout": 600,
             "python_wheelhouse_dir": str(tmp_path / "wheels"), "offline": False,
-            "roslab_profile": {"python": {"venv": "osr_venv", "requirements": list(requirements)}}}
+            "roslab_profile": {**profile, "python": {"venv": "osr_venv", "requirements": list(requirements)}}}
 
 
 def test_first_run_pushes_installs_as_the_login_user_and_second_run_changes_nothing(tmp_path, monkeypatch):

@@ -15,6 +15,7 @@ from pyinfra.facts.systemd import SystemdEnabled, SystemdStatus
 from test_profiles import _in_tmp, errors_of, rosdistro_url, write  # noqa: F401  (fixtures)
 
 from deploy.profile_services import profile_services_in_place, unit_text
+from roslab.profiles.resolve import ResolvedService
 from deploy.robot_profile import robot_profile
 from roslab.profiles.host import (
     CMDLINE_TXT,
@@ -376,7 +377,7 @@ def service_facts(unit=None, running=False, enabled=False, foreign=None, content
 
 def test_the_agent_unit_runs_its_transport_with_fast_dds_as_the_login_user():
     profile = resolved("esp32_microros", esp32_usb_serial="A1")
-    text = unit_text(service=profile["services"][0], profile="esp32_microros", user="ubuntu",
+    text = unit_text(service=ResolvedService.from_data(profile["services"][0]), profile="esp32_microros", user="ubuntu",
                      home="/home/ubuntu", workspace_dir="/home/ubuntu/ros2_ws", distro="jazzy",
                      environment={"ROS_DOMAIN_ID": "7", "RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp"})
     assert 'Environment="RMW_IMPLEMENTATION=rmw_fastrtps_cpp"' in text  # the service's own wins

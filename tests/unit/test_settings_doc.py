@@ -41,3 +41,27 @@ def test_readme_table_lists_every_setting_with_type_and_allowed_values():
     for s in settings.SCHEMA:
         row = next(line for line in table.splitlines() if line.startswith(f"| `{s.key}` |"))
         assert s.type_text() in row
+
+
+def test_generated_host_settings_module_is_up_to_date():
+    """roslab/host_fields.py (the typed HostSettings the deploys read) is generated from the schema."""
+    assert settings_doc.HOST_FIELDS.read_text() == settings_doc.host_fields_module(), (
+        "roslab/host_fields.py is stale: run `python -m roslab.settings_doc --write`"
+    )
+
+
+def test_host_settings_has_a_typed_field_per_host_setting_and_host_key():
+    from dataclasses import fields
+
+    from roslab.host_fields import HostSettings
+
+    declared = {item.name: item.type for item in fields(HostSettings)}
+    for s in settings.HOST_SETTINGS:
+        assert declared.pop(s.key) == settings.annotation(s), s.key
+    for key in settings.HOST_KEYS:
+        assert declared.pop(key.key) == f"{key.annotation} | None", key.key
+    assert declared == {"data": "dict[str, Any]"}
+    assert settings.annotation(settings.SETTINGS["network_address"]) == "str | None"
+    assert settings.annotation(settings.SETTINGS["apt_extra_suites"]) == "list[str]"
+    assert settings.annotation(settings.SETTINGS["apt_cache_upstream_ports"]) == "list[int]"
+    assert settings.annotation(settings.SETTINGS["ssh_port"]) == "int | None"  # pyinfra's default when absent

@@ -95,7 +95,11 @@ def test_another_architecture_is_another_group_with_its_own_build(tmp_path, monk
 
 def test_a_host_under_the_profiles_memory_never_builds_it_receives(tmp_path):
     data, facts = class_of(tmp_path, memory_mb=906)
-    profile = {**(data.get("roslab_profile") or {}), "name": "esp32_microros", "underlay_build_memory_mb": 1536}
+    from roslab.profiles.library import builtin_profiles
+    from roslab.profiles.resolve import resolve_host
+
+    base, _ = resolve_host(builtin_profiles()["demo"], {}, distro="jazzy", role="robot")  # every key host_settings reads
+    profile = {**(data.get("roslab_profile") or base), "name": "esp32_microros", "underlay_build_memory_mb": 1536}
     data = {**data, "roslab_profile": profile}
     # the same (fake) facts serve every host: all of them are small, so no host may build
     result = plan(run_sources_deploy, facts, data, host_name="team1-robot", hosts_after=(("team2-robot", data),))

@@ -1,0 +1,100 @@
+"""A host's settings as the deploys read them: typed (`HostSettings`, generated from the schema
+into roslab/host_fields.py) and built once per host per run.
+
+    from roslab.host_settings import host_settings
+    settings = host_settings(host)
+    settings.apt_lock_timeout       # int
+    settings.roslab_profile         # ResolvedProfile | None (a frozen dataclass)
+
+The roster loader has checked every value (type and format) and merged every default into
+the host's data; a hand-made inventory or pyinfra's `--data` may give anything, so the types
+are checked here once, and a wrong one is one error naming the host and the key. A deploy
+setting a host's data lacks gets its schema default: what the deploy's `data_defaults`
+(`settings.defaults(concern)`) would have given it, so the result does not depend on which
+deploy asks first.
+"""
+
+from __future__ import annotations
+
+import weakref
+from collections.abc import Mapping
+from typing import Any
+
+from pyinfra.context import ContextObject
+
+from roslab import settings
+from roslab.host_fields import HostSettings
+from roslab.profiles.resolve import ResolvedProfile
+
+__all__ = ["HostSettings", "HostSettingsError", "host_settings", "peer_settings", "settings_of"]
+
+
+class HostSettingsError(ValueError):
+    """A host's data holds a value of the wrong type (a hand-made inventory, `--data`)."""
+
+
+# One HostSettings per pyinfra Host: a no-op run is measured per host (issue 32), so the data
+# layers are merged once, not once per deploy or per key. Keyed weakly: a run's hosts go with it.
+_BUILT: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def host_settings(host) -> HostSettings:
+    """The typed settings of `host` (pyinfra's Host, or its `host` context proxy), built on the
+    first call of the run from `host.data`. Raises HostSettingsError on a wrong-typed value."""
+    real = host._get_module() if isinstance(host, ContextObject) else host
+    built = _BUILT.get(real)
+    if built is None:
+        built = _BUILT[real] = settings_of(real.name, real.data.dict())
+    return built
+
+
+def peer_settings(other) -> HostSettings | None:
+    """Another host's settings, for a deploy that looks at the run's other hosts (the apt cache,
+    the underlay's builder); None when its data is wrong: that host stops itself on it
+    (deploy.common.supported_host), it never stops this one."""
+    try:
+        return host_settings(other)
+    except HostSettingsError:
+        return None
+
+
+def _problem(value, kind: type, item: type | None = None) -> str | None:
+    problem = settings.type_problem(value, kind)
+    if problem is None and kind is list and item is not None:
+        problem = next((f"item {index + 1}: {inner}" for index, element in enumerate(value)
+                        if (inner := settings.type_problem(element, item))), None)
+    elif problem is None and kind is dict and item is not None:
+        problem = next((f"{key!r}: {inner}" for key, element in value.items()
+                        if (inner := settings.type_problem(key, str) or settings.type_problem(element, item))),
+                       None)
+    return problem
+
+
+def settings_of(name: str, data: Mapping[str, Any]) -> HostSettings:
+    """A host's typed settings from its data (a pyinfra host's `data.dict()` or a roster host's
+    dict): the schema's defaults under it, every value's type checked."""
+    merged = {**settings.defaults(), **data}
+    values: dict[str, Any] = {}
+    problems: list[str] = []
+    for setting in settings.HOST_SETTINGS:
+        value = values[setting.key] = merged.get(setting.key)
+        if value is None and (setting.nullable or setting.concern in settings.ROSTER_CONCERNS):
+            continue
+        item = str if setting.kind is dict else setting.item  # every mapping setting maps names to text
+        problem = "must not be null" if value is None else _problem(value, setting.kind, item)
+        if problem:
+            problems.append(f"{setting.key} {problem}")
+    for key in settings.HOST_KEYS:
+        value = values[key.key] = merged.get(key.key)
+        problem = None if value is None else settings.type_problem(value, key.kind)
+        if problem:
+            problems.append(f"{key.key} {problem}")
+    profile = values["roslab_profile"]
+    if isinstance(profile, Mapping):
+        try:
+            values["roslab_profile"] = ResolvedProfile.from_data(profile)
+        except (KeyError, TypeError, ValueError, AttributeError) as error:
+            problems.append(f"roslab_profile is not a resolved profile ({type(error).__name__}: {error})")
+    if problems:
+        raise HostSettingsError(f"host {name}: {'; '.join(problems)} (in its inventory data or pyinfra's --data)")
+    return HostSettings(**values, data=merged)
