@@ -3,7 +3,7 @@
 pyinfra runs deploy.py once per host, and for every operation, @deploy and fact on every
 host it does work that costs far more CPU than its result needs: on a converged class's
 no-op re-run that was most of the controller's CPU, and it grew with every host (issue 32).
-Three of pyinfra 3.10's functions are replaced by exact equivalents:
+Four of pyinfra 3.10's functions are replaced by exact equivalents:
 
 1. `pyinfra.api.util.get_operation_order_from_stack`: in CLI mode pyinfra orders operations
    by the line numbers of the call stack from deploy.py inwards, leaving out pyinfra's own
@@ -22,7 +22,9 @@ Three of pyinfra 3.10's functions are replaced by exact equivalents:
    `AllArguments` TypedDict, evaluated again for every operation, @deploy and fact on every
    host. `all_global_arguments` below evaluates it once and hands out a new list of the same
    pairs each time.
-3. `pyinfra.api.arguments.pop_global_arguments`, called for every operation, @deploy and
+3. `pyinfra.api.operation.signature` (inspect's), read for every operation on every host only to
+   bind its arguments: `operation_signature` below reads each function's once.
+4. `pyinfra.api.arguments.pop_global_arguments`, called for every operation, @deploy and
    fact on every host: for each of its ~30 global arguments (`_sudo`, `_serial`, ...) it
    asks `host.data`, and each ask calls all five data layers again (override, host, the
    host's groups merged anew, the inventory's, the @deploy's defaults) and searches them.
@@ -195,6 +197,14 @@ def pop_global_arguments(state, host, kwargs):
 
 
 @cache
+def operation_signature(function) -> inspect.Signature:
+    """`inspect.signature` of an operation's function, read once per run. pyinfra 3.10 reads it
+    again on every call of every operation on every host (`signature(func).bind(...)`, to refuse
+    arguments the operation does not take before it runs); a Signature never changes."""
+    return inspect.signature(function)
+
+
+@cache
 def installed_pyinfra() -> str | None:
     try:
         return version("pyinfra")
@@ -213,6 +223,7 @@ def install() -> bool:
             and os.environ.get(SWITCH, "").strip() != USE_PYINFRA)
     pyinfra_operation.get_operation_order_from_stack = (
         get_operation_order_from_stack if ours else pyinfra_get_operation_order_from_stack)
+    pyinfra_operation.signature = operation_signature if ours else inspect.signature
     for module in (pyinfra_arguments, pyinfra_facts):
         module.all_global_arguments = all_global_arguments if ours else pyinfra_all_global_arguments
     for name in POP_GLOBAL_ARGUMENTS_CALLERS:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+import inspect
 import runpy
 import tomllib
 from pathlib import Path
@@ -66,6 +67,7 @@ outer()
 def restore_pyinfras_functions():
     pyinfra_planning.pyinfra_operation.get_operation_order_from_stack = (
         pyinfra_planning.pyinfra_get_operation_order_from_stack)
+    pyinfra_planning.pyinfra_operation.signature = inspect.signature
     pyinfra_arguments.all_global_arguments = pyinfra_planning.pyinfra_all_global_arguments
     pyinfra_facts.all_global_arguments = pyinfra_planning.pyinfra_all_global_arguments
     for name in pyinfra_planning.POP_GLOBAL_ARGUMENTS_CALLERS:
@@ -173,14 +175,16 @@ def test_a_converged_host_plans_the_same_operations_with_either_function(tmp_pat
 
 def installed_functions():
     return (pyinfra_planning.pyinfra_operation.get_operation_order_from_stack,
+            pyinfra_planning.pyinfra_operation.signature,
             pyinfra_arguments.all_global_arguments, pyinfra_facts.all_global_arguments,
             *(importlib.import_module(name).pop_global_arguments
               for name in pyinfra_planning.POP_GLOBAL_ARGUMENTS_CALLERS))
 
 
-OURS = (pyinfra_planning.get_operation_order_from_stack, pyinfra_planning.all_global_arguments,
+OURS = (pyinfra_planning.get_operation_order_from_stack, pyinfra_planning.operation_signature,
+        pyinfra_planning.all_global_arguments,
         pyinfra_planning.all_global_arguments, *[pyinfra_planning.pop_global_arguments] * 4)
-PYINFRAS = (pyinfra_util.get_operation_order_from_stack, pyinfra_arguments.all_global_arguments,
+PYINFRAS = (pyinfra_util.get_operation_order_from_stack, inspect.signature, pyinfra_arguments.all_global_arguments,
             pyinfra_facts.all_global_arguments, *[pyinfra_arguments.pop_global_arguments] * 4)
 
 
@@ -337,3 +341,13 @@ def test_the_data_lookup_finds_what_host_data_finds_in_every_kind_of_layer():
     served = lookup("from_callable", missing)
     served.append(2)  # a shallow copy, as HostData gives
     assert lookup("from_callable", missing) == [1]
+
+
+def test_an_operations_signature_is_inspects_read_once():
+    from pyinfra.operations import files
+
+    function = files.put._inner
+    assert pyinfra_planning.operation_signature(function) == inspect.signature(function)
+    assert pyinfra_planning.operation_signature(function) is pyinfra_planning.operation_signature(function)
+    with pytest.raises(TypeError):  # an argument the operation does not take is still refused
+        pyinfra_planning.operation_signature(function).bind(src="a", dest="b", no_such_argument=1)
