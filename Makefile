@@ -25,6 +25,10 @@ $(VENV)/.installed: pyproject.toml
 setup: $(VENV)/.installed
 	@echo "make setup: checking this machine's tools for the sandbox (scripts/install-host-tools)"
 	scripts/install-host-tools
+	@# pyinfra's CLI writes no .pyc files (sys.dont_write_bytecode): without these, every run
+	@# would compile roslab's modules again, about 0.1 CPU-s per run (bench/noop_rerun.py).
+	@echo "make setup: byte-compiling roslab, deploy and inventories (skips what is up to date)"
+	$(BIN)/python -m compileall -q roslab deploy inventories > /dev/null
 
 # Boot the sandbox classroom (2 teams, emulated Ubuntu 24.04 and 22.04) and provision it.
 demo: setup

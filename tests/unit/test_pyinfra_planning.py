@@ -351,3 +351,19 @@ def test_an_operations_signature_is_inspects_read_once():
     assert pyinfra_planning.operation_signature(function) is pyinfra_planning.operation_signature(function)
     with pytest.raises(TypeError):  # an argument the operation does not take is still refused
         pyinfra_planning.operation_signature(function).bind(src="a", dest="b", no_such_argument=1)
+
+
+def test_the_data_lookup_of_plain_dict_layers_finds_the_first_layer_holding_a_global_argument():
+    from types import SimpleNamespace
+
+    from pyinfra.api.host import HostData
+
+    data = HostData(None, {"_sudo_user": None}, lambda: {"_sudo_user": "student", "_env": {"A": "1"}},
+                    {"_env": {"B": "2"}, "_retries": 2, "ssh_user": "ubuntu"})
+    lookup = pyinfra_planning.host_data_lookup(SimpleNamespace(data=data))
+    missing = object()
+    for key in ("_sudo_user", "_env", "_retries", "_sudo", "ssh_user", "nothing"):
+        assert lookup(key, missing) == getattr(data, key, missing), key
+    assert lookup("_sudo_user", missing) is None and lookup("_sudo", missing) is missing
+    lookup("_env", missing)["C"] = "3"  # a shallow copy, as HostData gives
+    assert lookup("_env", missing) == {"A": "1"}
