@@ -200,12 +200,12 @@ def heard_with_peer_files(sandbox, variable: str, path: str, main_text: str, rob
     value = f"file://{path}" if variable == "CYCLONEDDS_URI" else path
     env = {**variables, variable: value}
     publisher = threading.Thread(target=clean_ros, args=(
-        sandbox, "team2-robot", env, "timeout 25 ros2 topic pub -r 4 /roslab_probe std_msgs/msg/String "
+        sandbox, "team2-robot", env, "timeout -k 5 25 ros2 topic pub -r 4 /roslab_probe std_msgs/msg/String "
                                      "'{data: through the peer list}'"), kwargs={"timeout": 60})
     publisher.start()
     try:
         heard = clean_ros(sandbox, "team2-main", env,
-                          "timeout 20 ros2 topic echo --once /roslab_probe std_msgs/msg/String")
+                          "timeout -k 5 20 ros2 topic echo --once /roslab_probe std_msgs/msg/String")
     finally:
         publisher.join()
     return heard.stdout
