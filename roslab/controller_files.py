@@ -11,8 +11,8 @@ from __future__ import annotations
 import errno
 import hashlib
 import os
-import time
 import stat
+import time
 from pathlib import Path
 
 # A secrets file or a key file holds a few lines.
@@ -97,6 +97,7 @@ def file_sha256(path: Path | str) -> str:
         digest = hashlib.sha256()
         for block in iter(lambda: stream.read(1 << 20), b""):
             digest.update(block)
+    hexdigest = digest.hexdigest()
     if status.st_ctime_ns < reading_since - RECENT_CHANGE_NS:
-        _DIGESTS[key] = digest.hexdigest()
-    return digest.hexdigest()
+        _DIGESTS[key] = hexdigest
+    return hexdigest
