@@ -58,6 +58,15 @@ def profile_name(data) -> str:
     return (data.get("roslab_profile") or {}).get("name") or "demo"
 
 
+def services_not_started(data) -> list[tuple[str, str]]:
+    """(service, why) of the robot profile's services that the roster's settings leave off here
+    (the rover's osr_startup until osr_calibrated: true): the reason a robot runs nothing yet."""
+    if not _on(data, "profile_services_enabled"):
+        return []
+    return [(service["name"], service.get("disabled_because") or "not enabled by the roster")
+            for service in (data.get("roslab_profile") or {}).get("services") or () if not service.get("enabled")]
+
+
 def host_services(data) -> list[HostService]:
     """Every service the host runs by its roster, the team's discovery service first (when it is
     down, nothing else can be heard), then the profile's, then the nodes."""

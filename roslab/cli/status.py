@@ -45,7 +45,7 @@ from roslab.roster import Classroom, RosterError, display_path, group_names, inv
 from roslab.profiles.host import RebootRecord, parse_reboot_record, reboot_pending
 from roslab.reporting.runs import RunRecord, now_utc, read_runs, runs_path
 from roslab.cli import launch_journal
-from roslab.cli.host_services import host_services, profile_name, runs_nodes
+from roslab.cli.host_services import host_services, profile_name, runs_nodes, services_not_started
 from roslab.cli.verify import (
     CHATTER_TYPE, SERVICE_RUNNING, TeamResult, check_bound, hear, parse_check_output, service_state,
     stopped_service_line,
@@ -232,6 +232,8 @@ class HostStatus:
     runs_nodes: bool = True
     other_services: list = field(default_factory=list)  # HostService, beside roslab-nodes
     listens: bool = True  # a main whose profile names a topic to hear (not sim)
+    # (service, why) of its profile's services the roster leaves off (an uncalibrated rover)
+    not_started: list = field(default_factory=list)
     listen_timeout: int = LISTEN_TIMEOUT  # --listen: seconds its check waits for a message
     # The shell word naming its underlay's origin record (origin_file); "" when it builds none.
     underlay: str = ""
@@ -530,6 +532,7 @@ def host_statuses(classroom: Classroom, groups: dict, limit: list[str] | None = 
             profile=profile_name(host.data), runs_nodes=runs_nodes(host.data),
             other_services=[service for service in host_services(host.data) if service.kind != "nodes"],
             listens=bool(host.data.get("nodes_verify_topic")),
+            not_started=services_not_started(host.data),
             listen_timeout=int(host.data.get("nodes_verify_timeout") or LISTEN_TIMEOUT),
             underlay=origin_file(host.data),
         ))
@@ -669,7 +672,7 @@ def box_level(host: HostStatus) -> str:
     levels = [service_level(state) for state in states]
     if "bad" in levels:
         return "bad"
-    return "ok" if host.runs_what_it_should else "warn"
+    return "ok" if host.runs_what_it_should and not host.not_started else "warn"
 
 
 def host_box(host: HostStatus, x: int, y: int) -> dict:
@@ -684,12 +687,15 @@ def host_box(host: HostStatus, x: int, y: int) -> dict:
         {"text": clip(host.name), "class": "name"},
         {"text": clip(f"{host.role} \u00b7 {host.address}"), "class": "detail"},
         {"text": clip(facts), "class": "detail"},
-        {"text": clip(f"nodes: {host.nodes}"), "class": "detail"},
+        # "osr_calibrated is false (it runs when ...)": the setting that starts it fits the box
+        {"text": clip(f"nodes: {host.nodes}" if not host.not_started
+                      else f"not started: {host.not_started[0][1].split(' is ')[0]}"), "class": "detail"},
     ]
     return {
         "x": x, "y": y, "width": BOX_WIDTH, "height": BOX_HEIGHT, "level": box_level(host),
         "title": f"{host.name} ({host.role}, team {host.team})"
-                 + (f": reboot needed ({host.reboot_needed})" if host.reboot_needed else ""),
+                 + (f": reboot needed ({host.reboot_needed})" if host.reboot_needed else "")
+                 + "".join(f"; {service} not started: {why}" for service, why in host.not_started),
         "host": host.name,
         "lines": [{**line, "x": x + 12, "y": y + 22 + index * 19} for index, line in enumerate(lines)],
     }
@@ -755,6 +761,7 @@ def team_result(team: str, hosts: list[HostStatus], main: HostStatus | None, rob
                         without_service={host.name for host in hosts if not host.runs_nodes},
                         other_services=[(host.name, service, state) for host in hosts
                                         for service, state in host.other_states()])
+    result.not_started = [(host.name, service, why) for host in hosts for service, why in host.not_started]
     if main is not None:
         result.heard = main.heard
         result.listens, result.profile = main.listens, main.profile
@@ -791,7 +798,7 @@ def heard_lines(main: HostStatus | None, result: TeamResult, listen: bool, nothi
     """The lines under the main host's box: the topics it hears, or why none are shown."""
     heard = (main.heard if main is not None else None) or parse_check_output([])
     if nothing_to_hear:
-        return [f"topics heard: nothing to hear (robot profile {main.profile})"]
+        return [f"topics heard: not checked ({main.profile}: no topic)"]
     if not listen:
         return ["topics heard: not checked (roslab status --listen)"]
     if main is None or main.heard is None:
@@ -811,7 +818,8 @@ def team_verdict(hosts: list[HostStatus], result: TeamResult, listen: bool, list
     """The team's one-line verdict and its level; hosts whose last run failed come first."""
     if listen or nothing_to_hear:
         verdict = result.verdict()
-        verdict_level = "ok" if result.passed else "bad" if listened or nothing_to_hear else "warn"
+        verdict_level = ("ok" if result.passed else "warn" if result.unchecked
+                         else "bad" if listened or nothing_to_hear else "warn")
     else:
         verdict, verdict_level = services_verdict(hosts)
     failed = sum(last_run_failed(host) for host in hosts)

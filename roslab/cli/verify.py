@@ -18,8 +18,13 @@ server or Zenoh router is named as the cause) and the message itself is a robot'
 (`Hello from <robot> #<n>`, the demo talker's `chatter_text`) naming one of the team's
 robots: a greeting from another team's robot (domain IDs crossed) or any other text is not a
 pass. A host without a ROS 2 runtime (no `ros2` command, as in the sandbox's stand-in ROS) is
-reported as such. A team whose main's profile names no topic (sim: no robot) passes on its
-services alone, saying so.
+reported as such. A team whose main's profile names no topic (sim: no robot; a rover not yet
+calibrated) is NOT CHECKED, never a PASS: its services are still judged (a stopped one is a
+FAIL), and the line says why there was nothing to hear (a profile service not started, and the
+setting that starts it).
+
+Exit code: 0 when every team passed (its main heard its robot), 1 when a team failed, 2 for a
+bad `--limit`, 3 when none failed but some were not checked.
 """
 
 from __future__ import annotations
@@ -37,7 +42,8 @@ from pyinfra.facts.server import LinuxDistribution
 
 from roslab.ros.distro import default_distro
 # runs_a_launch: verify's own name for it before host_services held it.
-from roslab.cli.host_services import host_services, profile_name, runs_a_launch, runs_nodes  # noqa: F401
+from roslab.cli.host_services import (host_services, profile_name, runs_a_launch, runs_nodes,  # noqa: F401
+                                      services_not_started)
 from roslab.operations import as_user
 from roslab.quoting import shell_home_path, shell_word
 from roslab.ros.environment import host_environment
@@ -212,6 +218,9 @@ class TeamResult:
     # yet present): the team is judged by the services it runs.
     listens: bool = True
     profile: str = "demo"  # the main's robot profile, for the verdict
+    # (host, service, why) of the profile's services that are not started by the roster's settings
+    # (the rover's osr_startup until osr_calibrated: true): why a team has nothing to hear.
+    not_started: list = field(default_factory=list)
 
     def services_down(self) -> list[tuple[str, str]]:
         """(host, state) of the team's hosts whose nodes service is not active (running).
@@ -247,11 +256,22 @@ class TeamResult:
 
     @property
     def passed(self) -> bool:
-        if self.error or self.services_down() or self.stopped_services():
+        """Heard: the main host heard the team's robot, beside services that all run."""
+        if self.error or self.services_down() or self.stopped_services() or not self.listens:
             return False
-        if not self.listens:
-            return bool(self.main)  # nothing to hear: its services are the whole check
         return bool(self.heard_robots())
+
+    @property
+    def unchecked(self) -> bool:
+        """Nothing to hear (no topic named for the main), and nothing found wrong: not a PASS,
+        since nothing was heard, and not a FAIL, since nothing failed."""
+        return (not self.listens and bool(self.main) and not self.error and not self.services_down()
+                and not self.stopped_services())
+
+    @property
+    def outcome(self) -> str:
+        """PASS, NOT CHECKED or FAIL: the table's word for the team."""
+        return "PASS" if self.passed else "NOT CHECKED" if self.unchecked else "FAIL"
 
     def verdict(self) -> str:
         if self.error:
@@ -269,7 +289,9 @@ class TeamResult:
                              | {NODES_SERVICE for host in self.services if host not in self.without_service})
             runs = f"; running: {', '.join(running)}" if running else "; roslab runs no service there"
             robots = "no robot" if not self.robots else f"no topic for {', '.join(self.robots)}"
-            return f"nothing to hear: robot profile {self.profile} names {robots} on {self.main}{runs}"
+            why = "".join(f"; {service} on {host} not started: {because}"
+                          for host, service, because in self.not_started)
+            return f"not checked, nothing to hear: robot profile {self.profile} names {robots} on {self.main}{why}{runs}"
         heard = self.heard or parse_check_output([])
         if heard["ros"] is None:
             return f"the check on {self.main} returned nothing"
@@ -316,7 +338,11 @@ def _service_cell(result: TeamResult, name: str | None) -> str:
     return state
 
 
-def format_table(results: list[TeamResult]) -> str:
+# The result's word in a terminal: green heard, yellow not checked, red failed.
+OUTCOME_COLOURS = {"PASS": "\033[32m", "NOT CHECKED": "\033[33m", "FAIL": "\033[31m"}
+
+
+def format_table(results: list[TeamResult], colour: bool = False) -> str:
     header = ("team", "main", "robot", "main service", "robot service", "topics seen", "message heard", "result")
     rows = [header]
     for result in sorted(results, key=lambda r: r.team):
@@ -334,11 +360,16 @@ def format_table(results: list[TeamResult]) -> str:
                 ", ".join(_service_cell(result, robot) for robot in result.robots) or "-",
                 topics or "-",
                 message,
-                ("PASS " if result.passed else "FAIL ") + result.verdict(),
+                f"{result.outcome} {result.verdict()}",
             )
         )
     widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
     lines = ["  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip() for row in rows]
+    if colour:  # the last column starts with the outcome's word
+        start = sum(widths[:-1]) + 2 * (len(widths) - 1)
+        for index, result in enumerate(sorted(results, key=lambda r: r.team), start=1):
+            word = result.outcome
+            lines[index] = f"{lines[index][:start]}{OUTCOME_COLOURS[word]}{word}\033[0m{lines[index][start + len(word):]}"
     lines.insert(1, "  ".join("-" * width for width in widths))
     return "\n".join(lines)
 
@@ -445,6 +476,7 @@ def verify(state: State) -> list[TeamResult]:
             team.source = host.data.get("roslab_verify_source") or ""
         else:
             team.robots.append(host.name)
+        team.not_started += [(host.name, name, why) for name, why in services_not_started(host.data)]
         team.error = team.error or error
     for host in state.inventory:  # unreachable ones too: never activated, or failed since
         if state.is_host_in_limit(host) and host not in state.active_hosts:
@@ -487,13 +519,26 @@ def run(args: argparse.Namespace) -> int:
         results = verify(state)
     finally:
         disconnect_all(state)
-    print(format_table(results))
-    failed = [r.team for r in results if not r.passed]
+    print(format_table(results, colour=sys.stdout.isatty()))
+    return summarize(results)
+
+
+def summarize(results: list[TeamResult]) -> int:
+    """The summary line after the table, and the exit code: how many teams were really
+    verified (heard), which failed and which were not checked."""
+    failed = sorted(r.team for r in results if r.outcome == "FAIL")
+    unchecked = sorted(r.team for r in results if r.outcome == "NOT CHECKED")
+    heard = len(results) - len(failed) - len(unchecked)
+    if not failed and not unchecked:
+        print(f"\nevery team's main host hears its robot ({len(results)} teams)")
+        return 0
+    print(f"\n{heard} of {len(results)} teams verified (their main host heard their robot)")
+    if unchecked:
+        print(f"not checked (nothing to hear, see the table): {', '.join(unchecked)}", file=sys.stderr)
     if failed:
-        print(f"\nnot verified: {', '.join(sorted(failed))}", file=sys.stderr)
+        print(f"not verified: {', '.join(failed)}", file=sys.stderr)
         return 1
-    print(f"\nevery team's main host hears its robot ({len(results)} teams)")
-    return 0
+    return 3
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -487,14 +487,26 @@ def test_a_main_whose_profile_runs_no_nodes_is_green_not_not_installed():
     assert picture["verdict_level"] == "ok" and "not installed" not in picture["verdict"]
 
 
-def test_a_sim_team_has_nothing_to_hear_and_is_green():
+def test_a_sim_team_has_nothing_to_hear_and_is_amber_not_checked():
     sim = reachable_host(name="sim1-main", team="sim1", profile="sim", runs_nodes=False, listens=False)
     sim.probe = {**sim.probe, "unit": dict(NOT_FOUND)}
     for listen in (False, True):
         picture = page_context("lab", "x", [sim], NOW, listen=listen)["teams"][0]
-        assert picture["verdict_level"] == "ok", picture["verdict"]
-        assert picture["verdict"].startswith("nothing to hear: robot profile sim names no robot on sim1-main")
-        assert picture["texts"][0]["text"] == "topics heard: nothing to hear (robot profile sim)"
+        assert picture["verdict_level"] == "warn", picture["verdict"]
+        assert picture["verdict"].startswith(
+            "not checked, nothing to hear: robot profile sim names no robot on sim1-main")
+        assert picture["texts"][0]["text"] == "topics heard: not checked (sim: no topic)"
+
+
+def test_an_uncalibrated_rovers_robot_is_amber_and_says_what_starts_it():
+    why = "osr_calibrated is false (it runs when osr_calibrated: true)"
+    robot = reachable_host(name="rover-robot", team="rover", profile="osr", runs_nodes=False,
+                           not_started=[("osr_startup", why)])
+    robot.probe = {**robot.probe, "unit": dict(NOT_FOUND)}
+    box = status.host_box(robot, 0, 0)
+    assert box["level"] == "warn"
+    assert box["lines"][3]["text"] == "not started: osr_calibrated"
+    assert box["title"].endswith("; osr_startup not started: " + why)
 
 
 def test_a_stopped_discovery_server_is_named_in_the_row_and_the_team():

@@ -440,18 +440,43 @@ def test_a_zenoh_main_runs_the_router_and_a_switched_off_deploy_runs_nothing(tmp
     assert [s.unit for s in host_services({**robot, "nodes_service_enabled": False})] == []
 
 
-def test_a_sim_team_has_no_robot_to_hear_and_passes_on_what_its_main_runs():
+def test_a_sim_team_has_no_robot_to_hear_and_is_not_checked_rather_than_passed():
     sim = verify.TeamResult("sim1", main="sim1-main", robots=[], services={"sim1-main": "not installed"},
                             without_service={"sim1-main"}, listens=False, profile="sim")
-    assert sim.passed
-    assert sim.verdict() == "nothing to hear: robot profile sim names no robot on sim1-main; roslab runs no service there"
+    assert not sim.passed and sim.unchecked and sim.outcome == "NOT CHECKED"
+    assert sim.verdict() == ("not checked, nothing to hear: robot profile sim names no robot on sim1-main; "
+                             "roslab runs no service there")
     row = verify.format_table([sim]).splitlines()[2]
-    assert "PASS nothing to hear" in row and "returned nothing" not in row
+    assert "NOT CHECKED not checked, nothing to hear" in row and "PASS" not in row
     assert row.split()[2:5] == ["-", "none", "(sim"] and "not installed" not in row
     # Its services still count: a sim main on Zenoh runs its own router.
     router = HostService("roslab-zenoh-router.service", "the team's Zenoh router", "discovery")
     sim.other_services = [("sim1-main", router, "failed (exit-code)")]
-    assert not sim.passed and sim.verdict().startswith("roslab-zenoh-router.service on sim1-main is failed (exit-code)")
+    assert sim.outcome == "FAIL"
+    assert sim.verdict().startswith("roslab-zenoh-router.service on sim1-main is failed (exit-code)")
+
+
+def test_an_uncalibrated_rover_is_not_checked_and_says_what_starts_it(capsys):
+    rover = verify.TeamResult("rover", main="rover-main", robots=["rover-robot"],
+                              services={"rover-main": "not installed", "rover-robot": "not installed"},
+                              without_service={"rover-main", "rover-robot"}, listens=False, profile="osr",
+                              not_started=[("rover-robot", "osr_startup",
+                                            "osr_calibrated is false (it runs when osr_calibrated: true)")])
+    assert rover.outcome == "NOT CHECKED"
+    assert "osr_startup on rover-robot not started: osr_calibrated is false" in rover.verdict()
+    team1 = result("team1", heard=heard("team1-robot"))
+    assert team1.outcome == "PASS"
+    # The summary and exit code count only the team really heard.
+    assert verify.summarize([rover, team1]) == 3
+    out, err = capsys.readouterr()
+    assert "1 of 2 teams verified" in out and "not checked (nothing to hear, see the table): rover" in err
+    assert "every team" not in out
+    assert verify.summarize([team1]) == 0
+    silent = result("team2", heard=heard(topics=()))
+    assert verify.summarize([rover, team1, silent]) == 1
+    # In a terminal the word has its colour: yellow for not checked.
+    table = verify.format_table([rover, team1], colour=True)
+    assert "\033[33mNOT CHECKED\033[0m" in table and "\033[32mPASS\033[0m" in table
 
 
 def test_a_main_without_a_nodes_service_passes_whatever_is_left_of_an_old_unit():
