@@ -21,7 +21,7 @@ def register(subparsers) -> argparse.ArgumentParser:
                     "The instance is named by $ROSLAB_SANDBOX (default: roslab).",
     )
     commands = parser.add_subparsers(dest="sandbox_command", required=True, metavar="COMMAND")
-    up = commands.add_parser("up", help="boot the sandbox classroom (does nothing if it runs)")
+    up = commands.add_parser("up", help="boot the sandbox classroom (does nothing if it runs, but follows an edited --roster)")
     up.add_argument("--hosts", type=int, default=None, metavar="N",
                     help=f"number of hosts, in teams of two (default {lifecycle.DEFAULT_HOSTS})")
     up.add_argument("--desktop", action="append", default=[], metavar="HOST",
@@ -29,7 +29,8 @@ def register(subparsers) -> argparse.ArgumentParser:
     up.add_argument("--roster", type=Path, metavar="FILE",
                     help="your class's roster: its hosts (names, teams, roles, releases) and its settings where "
                          "the sandbox can serve them (a note names each it cannot); status and ssh then use "
-                         "its host names")
+                         "its host names. Run again after editing the roster: the sandbox follows it (new "
+                         "settings, hosts added or removed, the others kept) and says what changed")
     commands.add_parser("status", help="list the hosts and whether they answer")
     commands.add_parser("down", help="stop the hosts and remove everything the sandbox made")
     reset = commands.add_parser(
@@ -61,6 +62,8 @@ def register(subparsers) -> argparse.ArgumentParser:
 def print_status(report: dict) -> None:
     print(f"sandbox {report['name']}: subnet {report['subnet']}, upstream {report['upstream']}")
     print(f"roster: {report['roster']}")
+    print(f"deploy it: ROSLAB_SANDBOX={report['name']} pyinfra -y inventories/sandbox.py deploy.py   (in roslab's checkout)")
+    print(f"       or: ROSLAB_ROSTER={report['roster']} pyinfra -y inventory.py deploy.py   (in a `roslab init` folder)")
     for distro, what in sorted(report.get("ros", {}).items()):
         print(f"ROS 2 {distro}: {what}")
     for host in report["hosts"]:

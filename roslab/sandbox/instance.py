@@ -144,11 +144,16 @@ class Instance:
         unknown = desktop - {member["name"] for member in members}
         if unknown:
             raise SandboxError(f"--desktop {', '.join(sorted(unknown))}: no such host in the roster")
+        # A member keeps the index (and so the address) it was given when it joined: a host
+        # added or removed by `up --roster` again moves no other host.
+        indexes = [member.get("index", index) for index, member in enumerate(members)]
+        if max(indexes) >= min(MAX_HOSTS, self.subnet.num_addresses - FIRST_HOST_OCTET - 1):
+            raise SandboxError(f"the roster's hosts need more addresses than {self.subnet} has for a sandbox")
         return [SandboxHost(name=member["name"], team=member["team"], role=member["role"],
                             release=member["release"], index=index,
                             address=str(self.subnet.network_address + FIRST_HOST_OCTET + index),
                             flavour="desktop" if member["name"] in desktop else "server")
-                for index, member in enumerate(members)]
+                for index, member in zip(indexes, members)]
 
     def plan_hosts(self, count: int, desktop: Iterable[str] = (),
                    releases: Iterable[str] | None = None) -> list[SandboxHost]:

@@ -115,7 +115,8 @@ def _store_boot(instance: Instance, host: SandboxHost) -> hosts.Boot:
 
 def up(count: int | None = None, instance: Instance | None = None, desktop: list[str] | None = None,
        class_roster: Path | None = None) -> Classroom:
-    """Boot the instance's classroom (default 4 hosts); a running one is left as it is.
+    """Boot the instance's classroom (default 4 hosts); a running one is left as it is, except
+    that `up --roster` with the roster it runs brings it to that roster as it is now (`_resync`).
 
     Hosts named in `desktop` emulate Ubuntu Desktop (NetworkManager) instead of Server.
     `class_roster`: the hosts a class's roster names, with its settings where the sandbox can
@@ -131,6 +132,8 @@ def up(count: int | None = None, instance: Instance | None = None, desktop: list
             if count is not None:
                 raise SandboxError("--hosts and --roster: the roster says which hosts there are")
             class_roster = Path(class_roster).resolve()
+            if running is not None and running.class_roster == class_roster and _healthy(running):
+                return _resync(running, desktop)  # the class's roster again: the sandbox follows it
             wanted = instance.plan_members(_class_members(class_roster), desktop or ())
         elif running is not None and running.class_roster is not None and count is None and not desktop:
             wanted, class_roster = running.hosts, running.class_roster  # `up` again: what runs
@@ -207,8 +210,7 @@ def _up_locked(instance: Instance, planned: list[SandboxHost], class_roster: Pat
     write_file(_state_file(instance), json.dumps(
         {"hosts": len(planned), "subnet": str(instance.subnet), "desktop": desktop,
          "releases": list(releases_by_team()),
-         **({"members": [{"name": host.name, "team": host.team, "role": host.role, "release": host.release}
-                         for host in planned], "class_roster": str(class_roster)} if class_roster else {})})
+         **({"members": _members_state(planned), "class_roster": str(class_roster)} if class_roster else {})})
         + "\n")
     _claim_machine(instance)
     run("ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-C", f"roslab-sandbox-{instance.name}",
@@ -217,11 +219,21 @@ def _up_locked(instance: Instance, planned: list[SandboxHost], class_roster: Pat
     with announced("building the stand-in upstream (Ubuntu-layout archive, stand-in ROS packages, rosdep data)"):
         published = upstream.build(instance.state_dir / "upstream", instance.upstream_url, rootfs)
     _record_ros(instance, published.ros, published.real_repositories)
+    _update_state(instance, ros_apt_source_sha256=published.ros_apt_source_sha256)  # for _resync's roster
     upstream.start_server(instance.state_dir / "upstream", instance.bridge_address, UPSTREAM_PORT,
                           instance.state_dir / "upstream.pid", instance.state_dir / "upstream.log")
     keyring = upstream.ubuntu_key().keyring.read_bytes()
     write_roster(classroom, published)  # first: the hosts' keys live in the identity store beside it
 
+    with announced(f"booting {len(planned)} hosts and waiting for their SSH"):
+        _boot_new(instance, planned, rootfs, keyring)
+    _save_host_states(instance, {host.name: {"seeded": True} for host in planned})
+    log.info("sandbox %r up: %d hosts in %.1f s", instance.name, len(planned), time.monotonic() - started)
+    return classroom
+
+
+def _boot_new(instance: Instance, planned: list[SandboxHost], rootfs: Path, keyring: bytes) -> None:
+    """Wire, mount fresh and boot `planned` (in parallel), then trust their host keys."""
     boots = {host.name: _store_boot(instance, host) for host in planned}
 
     def boot(host: SandboxHost) -> None:
@@ -231,13 +243,113 @@ def _up_locked(instance: Instance, planned: list[SandboxHost], class_roster: Pat
         hosts.start(instance, host, merged)
         hosts.wait_for_ssh(host.address)
 
-    with announced(f"booting {len(planned)} hosts and waiting for their SSH"):
-        _on_all(classroom.hosts, boot)
+    _on_all(planned, boot)
     for host in planned:  # one writer: known_hosts is rewritten whole each time
         identity.trust(instance.roster_path, host.name, [host.address], boots[host.name].host_key[1])
-    _save_host_states(instance, {host.name: {"seeded": True} for host in planned})
-    log.info("sandbox %r up: %d hosts in %.1f s", instance.name, len(planned), time.monotonic() - started)
+
+
+def _members_state(planned: list[SandboxHost]) -> list[dict]:
+    return [{"name": host.name, "team": host.team, "role": host.role, "release": host.release,
+             "index": host.index} for host in planned]
+
+
+def _update_state(instance: Instance, **values) -> dict:
+    state = json.loads(_state_file(instance).read_text())
+    state.update(values)
+    write_file(_state_file(instance), json.dumps(state) + "\n")
+    return state
+
+
+def _resync(running: Classroom, desktop: list[str] | None) -> Classroom:
+    """`up --roster ROSTER` while the sandbox of that roster runs: bring it to the roster as it
+    is now. Hosts the roster no longer names are stopped and removed, new ones (or ones whose
+    team, role, release or desktop flavour changed: re-flashed) booted on free addresses, every
+    other host kept as it is (converged, at its address); the sandbox's roster is written anew
+    from the class's, and what changed is said."""
+    instance, class_roster = running.instance, running.class_roster
+    state = json.loads(_state_file(instance).read_text())
+    if "ros_apt_source_sha256" not in state:
+        raise SandboxError(f"sandbox {instance.name!r} was brought up by an older roslab: "
+                           "run `roslab sandbox down` first")
+    members = _class_members(class_roster)
+    desktop_names = set(desktop) if desktop else {host.name for host in running.hosts if host.flavour == "desktop"}
+    old = {host.name: host for host in running.hosts}
+    kept = {}
+    for member in members:
+        host = old.get(member["name"])
+        flavour = "desktop" if member["name"] in desktop_names else "server"
+        if host and (host.team, host.role, host.release, host.flavour) == (
+                member["team"], member["role"], member["release"], flavour):
+            kept[host.name] = host.index
+    free = iter(sorted(set(range(len(members) + len(old))) - set(kept.values())))
+    planned = instance.plan_members([{**member, "index": kept.get(member["name"]) if member["name"] in kept
+                                      else next(free)} for member in members],
+                                    [name for name in desktop_names if any(m["name"] == name for m in members)])
+    added = [host for host in planned if host.name not in kept]
+    removed = [host for host in running.hosts if host.name not in kept]
+    classroom = Classroom(instance, planned, class_roster)
+    before = instance.roster_path.read_text() if instance.roster_path.exists() else ""
+    published = upstream.Upstream(instance.upstream_url, state["ros_apt_source_sha256"], state.get("ros"),
+                                  tuple(state.get("real_repositories", ())))
+    write_roster(classroom, published)  # checked before any host changes
+    for host in removed:
+        _remove_host(instance, host)
+    _update_state(instance, hosts=len(planned), members=_members_state(planned),
+                  desktop=sorted(host.name for host in planned if host.flavour == "desktop"))
+    if added:
+        with announced(f"booting {len(added)} new hosts and waiting for their SSH"):
+            _boot_new(instance, added, image.base_image(), upstream.ubuntu_key().keyring.read_bytes())
+        states = _host_states(instance)
+        states.update({host.name: {"seeded": True} for host in added})
+        _save_host_states(instance, states)
+    for line in roster_changes(before, instance.roster_path.read_text(), added, removed):
+        log.warning("sandbox %r: %s", instance.name, line)
     return classroom
+
+
+def _remove_host(instance: Instance, host: SandboxHost) -> None:
+    """Stop a host the roster no longer names and remove its disk and network."""
+    hosts.stop(instance, host.name)
+    hosts.unmount_all(instance.host_dir(host))
+    discard(instance.host_dir(host), STATE_ROOT)
+    run("ip", "netns", "delete", instance.netns(host), check=False)  # its veth end goes with it
+    run("ip", "link", "delete", instance.veth(host), check=False)
+
+
+# Roster keys whose values are never printed (a WiFi password in the class's roster).
+_SECRET_WORDS = ("password", "psk", "secret", "passphrase", "token")
+
+
+def roster_changes(before: str, after: str, added: list[SandboxHost], removed: list[SandboxHost]) -> list[str]:
+    """What `up --roster` changed, one line each: hosts removed and added, then each roster
+    setting that changed (its path, old -> new; a secret's value is not shown)."""
+    lines = [f"removed {host.name} (no longer in the roster)" for host in removed]
+    lines += [f"added {host.name} ({host.team} {host.role}, Ubuntu {host.release}, {host.address})" for host in added]
+    before_data, after_data = yaml.safe_load(before) or {}, yaml.safe_load(after) or {}
+    old, new = _flatten(before_data), _flatten(after_data)
+    old_teams, new_teams = set(before_data.get("teams") or ()), set(after_data.get("teams") or ())
+    lines += [f"removed team {team}" for team in sorted(old_teams - new_teams)]
+    lines += [f"added team {team}" for team in sorted(new_teams - old_teams)]
+    # A team or host that came or went is its one line, not one line per setting.
+    whole = [f"teams.{team}." for team in old_teams ^ new_teams]
+    whole += [f".hosts.{host.name}." for host in [*removed, *added]]
+    for path in sorted(old.keys() | new.keys()):
+        if any(part in f".{path}." for part in whole) or old.get(path) == new.get(path):
+            continue
+        secret = any(word in path.lower() for word in _SECRET_WORDS)
+        show = (lambda value: "(hidden)" if secret and value is not None else
+                "(unset)" if value is None else json.dumps(value))
+        lines.append(f"setting {path}: {show(old.get(path))} -> {show(new.get(path))}")
+    return lines or ["the roster is unchanged: nothing to do"]
+
+
+def _flatten(value, prefix: str = "") -> dict[str, object]:
+    if isinstance(value, dict) and value:
+        flat: dict[str, object] = {}
+        for key, item in value.items():
+            flat.update(_flatten(item, f"{prefix}.{key}" if prefix else str(key)))
+        return flat
+    return {prefix: value}
 
 
 def _on_all(targets: list[SandboxHost], action) -> None:

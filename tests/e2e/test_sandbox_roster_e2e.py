@@ -130,3 +130,24 @@ def test_the_class_comes_up_with_its_own_names_converges_and_verifies(class_sand
     assert "PASS heard a sensor_msgs/msg/LaserScan on /scan" in rows["blue"], verified.stdout
     assert "PASS heard a sensor_msgs/msg/LaserScan on /scan" in rows["green"], verified.stdout
     assert "NOT CHECKED not checked, nothing to hear: robot profile sim" in rows["sim1"], verified.stdout
+
+
+def test_up_again_after_the_roster_changed_follows_it_and_keeps_the_other_hosts(class_sandbox):
+    sandbox, class_roster = class_sandbox
+    # A mark on a host the edit does not touch: it must survive (the host is not re-flashed).
+    sandbox.ssh("blue-robot", "sudo touch /var/tmp/still-here", check=True)
+    edited = CLASS.replace("turtlebot3_model: waffle_pi", "turtlebot3_model: burger")
+    class_roster.write_text(edited[:edited.index("  sim1:\n")])  # team sim1 is gone
+    again = roslab(sandbox, "sandbox", "up", "--roster", str(class_roster))
+    assert again.returncode == 0, again.stdout + again.stderr
+    said = again.stdout + again.stderr
+    assert "removed sim1-main (no longer in the roster)" in said and "removed team sim1" in said, said
+    assert 'setting teams.green.turtlebot3_model: "waffle_pi" -> "burger"' in said, said
+    assert "pyinfra -y inventories/sandbox.py deploy.py" in again.stdout, again.stdout  # how to deploy it
+    assert "turtlebot3_model: burger" in sandbox.roster_path.read_text().split("green:")[1]
+    listed = roslab(sandbox, "sandbox", "status")
+    assert "sim1-main" not in listed.stdout and listed.stdout.count("ssh ok") == 4, listed.stdout
+    assert not os.path.exists(f"/run/netns/{sandbox.instance.netns(sandbox.host('sim1-main'))}")
+    assert sandbox.ssh("blue-robot", "test -e /var/tmp/still-here").returncode == 0
+    unchanged = roslab(sandbox, "sandbox", "up", "--roster", str(class_roster))
+    assert "the roster is unchanged: nothing to do" in unchanged.stdout + unchanged.stderr

@@ -132,3 +132,66 @@ def test_up_again_without_options_keeps_a_class_sandbox(tmp_path, rosdistro_url,
     assert lifecycle.up(instance=instance) is running  # nothing to do
     with pytest.raises(lifecycle.SandboxError, match="running with other hosts"):
         lifecycle.up(4, instance=instance)
+
+
+def test_up_again_with_an_edited_roster_follows_it_and_says_what_changed(tmp_path, rosdistro_url, monkeypatch):
+    # The sandbox runs the class; the teacher edits the roster: a setting, a team gone, a host new.
+    from roslab.sandbox import instance as instance_module
+
+    monkeypatch.setattr(instance_module, "STATE_ROOT", tmp_path / "run")
+    path, instance, hosts, _ = planned(tmp_path, rosdistro_url)
+    running = lifecycle.Classroom(instance, hosts, path)
+    instance.state_dir.mkdir(parents=True)
+    (instance.state_dir / "sandbox.json").write_text(__import__("json").dumps(
+        {"members": lifecycle._members_state(hosts), "class_roster": str(path), "desktop": [],
+         "ros_apt_source_sha256": {"noble": "0" * 64, "jammy": "1" * 64}, "ros": {}, "real_repositories": []}))
+    key = tmp_path / "key.asc"
+    key.write_text("key")
+    __import__("subprocess").run(["ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-f",
+                                  str(instance.state_dir / "id_ed25519")], check=True)
+    monkeypatch.setattr(lifecycle.upstream, "ros_key", lambda: SimpleNamespace(armored=key))
+    monkeypatch.setattr(lifecycle, "file_lock", lambda path: __import__("contextlib").nullcontext())
+    monkeypatch.setattr(lifecycle, "load", lambda instance: running)
+    monkeypatch.setattr(lifecycle, "_healthy", lambda classroom: True)
+    done = []
+    monkeypatch.setattr(lifecycle, "_remove_host", lambda instance, host: done.append(("removed", host.name)))
+    monkeypatch.setattr(lifecycle, "_boot_new", lambda instance, new, rootfs, keyring: done.append(
+        ("booted", [(host.name, host.address) for host in new])))
+    monkeypatch.setattr(lifecycle.image, "base_image", lambda: tmp_path)
+    monkeypatch.setattr(lifecycle.upstream, "ubuntu_key", lambda: SimpleNamespace(keyring=key))
+    assert lifecycle.up(instance=instance, class_roster=path) is not running  # the first look: unchanged
+    assert done == []
+    first = instance.roster_path.read_text()
+    lines = []
+    monkeypatch.setattr(lifecycle.log, "warning", lambda text, *args: lines.append(text % args))
+
+    text = path.read_text().replace("turtlebot3_model: burger", "turtlebot3_model: waffle")
+    green = text.index("  green:\n")
+    text = text[:green] + text[text.index("  sim1:\n"):]  # team green is gone
+    text += "  sim2:\n    ubuntu_release: \"24.04\"\n    robot_profile: sim\n    hosts:\n" \
+            "      sim2-main: {role: main, address: 192.168.50.41}\n"
+    path.write_text(text)
+    address = {host.name: host.address for host in hosts}
+    classroom = lifecycle.up(instance=instance, class_roster=path)
+    now = {host.name: host.address for host in classroom.hosts}
+    # Kept hosts keep their address; the new one takes the first free address (green-main's).
+    assert now == {"blue-main": address["blue-main"], "blue-robot": address["blue-robot"],
+                   "sim1-main": address["sim1-main"], "sim2-main": address["green-main"]}
+    assert done == [("removed", "green-main"), ("removed", "green-robot"),
+                    ("booted", [("sim2-main", address["green-main"])])]
+    assert 'turtlebot3_model: waffle' in instance.roster_path.read_text() != first
+    assert any(line.endswith("setting teams.blue.turtlebot3_model: \"burger\" -> \"waffle\"") for line in lines), lines
+    assert any(line.endswith("removed green-robot (no longer in the roster)") for line in lines), lines
+    assert any("added sim2-main (sim2 main, Ubuntu 24.04" in line for line in lines), lines
+    assert not any("setting teams.green" in line for line in lines), [l for l in lines if "green" in l]
+    # The state remembers each host's address for the next `load`.
+    reloaded = instance.plan_members(__import__("json").loads(
+        (instance.state_dir / "sandbox.json").read_text())["members"])
+    assert {host.name: host.address for host in reloaded} == now
+
+
+def test_a_secret_setting_that_changed_is_named_without_its_value():
+    lines = lifecycle.roster_changes("classroom: {wifi_password: old1234567}\n",
+                                     "classroom: {wifi_password: new7654321}\n", [], [])
+    assert lines == ["setting classroom.wifi_password: (hidden) -> (hidden)"]
+    assert lifecycle.roster_changes("a: 1\n", "a: 1\n", [], []) == ["the roster is unchanged: nothing to do"]
