@@ -17,7 +17,7 @@ $(VENV)/.installed: pyproject.toml
 	@echo "make setup: upgrading pip in $(VENV)"
 	$(BIN)/pip install --quiet --upgrade pip
 	@echo "make setup: installing roslab (editable) and its dependencies: pyinfra, paramiko, PyYAML, jinja2, pytest..."
-	$(BIN)/pip install --progress-bar off -e '.[test]' 2>&1 \
+	@$(BIN)/pip install --progress-bar off -e '.[test]' 2>&1 \
 		| grep --line-buffered -E '^(Collecting|Building|Installing|Successfully|ERROR|error)' \
 		| sed -u 's/^/    /'
 	touch $@

@@ -492,6 +492,19 @@ def verify(state: State) -> list[TeamResult]:
     return list(teams.values())
 
 
+def listening_line(state: State) -> str:
+    """What the check is about to do, before its silent wait: which main host listens for which
+    topic, and for how long at most (all at once)."""
+    mains = [host for host in state.inventory.iter_activated_hosts()
+             if host in state.active_hosts and host.data.get("roslab_role") == "main"]
+    listening = [f"{host.name} for {host.data.nodes_verify_topic}" for host in mains
+                 if host.data.get("nodes_verify_topic")]
+    if not listening:
+        return "roslab verify: reading the services' states (no main host has a topic to hear)"
+    longest = max(int(host.data.get("nodes_verify_timeout") or 0) for host in mains)
+    return f"roslab verify: listening on {', '.join(listening)} (all at once, up to {longest} s)"
+
+
 def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
     from roslab.reach import add_roster_argument
 
@@ -514,7 +527,9 @@ def run(args: argparse.Namespace) -> int:
     if problem:
         print(problem, file=sys.stderr)
         return 2
+    print("roslab verify: connecting to the hosts ...", file=sys.stderr, flush=True)
     state = connected_state(groups, args.limit)
+    print(listening_line(state), file=sys.stderr, flush=True)
     try:
         results = verify(state)
     finally:

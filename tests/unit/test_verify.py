@@ -572,3 +572,23 @@ def test_the_opencr_step_names_the_robot_and_the_page_shows_the_command_as_code(
     page = status.render_page(status.page_context("lab", "lab.yaml", [], status.now_utc(),
                                                   checklists=status.checklists(classroom)))
     assert "<code>roslab opencr-update --limit blue-robot</code>" in page and "`roslab opencr-update" not in page
+
+
+def test_verify_says_which_main_listens_for_what_before_it_waits():
+    from types import SimpleNamespace
+
+    class Data(dict):
+        def __getattr__(self, name):
+            return self[name]
+
+    def fake(name, role, topic=None, timeout=20):
+        return SimpleNamespace(name=name, data=Data(roslab_role=role, nodes_verify_topic=topic,
+                                                    nodes_verify_timeout=timeout))
+
+    hosts = [fake("team1-main", "main", "/chatter"), fake("team1-robot", "robot"),
+             fake("blue-main", "main", "/scan", 30), fake("sim1-main", "main")]
+    state = SimpleNamespace(inventory=SimpleNamespace(iter_activated_hosts=lambda: hosts), active_hosts=hosts)
+    assert verify.listening_line(state) == ("roslab verify: listening on team1-main for /chatter, blue-main for "
+                                            "/scan (all at once, up to 30 s)")
+    state.active_hosts = [hosts[3]]
+    assert "no main host has a topic to hear" in verify.listening_line(state)
