@@ -153,8 +153,8 @@ def apt_lists():
         )
         return
     apt_lists_updated(
-        name=("Ensure the apt lists are fresh: updated after a source changed"
-              + (", and younger than apt_cache_max_age" if ready else "")),
+        name=("Ensure the apt lists are updated after a source change"
+              + (" or apt_cache_max_age" if ready else "")),
         **arguments,
     )
 

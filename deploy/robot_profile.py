@@ -11,6 +11,7 @@ Everything comes resolved from the roster (`host_settings(host).roslab_profile`,
 
 from __future__ import annotations
 
+import posixpath
 from io import StringIO
 
 from pyinfra import host
@@ -78,7 +79,7 @@ def robot_profile():
     rules = resolved.udev_rules if resolved else ""
     if rules:
         written = files.put(
-            name=f"Ensure {UDEV_RULES_PATH} holds robot profile {name}'s udev rules",
+            name=f"Ensure {posixpath.basename(UDEV_RULES_PATH)} holds robot profile {name}'s udev rules",
             src=StringIO(rules), dest=UDEV_RULES_PATH, user="root", group="root", mode="644",
         )
     elif host.get_fact(File, path=UDEV_RULES_PATH):

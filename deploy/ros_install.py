@@ -65,8 +65,11 @@ def ros_install():
         return
     distro = host_distro()
     packages = ros_install_packages(typed.data, host_codename())  # as declared for the class cache
+    # The title names the first two packages and counts the rest: a robot's list (ten packages
+    # for a TurtleBot3) would make a 290-character step name; the no-op line lists them all.
+    shown = ", ".join(packages[:2]) + (f" and {len(packages) - 2} more" if len(packages) > 2 else "")
     packages_installed(
-        name=f"Ensure ROS 2 {distro} is installed ({', '.join(packages)})",
+        name=f"Ensure ROS 2 {distro} is installed ({shown})",
         packages=packages,
         lock_timeout=typed.apt_lock_timeout,
     )

@@ -40,7 +40,7 @@ def ssh_hardening():
     password_login = typed.ssh_password_login
     hardened = sshd_key_only(
         name=(f"Ensure sshd allows {'passwords and keys' if password_login else 'keys only'} "
-              f"and root login {permit_root_login} ({DROPIN})"),
+              f"and root login {permit_root_login} ({DROPIN.rsplit('/', 2)[-2]}/...)"),
         login=login,
         password_login=password_login,
         permit_root_login=permit_root_login,

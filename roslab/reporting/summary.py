@@ -608,15 +608,42 @@ def op_order(state: State) -> list[str]:
     return order + [op_hash for op_hash in state.op_meta if op_hash not in order]
 
 
-MAX_STEP_NAME = 90  # characters of a step's name on its line of the compact tables
+MAX_STEP_NAME = 80  # characters of a step's name on its line of the compact tables
+
+
+def own_name(name: str) -> str:
+    """An operation's own name without its deploy's title ("SSH is on, ... | Ensure sshd ..."
+    -> "Ensure sshd ..."): the deploy's title is the same for all its steps, the operation's
+    own name is what tells them apart."""
+    return name.rsplit(" | ", 1)[-1]
+
+
+def clipped(text: str, limit: int = MAX_STEP_NAME) -> str:
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def step_title(state: State, op_hash: str, host_name: str | None = None) -> str:
-    """The step's name as pyinfra showed it on that host (a name holding a host's value, such
-    as its distro, is that host's), shortened to one line."""
+    """The step's own name as pyinfra showed it on that host (a name holding a host's value,
+    such as its distro, is that host's), on one line of at most MAX_STEP_NAME characters."""
     host = state.inventory.get_host(host_name, None) if host_name else None
-    name = " ".join(op_name(state, op_hash, host).split())
-    return name if len(name) <= MAX_STEP_NAME else name[: MAX_STEP_NAME - 3] + "..."
+    return clipped(" ".join(own_name(op_name(state, op_hash, host)).split()))
+
+
+MAX_START_LINE = 160  # characters of a shown "--> Starting operation" line
+
+
+def short_start_line(text: str, state: State | None) -> str:
+    """pyinfra's "--> Starting operation: A | x, A | y, ..." (one name per host where names
+    hold host values) without the deploys' titles, each name once, at most MAX_START_LINE
+    characters: the ROS install's start line was 1,665 characters of seven titles joined."""
+    head, _, names = text.partition("operation: ")
+    if not names or state is None:
+        return clipped(text, MAX_START_LINE)
+    titles = sorted({name.rsplit(" | ", 1)[0] + " | " for meta in state.op_meta.values()
+                     for name in meta.names if " | " in name}, key=len, reverse=True)
+    for title in titles:
+        names = names.replace(title, "")
+    return clipped(f"{head}operation: {names}", MAX_START_LINE)
 
 
 def _by_title(state: State, op_hash: str, names: list[str]) -> dict[str, list[str]]:
@@ -1080,6 +1107,13 @@ class CompactOutput(logging.Filter):
         record, self.pending = self.pending, None
         if record is not None:
             record.roslab_shown = True
+            try:
+                text = _ANSI.sub("", record.getMessage())
+                short = short_start_line(text, self.state or ctx_state.get())
+                if short != text:
+                    record.msg, record.args = short, None
+            except Exception:  # noqa: BLE001 - the output must never break the run
+                pass
             self.logger.handle(record)
 
     def drop_pending(self) -> None:

@@ -159,7 +159,7 @@ def test_another_lidar_changes_the_variable_only_and_an_lds_01_its_udev_name(tmp
         "Ensure student's ~/.bashrc sets up the ROS 2 environment"]
     result = plan(run_deploy_py, host.facts(), turtlebot3_robot_data(tmp_path, lds_model="LDS-01"))
     names = [name.split(" | ")[1] for name in result.changing()]
-    assert names == ["Ensure /etc/udev/rules.d/60-roslab-profile.rules holds robot profile turtlebot3's udev rules",
+    assert names == ["Ensure 60-roslab-profile.rules holds robot profile turtlebot3's udev rules",
                      "Ensure udev has read the robot profile's rules",
                      "Ensure student's ~/.bashrc sets up the ROS 2 environment"]
     assert 'SYMLINK+="tb3_lidar"' in result.uploads()["/etc/udev/rules.d/60-roslab-profile.rules"]
