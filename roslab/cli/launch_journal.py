@@ -3,8 +3,9 @@
 `ros2 launch` prefixes each node's output with `[<executable>-<n>]` and reports a node's end
 as `[ERROR] [<executable>-<n>]: process has died [pid ..., exit code ..., cmd '...']`; with
 `respawn=True` (the JPL rover's launch) the node starts again and dies again, and systemd sees
-the launch itself running. `roslab status` reads the last lines of the journal of a profile's
-service that runs a launch and shows one line per node that died, with the node's own last
+the launch itself running. `roslab status` and `roslab verify` read the last minute of the
+journal of a profile's service that runs a launch: status shows one line per node that died,
+verify fails the team (a running unit is not a working robot), each with the node's own last
 error line (a Python exception, a FATAL log line): "roboclaw_wrapper: Unable to connect to
 serial port /dev/serial1", "rover: ModuleNotFoundError: No module named 'tf2_ros'".
 """
@@ -13,8 +14,12 @@ from __future__ import annotations
 
 import re
 
-# how many journal lines status reads per launch service (a respawning node repeats itself)
-JOURNAL_LINES = 400
+# The journal is read for the last WINDOW_SECONDS only, and only the lines that matter (a
+# death, an error line): a node that respawns ~200 times a minute was "died 3 times" in the
+# last 400 lines of everything. JOURNAL_LINES bounds what one host sends back.
+WINDOW_SECONDS = 60
+JOURNAL_LINES = 2000
+_KEPT = "process has died|Error|Exception|FATAL|ERROR"
 
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")
 _DIED = re.compile(r"^\[ERROR\] \[(?P<node>[A-Za-z0-9_.-]+?)-\d+\]: process has died \[pid \d+, exit code (?P<code>-?\d+)")
@@ -26,8 +31,10 @@ _TEXT_LIMIT = 160
 
 
 def command(unit: str) -> str:
-    """The read of a launch service's last journal lines (the unit name is checked by the caller)."""
-    return f"journalctl -u {unit} -n {JOURNAL_LINES} --no-pager -o cat 2>/dev/null"
+    """The read of a launch service's journal of the last WINDOW_SECONDS: its deaths and error
+    lines (the unit name is checked and quoted by the caller)."""
+    return (f"journalctl -u {unit} --since=-{WINDOW_SECONDS}s --no-pager -o cat 2>/dev/null"
+            f" | grep -E '{_KEPT}' | tail -n {JOURNAL_LINES}")
 
 
 def _reason(text: str) -> str | None:
@@ -67,6 +74,7 @@ def _clip(text: str) -> str:
 
 
 def summary(unit: str, lines) -> list[str]:
-    """One line per node of `unit`'s launch that died: "osr_startup: rover died 3 times: ..."."""
-    return [f"{unit}: {node} died {'once' if count == 1 else f'{count} times'}: {why}"
+    """One line per node of `unit`'s launch that died in the last minute:
+    "osr_startup: rover died 3 times in the last minute: ..."."""
+    return [f"{unit}: {node} died {'once' if count == 1 else f'{count} times'} in the last minute: {why}"
             for node, (count, why) in died_nodes(lines).items()]

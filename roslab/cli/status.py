@@ -762,6 +762,10 @@ def team_result(team: str, hosts: list[HostStatus], main: HostStatus | None, rob
                         other_services=[(host.name, service, state) for host in hosts
                                         for service, state in host.other_states()])
     result.not_started = [(host.name, service, why) for host in hosts for service, why in host.not_started]
+    result.node_deaths = [(host.name, service.unit.removesuffix(".service"), node, count, why) for host in hosts
+                          for service, state in host.other_states() if service.launch and state == SERVICE_RUNNING
+                          for node, (count, why) in launch_journal.died_nodes(
+                              (host.probe.get("journals") or {}).get(service.unit) or []).items()]
     if main is not None:
         result.heard = main.heard
         result.listens, result.profile = main.listens, main.profile

@@ -14,7 +14,9 @@ one message on `nodes_verify_topic`, with `--no-daemon` so no ros2 daemon is lef
 hang the check.
 
 A team passes only when every one of those services is active (running) (a stopped discovery
-server or Zenoh router is named as the cause) and the message itself is a robot's greeting
+server or Zenoh router is named as the cause), no node of a profile service that runs `ros2
+launch` died in the last minute (with `respawn` the launch restarts a crashing node while
+systemd sees it running: roslab.cli.launch_journal), and the message itself is a robot's greeting
 (`Hello from <robot> #<n>`, the demo talker's `chatter_text`) naming one of the team's
 robots: a greeting from another team's robot (domain IDs crossed) or any other text is not a
 pass. A host without a ROS 2 runtime (no `ros2` command, as in the sandbox's stand-in ROS) is
@@ -44,6 +46,7 @@ from roslab.ros.distro import default_distro
 # runs_a_launch: verify's own name for it before host_services held it.
 from roslab.cli.host_services import (host_services, profile_name, runs_a_launch, runs_nodes,  # noqa: F401
                                       services_not_started)
+from roslab.cli import launch_journal
 from roslab.operations import as_user
 from roslab.quoting import shell_home_path, shell_word
 from roslab.ros.environment import host_environment
@@ -78,6 +81,18 @@ def check_bound(timeout: int, kill_after: int = KILL_AFTER) -> int:
     """Seconds after which the whole check is killed: every step's bound, plus slack."""
     steps = [LIST_TIMEOUT, int(timeout)] + [DAEMON_TIMEOUT] * 3
     return sum(steps) + kill_after * (len(steps) + 1) + 10
+
+
+class LaunchDeaths(FactBase):
+    """The deaths (and error lines) in the last minute of a service that runs `ros2 launch`
+    (roslab.cli.launch_journal): with `respawn`, its nodes die and start again while systemd
+    sees the launch running. Returns the journal lines (process_lines)."""
+
+    def command(self, unit: str) -> str:
+        return launch_journal.command(shlex.quote(unit))
+
+    def process(self, output):
+        return list(output)
 
 
 class NodesHeard(FactBase):
@@ -221,6 +236,9 @@ class TeamResult:
     # (host, service, why) of the profile's services that are not started by the roster's settings
     # (the rover's osr_startup until osr_calibrated: true): why a team has nothing to hear.
     not_started: list = field(default_factory=list)
+    # (host, unit, node, deaths, why) of nodes of the team's launch services that died in the
+    # last minute (a respawning node): a running unit is not a working robot.
+    node_deaths: list = field(default_factory=list)
 
     def services_down(self) -> list[tuple[str, str]]:
         """(host, state) of the team's hosts whose nodes service is not active (running).
@@ -257,7 +275,7 @@ class TeamResult:
     @property
     def passed(self) -> bool:
         """Heard: the main host heard the team's robot, beside services that all run."""
-        if self.error or self.services_down() or self.stopped_services() or not self.listens:
+        if self.error or self.services_down() or self.stopped_services() or self.node_deaths or not self.listens:
             return False
         return bool(self.heard_robots())
 
@@ -266,7 +284,7 @@ class TeamResult:
         """Nothing to hear (no topic named for the main), and nothing found wrong: not a PASS,
         since nothing was heard, and not a FAIL, since nothing failed."""
         return (not self.listens and bool(self.main) and not self.error and not self.services_down()
-                and not self.stopped_services())
+                and not self.stopped_services() and not self.node_deaths)
 
     @property
     def outcome(self) -> str:
@@ -281,6 +299,10 @@ class TeamResult:
         stopped = self.stopped_services()
         if stopped:
             return "; ".join(stopped_service_line(host, service, state) for host, service, state in stopped)
+        if self.node_deaths:
+            return "; ".join(f"{unit} on {host} runs, but its node {node} died "
+                             f"{'once' if count == 1 else f'{count} times'} in the last minute: {why}"
+                             for host, unit, node, count, why in self.node_deaths)
         if not self.listens:
             down = self.services_down()
             if down:
@@ -422,19 +444,23 @@ def hear(host, distro: str | None = None, timeout: int | None = None) -> dict:
     )
 
 
-def _check_host(state: State, host) -> tuple[str, dict, dict | None, str | None]:
+def _check_host(state: State, host) -> tuple[str, dict, dict | None, str | None, list]:
     """(nodes service state, {unit: state} of its other services, NodesHeard on main hosts,
-    error) for one host."""
+    error, deaths of its launch services' nodes in the last minute) for one host."""
     with ctx_host.use(host):
         try:
             service = service_state(host.get_fact(NodesUnitState, service=NODES_SERVICE))
             others = {item.unit: service_state(host.get_fact(NodesUnitState, service=item.unit))
                       for item in host_services(host.data) if item.kind != "nodes"}
+            deaths = [(host.name, item.unit.removesuffix(".service"), node, count, why)
+                      for item in host_services(host.data) if item.launch and others.get(item.unit) == SERVICE_RUNNING
+                      for node, (count, why) in launch_journal.died_nodes(
+                          host.get_fact(LaunchDeaths, unit=item.unit)).items()]
             if host.data.get("roslab_role") != "main" or not host.data.get("nodes_verify_topic"):
-                return service, others, None, None  # a robot, or a main whose profile has nothing to hear (sim)
-            return service, others, hear(host), None
+                return service, others, None, None, deaths  # a robot, or a main with nothing to hear (sim)
+            return service, others, hear(host), None, deaths
         except Exception as error:  # one host's trouble is its team's row, not a crash
-            return "?", {}, None, f"{host.name}: {one_line(error)}"
+            return "?", {}, None, f"{host.name}: {one_line(error)}", []
 
 
 def one_line(error) -> str:
@@ -459,8 +485,9 @@ def verify(state: State) -> list[TeamResult]:
         return teams[name]
 
     for host, greenlet in greenlets.items():
-        service, others, heard, error = greenlet.get()
+        service, others, heard, error, deaths = greenlet.get()
         team = team_of(host)
+        team.node_deaths += deaths
         team.services[host.name] = service
         if not runs_nodes(host.data):
             team.without_service.add(host.name)

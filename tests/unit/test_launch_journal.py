@@ -12,9 +12,9 @@ JOURNAL = Path(__file__).parent / "fixtures/journals/osr_launch_journal.txt"
 def test_the_rovers_journal_names_each_dead_node_with_its_own_reason():
     lines = JOURNAL.read_text().splitlines()
     assert launch_journal.summary("osr_startup", lines) == [
-        "osr_startup: roboclaw_wrapper died once: Exception: Unable to connect to serial port /dev/serial1.",
-        "osr_startup: rover died 2 times: ModuleNotFoundError: No module named 'tf2_ros'",
-        "osr_startup: servo_control died 2 times: ImportError: cannot import name 'ServoKit' from "
+        "osr_startup: roboclaw_wrapper died once in the last minute: Exception: Unable to connect to serial port /dev/serial1.",
+        "osr_startup: rover died 2 times in the last minute: ModuleNotFoundError: No module named 'tf2_ros'",
+        "osr_startup: servo_control died 2 times in the last minute: ImportError: cannot import name 'ServoKit' from "
         "'adafruit_servokit' (/home/ubuntu/osr_venv/lib/python3.11/site-packages/adafruit_servokit.py)",
     ]
 
@@ -35,6 +35,20 @@ def test_a_fatal_log_line_or_the_exit_code_says_why_and_running_nodes_are_not_li
     assert launch_journal.summary("robot", lines[:3]) == []
 
 
-def test_the_read_is_bounded_and_names_the_unit():
-    assert launch_journal.command("osr_startup") == \
-        "journalctl -u osr_startup -n 400 --no-pager -o cat 2>/dev/null"
+def test_the_read_is_the_last_minute_bounded_and_names_the_unit():
+    assert launch_journal.command("osr_startup") == (
+        "journalctl -u osr_startup --since=-60s --no-pager -o cat 2>/dev/null"
+        " | grep -E 'process has died|Error|Exception|FATAL|ERROR' | tail -n 2000")
+
+
+def test_the_kept_lines_are_all_a_summary_needs(tmp_path):
+    # The host's grep keeps every line died_nodes reads: the same summary from the whole journal.
+    import re
+    import subprocess
+
+    lines = JOURNAL.read_text().splitlines()
+    kept = subprocess.run(["grep", "-E", launch_journal._KEPT], input="\n".join(lines) + "\n",
+                          capture_output=True, text=True).stdout.splitlines()
+    assert len(kept) < len(lines)
+    assert launch_journal.summary("osr_startup", kept) == launch_journal.summary("osr_startup", lines)
+    assert all(re.search(launch_journal._KEPT, line) for line in kept)

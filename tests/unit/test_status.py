@@ -589,9 +589,9 @@ def test_a_running_launch_whose_nodes_die_is_one_line_per_node_with_its_reason()
     note = host_cells(rover, NOW)["NOTE"]
     assert note.level == "warn"
     assert note.text.split("; ") == [
-        "osr_startup: roboclaw_wrapper died once: Exception: Unable to connect to serial port /dev/serial1.",
-        "osr_startup: rover died 2 times: ModuleNotFoundError: No module named 'tf2_ros'",
-        "osr_startup: servo_control died 2 times: ImportError: cannot import name 'ServoKit' from "
+        "osr_startup: roboclaw_wrapper died once in the last minute: Exception: Unable to connect to serial port /dev/serial1.",
+        "osr_startup: rover died 2 times in the last minute: ModuleNotFoundError: No module named 'tf2_ros'",
+        "osr_startup: servo_control died 2 times in the last minute: ImportError: cannot import name 'ServoKit' from "
         "'adafruit_servokit' (/home/ubuntu/osr_venv/lib/python3.11/site-packages/adafruit_servokit.py)"]
     # a launch whose nodes all run says nothing; a stopped one is named as stopped, not by its journal
     rover.probe["journals"][OSR_STARTUP.unit] = ["[INFO] [rover-3]: process started with pid [7]"]
@@ -600,7 +600,7 @@ def test_a_running_launch_whose_nodes_die_is_one_line_per_node_with_its_reason()
 
 def test_the_probe_reads_a_launch_services_journal_bounded_and_in_its_own_section():
     script = status.probe_script(others=(OSR_STARTUP.unit,), launches=(OSR_STARTUP.unit,))
-    assert "echo '## journal osr_startup.service'; journalctl -u osr_startup.service -n 400 --no-pager" in script
+    assert "echo '## journal osr_startup.service'; journalctl -u osr_startup.service --since=-60s --no-pager" in script
     probe = parse_probe([line for line in PROBE_OUTPUT if line != "## end"] + [
         "## journal osr_startup.service", "[ERROR] [rover-3]: process has died [pid 1, exit code 1, cmd 'x'].",
         "## end"])

@@ -592,3 +592,25 @@ def test_verify_says_which_main_listens_for_what_before_it_waits():
                                             "/scan (all at once, up to 30 s)")
     state.active_hosts = [hosts[3]]
     assert "no main host has a topic to hear" in verify.listening_line(state)
+
+
+def test_a_running_launch_whose_nodes_keep_dying_fails_naming_the_node():
+    rover = verify.TeamResult("rover", main="rover-main", robots=["rover-robot"],
+                              services={"rover-main": "not installed", "rover-robot": "not installed"},
+                              without_service={"rover-main", "rover-robot"}, listens=False, profile="osr",
+                              node_deaths=[("rover-robot", "osr_startup", "roboclaw_wrapper", 198,
+                                            "Exception: Unable to connect to serial port /dev/serial1.")])
+    assert rover.outcome == "FAIL" and not rover.unchecked
+    assert rover.verdict() == ("osr_startup on rover-robot runs, but its node roboclaw_wrapper died 198 times in "
+                               "the last minute: Exception: Unable to connect to serial port /dev/serial1.")
+    # Heard, but beside a crash-looping node: not a pass either.
+    team = result("team1", heard=heard("team1-robot"),
+                  node_deaths=[("team1-robot", "x", "driver", 1, "exit code 1")])
+    assert team.outcome == "FAIL" and "driver died once in the last minute" in team.verdict()
+
+
+def test_the_launch_deaths_fact_reads_the_last_minute_of_the_unit():
+    fact = verify.LaunchDeaths()
+    assert fact.command("osr_startup.service").startswith(
+        "journalctl -u osr_startup.service --since=-60s --no-pager -o cat")
+    assert fact.process(["a", "b"]) == ["a", "b"]
