@@ -30,7 +30,7 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-from .system import SandboxError, file_sha256, folder_setting, log, run
+from .system import SandboxError, announced, file_sha256, folder_setting, log, run
 
 ENV = "ROSLAB_SANDBOX_SOURCES"
 REAL_NOTE = "roslab sandbox: REAL source"
@@ -167,8 +167,14 @@ def build_released_deb(bundles: Bundles, key: str, distro: str, tree: Path, vers
     Debian package build does).
     """
     name, ref = RELEASED_FROM_SOURCE[key]
-    log.warning(f"building the sandbox's REAL {package} from {name}.bundle at {ref} against the {distro} "
-                "runtime (once per bundle and runtime)...")
+    with announced(f"building the sandbox's REAL {package} from {name}.bundle at {ref} against the {distro} "
+                   "runtime (once per bundle and runtime)"):
+        return _build_released_deb(bundles, key, distro, tree, version, out_dir, package)
+
+
+def _build_released_deb(bundles: Bundles, key: str, distro: str, tree: Path, version: str,
+                        out_dir: Path, package: str) -> Path:
+    name, ref = RELEASED_FROM_SOURCE[key]
     with tempfile.TemporaryDirectory(prefix=f"roslab-{key}-") as work:
         work = Path(work)
         source = bundles.tree(name, ref, work / "src")

@@ -28,7 +28,7 @@ import os
 import shutil
 from pathlib import Path
 
-from .system import SandboxError, file_sha256, folder_setting, log, run, write_file
+from .system import SandboxError, announced, file_sha256, folder_setting, run, write_file
 
 ENV = "ROSLAB_SANDBOX_ROS_RUNTIME"
 
@@ -122,7 +122,12 @@ def depends_of(distro: str) -> list[str]:
 def build_core_deb(workdir: Path, tarball: str | os.PathLike, distro: str, package: str, version: str,
                    tarball_sha256: str, out_dir: Path) -> Path:
     """Build `package` (ros-<distro>-ros-core) holding the tree of `tarball` in /opt/ros/<distro>."""
-    log.warning(f"building the sandbox's REAL {package} from {Path(tarball).name} (once per tarball)...")
+    with announced(f"building the sandbox's REAL {package} from {Path(tarball).name} (once per tarball)"):
+        return _build_core_deb(workdir, tarball, distro, package, version, tarball_sha256, out_dir)
+
+
+def _build_core_deb(workdir: Path, tarball: str | os.PathLike, distro: str, package: str, version: str,
+                    tarball_sha256: str, out_dir: Path) -> Path:
     root = workdir / package
     shutil.rmtree(root, ignore_errors=True)
     prefix = root / "opt/ros" / distro

@@ -46,7 +46,7 @@ from roslab.ros.distro import DEFAULT_DISTRO, PLATFORMS
 from roslab.ros.distro import ROS_APT_SOURCE_VERSION as ROS_APT_SOURCE_PIN
 
 from . import git_standins, image, pypi, real_sources, ros_runtime
-from .system import SandboxError, file_lock, log, pid_alive, run, terminate, write_file
+from .system import SandboxError, announced, file_lock, pid_alive, run, terminate, write_file
 
 # Bump when the archives' layout or the stand-ins change: part of the cache keys.
 ARCHIVE_VERSION = 6
@@ -490,7 +490,10 @@ def ubuntu_archive(rootfs: Path, system_keys: dict[str, str], runtime_packages=(
     key = ubuntu_key()
 
     def build(out: Path) -> None:
-        log.warning("building the sandbox's Ubuntu-layout archive (once; downloads from Debian)...")
+        with announced("building the sandbox's Ubuntu-layout archive (once, then cached; downloads from Debian)"):
+            fill(out)
+
+    def fill(out: Path) -> None:
         _download_closure(rootfs, packages, out / "work", out / "pool/universe")
         shutil.rmtree(out / "work")
         for codename, version in ((p.codename, p.release) for p in PLATFORMS):
