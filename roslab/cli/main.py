@@ -5,6 +5,8 @@
     roslab verify [ROSTER]    check that each team's main host hears its robot (roslab.cli.verify)
     roslab seed [ROSTER] --out DIR | --boot-partition PATH | --image FILE
                               first-boot seeds for freshly flashed Pis (roslab.seed)
+    roslab flash [ROSTER] --image IMG --device DEV ...
+                              write a tray of SD cards at once, each seeded and verified (roslab.seed.flash)
     roslab trust [ROSTER]     record the host key of Pis flashed without a seed (roslab.cli.trust)
     roslab forget [ROSTER] --limit NAME
                               remove a Pi's recorded host key (roslab.cli.trust)
@@ -123,10 +125,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     from roslab.cli.init import register as register_init
     from roslab.seed.command import register as register_seed
+    from roslab.seed.flash import register as register_flash
     from roslab.cli.trust import register as register_trust
 
     register_init(commands)  # roslab init
     register_seed(commands)  # roslab seed
+    register_flash(commands)  # roslab flash
     register_trust(commands)  # roslab trust, roslab forget
 
     from roslab.robot_tools import register_profile_tools

@@ -74,15 +74,21 @@ def run_seed(args: argparse.Namespace) -> int:
     return 0
 
 
-def _selected_hosts(args: argparse.Namespace) -> tuple:
-    """The roster and the hosts `--limit` selects; one host for a card or an image."""
+def _selected(args: argparse.Namespace, command: str) -> tuple:
+    """The roster and the hosts `--limit` selects, in roster order."""
     try:
-        classroom = load_classroom(args.roster, "seed")
+        classroom = load_classroom(args.roster, command)
     except RosterProblem as problem:
         raise _Stop(1, str(problem)) from None
-    hosts, problem = limited_hosts(classroom, args.limit, "roslab seed")
+    hosts, problem = limited_hosts(classroom, args.limit, f"roslab {command}")
     if problem:
         raise _Stop(2, problem)
+    return classroom, hosts
+
+
+def _selected_hosts(args: argparse.Namespace) -> tuple:
+    """The roster and the hosts `--limit` selects; one host for a card or an image."""
+    classroom, hosts = _selected(args, "seed")
     if (args.boot_partition or args.image) and (not args.limit or len(hosts) != 1):
         # A card is one Pi's identity: name it, so no card gets another Pi's key by accident.
         raise _Stop(2, "roslab seed: --boot-partition and --image take the seed of one host: give --limit HOST "
@@ -151,19 +157,9 @@ def _write_and_record(args: argparse.Namespace, hosts: list, seeds: dict, path: 
     for host in hosts:
         where, changed = _write_seed(args, host.name, seeds[host.name])
         public = identity.host_keys(path, host.name).public_line()
-        # The file the run checks this host against (ssh_known_hosts_file, or the classroom's own).
-        known_hosts = identity.known_hosts_of(path, host.data)
-        recorded = None
-        if str(known_hosts) != os.devnull:
-            try:
-                recorded = identity.known_key(path, host.name, known_hosts=known_hosts)
-                identity.trust(path, host.name, known_addresses(host, moved.get(host.name)), public,
-                               port=host.data.get("ssh_port") or 22, known_hosts=known_hosts)
-            except (OSError, identity.IdentityError) as error:
-                raise _Stop(1, f"roslab seed: {host.name}: its seed is written, but its key could not be "
-                               f"recorded in {display_path(known_hosts)}: "
-                               f"{getattr(error, 'strerror', None) or error}") from None
-            recorded_in.add(display_path(known_hosts))
+        known_hosts, recorded = _record_key(host, path, moved)
+        if known_hosts is not None:
+            recorded_in.add(known_hosts)
         key = f"host key {identity.fingerprint(public)}"
         if changed:
             print(f"{host.name}: wrote {', '.join(changed)} in {where} ({key})")
@@ -173,6 +169,27 @@ def _write_and_record(args: argparse.Namespace, hosts: list, seeds: dict, path: 
             print(f"{host.name}: its recorded host key is now the seeded one: until it boots from this "
                   "seed, pyinfra refuses it")
     return recorded_in
+
+
+def _record_key(host, path: Path, moved: dict | None = None) -> tuple[str | None, object]:
+    """Record the host's seeded key in the known_hosts file the run checks it against
+    (ssh_known_hosts_file, or the classroom's own): (that file's name, the key recorded before),
+    (None, None) where the roster checks no keys (/dev/null)."""
+    public = identity.host_keys(path, host.name).public_line()
+    known_hosts = identity.known_hosts_of(path, host.data)
+    if str(known_hosts) == os.devnull:
+        return None, None
+    if moved is None:
+        moved = last_known_addresses(path)
+    try:
+        recorded = identity.known_key(path, host.name, known_hosts=known_hosts)
+        identity.trust(path, host.name, known_addresses(host, moved.get(host.name)), public,
+                       port=host.data.get("ssh_port") or 22, known_hosts=known_hosts)
+    except (OSError, identity.IdentityError) as error:
+        raise _Stop(1, f"roslab: {host.name}: its seed is written, but its key could not be "
+                       f"recorded in {display_path(known_hosts)}: "
+                       f"{getattr(error, 'strerror', None) or error}") from None
+    return display_path(known_hosts), recorded
 
 
 def _write_seed(args: argparse.Namespace, name: str, files) -> tuple[str, list[str]]:

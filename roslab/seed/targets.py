@@ -216,6 +216,15 @@ def write_image(image: Path, files: dict[str, SeedFile]) -> list[str]:
     """Write the seed into the image's boot partition; back up Ubuntu's files once."""
     if not image.is_file():
         raise TargetError(f"{image} is not a file (give a raw .img, uncompressed)")
+    changed = write_fat(image, files)
+    # The image now holds a private key (and maybe a WiFi password): keep it private.
+    os.chmod(image, 0o600)
+    return changed
+
+
+def write_fat(image: Path, files: dict[str, SeedFile]) -> list[str]:
+    """Write the seed into the boot partition of an image file or a card's block device (through
+    mtools, nothing mounted); back up Ubuntu's files once; the names that changed."""
     fat = ImageFat(image, boot_partition(image))
     missing = [name for name in PI_BOOT_FILES if not fat.has(name)]
     if missing:
@@ -230,6 +239,4 @@ def write_image(image: Path, files: dict[str, SeedFile]) -> list[str]:
             fat.write(name + BACKUP_SUFFIX, old)
         fat.write(name, files[name].content)
         changed.append(name)
-    # The image now holds a private key (and maybe a WiFi password): keep it private.
-    os.chmod(image, 0o600)
     return changed
