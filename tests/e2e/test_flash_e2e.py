@@ -137,6 +137,12 @@ def test_a_card_changed_behind_the_writers_back_fails_its_read_back_and_the_othe
     assert [line.split()[0] for line in out.splitlines() if line.endswith("  verified")] == [
         "team1-main", "team2-main"], out
     assert card_seed(devices[1], flash.MARKER) is None  # never marked done: a re-run writes it again
+    # The re-run (as after an interruption) writes only the card that is not done.
+    monkeypatch.setattr(flash, "write_all", real_write_all)
+    assert flash_cli(roster, raw, devices) == 0
+    rows = {line.split()[0]: line for line in capsys.readouterr().out.splitlines() if line[:4] == "team"}
+    assert rows["team1-robot"].endswith("  verified"), rows
+    assert "skipped" in rows["team1-main"] and "skipped" in rows["team2-main"], rows
 
 
 def test_refused_before_a_byte_is_written(roster, tmp_path, image_xz, loop_cards, capsys):
