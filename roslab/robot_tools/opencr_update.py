@@ -135,7 +135,8 @@ def flash_script(port: str, firmware: str, sha256: str = ARCHIVE_SHA256) -> str:
         f"rm -rf {ARCHIVE_FOLDER}",
         f"tar -xf {ARCHIVE_NAME} --no-same-owner --no-same-permissions",
         f"cd {ARCHIVE_FOLDER}",
-        f"{{ test -f {shell_word(firmware + '.opencr')} || {{ echo 'no {firmware}.opencr in the archive'; exit 1; }}; }}",
+        f"{{ test -f {shell_word(firmware + '.opencr')} || "
+        f"{{ echo 'no {firmware}.opencr in the archive'; exit 1; }}; }}",
         f"./update.sh {shell_word(port)} {shell_word(firmware + '.opencr')}",
     ])
 
