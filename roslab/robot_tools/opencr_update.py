@@ -255,8 +255,10 @@ def flash(host, target, args: argparse.Namespace, archive: bytes) -> bool:
         print(f"{host.name}: udev cannot identify {args.port}; flashing it as --allow-unidentified-port says")
     if not ensure_armhf_flasher(host, target):
         return False
-    target.run_shell_command(f"install -d -m 0700 -o root -g root {REMOTE_DIR}", _sudo=True)
-    target.put_file(io.BytesIO(archive), f"{REMOTE_DIR}/{ARCHIVE_NAME}", _sudo=True)
+    made, _ = target.run_shell_command(f"install -d -m 0700 -o root -g root {REMOTE_DIR}", _sudo=True)
+    if not made or not target.put_file(io.BytesIO(archive), f"{REMOTE_DIR}/{ARCHIVE_NAME}", _sudo=True):
+        print(f"{host.name}: could not put ROBOTIS's archive in {REMOTE_DIR}: nothing was flashed", file=sys.stderr)
+        return False
     ok, output = target.run_shell_command(flash_script(args.port, firmware, args.sha256), _sudo=True,
                                           print_output=args.verbose)
     flashed, line = flasher_verdict(args.port, firmware, output.output)

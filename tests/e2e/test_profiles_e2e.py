@@ -278,8 +278,8 @@ PTY_HOLDER = ("import os, time; m, s = os.openpty(); open('/run/roslab-e2e-openc
               "[sent.write(os.read(m, 4096)) for _ in iter(int, 1)]")
 
 
-def test_opencr_update_runs_robotis_flasher_from_the_real_archive_until_no_board_answers(sandbox, roster,
-                                                                                       first_run):
+def test_opencr_update_runs_robotis_flasher_from_the_real_archive_until_no_board_answers(
+        sandbox, roster, first_run):
     served = sandbox.instance.state_dir / "upstream" / real_sources.OPENCR_SERVED
     if not served.is_file():
         pytest.skip("no OpenCR-Binaries.bundle in ROSLAB_SANDBOX_SOURCES: the upstream serves no OpenCR archive")

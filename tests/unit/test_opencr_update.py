@@ -251,3 +251,70 @@ def test_robotis_arm_flasher_runs_with_an_armhf_libc_and_no_opencr_answers(unpac
     assert lines[0] == "opencr_ld_shell ver 1.0.0" and f"[OK] Open port : {port}" in lines, lines
     assert sent.startswith(b"OpenCR 5555AAAA"), sent
     assert tool.flasher_verdict(port, "waffle", output)[1] == f"no OpenCR answered on {port}: nothing was flashed"
+
+
+class Output:
+    def __init__(self, text: str = ""):
+        self.output = text
+        self.output_lines = text.splitlines()
+
+
+class Robot:
+    """A reached robot as flash() sees it: its facts given, its commands recorded."""
+
+    def __init__(self, machine: str, usb_id: str, flasher_output: str, armhf: bool = False):
+        self.facts = {tool.UsbSerialPort: usb_id,
+                      tool.FlasherArchitecture: {"machine": machine, "armhf": armhf, "libc6_armhf": armhf}}
+        self.flasher_output = flasher_output
+        self.commands, self.uploads = [], []
+
+    def get_fact(self, fact, **kwargs):
+        return self.facts[fact]
+
+    def run_shell_command(self, command, _sudo=False, print_output=False):
+        assert _sudo
+        self.commands.append(command)
+        return True, Output(self.flasher_output if "update.sh" in command else "")
+
+    def put_file(self, data, path, _sudo=False):
+        self.uploads.append((path, data.read()))
+        return True
+
+
+def flash_args(**overrides) -> argparse.Namespace:
+    values = {"port": "/dev/ttyACM0", "allow_unidentified_port": False, "sha256": tool.ARCHIVE_SHA256,
+              "verbose": False, **overrides}
+    return argparse.Namespace(**values)
+
+
+def waffle_pi():
+    return argparse.Namespace(name="blue-robot", role="robot",
+                              data={"roslab_profile": {"settings": {"turtlebot3_model": "waffle_pi"}}})
+
+
+@pytest.mark.parametrize("machine, armhf, before", [
+    ("aarch64", False, ["dpkg --add-architecture armhf", "apt-get update",
+                        "DEBIAN_FRONTEND=noninteractive apt-get install -y libc6:armhf"]),
+    ("aarch64", True, []),
+    ("x86_64", False, []),
+])
+def test_flash_adds_armhf_on_a_64_bit_pi_then_runs_update_sh_with_waffle_for_a_waffle_pi(machine, armhf, before,
+                                                                                        capsys):
+    robot = Robot(machine, tool.OPENCR_USB_ID, "[OK] Download \n[OK] jump_to_fw \n", armhf=armhf)
+    assert tool.flash(waffle_pi(), robot, flash_args(), b"the archive") is True
+    assert robot.commands == [*before, f"install -d -m 0700 -o root -g root {tool.REMOTE_DIR}",
+                              tool.flash_script("/dev/ttyACM0", "waffle")]
+    assert robot.uploads == [(f"{tool.REMOTE_DIR}/opencr_update.tar.bz2", b"the archive")]
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith(f"blue-robot: {machine}: ") and out[-1] == (
+        "blue-robot: flashed waffle.opencr through /dev/ttyACM0")
+
+
+def test_flash_through_an_unidentified_port_says_so_and_reports_no_board_in_one_line(capsys):
+    robot = Robot("x86_64", "", "[OK] Open port \t: /dev/pts/4\n[  ]\n[NG] cmd_read_board_name fail : 0xF020\n")
+    assert tool.flash(waffle_pi(), robot, flash_args(port="/dev/pts/4"), b"a") is False
+    assert robot.commands == []  # refused: udev cannot say it is an OpenCR
+    assert tool.flash(waffle_pi(), robot, flash_args(port="/dev/pts/4", allow_unidentified_port=True), b"a") is False
+    captured = capsys.readouterr()
+    assert "blue-robot: udev cannot identify /dev/pts/4; flashing it as --allow-unidentified-port says" in captured.out
+    assert captured.err.splitlines()[-1] == "blue-robot: no OpenCR answered on /dev/pts/4: nothing was flashed"
