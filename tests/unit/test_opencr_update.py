@@ -298,8 +298,8 @@ def waffle_pi():
     ("aarch64", True, []),
     ("x86_64", False, []),
 ])
-def test_flash_adds_armhf_on_a_64_bit_pi_then_runs_update_sh_with_waffle_for_a_waffle_pi(machine, armhf, before,
-                                                                                        capsys):
+def test_flash_adds_armhf_on_a_64_bit_pi_then_runs_update_sh_with_waffle_for_a_waffle_pi(
+        machine, armhf, before, capsys):
     robot = Robot(machine, tool.OPENCR_USB_ID, "[OK] Download \n[OK] jump_to_fw \n", armhf=armhf)
     assert tool.flash(waffle_pi(), robot, flash_args(), b"the archive") is True
     assert robot.commands == [*before, f"install -d -m 0700 -o root -g root {tool.REMOTE_DIR}",
