@@ -150,6 +150,29 @@ class Bundles:
         return into
 
 
+# ROBOTIS's OpenCR firmware archive (roslab opencr-update), as OpenCR-Binaries holds it: the
+# sandbox's upstream serves it under the path of ROBOTIS's URL, the tests unpack and run it.
+OPENCR_BUNDLE = "OpenCR-Binaries"
+OPENCR_ARCHIVE = "turtlebot3/ROS2/latest/opencr_update.tar.bz2"
+OPENCR_SERVED = f"github.com/ROBOTIS-GIT/{OPENCR_BUNDLE}/raw/master/{OPENCR_ARCHIVE}"
+
+
+def opencr_archive(bundles: Bundles, work: Path) -> bytes | None:
+    """The bytes of ROBOTIS's `opencr_update.tar.bz2` at the OpenCR-Binaries bundle's HEAD (None
+    without that bundle); `work` is a scratch folder."""
+    bundle = bundles.paths.get(OPENCR_BUNDLE)
+    if bundle is None:
+        return None
+    bare = work / f"{OPENCR_BUNDLE}.git"
+    shutil.rmtree(bare, ignore_errors=True)
+    _git("clone", "--quiet", "--bare", bundle, bare)
+    try:
+        return subprocess.run(["git", "--git-dir", str(bare), "cat-file", "blob", f"HEAD:{OPENCR_ARCHIVE}"],
+                              capture_output=True, check=True, env={**os.environ, **_GIT_ENV}).stdout
+    finally:
+        shutil.rmtree(bare, ignore_errors=True)
+
+
 def built_manifests(tree: Path) -> list[Path]:
     """The package.xml files in `tree` that colcon builds (none below an ignore marker)."""
     return sorted(manifest for manifest in tree.rglob("package.xml")

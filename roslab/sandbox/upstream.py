@@ -850,6 +850,10 @@ def build(serve_dir: Path, url: str, rootfs: Path, nodes_dir: Path | None = None
             bundles.serve(serve_dir / git_standins.served_path(repository_url), repository_url)
             real.append(repository_url)
     git_standins.from_repos_files(serve_dir, builtin_repos_files(), skip=real)
+    # ROBOTIS's real OpenCR archive where ROSLAB_SANDBOX_SOURCES has it (roslab opencr-update --url).
+    opencr = real_sources.opencr_archive(real_sources.Bundles.from_env(), serve_dir.parent)
+    if opencr is not None:
+        write_file(serve_dir / real_sources.OPENCR_SERVED, opencr)
     pypi.build_index(serve_dir)  # the stand-in Python index, for the profiles' python_packages
     ros = {distro: "stand-in" for distro in ROS_DISTROS.values()} | runtime.describe()
     return Upstream(url=url, ros_apt_source_sha256=sums, ros=ros, real_repositories=tuple(real))

@@ -24,8 +24,10 @@ variables it got in the service's journal (checked only there).
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
+import shlex
 import subprocess
 import sys
 import time
@@ -34,6 +36,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from roslab.sandbox import real_sources
 from tests.e2e.conftest import bring_up
 
 pytestmark = pytest.mark.e2e
@@ -253,10 +256,59 @@ def test_status_shows_each_robots_hardware_checklist(sandbox, roster, first_run)
     assert "Hardware checklist" in page and "waffle.opencr" in page
 
 
-def test_opencr_update_refuses_where_no_board_is_attached(sandbox, roster, first_run):
-    result = subprocess.run([sys.executable, "-m", "roslab", "opencr-update", str(roster), "--limit", "team1-robot"],
-                            cwd=REPO, env=sandbox.env, capture_output=True, text=True, timeout=300)
+def opencr_update(sandbox, roster: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "roslab", "opencr-update", str(roster), "--limit", "team1-robot",
+                           *args], cwd=REPO, env=sandbox.env, capture_output=True, text=True, timeout=300)
+
+
+def test_opencr_update_refuses_where_no_board_is_attached(sandbox, roster, first_run, tmp_path):
+    archive = tmp_path / "opencr_update.tar.bz2"  # any archive: the port is refused before it is used
+    archive.write_bytes(b"an archive")
+    result = opencr_update(sandbox, roster, "--url", archive.as_uri(),
+                           "--sha256", hashlib.sha256(b"an archive").hexdigest())
     assert result.returncode == 1, result.stdout + result.stderr
     assert result.stderr.strip().splitlines()[-1] == (
         "no OpenCR board on team1-robot: /dev/ttyACM0 does not exist (attach the OpenCR to the Pi by USB "
         "and run this again)")
+
+
+# Stands in for the OpenCR: a pseudo-terminal on the robot that never answers, recording what it is sent.
+PTY_HOLDER = ("import os, time; m, s = os.openpty(); open('/run/roslab-e2e-opencr.port', 'w').write(os.ttyname(s)); "
+              "sent = open('/run/roslab-e2e-opencr.sent', 'wb', 0); "
+              "[sent.write(os.read(m, 4096)) for _ in iter(int, 1)]")
+
+
+def test_opencr_update_runs_robotis_flasher_from_the_real_archive_until_no_board_answers(
+        sandbox, roster, first_run):
+    served = sandbox.instance.state_dir / "upstream" / real_sources.OPENCR_SERVED
+    if not served.is_file():
+        pytest.skip("no OpenCR-Binaries.bundle in ROSLAB_SANDBOX_SOURCES: the upstream serves no OpenCR archive")
+    url = f"{sandbox.instance.upstream_url}/{real_sources.OPENCR_SERVED}"
+    sandbox.sudo("team1-robot", "systemctl stop roslab-e2e-opencr-pty 2>/dev/null; rm -f /run/roslab-e2e-opencr.*")
+    sandbox.sudo("team1-robot", "systemd-run --unit roslab-e2e-opencr-pty -p RuntimeMaxSec=300 "
+                 f"python3 -c {shlex.quote(PTY_HOLDER)}", check=True)
+    try:
+        deadline = time.monotonic() + 30
+        while (found := sandbox.sudo("team1-robot", "cat /run/roslab-e2e-opencr.port")).returncode != 0:
+            assert time.monotonic() < deadline, found.stderr
+            time.sleep(0.5)
+        port = found.stdout.strip()
+        # A port udev cannot name is refused unless the teacher says so.
+        refused = opencr_update(sandbox, roster, "--url", url, "--port", port)
+        assert refused.returncode == 1 and refused.stderr.strip().splitlines()[-1] == (
+            f"{port} on team1-robot is a device udev cannot identify, not an OpenCR (0483:5740): nothing was "
+            "flashed (--allow-unidentified-port flashes through it all the same)"), refused.stdout + refused.stderr
+        result = opencr_update(sandbox, roster, "--url", url, "--port", port, "--allow-unidentified-port")
+        sent = sandbox.sudo("team1-robot", "tr -c 'A-Za-z0-9 ' . < /run/roslab-e2e-opencr.sent", check=True).stdout
+    finally:
+        sandbox.sudo("team1-robot", "systemctl stop roslab-e2e-opencr-pty")
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert "team1-robot: x86_64: update.sh runs the x86 flasher natively" in result.stdout, result.stdout
+    assert result.stderr.strip().splitlines()[-1] == (
+        f"team1-robot: no OpenCR answered on {port}: nothing was flashed"), result.stdout + result.stderr
+    # ROBOTIS's flasher wrote to the port: the jump-to-bootloader word, then its board-name requests.
+    assert sent.startswith("OpenCR 5555AAAA"), sent
+    unpacked = sandbox.sudo("team1-robot", "stat -c '%U %a' /var/lib/roslab/opencr-update; "
+                            "ls /var/lib/roslab/opencr-update/opencr_update", check=True).stdout.split()
+    assert unpacked[:2] == ["root", "700"], unpacked
+    assert {"update.sh", "opencr_ld_shell_x86", "burger.opencr", "waffle.opencr"} <= set(unpacked), unpacked

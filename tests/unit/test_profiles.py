@@ -9,6 +9,7 @@ loopback as a rosdistro index, exactly as a roster's `rosdistro_index_url` would
 from __future__ import annotations
 
 import functools
+import hashlib
 import gzip
 import http.server
 import textwrap
@@ -132,7 +133,8 @@ def test_turtlebot3_robot_gets_the_driver_of_its_lidar_and_the_udev_rules():
         assert 'ATTRS{idProduct}=="5740", ENV{ID_MM_DEVICE_IGNORE}="1"' in data["udev_rules"]
         assert 'ATTRS{idProduct}=="df11"' in data["udev_rules"]
         assert ("tb3_lidar" in data["udev_rules"]) == (lds == "LDS-01")
-        assert any("waffle_pi.opencr" in item for item in data["checklist"])
+        (opencr,) = [item for item in data["checklist"] if "OpenCR firmware" in item]
+        assert "waffle.opencr for waffle and waffle_pi" in opencr and "waffle_pi.opencr" not in opencr
     # Every driver on every robot (as turtlebot3_bringup's own dependencies): a new lidar is a variable.
     assert all(found == ["coin_d4_driver", "hls_lfcd_lds_driver", "ld08_driver"] for found in drivers.values())
     data, _ = resolve_host(profile, {"turtlebot3_model": "burger", "lds_model": "LDS-01",
@@ -190,8 +192,8 @@ def test_a_misspelt_model_is_refused_with_did_you_mean(tmp_path, rosdistro_url):
     errors = errors_of(tb3_roster(tmp_path, rosdistro_url, "lds_model: LDS-02", host_extra=", turtlebot3_model: burgr"))
     assert errors == [
         "lab.yaml:10: team 'tb3', host 'tb3-main', field 'turtlebot3_model': profile 'turtlebot3' needs "
-        "turtlebot3_model (burger, waffle, waffle_pi): The TurtleBot3's model (TURTLEBOT3_MODEL; the OpenCR "
-        "firmware file is <model>.opencr).",
+        "turtlebot3_model (burger, waffle, waffle_pi): The TurtleBot3's model (TURTLEBOT3_MODEL; OpenCR "
+        "firmware burger.opencr, or waffle.opencr for waffle and waffle_pi).",
         "lab.yaml:14: team 'tb3', host 'tb3-robot', field 'turtlebot3_model': 'burgr' is not one of burger, "
         "waffle, waffle_pi (did you mean 'burger'?)"]
 
@@ -368,7 +370,7 @@ def test_ros_environment_refuses_what_no_destination_can_carry(tmp_path, variabl
 # --- roslab opencr-update ------------------------------------------------------------------
 
 def test_opencr_update_refuses_in_one_line_naming_the_device():
-    from roslab.robot_tools.opencr_update import UsbSerialPort, port_problem, update_script
+    from roslab.robot_tools.opencr_update import UsbSerialPort, port_problem
 
     fact = UsbSerialPort()
     assert fact.process(["missing"]) is None
@@ -380,8 +382,6 @@ def test_opencr_update_refuses_in_one_line_naming_the_device():
     assert port_problem("tb3-robot", "/dev/ttyACM0", "1a86:7523") == (
         "/dev/ttyACM0 on tb3-robot is 1a86:7523, not an OpenCR (0483:5740): nothing was flashed")
     assert port_problem("tb3-robot", "/dev/ttyACM0", "0483:5740") is None
-    assert "./update.sh /dev/ttyACM0 burger.opencr" in update_script("/dev/ttyACM0", "burger")
-    assert "./update.sh '/dev/tty ACM0' burger.opencr" in update_script("/dev/tty ACM0", "burger")
 
 
 def test_opencr_update_refuses_a_host_that_is_not_a_turtlebot3_robot(tmp_path, rosdistro_url, capsys):
@@ -429,13 +429,16 @@ def test_opencr_update_goes_to_each_turtlebot3_robot_the_limit_selects(tmp_path,
 
     monkeypatch.setattr(reach, "connected_state", connected_state)
     monkeypatch.setattr(pyinfra.api.connect, "disconnect_all", lambda state: None)
-    assert main(["opencr-update", str(path), "--limit", "robot"]) == 1
+    archive = tmp_path / "opencr_update.tar.bz2"  # had and checked before any robot is reached
+    archive.write_bytes(b"an archive")
+    source = ["--url", archive.as_uri(), "--sha256", hashlib.sha256(b"an archive").hexdigest()]
+    assert main(["opencr-update", str(path), "--limit", "robot", *source]) == 1
     assert asked == [["tb3-robot", "tb4-robot"]]
     assert [line for line in capsys.readouterr().err.splitlines() if "GET /" not in line] == [
         "roslab opencr-update: cannot reach tb3-robot",
         "no OpenCR board on tb4-robot: /dev/ttyACM0 does not exist (attach the OpenCR to the Pi by USB and run "
         "this again)"]
-    assert main(["opencr-update", str(path), "--limit", "tb4"]) == 1  # the team: its robot, not its main
+    assert main(["opencr-update", str(path), "--limit", "tb4", *source]) == 1  # the team: its robot, not its main
     assert asked[-1] == ["tb4-robot"]
 
 
