@@ -24,6 +24,18 @@ def test_readme_table_is_up_to_date():
     )
 
 
+def test_readme_releases_table_is_up_to_date_and_has_a_row_per_release_record():
+    from roslab.ros.distro import PLATFORMS
+
+    expected = settings_doc.releases_table()
+    readme = settings_doc.README.read_text()
+    assert settings_doc.readme_with_releases(readme, expected) == readme, (
+        "README's releases table is stale: run `python -m roslab.settings_doc --write`"
+    )
+    for platform in PLATFORMS:
+        assert f"| {platform.release} {platform.codename} | {platform.distro.capitalize()} |" in expected
+
+
 def test_readme_profiles_table_is_up_to_date_and_has_a_row_per_profile_file():
     from roslab.profiles.library import builtin_files
 
