@@ -14,6 +14,7 @@ from __future__ import annotations
 import ipaddress
 import os
 import re
+import socket
 import tempfile
 import unicodedata
 from collections.abc import Callable
@@ -203,12 +204,40 @@ def host_label(value: str, context: Context | None = None) -> str | None:
     return None
 
 
+def _loose_ipv4(value: str) -> str | None:
+    """The dotted-quad IPv4 address a resolver makes of `value` when it is not written as one
+    (inet_aton's hex, octal and short forms: 0x7f.0.0.11, 017.0.0.1, 127.11, 2130706443),
+    else None: such a name reaches that address, so it would pass a duplicate check as text."""
+    if not value.isascii() or not value or not value[0].isdigit() or not all(
+            char in "0123456789abcdefxABCDEFX." for char in value):
+        return None
+    try:
+        packed = socket.inet_aton(value)
+    except (OSError, ValueError):
+        return None
+    return socket.inet_ntoa(packed)
+
+
+def _non_canonical_ip(value: str) -> str | None:
+    """Why an address ipaddress accepts is not in the one form roslab compares, or None:
+    IPv4 as a dotted quad, IPv6 in its canonical (lower-case, compressed, no zone) form."""
+    ip = ipaddress.ip_address(value)
+    if ip.version == 6 and str(ip) != value:
+        return f"{value!r} is not written in IPv6's canonical form: write {str(ip)!r}"
+    return None
+
+
 def ip_address(value: str, context: Context | None = None) -> str | None:
+    """An IP address: IPv4 as a dotted quad, IPv6 in canonical form."""
     try:
         ipaddress.ip_address(value)
     except ValueError:
+        loose = _loose_ipv4(value) if isinstance(value, str) else None
+        if loose:
+            return (f"{value!r} is not an IP address written as four decimal numbers (a resolver "
+                    f"would read it as {loose!r})")
         return f"{value!r} is not an IP address"
-    return None
+    return _non_canonical_ip(value)
 
 
 def address(value: str, context: Context | None = None) -> str | None:
@@ -220,6 +249,9 @@ def address(value: str, context: Context | None = None) -> str | None:
                 ip.version == 4 and ip == ipaddress.IPv4Address("255.255.255.255")):
             return f"{value!r} is not an address a host can have (unspecified, multicast, broadcast or reserved)"
         return None
+    problem = ip_address(value)
+    if "written" in problem or "resolver" in problem:  # 0x7f.0.0.11, 127.11, FD00::1: an address, in a form not compared
+        return problem
     if hostname(value) is None:
         return None
     return f"{value!r} is neither an IP address nor a valid host name"
@@ -231,7 +263,10 @@ def ip_interface(value: str, context: Context | None = None) -> str | None:
         ipaddress.ip_interface(value)
     except ValueError:
         return f"{value!r} is not an IP address (with prefix length), e.g. '192.168.50.11/24'"
-    return None
+    address_part, _, prefix = value.partition("/")
+    if prefix and not (prefix.isascii() and prefix.isdigit() and str(int(prefix)) == prefix):
+        return f"{value!r}: the prefix length is a plain decimal number, e.g. '192.168.50.11/24'"
+    return _non_canonical_ip(address_part)
 
 
 def ubuntu_release(value: str, context: Context | None = None) -> str | None:

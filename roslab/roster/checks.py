@@ -262,8 +262,10 @@ def check_unique(classroom: Classroom, report: Report, field_name: str | None, k
 
 
 def _address_key(host: Host):
+    """An address by value (::ffff:10.0.0.1 is 10.0.0.1), a host name by its lower-case text."""
     try:
-        return ipaddress.ip_address(host.address)
+        ip = ipaddress.ip_address(host.address)
+        return getattr(ip, "ipv4_mapped", None) or ip
     except ValueError:
         return host.address.lower().rstrip(".")
 
