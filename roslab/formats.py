@@ -449,6 +449,9 @@ def file_url_problem(url: str, folder: Path, named: str, *, file_suffix: str | N
 http_url = url(("http", "https"))
 
 # One path component inside the home directory: no `..`, no hidden tricks.
+# Linux's limits (limits.h): one name of a path, and a whole path with its terminating NUL.
+NAME_MAX, PATH_MAX = 255, 4096
+MAX_HOME_PATH = 1024  # a folder in the home: the home's own path and the tree inside fit in PATH_MAX
 _PATH_COMPONENT = re.compile(r"[A-Za-z0-9_+][A-Za-z0-9_.+-]*", re.ASCII)
 
 
@@ -462,7 +465,12 @@ def home_path(value: str, context: Context | None = None) -> str | None:
     components = [part for part in value[2:].split("/") if part]
     if not components:
         return f"{value!r} is the home directory itself; name a directory inside it"
+    if len(value.encode()) > MAX_HOME_PATH:
+        return (f"the path is {len(value.encode())} bytes long; at most {MAX_HOME_PATH} (PATH_MAX is {PATH_MAX}, "
+                "with room for the home folder and the files inside)")
     for part in components:
+        if len(part.encode()) > NAME_MAX:
+            return f"{part[:40]!r}... is {len(part.encode())} bytes long: a folder name holds at most {NAME_MAX}"
         if part in (".", "..") or not _PATH_COMPONENT.fullmatch(part):
             return (f"{value!r}: {part!r} is not a plain directory name "
                     "(letters, digits, _ . + -, not starting with . or -)")
