@@ -173,6 +173,86 @@ sha256_hex = pattern(r"[0-9a-f]{64}", "a sha256 (64 lower-case hex digits)")
 interface_name = pattern(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,14}", "a network interface name (like eth0)")
 # A colcon argument: option or value, no shell or line syntax needed.
 colcon_argument = pattern(r"[A-Za-z0-9_@%+=:,./-]+", "a colcon argument (letters, digits, _ @ % + = : , . / -)")
+# The whole list is then checked against the allow-list (colcon_arguments, below).
+
+# The `colcon build` options a class needs, each with what its value must be (None: a flag). A
+# path option (--base-paths, --install-base, --build-base, --log-base, --merge-install...) is
+# not among them: roslab decides where colcon reads, builds, installs and logs.
+_CMAKE_DEFINE = re.compile(r"-D([A-Za-z_][A-Za-z0-9_]{0,63})(:(BOOL|STRING))?=[A-Za-z0-9_.,+:@%-]{0,200}", re.ASCII)
+# CMake variables that say where a build installs (or looks for what it installed).
+_INSTALL_LOCATION = re.compile(r"CMAKE_INSTALL_.*|CMAKE_STAGING_PREFIX|CMAKE_SYSROOT|CMAKE_FIND_ROOT_PATH|"
+                               r"CMAKE_PREFIX_PATH|CMAKE_.*_OUTPUT_DIRECTORY|.*_DIR|DESTDIR", re.ASCII)
+MAX_PARALLEL_WORKERS = 64
+COLCON_OPTIONS = {
+    "--executor": ("sequential", "parallel"),
+    "--parallel-workers": "count",
+    "--event-handlers": "handlers",
+    "--cmake-args": "defines",
+    "--symlink-install": None,
+    "--continue-on-error": None,
+    "--cmake-force-configure": None,
+    "--cmake-clean-cache": None,
+}
+_EVENT_HANDLER = re.compile(r"[a-z_]{1,40}[+-]", re.ASCII)
+
+
+def _colcon_value_problem(option: str, value: str) -> str | None:
+    wanted = COLCON_OPTIONS[option]
+    if isinstance(wanted, tuple):
+        return None if value in wanted else f"{option} takes {' or '.join(wanted)}, not {value!r}"
+    if wanted == "count":
+        if value.isascii() and value.isdigit() and 1 <= int(value) <= MAX_PARALLEL_WORKERS:
+            return None
+        return f"{option} takes a number from 1 to {MAX_PARALLEL_WORKERS}, not {value[:20]!r}"
+    if wanted == "handlers":
+        return None if _EVENT_HANDLER.fullmatch(value) else \
+            f"{option} takes event handler names ending in + or - (console_direct+), not {value[:40]!r}"
+    problem = install_location_problem(value)
+    if problem:
+        return problem
+    if not _CMAKE_DEFINE.fullmatch(value):
+        return (f"{option} takes -DNAME=value (ASCII letters, digits and _ . , + : @ % - in the value), "
+                f"not {value[:40]!r}")
+    return None
+
+
+def install_location_problem(define: str) -> str | None:
+    """Why a CMake `-DNAME=value` may not be given (it sets where a build installs or finds its
+    parts: CMAKE_INSTALL_PREFIX and the like), or None. Shared by workspace_colcon_args and a
+    profile's cmake_args."""
+    match = re.match(r"-D([A-Za-z_][A-Za-z0-9_]{0,63})", define, re.ASCII)
+    if match and _INSTALL_LOCATION.fullmatch(match.group(1)):
+        return f"{match.group(1)} says where a build installs or finds its parts: roslab decides that"
+    return None
+
+
+def colcon_arguments(values: list, _context: Context | None = None) -> str | None:
+    """`colcon build` options from roslab's allow-list (COLCON_OPTIONS), each with its value."""
+    option = None
+    for value in values:
+        if not isinstance(value, str):
+            return None  # the item's type is reported on its own
+        name, eq, inline = value.partition("=")
+        if name in COLCON_OPTIONS:
+            option = name if COLCON_OPTIONS[name] is not None else None
+            if eq and option is None:
+                return f"{name} takes no value"
+            if eq:
+                problem = _colcon_value_problem(name, inline)
+                if problem:
+                    return problem
+                option = name if COLCON_OPTIONS[name] in ("handlers", "defines") else None
+            continue
+        if value.startswith("--") or option is None:
+            return (f"{value.split('=')[0][:40]!r} is not a colcon option roslab allows (allowed: "
+                    f"{', '.join(COLCON_OPTIONS)}; roslab decides where colcon builds and installs)")
+        problem = _colcon_value_problem(option, value)
+        if problem:
+            return problem
+        if COLCON_OPTIONS[option] not in ("handlers", "defines"):
+            option = None  # one value only
+    return None
+
 
 # ASCII only: with re.IGNORECASE alone, `[a-z]` would match ı, ſ and the Kelvin sign.
 _HOST_LABEL = re.compile(r"[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?", re.ASCII)
@@ -940,3 +1020,6 @@ for _check, _words in {
     package_template: "Debian package names",
 }.items():
     _check.allowed = _words
+
+
+colcon_argument.whole = colcon_arguments

@@ -451,10 +451,11 @@ class ProfileReader:
                 continue
             items = self.string_list(
                 value, package, f"{where}.{package}",
-                lambda arg: None if _CMAKE_ARG.fullmatch(arg) else
-                f"{arg!r} is not a CMake cache setting: -DNAME=value or -DNAME:TYPE=value "
-                "(ASCII letters, digits and _ . , / + : @ % - in the value)")
-            if items and all(_CMAKE_ARG.fullmatch(arg) for arg in items):
+                lambda arg: formats.install_location_problem(arg) or (None if _CMAKE_ARG.fullmatch(arg) else
+                f"{arg[:80]!r} is not a CMake cache setting: -DNAME=value or -DNAME:TYPE=value "
+                "(ASCII letters, digits and _ . , / + : @ % - in the value)"))
+            if items and all(_CMAKE_ARG.fullmatch(arg) and not formats.install_location_problem(arg)
+                             for arg in items):
                 merged = side.cmake_args.setdefault(package, [])
                 merged += [arg for arg in items if arg not in merged]
 
