@@ -302,6 +302,8 @@ def _non_canonical_ip(value: str) -> str | None:
     """Why an address ipaddress accepts is not in the one form roslab compares, or None:
     IPv4 as a dotted quad, IPv6 in its canonical (lower-case, compressed, no zone) form."""
     ip = ipaddress.ip_address(value)
+    if ip.version == 6 and ip.ipv4_mapped:
+        return f"{value!r} is an IPv4 address in IPv6's clothes: write {str(ip.ipv4_mapped)!r}"
     if ip.version == 6 and str(ip) != value:
         return f"{value!r} is not written in IPv6's canonical form: write {str(ip)!r}"
     return None
@@ -330,7 +332,7 @@ def address(value: str, context: Context | None = None) -> str | None:
             return f"{value!r} is not an address a host can have (unspecified, multicast, broadcast or reserved)"
         return None
     problem = ip_address(value)
-    if "written" in problem or "resolver" in problem:  # 0x7f.0.0.11, 127.11, FD00::1: an address, in a form not compared
+    if "written" in problem or "resolver" in problem or "clothes" in problem:  # 0x7f.0.0.11, 127.11, FD00::1: an address, in a form not compared
         return problem
     if hostname(value) is None:
         return None

@@ -50,8 +50,9 @@ def _inside(inner: str, outer: str) -> bool:
     return inner == outer or inner.startswith(outer + "/")
 
 
-def folder_problems(data: Mapping) -> list[tuple[str, str]]:
-    """The home folders roslab manages neither are nor hold one another."""
+def folder_problems(data: Mapping, given=None) -> list[tuple[str, str]]:
+    """The home folders roslab manages neither are nor hold one another; the problem is the key
+    of the pair that was `given`, else the later one."""
     folders = [(key, data[key]) for key in HOME_FOLDERS if isinstance(data.get(key), str)
                and formats.home_path(data[key]) is None]
     problems = []
@@ -59,9 +60,17 @@ def folder_problems(data: Mapping) -> list[tuple[str, str]]:
         for other, other_folder in folders[:index]:
             if _inside(folder, other_folder) or _inside(other_folder, folder):
                 how = "is" if folder.rstrip("/") == other_folder.rstrip("/") else "overlaps"
-                problems.append((key, f"{folder!r} {how} {other} ({other_folder!r}): each folder roslab manages "
-                                      "needs one of its own (the underlay's switch replaces its install folder)"))
+                blamed, other, value, other_value = _blamed(key, other, given, folder, other_folder)
+                problems.append((blamed, f"{value!r} {how} {other} ({other_value!r}): each folder roslab manages "
+                                         "needs one of its own (the underlay's switch replaces its install folder)"))
     return problems
+
+
+def _blamed(key: str, other: str, given, *values) -> tuple:
+    """(key, other, its value, other's value), swapped when only `other` was given by hand."""
+    if given is not None and key not in given and other in given:
+        return (other, key, *reversed(values)) if values else (other, key, None, None)
+    return (key, other, *values) if values else (key, other, None, None)
 
 
 def port_problems(data: Mapping, given=None) -> list[tuple[str, str]]:
@@ -76,8 +85,7 @@ def port_problems(data: Mapping, given=None) -> list[tuple[str, str]]:
     problems, seen = [], {}
     for key, port in ports:
         if port in seen:
-            blamed, other = (seen[port], key) if given is not None and key not in given \
-                and seen[port] in given else (key, seen[port])
+            blamed, other, _, _ = _blamed(key, seen[port], given)
             problems.append((blamed, f"port {port} is also this host's {other}: give each its own port"))
         seen.setdefault(port, key)
     return problems
@@ -85,13 +93,15 @@ def port_problems(data: Mapping, given=None) -> list[tuple[str, str]]:
 
 def across_problems(data: Mapping, given=None) -> list[tuple[str, str]]:
     """`given`: the keys set by hand (not defaults), to blame the one a person wrote."""
-    return [*folder_problems(data), *port_problems(data, given)]
+    return [*folder_problems(data, given), *port_problems(data, given)]
 
 
-def hand_made_problems(data: Mapping) -> list[tuple[str, str]]:
+def hand_made_problems(data: Mapping, merged: Mapping | None = None) -> list[tuple[str, str]]:
     """A hand-made inventory host's data against every rule a roster's values meet, but the place
-    of controller-side files (relative to a roster's folder: there is none)."""
+    of controller-side files (relative to a roster's folder: there is none). `merged`: the data
+    with the schema's defaults under it, for the rules across values."""
     # No roster folder to keep controller-side files in: the whole machine is the place.
     problems = value_problems(data, formats.Context(Path("/")), controller_paths=False)
     bad = {key for key, _ in problems}
-    return [*problems, *[(key, message) for key, message in across_problems(data) if key not in bad]]
+    across = across_problems(data if merged is None else merged, given=set(data))
+    return [*problems, *[(key, message) for key, message in across if key not in bad]]

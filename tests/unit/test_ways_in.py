@@ -1,0 +1,161 @@
+"""Every way a host's settings come in is checked by the same rules (issue 37).
+
+Each hostile value of tests/unit/fixtures/hostile_values.py goes in through a roster (its
+file:line named), pyinfra's `--data key=value` (the option named, not the roster), and a
+hand-made inventory's host data (one line naming host and key), and is refused before any
+host is contacted (`no_connections` fails the test on any connection).
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from roslab import formats, host_rules, settings
+from roslab.host_settings import HostSettingsError, settings_of
+from roslab.profiles.resolve import dependency_cycle
+from roslab.roster import RosterError, load_roster
+from roslab.roster.overrides import command_line_data
+from fixtures.hostile_values import COMMAND_LINE_ONLY, HOSTILE
+
+ROSTER = """\
+classroom:
+  ssh_user: ubuntu
+teams:
+  team1:
+    ros_domain_id: 11
+    hosts:
+      team1-main:
+        role: main
+        address: 127.0.0.10{host}
+"""
+HOST_LINE = 9  # the host's last line (its address); a value goes under it
+IDS = [f"{key}={json.dumps(value)[:30]}" for key, value, _ in HOSTILE]
+
+
+@pytest.fixture(autouse=True)
+def _here(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("ROSLAB_ROSTER", raising=False)
+
+
+def roster(tmp_path, host: str = "", extra: str = ""):
+    path = tmp_path / "lab.yaml"
+    path.write_text(ROSTER.format(host=host) + extra)
+    return path
+
+
+def problems_of(path, argv=()) -> list:
+    with pytest.raises(RosterError) as raised:
+        load_roster(path, command_line=command_line_data(["pyinfra", *argv]))
+    return raised.value.problems
+
+
+@pytest.mark.parametrize("key, value, words", HOSTILE, ids=IDS)
+def test_a_hostile_value_in_a_roster_is_refused_naming_file_line_and_field(key, value, words, tmp_path,
+                                                                          no_connections):
+    if "host" in settings.SETTINGS[key].levels:
+        path = roster(tmp_path, host=f"\n        {key}: {json.dumps(value)}")
+        line = HOST_LINE + 1
+    else:  # a classroom setting
+        path = roster(tmp_path)
+        path.write_text(path.read_text().replace("  ssh_user: ubuntu\n", f"  ssh_user: ubuntu\n  {key}: {json.dumps(value)}\n"))
+        line = 3
+    problems = [problem for problem in problems_of(path) if problem.field == key]
+    assert len(problems) >= 1 and all(problem.line == line and problem.path == "lab.yaml" for problem in problems)
+    assert words in problems[0].message, problems
+    assert no_connections == []
+
+
+@pytest.mark.parametrize("key, value, words", HOSTILE + COMMAND_LINE_ONLY,
+                         ids=IDS + [f"{key}=null" for key, _, _ in COMMAND_LINE_ONLY])
+def test_a_hostile_value_from_pyinfras_data_option_is_refused_naming_the_option(key, value, words, tmp_path,
+                                                                                no_connections):
+    text = value if isinstance(value, str) else json.dumps(value)
+    problems = [problem for problem in problems_of(roster(tmp_path), ["--data", f"{key}={text}"])
+                if problem.field == key]
+    assert problems, key
+    for problem in problems:  # the option named, never the roster file
+        assert problem.path == "pyinfra's command line" and f"--data {key}=" in problem.message
+    assert words in problems[0].message
+    assert no_connections == []
+
+
+@pytest.mark.parametrize("key, value, words", HOSTILE, ids=IDS)
+def test_a_hostile_value_in_a_hand_made_inventory_is_one_line_naming_host_and_key(key, value, words):
+    with pytest.raises(HostSettingsError) as raised:
+        settings_of("pi", {key: value, "ros_domain_id": 5} if key != "ros_domain_id" else {key: value})
+    message = str(raised.value)
+    assert "\n" not in message and message.startswith("host pi: ") and f"{key}: " in message, message
+    assert words in message, message
+    assert formats.home_path("~/" + "u" * 5000)[:200] not in message or "bytes long" in message
+
+
+def test_a_hand_made_inventory_with_values_a_roster_takes_passes():
+    typed = settings_of("pi", {"ros_domain_id": 5, "ros_environment": {"LAB_ROBOT_NAME": "r1"},
+                               "sources_underlay_dir": "~/underlay", "workspace_colcon_args":
+                               ["--executor", "sequential", "--parallel-workers", "2", "--cmake-args",
+                                "-DBUILD_TESTING=OFF"], "network_gateway": "192.168.50.1"})
+    assert typed.ros_domain_id == 5 and typed.sources_underlay_dir == "~/underlay"
+
+
+def test_the_roster_and_a_hand_made_inventory_share_one_set_of_rules():
+    """Each rule across a host's values lives in roslab.host_rules, which both ways call."""
+    data = {**settings.defaults(), "sources_underlay_dir": "~/ros2_ws", "ssh_port": 7447}
+    given = {"sources_underlay_dir", "ssh_port"}
+    assert {key for key, _ in host_rules.across_problems(data, given)} == given
+    assert {key for key, _ in host_rules.hand_made_problems({key: data[key] for key in given}, data)} == given
+
+
+def test_underlay_builder_from_the_command_line_is_blamed_on_the_option(tmp_path, no_connections):
+    text = """\
+classroom:
+  ssh_user: ubuntu
+  ubuntu_release: "24.04"
+  ros_packages_check: false
+  robot_profile: esp32_microros
+  esp32_usb_serial: A1
+teams:
+  team1:
+    hosts:
+      team1-main: {role: main, address: 192.0.2.11}
+      team1-robot: {role: robot, address: 192.0.2.12}
+"""
+    (tmp_path / "lab.yaml").write_text(text)
+    problems = problems_of(tmp_path / "lab.yaml", ["--data", "underlay_builder=nosuch"])
+    mine = [problem for problem in problems if problem.field == "underlay_builder"]
+    assert mine and all(problem.path == "pyinfra's command line" for problem in mine), problems
+    assert "--data underlay_builder=nosuch: 'nosuch' is not a host of this roster" in mine[0].message
+
+
+@pytest.mark.parametrize("written", ["0x7f.0.0.11", "127.11", "2130706443", "0177.0.0.11"])
+def test_an_address_in_another_ipv4_form_is_refused_naming_the_address_it_means(written, tmp_path):
+    path = roster(tmp_path, extra=f"      team1-robot:\n        role: robot\n        address: {json.dumps(written)}\n")
+    problems = [problem for problem in problems_of(path) if problem.field == "address"]
+    assert len(problems) == 1 and problems[0].line == 12, problems
+    assert "four decimal numbers" in problems[0].message and "'127.0.0.11'" in problems[0].message
+
+
+def test_an_ipv4_mapped_ipv6_address_is_refused_naming_the_ipv4_address(tmp_path):
+    path = roster(tmp_path, extra="      team1-robot:\n        role: robot\n        address: '::ffff:127.0.0.10'\n")
+    problems = [problem for problem in problems_of(path) if problem.field == "address"]
+    assert len(problems) == 1 and "write '127.0.0.10'" in problems[0].message
+
+
+@pytest.mark.parametrize("graph, cycle", [
+    ({"a": ["b"], "b": ["a"]}, ["a", "b", "a"]),
+    ({"a": ["b"], "b": ["c"], "c": ["d"], "d": ["b"]}, ["b", "c", "d", "b"]),
+    ({"a": ["b", "c"], "b": ["c"], "c": []}, None),
+    ({f"p{i}": [f"p{i + 1}"] for i in range(5000)}, None),  # a long chain: no recursion limit
+])
+def test_a_build_dependencies_cycle_of_any_length_is_found(graph, cycle):
+    assert dependency_cycle(graph) == cycle
+
+
+def test_colcon_options_come_from_an_allow_list():
+    assert formats.colcon_arguments(["--executor", "parallel", "--parallel-workers", "4", "--event-handlers",
+                                     "console_direct+", "status-", "--cmake-args", "-DBUILD_TESTING=OFF"]) is None
+    assert "takes no value" in formats.colcon_arguments(["--symlink-install=yes"])
+    assert "1 to 64" in formats.colcon_arguments(["--parallel-workers=0"])
+    assert "roslab decides" in formats.colcon_arguments(["--cmake-args", "-DCMAKE_INSTALL_LIBDIR=/usr/lib"])
