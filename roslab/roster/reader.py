@@ -565,8 +565,12 @@ class RosterReader:
         name = data["robot_profile"]
         profile = self.profiles.get(name)
         if profile is None:
+            from roslab.profiles.library import broken_builtin
+
             close = difflib.get_close_matches(name, sorted(self.profiles), n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
+            if broken_builtin(name):
+                hint = " (its file in roslab's profile folder has the problems listed: fix them)"
             error(f"{name!r} is not a robot profile (known: {', '.join(sorted(self.profiles))}){hint}",
                   "robot_profile")
             data["roslab_profile"] = None

@@ -159,3 +159,50 @@ def test_colcon_options_come_from_an_allow_list():
     assert "takes no value" in formats.colcon_arguments(["--symlink-install=yes"])
     assert "1 to 64" in formats.colcon_arguments(["--parallel-workers=0"])
     assert "roslab decides" in formats.colcon_arguments(["--cmake-args", "-DCMAKE_INSTALL_LIBDIR=/usr/lib"])
+
+
+# --- a bad file in the profile folder -------------------------------------------------------
+
+SECRET_LINE = "root:$6$PLANTED-secret-hash:19000:0:99999:7:::"
+
+
+@pytest.fixture
+def profile_folder(tmp_path, monkeypatch):
+    """A copy of roslab's profile folder to spoil: the real files, then a broken one and a
+    symlink out of the folder to a file of secret-looking lines."""
+    from roslab.profiles import library
+
+    folder = tmp_path / "profiles"
+    folder.mkdir()
+    for path in library.data_folder().iterdir():
+        (folder / path.name).write_bytes(path.read_bytes())
+    (folder / "broken.yaml").write_text("profile: broken\nrobot:\n  launch: [\n")
+    (tmp_path / "shadow").write_text(f"{SECRET_LINE}\nsecond line: PLANTED-too\n")
+    (folder / "leak.yaml").symlink_to(tmp_path / "shadow")
+    monkeypatch.setattr(library, "data_folder", lambda: folder)
+    library._builtin.cache_clear()
+    yield folder
+    library._builtin.cache_clear()
+
+
+def test_a_bad_profile_file_never_stops_an_unrelated_command(profile_folder, tmp_path, capsys, no_connections):
+    from roslab.cli.main import main
+
+    with pytest.raises(SystemExit) as exited:
+        main(["--help"])
+    assert exited.value.code == 0 and "usage: roslab" in capsys.readouterr().out
+    assert main(["check", str(roster(tmp_path))]) == 0  # a roster that does not use it
+    err = capsys.readouterr().err
+    assert "profiles/broken.yaml:4: not valid YAML" in err  # file:line, like a roster's problem
+    assert f"{profile_folder / 'leak.yaml'}: a symlink that leads out of the profile folder" in err
+    assert "PLANTED" not in err and "root:" not in err  # the file behind the link is never read
+    assert "Traceback" not in err and no_connections == []
+
+
+def test_a_roster_naming_a_broken_profile_is_refused_pointing_at_its_file(profile_folder, tmp_path, capsys):
+    from roslab.cli.main import main
+
+    assert main(["check", str(roster(tmp_path, host="\n        robot_profile: broken"))]) == 1
+    err = capsys.readouterr().err
+    assert "field 'robot_profile': 'broken' is not a robot profile" in err and "its file in roslab's profile" in err
+    assert "PLANTED" not in err and "Traceback" not in err
