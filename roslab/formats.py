@@ -724,7 +724,10 @@ def cache_dir(value: str, context: Context | None = None) -> str | None:
         return problem
     path = context.controller_path(value)
     places = (_home(), context.roster_dir, Path(tempfile.gettempdir()))
-    if not any(within(path, place) for place in places):
+    # inside one of the places, and none of them itself nor holding one (a home under /tmp: ~ is
+    # inside the temporary directory, and still the whole home)
+    if not any(within(path, place) for place in places) or any(within(place, path, strictly=False)
+                                                                for place in places[::2]):
         return (f"{value!r} ({_real(path)}) is not a folder of its own inside your home directory, "
                 "the roster's folder or the temporary directory")
     for private in (_home() / ".ssh", _home() / ".gnupg", context.state_dir):

@@ -206,3 +206,12 @@ def test_a_roster_naming_a_broken_profile_is_refused_pointing_at_its_file(profil
     err = capsys.readouterr().err
     assert "field 'robot_profile': 'broken' is not a robot profile" in err and "its file in roslab's profile" in err
     assert "PLANTED" not in err and "Traceback" not in err
+
+
+def test_the_home_as_a_cache_is_refused_whatever_home_is(tmp_path, monkeypatch):
+    """A HOME inside the temporary directory (a private one, as CI's) is still the whole home."""
+    home = tmp_path / "home"
+    home.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    assert "not a folder of its own" in formats.cache_dir("~", formats.Context(tmp_path / "roster"))
+    assert formats.cache_dir("~/.cache/roslab/rosdep", formats.Context(tmp_path / "roster")) is None
