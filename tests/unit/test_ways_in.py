@@ -215,3 +215,45 @@ def test_the_home_as_a_cache_is_refused_whatever_home_is(tmp_path, monkeypatch):
     monkeypatch.setenv("HOME", str(home))
     assert "not a folder of its own" in formats.cache_dir("~", formats.Context(tmp_path / "roster"))
     assert formats.cache_dir("~/.cache/roslab/rosdep", formats.Context(tmp_path / "roster")) is None
+
+
+# --- a roster's own profile ------------------------------------------------------------------
+
+PROFILE = """\
+profiles:
+  mine:
+    extends: demo
+    robot:
+{side}
+"""
+
+
+def profile_problems(tmp_path, side: str) -> list:
+    text = ROSTER.format(host="\n      team1-robot:\n        role: robot\n        robot_profile: mine")
+    path = tmp_path / "lab.yaml"
+    path.write_text(PROFILE.format(side=side) + text)
+    return [str(problem) for problem in problems_of(path)]
+
+
+@pytest.mark.parametrize("graph", ["{a_pkg: [b_pkg], b_pkg: [a_pkg]}",
+                                   "{a_pkg: [b_pkg], b_pkg: [c_pkg], c_pkg: [a_pkg]}"])
+def test_a_build_dependencies_cycle_in_a_profile_is_refused(graph, tmp_path, no_connections):
+    problems = profile_problems(tmp_path, f"      build_dependencies: {graph}")
+    assert any("build_dependencies go round in a circle: a_pkg -> b_pkg" in line
+               and "host 'team1-robot', field 'robot_profile'" in line for line in problems), problems
+
+
+def test_skip_packages_cannot_drop_what_the_profiles_own_service_runs(tmp_path, no_connections):
+    side = ("      services:\n        - {name: lab-agent, description: the lab agent, command: ros2 run lab_agent agent}\n"
+            "      skip_packages: [lab_agent]")
+    problems = profile_problems(tmp_path, side)
+    assert any("skips lab_agent (skip_packages), which its service 'lab-agent' runs" in line for line in problems), \
+        problems
+
+
+@pytest.mark.parametrize("define", ["-DCMAKE_INSTALL_PREFIX=/usr", "-DCMAKE_INSTALL_LIBDIR:PATH=/lib",
+                                    "-Dfoo_DIR:PATH=/etc"])
+def test_an_install_location_in_a_profiles_cmake_args_is_refused(define, tmp_path, no_connections):
+    problems = profile_problems(tmp_path, f"      cmake_args: {{a_pkg: ['{define}']}}")
+    lines = [line for line in problems if "cmake_args" in line]
+    assert len(lines) == 1 and lines[0].startswith("lab.yaml:") and "roslab decides that" in lines[0], problems
