@@ -17,6 +17,9 @@ from roslab.host_settings import HostSettingsError, settings_of
 from roslab.profiles.resolve import dependency_cycle
 from roslab.roster import RosterError, load_roster
 from roslab.roster.overrides import command_line_data
+from fixtures.classroom import host_data, run_deploy_py
+from fixtures.fake_host import plan
+from fixtures.fake_ubuntu import FakeUbuntu
 from fixtures.hostile_values import COMMAND_LINE_ONLY, HOSTILE
 
 ROSTER = """\
@@ -90,6 +93,17 @@ def test_a_hostile_value_in_a_hand_made_inventory_is_one_line_naming_host_and_ke
     assert "\n" not in message and message.startswith("host pi: ") and f"{key}: " in message, message
     assert words in message, message
     assert formats.home_path("~/" + "u" * 5000)[:200] not in message or "bytes long" in message
+
+
+@pytest.mark.parametrize("key, value, words", [HOSTILE[2], HOSTILE[4], HOSTILE[5], HOSTILE[10]],
+                         ids=[IDS[2], IDS[4], IDS[5], IDS[10]])
+def test_a_hand_made_inventorys_bad_value_stops_its_host_before_any_change(key, value, words, tmp_path):
+    """Through deploy.py as pyinfra runs it on a host of a hand-made inventory."""
+    result = plan(run_deploy_py, FakeUbuntu().facts(), host_data(tmp_path, **{key: value}))
+    assert result.failed and result.operations == []
+    (error,) = result.errors
+    assert "host pi: " in error and f"{key}: " in error and words in error and "nothing was changed" in error
+    assert "\n" not in error and "Traceback" not in error
 
 
 def test_a_hand_made_inventory_with_values_a_roster_takes_passes():
