@@ -122,8 +122,7 @@ def test_the_roster_and_a_hand_made_inventory_share_one_set_of_rules():
     assert {key for key, _ in host_rules.hand_made_problems({key: data[key] for key in given}, data)} == given
 
 
-def test_underlay_builder_from_the_command_line_is_blamed_on_the_option(tmp_path, no_connections):
-    text = """\
+ESP32_ROSTER = """\
 classroom:
   ssh_user: ubuntu
   ubuntu_release: "24.04"
@@ -136,11 +135,24 @@ teams:
       team1-main: {role: main, address: 192.0.2.11}
       team1-robot: {role: robot, address: 192.0.2.12}
 """
-    (tmp_path / "lab.yaml").write_text(text)
+
+
+def test_underlay_builder_from_the_command_line_is_blamed_on_the_option(tmp_path, no_connections):
+    (tmp_path / "lab.yaml").write_text(ESP32_ROSTER)
     problems = problems_of(tmp_path / "lab.yaml", ["--data", "underlay_builder=nosuch"])
     mine = [problem for problem in problems if problem.field == "underlay_builder"]
     assert mine and all(problem.path == "pyinfra's command line" for problem in mine), problems
     assert "--data underlay_builder=nosuch: 'nosuch' is not a host of this roster" in mine[0].message
+
+
+@pytest.mark.parametrize("argv, text", [((), ESP32_ROSTER.replace("esp32_usb_serial: A1", "esp32_usb_serial: A1\n  esp32_udp_port: '5'")),
+                                        (("--data", "esp32_udp_port=5"), ESP32_ROSTER)])
+def test_a_bad_profile_setting_is_answered_in_words_never_with_its_pattern(argv, text, tmp_path, no_connections):
+    (tmp_path / "lab.yaml").write_text(text)
+    problems = [str(problem) for problem in problems_of(tmp_path / "lab.yaml", argv)]
+    mine = [line for line in problems if "esp32_udp_port" in line]
+    assert mine and all("'5' is not a port from 1024 to 65535" in line for line in mine), problems
+    assert not any("[0-9]" in line or "6553[0-5]" in line for line in problems)
 
 
 @pytest.mark.parametrize("written", ["0x7f.0.0.11", "127.11", "2130706443", "0177.0.0.11"])
