@@ -14,6 +14,7 @@ from __future__ import annotations
 import ipaddress
 import os
 import re
+import socket
 import tempfile
 import unicodedata
 from collections.abc import Callable
@@ -172,6 +173,86 @@ sha256_hex = pattern(r"[0-9a-f]{64}", "a sha256 (64 lower-case hex digits)")
 interface_name = pattern(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,14}", "a network interface name (like eth0)")
 # A colcon argument: option or value, no shell or line syntax needed.
 colcon_argument = pattern(r"[A-Za-z0-9_@%+=:,./-]+", "a colcon argument (letters, digits, _ @ % + = : , . / -)")
+# The whole list is then checked against the allow-list (colcon_arguments, below).
+
+# The `colcon build` options a class needs, each with what its value must be (None: a flag). A
+# path option (--base-paths, --install-base, --build-base, --log-base, --merge-install...) is
+# not among them: roslab decides where colcon reads, builds, installs and logs.
+_CMAKE_DEFINE = re.compile(r"-D([A-Za-z_][A-Za-z0-9_]{0,63})(:(BOOL|STRING))?=[A-Za-z0-9_.,+:@%-]{0,200}", re.ASCII)
+# CMake variables that say where a build installs (or looks for what it installed).
+_INSTALL_LOCATION = re.compile(r"CMAKE_INSTALL_.*|CMAKE_STAGING_PREFIX|CMAKE_SYSROOT|CMAKE_FIND_ROOT_PATH|"
+                               r"CMAKE_PREFIX_PATH|CMAKE_.*_OUTPUT_DIRECTORY|.*_DIR|DESTDIR", re.ASCII)
+MAX_PARALLEL_WORKERS = 64
+COLCON_OPTIONS = {
+    "--executor": ("sequential", "parallel"),
+    "--parallel-workers": "count",
+    "--event-handlers": "handlers",
+    "--cmake-args": "defines",
+    "--symlink-install": None,
+    "--continue-on-error": None,
+    "--cmake-force-configure": None,
+    "--cmake-clean-cache": None,
+}
+_EVENT_HANDLER = re.compile(r"[a-z_]{1,40}[+-]", re.ASCII)
+
+
+def _colcon_value_problem(option: str, value: str) -> str | None:
+    wanted = COLCON_OPTIONS[option]
+    if isinstance(wanted, tuple):
+        return None if value in wanted else f"{option} takes {' or '.join(wanted)}, not {value!r}"
+    if wanted == "count":
+        if value.isascii() and value.isdigit() and 1 <= int(value) <= MAX_PARALLEL_WORKERS:
+            return None
+        return f"{option} takes a number from 1 to {MAX_PARALLEL_WORKERS}, not {value[:20]!r}"
+    if wanted == "handlers":
+        return None if _EVENT_HANDLER.fullmatch(value) else \
+            f"{option} takes event handler names ending in + or - (console_direct+), not {value[:40]!r}"
+    problem = install_location_problem(value)
+    if problem:
+        return problem
+    if not _CMAKE_DEFINE.fullmatch(value):
+        return (f"{option} takes -DNAME=value (ASCII letters, digits and _ . , + : @ % - in the value), "
+                f"not {value[:40]!r}")
+    return None
+
+
+def install_location_problem(define: str) -> str | None:
+    """Why a CMake `-DNAME=value` may not be given (it sets where a build installs or finds its
+    parts: CMAKE_INSTALL_PREFIX and the like), or None. Shared by workspace_colcon_args and a
+    profile's cmake_args."""
+    match = re.match(r"-D([A-Za-z_][A-Za-z0-9_]{0,63})", define, re.ASCII)
+    if match and _INSTALL_LOCATION.fullmatch(match.group(1)):
+        return f"{match.group(1)} says where a build installs or finds its parts: roslab decides that"
+    return None
+
+
+def colcon_arguments(values: list, _context: Context | None = None) -> str | None:
+    """`colcon build` options from roslab's allow-list (COLCON_OPTIONS), each with its value."""
+    option = None
+    for value in values:
+        if not isinstance(value, str):
+            return None  # the item's type is reported on its own
+        name, eq, inline = value.partition("=")
+        if name in COLCON_OPTIONS:
+            option = name if COLCON_OPTIONS[name] is not None else None
+            if eq and option is None:
+                return f"{name} takes no value"
+            if eq:
+                problem = _colcon_value_problem(name, inline)
+                if problem:
+                    return problem
+                option = name if COLCON_OPTIONS[name] in ("handlers", "defines") else None
+            continue
+        if value.startswith("--") or option is None:
+            return (f"{value.split('=')[0][:40]!r} is not a colcon option roslab allows (allowed: "
+                    f"{', '.join(COLCON_OPTIONS)}; roslab decides where colcon builds and installs)")
+        problem = _colcon_value_problem(option, value)
+        if problem:
+            return problem
+        if COLCON_OPTIONS[option] not in ("handlers", "defines"):
+            option = None  # one value only
+    return None
+
 
 # ASCII only: with re.IGNORECASE alone, `[a-z]` would match ı, ſ and the Kelvin sign.
 _HOST_LABEL = re.compile(r"[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?", re.ASCII)
@@ -203,12 +284,42 @@ def host_label(value: str, context: Context | None = None) -> str | None:
     return None
 
 
+def _loose_ipv4(value: str) -> str | None:
+    """The dotted-quad IPv4 address a resolver makes of `value` when it is not written as one
+    (inet_aton's hex, octal and short forms: 0x7f.0.0.11, 017.0.0.1, 127.11, 2130706443),
+    else None: such a name reaches that address, so it would pass a duplicate check as text."""
+    if not value.isascii() or not value or not value[0].isdigit() or not all(
+            char in "0123456789abcdefxABCDEFX." for char in value):
+        return None
+    try:
+        packed = socket.inet_aton(value)
+    except (OSError, ValueError):
+        return None
+    return socket.inet_ntoa(packed)
+
+
+def _non_canonical_ip(value: str) -> str | None:
+    """Why an address ipaddress accepts is not in the one form roslab compares, or None:
+    IPv4 as a dotted quad, IPv6 in its canonical (lower-case, compressed, no zone) form."""
+    ip = ipaddress.ip_address(value)
+    if ip.version == 6 and ip.ipv4_mapped:
+        return f"{value!r} is an IPv4 address in IPv6's clothes: write {str(ip.ipv4_mapped)!r}"
+    if ip.version == 6 and str(ip) != value:
+        return f"{value!r} is not written in IPv6's canonical form: write {str(ip)!r}"
+    return None
+
+
 def ip_address(value: str, context: Context | None = None) -> str | None:
+    """An IP address: IPv4 as a dotted quad, IPv6 in canonical form."""
     try:
         ipaddress.ip_address(value)
     except ValueError:
+        loose = _loose_ipv4(value) if isinstance(value, str) else None
+        if loose:
+            return (f"{value!r} is not an IP address written as four decimal numbers (a resolver "
+                    f"would read it as {loose!r})")
         return f"{value!r} is not an IP address"
-    return None
+    return _non_canonical_ip(value)
 
 
 def address(value: str, context: Context | None = None) -> str | None:
@@ -220,6 +331,9 @@ def address(value: str, context: Context | None = None) -> str | None:
                 ip.version == 4 and ip == ipaddress.IPv4Address("255.255.255.255")):
             return f"{value!r} is not an address a host can have (unspecified, multicast, broadcast or reserved)"
         return None
+    problem = ip_address(value)
+    if "written" in problem or "resolver" in problem or "clothes" in problem:  # 0x7f.0.0.11, 127.11, FD00::1: an address, in a form not compared
+        return problem
     if hostname(value) is None:
         return None
     return f"{value!r} is neither an IP address nor a valid host name"
@@ -231,7 +345,10 @@ def ip_interface(value: str, context: Context | None = None) -> str | None:
         ipaddress.ip_interface(value)
     except ValueError:
         return f"{value!r} is not an IP address (with prefix length), e.g. '192.168.50.11/24'"
-    return None
+    address_part, _, prefix = value.partition("/")
+    if prefix and not (prefix.isascii() and prefix.isdigit() and str(int(prefix)) == prefix):
+        return f"{value!r}: the prefix length is a plain decimal number, e.g. '192.168.50.11/24'"
+    return _non_canonical_ip(address_part)
 
 
 def ubuntu_release(value: str, context: Context | None = None) -> str | None:
@@ -414,6 +531,9 @@ def file_url_problem(url: str, folder: Path, named: str, *, file_suffix: str | N
 http_url = url(("http", "https"))
 
 # One path component inside the home directory: no `..`, no hidden tricks.
+# Linux's limits (limits.h): one name of a path, and a whole path with its terminating NUL.
+NAME_MAX, PATH_MAX = 255, 4096
+MAX_HOME_PATH = 1024  # a folder in the home: the home's own path and the tree inside fit in PATH_MAX
 _PATH_COMPONENT = re.compile(r"[A-Za-z0-9_+][A-Za-z0-9_.+-]*", re.ASCII)
 
 
@@ -427,7 +547,12 @@ def home_path(value: str, context: Context | None = None) -> str | None:
     components = [part for part in value[2:].split("/") if part]
     if not components:
         return f"{value!r} is the home directory itself; name a directory inside it"
+    if len(value.encode()) > MAX_HOME_PATH:
+        return (f"the path is {len(value.encode())} bytes long; at most {MAX_HOME_PATH} (PATH_MAX is {PATH_MAX}, "
+                "with room for the home folder and the files inside)")
     for part in components:
+        if len(part.encode()) > NAME_MAX:
+            return f"{part[:40]!r}... is {len(part.encode())} bytes long: a folder name holds at most {NAME_MAX}"
         if part in (".", "..") or not _PATH_COMPONENT.fullmatch(part):
             return (f"{value!r}: {part!r} is not a plain directory name "
                     "(letters, digits, _ . + -, not starting with . or -)")
@@ -599,7 +724,10 @@ def cache_dir(value: str, context: Context | None = None) -> str | None:
         return problem
     path = context.controller_path(value)
     places = (_home(), context.roster_dir, Path(tempfile.gettempdir()))
-    if not any(within(path, place) for place in places):
+    # inside one of the places, and none of them itself nor holding one (a home under /tmp: ~ is
+    # inside the temporary directory, and still the whole home)
+    if not any(within(path, place) for place in places) or any(within(place, path, strictly=False)
+                                                                for place in places[::2]):
         return (f"{value!r} ({_real(path)}) is not a folder of its own inside your home directory, "
                 "the roster's folder or the temporary directory")
     for private in (_home() / ".ssh", _home() / ".gnupg", context.state_dir):
@@ -897,3 +1025,6 @@ for _check, _words in {
     package_template: "Debian package names",
 }.items():
     _check.allowed = _words
+
+
+colcon_argument.whole = colcon_arguments

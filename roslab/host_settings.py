@@ -22,7 +22,7 @@ from typing import Any
 
 from pyinfra.context import ContextObject
 
-from roslab import settings
+from roslab import host_rules, settings
 from roslab.host_fields import HostSettings
 from roslab.profiles.resolve import ResolvedProfile
 
@@ -95,6 +95,9 @@ def settings_of(name: str, data: Mapping[str, Any]) -> HostSettings:
             values["roslab_profile"] = ResolvedProfile.from_data(profile)
         except (KeyError, TypeError, ValueError, AttributeError) as error:
             problems.append(f"roslab_profile is not a resolved profile ({type(error).__name__}: {error})")
+    if "roslab_roster_path" not in data:  # a hand-made inventory: the rules a roster's values meet
+        problems.extend(f"{key}: {problem}" for key, problem in host_rules.hand_made_problems(data, merged)
+                        if not any(shown.startswith(f"{key} ") for shown in problems))
     if problems:
         raise HostSettingsError(f"host {name}: {'; '.join(problems)} (in its inventory data or pyinfra's --data)")
     return HostSettings(**values, data=merged)

@@ -494,7 +494,7 @@ SCHEMA: list[Setting] = [
          f.nodes_dir, {"nullable": True}),
         ("workspace_colcon_args", ["--executor", "sequential"], list,
          "Arguments after `colcon build`; a sequential build is what colcon advises on a Pi.",
-         f.colcon_argument, {"item": str}),
+         f.colcon_argument, {"item": str, "allowed": ", ".join(f.COLCON_OPTIONS) + " (with their values)"}),
         ("workspace_rosdep_install", True, bool,
          "Run `rosdep install --from-paths src --ignore-src -y` when a package.xml changed."),
         ("nodes_service_enabled", True, bool,
@@ -648,7 +648,8 @@ def check_value(setting: Setting, value, context: f.Context | None = None) -> st
                     problem = setting.check(element, context)
                 if problem:
                     return f"item {index + 1}: {problem}"
-            return None
+            whole = getattr(setting.check, "whole", None)  # a list read as one (colcon's options)
+            return whole(value, context) if whole else None
         if setting.kind is dict:
             if not all(isinstance(key, str) for key in value):
                 return "keys must be strings"

@@ -4,37 +4,55 @@ from __future__ import annotations
 
 import difflib
 import functools
-from importlib import resources
+import os
 from pathlib import Path
 
 from roslab.profiles.schema import Profile, read_profile
 from roslab.checked.loading import Mapping, line_of, load_yaml
-from roslab.checked.problems import Problem, Report, RosterError
+from roslab.checked.problems import Problem, Report
 
-DATA = "roslab.profiles.data"
 DEFAULT_PROFILE = "demo"
 
 
+def data_folder() -> Path:
+    """The folder of roslab's own profile files (roslab/profiles/data)."""
+    return Path(__file__).resolve().parent / "data"
+
+
 def builtin_files() -> list[Path]:
-    return sorted(Path(str(entry)) for entry in resources.files(DATA).iterdir()
-                  if entry.name.endswith(".yaml"))
+    """The profile files of the folder (`*.yaml`), symlinks included only when they lead to a
+    file inside it (`builtin_problems` names the others)."""
+    folder = data_folder()
+    return sorted(path for path in folder.iterdir() if path.name.endswith(".yaml") and _inside(path, folder))
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    real = Path(os.path.realpath(path))
+    return Path(os.path.realpath(folder)) in real.parents
 
 
 @functools.cache
-def builtin_profiles() -> dict[str, Profile]:
-    """roslab's own profiles, checked by the same schema as a roster's (a problem is a bug: it raises).
+def _builtin() -> tuple[dict[str, Profile], tuple[Problem, ...]]:
+    """roslab's own profiles, checked by the same schema as a roster's, and the problems of the
+    files that are not: a bad file is left out (and listed), never the end of a command.
 
     A built-in profile may extend another built-in one (`extends:`), as a roster's may."""
     specs: dict[str, tuple] = {}
     problems = []
+    folder = data_folder()
+    for path in sorted(folder.iterdir()):
+        if path.name.endswith(".yaml") and not _inside(path, folder):
+            # never read: its lines would be shown as YAML errors (a link to /etc/shadow)
+            problems.append(Problem(str(path), "a symlink that leads out of the profile folder: "
+                                    "roslab reads only the folder's own files"))
     for path in builtin_files():
         report = Report(path)
         mapping = load_yaml(path, report)
-        problems += report.errors
         if isinstance(mapping, dict):
             specs[path.stem] = (mapping, report, path)
-        else:
-            problems.append(Problem(report.path, "a profile file holds a mapping (distros, settings, main, robot...)"))
+        elif not report.errors:
+            report.error("a profile file holds a mapping (distros, settings, main, robot...)")
+        problems += report.errors
     profiles: dict[str, Profile] = {}
 
     def read(name: str, spec, report: Report, base: Profile | None) -> Profile | None:
@@ -47,11 +65,26 @@ def builtin_profiles() -> dict[str, Profile]:
 
     _read_extending({name: spec[0] for name, spec in specs.items()}, profiles, {},
                     lambda name: specs[name][1], read, "")
-    for _mapping, report, _path in specs.values():
-        problems += report.errors
-    if problems:
-        raise RosterError(list(dict.fromkeys(problems)))
-    return profiles
+    for name, (_mapping, report, _path) in specs.items():
+        if report.errors:
+            problems += report.errors
+            profiles.pop(name, None)  # a profile with a problem is not offered at all
+    return profiles, tuple(dict.fromkeys(problems))
+
+
+def builtin_profiles() -> dict[str, Profile]:
+    """roslab's own profiles that are sound (see `builtin_problems` for the others)."""
+    return _builtin()[0]
+
+
+def builtin_problems() -> tuple[Problem, ...]:
+    """Each problem of the profile folder's files (file:line), for `roslab check` and the roster."""
+    return _builtin()[1]
+
+
+def broken_builtin(name: str) -> bool:
+    """Whether the profile folder's file `name`.yaml was left out for its problems."""
+    return any(Path(problem.path).name == f"{name}.yaml" for problem in builtin_problems())
 
 
 def _read_extending(specs: dict, profiles: dict[str, Profile], others: dict[str, Profile], report_of, read,
@@ -141,6 +174,8 @@ def roster_profiles(mapping, report: Report, roster_dir: Path | None = None) -> 
     one that extends its own name extends the built-in one it replaces).
     `roster_dir`: the folder a roster profile's `sources:` are relative to."""
     builtin = builtin_profiles()
+    for problem in builtin_problems():  # listed with the roster's; a host naming the profile fails
+        report.warnings.append(problem) if problem not in report.warnings else None
     profiles = dict(builtin)
     if mapping is None:
         return profiles

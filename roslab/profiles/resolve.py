@@ -10,6 +10,7 @@ filled into a file or a command is one of the values the profile allows.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
 
@@ -271,6 +272,11 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
     rules, problem = udev_file(profile, merged.udev_rules, values)
     if problem:
         return None, [ResolveError("udev_rules", f"profile {profile.name!r}'s udev rules: {problem}")]
+    build_dependencies = merged_build_dependencies([part.build_dependencies for part in parts])
+    skip_packages = list(dict.fromkeys(name for part in parts for name in part.skip_packages))
+    logic = underlay_logic_problems(profile.name, build_dependencies, skip_packages, merged.services)
+    if logic:
+        return None, logic
     ros_packages = [fill(name, {"gazebo": gazebo_package(distro)}) for name in merged.ros_packages]
     return {
         "name": profile.name,
@@ -296,8 +302,8 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         # {package: ["-DNAME=value", ...]} for the underlay's build (deploy/sources.py)
         "cmake_args": merged_cmake_args([part.cmake_args for part in parts]),
         # {package: [packages built before it]} and the packages not built (deploy/sources.py)
-        "build_dependencies": merged_build_dependencies([part.build_dependencies for part in parts]),
-        "skip_packages": list(dict.fromkeys(name for part in parts for name in part.skip_packages)),
+        "build_dependencies": build_dependencies,
+        "skip_packages": skip_packages,
         # the memory (MiB) a host needs to build the underlay; a smaller one receives it
         "underlay_build_memory_mb": profile.underlay_build_memory_mb,
         "python": python_data(profile, side),
@@ -305,6 +311,49 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         "boot_config": {key: items for key, items in merged.boot_config.items() if items},
         "services": [resolved_service(service, values, distro, profile.name) for service in merged.services],
     }, []
+
+
+_RUNS_PACKAGE = re.compile(r"\bros2 (?:run|launch) ([a-z][a-z0-9_]*)", re.ASCII)
+
+
+def dependency_cycle(graph: dict[str, list[str]]) -> list[str] | None:
+    """A cycle of `graph` (package -> packages built before it) as its chain, first package
+    repeated at the end, or None. Iterative: a long chain cannot exhaust the stack."""
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+    for start in graph:
+        if state.get(start):
+            continue
+        path, stack = [start], [iter(graph.get(start, ()))]
+        state[start] = 1
+        while stack:
+            following = next(stack[-1], None)
+            if following is None:
+                state[path.pop()] = 2
+                stack.pop()
+            elif state.get(following) == 1:
+                return [*path[path.index(following):], following]
+            elif not state.get(following):
+                state[following] = 1
+                path.append(following)
+                stack.append(iter(graph.get(following, ())))
+    return None
+
+
+def underlay_logic_problems(name: str, build_dependencies: dict[str, list[str]], skip_packages: list[str],
+                            services: list[dict]) -> list[ResolveError]:
+    """The underlay's build as a host of this profile gets it: no build_dependencies cycle (colcon
+    would wait forever or refuse), and no skipped package that one of the profile's services runs."""
+    problems = []
+    cycle = dependency_cycle(build_dependencies)
+    if cycle:
+        problems.append(ResolveError("robot_profile", f"profile {name!r}'s build_dependencies go round in a "
+                                                      f"circle: {' -> '.join(cycle)}"))
+    for service in services:
+        for package in _RUNS_PACKAGE.findall(str(service.get("command") or "")):
+            if package in skip_packages:
+                problems.append(ResolveError("robot_profile", f"profile {name!r} skips {package} (skip_packages), "
+                                             f"which its service {service.get('name')!r} runs"))
+    return problems
 
 
 def python_data(profile: Profile, side: Side) -> dict:

@@ -56,7 +56,7 @@ TOP_KEYS = ("profile", "extends", "description", "distros", "tools", "boards", "
 # `underlay_build_memory_mb`: the memory (MiB) a host needs to build the profile's underlay;
 # a smaller host never builds it, it receives the build of a host of its group (issue 31).
 UNDERLAY_BUILD_MEMORY_MB = (256, 65536)
-SETTING_KEYS = ("doc", "allowed", "pattern", "required", "default")
+SETTING_KEYS = ("doc", "allowed", "pattern", "describe", "required", "default")
 SIDE_KEYS = ("variant", "boards", "ros_packages", "apt_packages", "remove_apt_packages", "environment", "groups",
              "udev_rules", "boot_config", "services", "launch", "checklist", "os_tweaks", "sources",
              "cmake_args", "build_dependencies", "skip_packages", "python_packages", "python_venv", "when")
@@ -136,6 +136,7 @@ class ProfileSetting:
     pattern: str | None = None
     required: bool = False
     default: str | None = None
+    describe: str = ""  # the pattern in words: no message shows the pattern itself
 
     def problem(self, value) -> str | None:
         """Why `value` is not a legal value of this setting, or None.
@@ -152,7 +153,8 @@ class ProfileSetting:
             hint = f" (did you mean {close[0]!r}?)" if close else ""
             return f"{value!r} is not one of {', '.join(self.allowed)}{hint}"
         if self.pattern and not setting_pattern(self.pattern).fullmatch(value):
-            return f"{value!r} does not match {self.pattern}"
+            wanted = self.describe or f"a value of {self.name} (see its doc in the profile)"
+            return f"{value!r} is not {wanted}"
         return None
 
 
@@ -315,13 +317,18 @@ class ProfileReader:
             if not allowed and not pattern:
                 self.error("a profile setting needs allowed values or a pattern (values are written into "
                            "files and commands)", spec, None, path)
+            describe = spec.get("describe", "")
+            if not isinstance(describe, str) or formats.single_line(describe or "x") or len(describe) > 200:
+                self.error("describe is the pattern in words: one line of text, at most 200 characters",
+                           spec, "describe", f"{path}.describe")
+                describe = ""
             required = spec.get("required", False)
             if not isinstance(required, bool):
                 self.error("must be true or false", spec, "required", f"{path}.required")
                 required = False
             default = spec.get("default")
             setting = ProfileSetting(name, str(spec.get("doc") or ""), tuple(allowed), pattern, required,
-                                     default if isinstance(default, str) else None)
+                                     default if isinstance(default, str) else None, describe)
             if default is not None and setting.problem(default):
                 self.error(f"the default: {setting.problem(default)}", spec, "default", f"{path}.default")
             if default is not None and required:
@@ -444,10 +451,11 @@ class ProfileReader:
                 continue
             items = self.string_list(
                 value, package, f"{where}.{package}",
-                lambda arg: None if _CMAKE_ARG.fullmatch(arg) else
-                f"{arg!r} is not a CMake cache setting: -DNAME=value or -DNAME:TYPE=value "
-                "(ASCII letters, digits and _ . , / + : @ % - in the value)")
-            if items and all(_CMAKE_ARG.fullmatch(arg) for arg in items):
+                lambda arg: formats.install_location_problem(arg) or (None if _CMAKE_ARG.fullmatch(arg) else
+                f"{arg[:80]!r} is not a CMake cache setting: -DNAME=value or -DNAME:TYPE=value "
+                "(ASCII letters, digits and _ . , / + : @ % - in the value)"))
+            if items and all(_CMAKE_ARG.fullmatch(arg) and not formats.install_location_problem(arg)
+                             for arg in items):
                 merged = side.cmake_args.setdefault(package, [])
                 merged += [arg for arg in items if arg not in merged]
 

@@ -43,6 +43,7 @@ def load_roster(path: Path | str, validators: list[Validator] | None = None,
         add_host_lists(classroom)
         for validator in VALIDATORS if validators is None else validators:
             validator(classroom, reader.report)
+        reader.blame_command_line()
     if reader.report.errors:
         raise RosterError(reader.report.errors)
     classroom.warnings = reader.report.warnings

@@ -15,7 +15,7 @@ from collections.abc import Callable
 
 from roslab.ros import discovery
 from roslab.ros import distro as distros
-from roslab import settings
+from roslab import host_rules, settings
 from roslab.roster.model import ROLES, Classroom, Host
 from roslab.checked.problems import Report
 
@@ -58,9 +58,12 @@ def check_classroom(classroom: Classroom, report: Report) -> None:
 
 
 def check_host(host: Host, report: Report) -> None:
-    """Settings of one host that only make sense together."""
+    """Settings of one host that only make sense together (roslab.host_rules: the rules a
+    hand-made inventory's hosts meet too, then the roster's own)."""
     where = {"team": host.team, "host": host.name}
     data = host.data
+    for key, problem in host_rules.across_problems(data, given=host.lines):
+        report.error(problem, field=key, line=host.lines.get(key), **where)
     codename = distros.UBUNTU_CODENAMES.get(str(host.ubuntu_release))
     override = data.get("ros_distro")
     if codename and override in distros.DISTRO_RELEASES:
@@ -262,8 +265,10 @@ def check_unique(classroom: Classroom, report: Report, field_name: str | None, k
 
 
 def _address_key(host: Host):
+    """An address by value (::ffff:10.0.0.1 is 10.0.0.1), a host name by its lower-case text."""
     try:
-        return ipaddress.ip_address(host.address)
+        ip = ipaddress.ip_address(host.address)
+        return getattr(ip, "ipv4_mapped", None) or ip
     except ValueError:
         return host.address.lower().rstrip(".")
 

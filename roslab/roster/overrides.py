@@ -55,6 +55,8 @@ REFUSED_PYINFRA_KEYS = {
     "ssh_config_file": "an SSH config can send the connection anywhere (ProxyCommand): not from here",
     "ssh_paramiko_connect_kwargs": "not from the command line",
 }
+NULL_PROBLEM = ("null is not a value from the command line: pyinfra would put it on top of every "
+                "host's resolved value; leave the option out for roslab's default")
 _DECIMAL = re.compile(r"-?(0|[1-9][0-9]*)", re.ASCII)
 
 

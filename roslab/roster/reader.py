@@ -445,6 +445,10 @@ class RosterReader:
                 continue
             problem = overrides.key_problem(key)
             setting = settings.SETTINGS.get(key)
+            if problem is None and value is None:
+                # pyinfra puts the null itself on top of every host's data, over roslab's resolved
+                # value (ros_domain_id: no ROS_DOMAIN_ID at all, every team on domain 0).
+                problem = overrides.NULL_PROBLEM
             if problem is None and setting is not None:
                 problem = overrides.text_problem(setting, text, value) or settings.check_value(
                     setting, value, self.context)
@@ -473,6 +477,23 @@ class RosterReader:
                                  "absolute path, key lines)", field=key)
                     break
         self.report.extend(report)
+
+    def blame_command_line(self) -> None:
+        """A check across hosts (roslab.roster.VALIDATORS) reports a value by its roster line; one
+        that came from pyinfra's command line has none there: name `--data key=value` instead of
+        the roster file."""
+        errors = []
+        for problem in self.report.errors:
+            shown = self._command_line_shown.get(problem.field or "")
+            if shown is None or problem.line is not None or problem.path != self.report.path \
+                    or problem.field not in self.command_line:
+                errors.append(problem)
+                continue
+            option, text = shown
+            given = f"{option} {problem.field}={text}" if option == "--data" else f"{option} {text}"
+            errors.append(Problem(COMMAND_LINE, f"{given}: {problem.message}", None, problem.team,
+                                  problem.host, problem.field))
+        self.report.errors[:] = errors
 
     def teacher_keys(self, entries: list[str]) -> list[str]:
         """Key lines of `teacher_ssh_keys`: lines as they are, .pub files read (checked already)."""
@@ -544,8 +565,12 @@ class RosterReader:
         name = data["robot_profile"]
         profile = self.profiles.get(name)
         if profile is None:
+            from roslab.profiles.library import broken_builtin
+
             close = difflib.get_close_matches(name, sorted(self.profiles), n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
+            if broken_builtin(name):
+                hint = " (its file in roslab's profile folder has the problems listed: fix them)"
             error(f"{name!r} is not a robot profile (known: {', '.join(sorted(self.profiles))}){hint}",
                   "robot_profile")
             data["roslab_profile"] = None

@@ -42,7 +42,9 @@ def test_a_host_that_cannot_get_its_ros_is_stopped_before_any_change(tmp_path, f
     assert result.failed
     assert result.operations == []
     (error,) = result.errors
-    assert "host pi (team team1)" in error and reason in error and "nothing was changed" in error
+    # named by the deploy's own check, or (a value no roster takes) by the hand-made inventory rules
+    assert ("host pi (team team1)" in error or "host pi: " in error) and reason in error
+    assert "nothing was changed" in error
 
 
 def test_a_login_user_the_host_lacks_stops_that_host_in_one_line_without_raising(tmp_path):

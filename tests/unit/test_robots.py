@@ -354,7 +354,7 @@ def test_brltty_is_removed_where_installed_and_left_alone_where_not():
 # --- profile services --------------------------------------------------------------------------
 
 def service_data(profile):
-    return {"roslab_profile": profile, "profile_services_enabled": True, "workspace_dir": "ros2_ws",
+    return {"roslab_profile": profile, "profile_services_enabled": True, "workspace_dir": "~/ros2_ws",
             "login_user": "ubuntu", "ros_distro": "jazzy", "roslab_role": "robot", "ros_domain_id": 7,
             "ros_middleware": "rmw_fastrtps_cpp", "discovery_enabled": False}
 

@@ -408,7 +408,8 @@ def test_malformed_network_address_and_gateway(tmp_path):
         "lab.yaml:10: team 'team1', host 'team1-main', field 'network_address': "
         "'192.168.50.11/33' is not an IP address (with prefix length), e.g. '192.168.50.11/24'",
         "lab.yaml:11: team 'team1', host 'team1-main', field 'network_gateway': "
-        "'192.168.50' is not an IP address",
+        "'192.168.50' is not an IP address written as four decimal numbers (a resolver would read it as "
+            "'192.168.0.50')",
     ]
 
 
