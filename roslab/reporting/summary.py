@@ -629,21 +629,25 @@ def step_title(state: State, op_hash: str, host_name: str | None = None) -> str:
     return clipped(" ".join(own_name(op_name(state, op_hash, host)).split()))
 
 
-MAX_START_LINE = 160  # characters of a shown "--> Starting operation" line
+MAX_START_LINE = 240  # characters of a "--> Starting operation" line that joins several names
 
 
 def short_start_line(text: str, state: State | None) -> str:
     """pyinfra's "--> Starting operation: A | x, A | y, ..." (one name per host where names
-    hold host values) without the deploys' titles, each name once, at most MAX_START_LINE
-    characters: the ROS install's start line was 1,665 characters of seven titles joined."""
+    hold host values) without the deploys' titles; where several names are joined, at most
+    MAX_START_LINE characters: the ROS install's start line was 1,665 characters of seven
+    titles joined. One name is kept whole (it may end in a path the teacher looks for)."""
     head, _, names = text.partition("operation: ")
     if not names or state is None:
-        return clipped(text, MAX_START_LINE)
+        return text
+    own = {name.rsplit(" | ", 1)[-1] for meta in state.op_meta.values() for name in meta.names}
     titles = sorted({name.rsplit(" | ", 1)[0] + " | " for meta in state.op_meta.values()
                      for name in meta.names if " | " in name}, key=len, reverse=True)
     for title in titles:
         names = names.replace(title, "")
-    return clipped(f"{head}operation: {names}", MAX_START_LINE)
+    line = f"{head}operation: {names}"
+    joined = sum(1 for name in own if name and name in names) > 1
+    return clipped(line, MAX_START_LINE) if joined else line
 
 
 def _by_title(state: State, op_hash: str, names: list[str]) -> dict[str, list[str]]:

@@ -51,3 +51,8 @@ def test_a_start_line_names_each_step_without_the_deploys_title():
     assert line.startswith("--> Starting operation: Ensure ROS 2 jazzy is installed")
     assert deploy not in line and len(line) <= summary.MAX_START_LINE
     assert summary.short_start_line("--> Starting operation: Ensure z", state) == "--> Starting operation: Ensure z"
+    # One name is kept whole, however long: it may end in the path a teacher looks for.
+    long_one = f"{deploy}Ensure /home/ubuntu/ros2_ws/src holds the packages of /{'x' * 300}/nodes"
+    state = SimpleNamespace(op_meta={"h": SimpleNamespace(names={long_one})})
+    assert summary.short_start_line(f"--> Starting operation: {long_one}", state) == (
+        f"--> Starting operation: {summary.own_name(long_one)}")
