@@ -146,6 +146,7 @@ class Outcome:
     group: str | None = None  # the last GROUP set, by name
     roslab_device: str | None = None  # ENV{ROSLAB_DEVICE}: the declared device roslab matched
     roslab_lines: list[str] = field(default_factory=list)  # what roslab's rules file did to it
+    properties: dict[str, str] = field(default_factory=dict)  # the device's udev properties after the rules
     output: str = ""
 
     @property
@@ -164,6 +165,7 @@ def unavailable() -> str | None:
 
 
 _MARK = "@@@roslab-udev-harness"
+_PROPERTY = re.compile(r"[A-Z][A-Z0-9_]*=")
 _APPLIED = re.compile(r"^[^:]+: (?P<file>/\S+):(?P<line>\d+) (?P<what>GROUP|MODE|LINK) '?(?P<value>[^']*)'?$")
 
 
@@ -230,8 +232,11 @@ def _parse(stdout: str, keys: list[str], group_names: dict[str, str]) -> dict[st
         outcome = Outcome(output=output)
         for line in output.splitlines():
             applied = _APPLIED.match(line)
-            if line.startswith("ROSLAB_DEVICE="):
-                outcome.roslab_device = line.split("=", 1)[1]
+            if _PROPERTY.match(line):
+                key, value = line.split("=", 1)
+                outcome.properties[key] = value
+                if key == "ROSLAB_DEVICE":
+                    outcome.roslab_device = value
             if applied is None:
                 continue
             if applied.group("file").endswith(RULES_NAME):
