@@ -2,9 +2,9 @@
 
 The rules roslab writes for a profile's devices (roslab/profiles/devices.py) are evaluated by
 udev itself, not by reading their text: umockdev (`umockdev-run`) gives udevadm a sysfs of
-hand-written emulated devices, stand-ins for the hardware (below: a robot's USB-serial chips, boards and cameras, a Pi's
-UARTs, I2C buses and GPIO chip, and devices no profile declares: a keyboard, the console, a
-virtual terminal, a USB disk, a webcam), and `udevadm test --action=add` prints what udev
+hand-written emulated devices, stand-ins for the hardware (below: a robot's USB-serial chips,
+boards and cameras, a Pi's UARTs, I2C buses and GPIO chip, and devices no profile declares: a
+keyboard, the console, a virtual terminal, a USB disk, a webcam), and `udevadm test --action=add` prints what udev
 would do for each: its symlinks, mode, group and the rules that set them.
 
 It runs in a private mount namespace (`unshare --mount`) with tmpfs on /dev and /run, a devpts
