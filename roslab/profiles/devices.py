@@ -251,3 +251,34 @@ def rules_file(profile_name: str, devices: list[Device]) -> str:
         lines.append(f"# {device.name} ({device.kind}){': ' + device.comment if device.comment else ''}")
         lines += rules(device)
     return "\n".join(lines) + "\n"
+
+
+# What each line roslab writes looks like, to read a rules file back (a hand-made inventory's
+# or --data's `roslab_profile.udev_rules` was not written here): a comment, or one device's rule.
+_HEX = "[0-9a-f]{4}"
+_USB_SERIAL_MATCH = (rf'SUBSYSTEM=="tty", ATTRS\{{idVendor\}}=="{_HEX}", ATTRS\{{idProduct\}}=="{_HEX}"'
+                     rf'(, ATTRS\{{serial\}}=="{_SERIAL.pattern}"|, KERNELS=="{_PORT_PATH.pattern}")?')
+_JOYSTICK_MATCH = (rf'SUBSYSTEM=="input", KERNEL=="js\[0-9\]\*", ATTRS\{{idVendor\}}=="{_HEX}", '
+                   rf'ATTRS\{{idProduct\}}=="{_HEX}"(, ATTRS\{{serial\}}=="{_SERIAL.pattern}"|, '
+                   rf'KERNELS=="{_PORT_PATH.pattern}")?')
+_USB_MATCH = rf'SUBSYSTEM=="usb", ENV\{{DEVTYPE\}}=="usb_device", ATTR\{{idVendor\}}=="{_HEX}"(, ATTR\{{idProduct\}}=="{_HEX}")?'
+_KERNEL_MATCH = "|".join(rf'SUBSYSTEM=="{re.escape(subsystem)}", KERNEL=="({pattern.pattern})"'
+                         for subsystem, pattern in KERNEL_NAMES.values())
+_RULE_LINE = re.compile(
+    rf'({_USB_SERIAL_MATCH}|{_JOYSTICK_MATCH}|{_USB_MATCH}|{_KERNEL_MATCH})'
+    rf'(, ENV\{{ID_MM_DEVICE_IGNORE\}}="1")?, ENV\{{ROSLAB_DEVICE\}}="{_NAME.pattern}"'
+    rf'(, GROUP="({"|".join(GROUPS)})")?(, MODE="({"|".join(MODES)})")?(, SYMLINK\+="{_SYMLINK.pattern}")?', re.ASCII)
+
+
+def rules_text_problem(text: str) -> str | None:
+    """Why `text` is not a rules file roslab writes from devices (a line it would not write), or None."""
+    for number, line in enumerate(text.split("\n"), 1):
+        if not line or (line.startswith("# ") and "\\" not in line and line.isascii()):
+            continue
+        if not _RULE_LINE.fullmatch(line):
+            return (f"line {number} of its udev rules is not one roslab writes from a profile's devices "
+                    f"({line[:60]!r}): declare devices in a profile instead")
+        symlink = re.search(r'SYMLINK\+="([^"]*)"', line)
+        if symlink and _SYSTEM_NAMES.fullmatch(symlink.group(1)):
+            return f"line {number} of its udev rules names a system device's name as a symlink"
+    return None
