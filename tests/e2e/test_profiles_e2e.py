@@ -200,7 +200,7 @@ def test_udev_rules_and_the_dialout_group_are_in_place(sandbox, first_run):
     team2 = sandbox.ssh("team2-robot", f"cat {RULES}", check=True).stdout
     for rules in (team1, team2):
         assert 'ATTRS{idVendor}=="0483", ATTRS{idProduct}=="5740", ENV{ID_MM_DEVICE_IGNORE}="1"' in rules
-        assert 'ATTRS{idProduct}=="df11"' in rules
+        assert 'ATTR{idProduct}=="df11"' in rules  # the USB device itself, in DFU mode
         # every LDS model's CP2102 is /dev/tb3_lidar, as ROBOTIS's 99-turtlebot3-cdc.rules names it
         assert 'ENV{ROSLAB_DEVICE}="lidar", GROUP="dialout", MODE="0666", SYMLINK+="tb3_lidar"' in rules
     assert sandbox.ssh("team1-main", f"test -e {RULES}").returncode == 1
