@@ -24,6 +24,7 @@ from pyinfra.context import ContextObject
 
 from roslab import host_rules, settings
 from roslab.host_fields import HostSettings
+from roslab.profiles.devices import rules_text_problem
 from roslab.profiles.resolve import ResolvedProfile
 
 __all__ = ["HostSettings", "HostSettingsError", "host_settings", "peer_settings", "settings_of"]
@@ -95,6 +96,11 @@ def settings_of(name: str, data: Mapping[str, Any]) -> HostSettings:
             values["roslab_profile"] = ResolvedProfile.from_data(profile)
         except (KeyError, TypeError, ValueError, AttributeError) as error:
             problems.append(f"roslab_profile is not a resolved profile ({type(error).__name__}: {error})")
+        else:
+            rules = values["roslab_profile"].udev_rules
+            rules_problem = rules_text_problem(rules) if isinstance(rules, str) else "udev_rules is not text"
+            if rules_problem:
+                problems.append(f"roslab_profile: {rules_problem}")
     if "roslab_roster_path" not in data:  # a hand-made inventory: the rules a roster's values meet
         problems.extend(f"{key}: {problem}" for key, problem in host_rules.hand_made_problems(data, merged)
                         if not any(shown.startswith(f"{key} ") for shown in problems))

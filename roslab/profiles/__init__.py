@@ -3,7 +3,7 @@
 A profile is a YAML file: the distros it supports, its own settings (allowed values,
 required or with a default), and per side (`main`, `robot`) the ROS packages (ROS names,
 checked against the distro's rosdistro file), apt packages, environment variables, the
-login user's groups, udev rules, the launch the host's service runs and a checklist of
+login user's groups, devices (roslab writes their udev rules), the launch the host's service runs and a checklist of
 steps that need the hardware attached; `when` blocks add to a side for some setting
 values (the lidar's driver for `lds_model`). Built-in profiles ship as package data
 (`roslab/profiles/data/*.yaml`); a roster may define its own under `profiles:` or extend a
@@ -14,6 +14,6 @@ touched, and `resolve.py` turns a host's profile and settings into plain host da
     schema.py    parse and check one profile mapping (problems with file:line)
     library.py   the built-in profiles, a roster's own, `extends` (in any order; loops named)
     resolve.py   a host's profile: packages, environment, udev rules... for its side and distro
-    udev.py      a profile's udev rules read as udev reads them, keys allow-listed
+    devices.py   the devices a profile declares (kinds, ids, groups allow-listed) and the udev rules roslab writes for them
     packages.py  every ROS package a host will install, checked against rosdistro
 """

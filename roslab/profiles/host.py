@@ -60,13 +60,14 @@ def user_in_groups_reads(user: str) -> list:
     return [probe.read(UserGroups, user=user)]
 
 
-# Where udevd runs (a Pi), it re-reads its rules and replays "add" for the serial and USB
-# devices, so a board plugged in before the run gets its name and mode now. Where it does
+# Where udevd runs (a Pi), it re-reads its rules and replays "add" for the subsystems of the
+# device kinds a profile declares (roslab/profiles/devices.py), so a board plugged in before the run gets its name and mode now. Where it does
 # not run (a container), the rules apply at the next boot; the command says which.
 UDEV_RELOAD = (
     "if systemctl is-active --quiet systemd-udevd; then "
     "udevadm control --reload-rules && "
-    "udevadm trigger --action=add --subsystem-match=tty --subsystem-match=usb && "
+    "udevadm trigger --action=add --subsystem-match=tty --subsystem-match=usb --subsystem-match=i2c-dev "
+    "--subsystem-match=spidev --subsystem-match=gpio --subsystem-match=input && "
     "echo 'udev rules reloaded'; "
     "else echo 'systemd-udevd is not running here: the rules apply from the next boot'; fi"
 )

@@ -15,7 +15,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, fields
 
 from roslab.ros.distro import DISTRO_RELEASES, PLATFORMS
-from roslab.profiles import udev
+from roslab.profiles import devices as device_data
 from roslab.profiles.schema import (
     BOOT_CONFIG_KEYS,
     PLACEHOLDER,
@@ -141,10 +141,11 @@ def used_settings(side: Side | None) -> set[str]:
     """The profile settings a side refers to (its texts and its when blocks' conditions)."""
     if side is None:
         return set()
-    texts = [*side.environment.values(), *(rule["rule"] for rule in side.udev_rules), *side.checklist]
+    texts = [*side.environment.values(), *side.checklist]
     for service in side.services:
         texts += [service["command"], *service["environment"].values()]
     names = {name for text in texts for name in PLACEHOLDER.findall(text)}
+    names |= {name for device in side.devices for name in device.settings()}
     names |= {name for service in side.services for name in service["enabled_if"]}
     for block in side.when:
         names |= set(block["if"]) | used_settings(block["side"])
@@ -229,7 +230,8 @@ def merged_parts(parts: list[Side]) -> Side:
         merged.apt_packages += [p for p in part.apt_packages if p not in merged.apt_packages]
         merged.environment.update(part.environment)
         merged.groups += [g for g in part.groups if g not in merged.groups]
-        merged.udev_rules += part.udev_rules
+        merged.devices = [d for d in merged.devices if d.name not in {p.name for p in part.devices}]
+        merged.devices += part.devices
         merged.checklist += part.checklist
         merged.remove_apt_packages += [p for p in part.remove_apt_packages if p not in merged.remove_apt_packages]
         for key in BOOT_CONFIG_KEYS:
@@ -240,19 +242,16 @@ def merged_parts(parts: list[Side]) -> Side:
     return merged
 
 
-def udev_file(profile: Profile, rules: list[dict], values: dict) -> tuple[str, str | None]:
-    """(the udev rules file's text with the settings filled in, "" for no rules; the problem udev
-    would have with it, or None). Each rule was checked as a template; this is what is written."""
-    if not rules:
-        return "", None
-    lines = [f"# managed by roslab (deploy/robot_profile.py) for robot profile {profile.name!r}: "
-             "edits here are overwritten;", "# set the profile's settings in the roster instead."]
-    for rule in rules:
-        if rule["comment"]:
-            lines.append(f"# {rule['comment']}")
-        lines.append(fill(rule["rule"], values))
-    text = "\n".join(lines) + "\n"
-    return text, udev.file_problem(text)
+def udev_file(profile: Profile, devices: list, values: dict) -> tuple[str, str | None]:
+    """(the udev rules file's text roslab writes for the side's devices, settings filled in, ""
+    for none; why a device's setting cannot fill its rule, or None)."""
+    result = []
+    for device in devices:
+        done = device_data.filled(device, values)
+        if isinstance(done, str):
+            return "", done
+        result.append(done)
+    return device_data.rules_file(profile.name, result), None
 
 
 def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
@@ -269,9 +268,9 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         return None, problems
     parts = side_parts(side, values, distro, board)
     merged = merged_parts(parts)
-    rules, problem = udev_file(profile, merged.udev_rules, values)
+    rules, problem = udev_file(profile, merged.devices, values)
     if problem:
-        return None, [ResolveError("udev_rules", f"profile {profile.name!r}'s udev rules: {problem}")]
+        return None, [ResolveError("devices", f"profile {profile.name!r}'s {problem}")]
     build_dependencies = merged_build_dependencies([part.build_dependencies for part in parts])
     skip_packages = list(dict.fromkeys(name for part in parts for name in part.skip_packages))
     logic = underlay_logic_problems(profile.name, build_dependencies, skip_packages, merged.services)

@@ -16,7 +16,7 @@ import re2
 
 from roslab import formats, settings
 from roslab.ros.distro import BY_NAME, DISTRO_RELEASES
-from roslab.profiles import udev
+from roslab.profiles import devices as device_data
 from roslab.checked.loading import line_of
 from roslab.checked.problems import Report
 
@@ -58,10 +58,10 @@ TOP_KEYS = ("profile", "extends", "description", "distros", "tools", "boards", "
 UNDERLAY_BUILD_MEMORY_MB = (256, 65536)
 SETTING_KEYS = ("doc", "allowed", "pattern", "describe", "required", "default")
 SIDE_KEYS = ("variant", "boards", "ros_packages", "apt_packages", "remove_apt_packages", "environment", "groups",
-             "udev_rules", "boot_config", "services", "launch", "checklist", "os_tweaks", "sources",
+             "devices", "udev_rules", "boot_config", "services", "launch", "checklist", "os_tweaks", "sources",
              "cmake_args", "build_dependencies", "skip_packages", "python_packages", "python_venv", "when")
-WHEN_KEYS = ("if", "launch", "ros_packages", "apt_packages", "remove_apt_packages", "environment", "groups", "udev_rules",
-             "boot_config", "services", "sources", "cmake_args", "build_dependencies", "skip_packages", "checklist")
+WHEN_KEYS = ("if", "launch", "ros_packages", "apt_packages", "remove_apt_packages", "environment", "groups", "devices",
+             "udev_rules", "boot_config", "services", "sources", "cmake_args", "build_dependencies", "skip_packages", "checklist")
 # An underlay package's name in `cmake_args`, `build_dependencies` and `skip_packages` (a ROS
 # package name, or a plain CMake package's as its colcon.pkg gives it).
 _UNDERLAY_PACKAGE = re.compile(r"[a-z][a-z0-9_]{0,99}", re.ASCII)
@@ -101,7 +101,6 @@ COMMAND_PLACEHOLDERS = ("distro",)
 # What a checklist item may name besides the profile's settings: the host it is for (filled
 # in by the roster loader, so a command in it can be copied as it is).
 CHECKLIST_PLACEHOLDERS = ("host",)
-RULE_KEYS = ("rule", "comment")
 # Opt-in OS changes a robot's maker recommends (applied when the roster sets profile_os_tweaks).
 OS_TWEAK_KEYS = ("mask_units", "swap_mb", "swap_if_memory_mb_at_most")
 # Units a tweak may mask: an allow-list of what a robot's maker turns off (ROBOTIS's e-Manual:
@@ -166,7 +165,7 @@ class Side:
     apt_packages: list[str] = field(default_factory=list)
     environment: dict[str, str] = field(default_factory=dict)
     groups: list[str] = field(default_factory=list)
-    udev_rules: list[dict] = field(default_factory=list)  # {"rule", "comment"}
+    devices: list[device_data.Device] = field(default_factory=list)  # roslab writes their udev rules
     launch: str | None = None
     variant: str | None = None  # ros-<distro>-<variant>: desktop, ros-base...
     checklist: list[str] = field(default_factory=list)
@@ -375,7 +374,7 @@ class ProfileReader:
                 self.check_text(item, known | set(CHECKLIST_PLACEHOLDERS), mapping, "checklist",
                                 f"{path}.checklist")
         self.read_environment(mapping, path, known, side)
-        self.read_udev_rules(mapping, path, known, side)
+        self.read_devices(mapping, path, known, side)
         side.remove_apt_packages += self.string_list(mapping, "remove_apt_packages", f"{path}.remove_apt_packages",
                                                      formats.debian_package)
         kept = set(side.apt_packages) & set(side.remove_apt_packages)
@@ -409,31 +408,26 @@ class ProfileReader:
             self.check_text(value, known, env, name, where)
             side.environment[name] = value
 
-    def read_udev_rules(self, mapping, path: str, known: set[str], side: Side) -> None:
-        """`udev_rules`: a list of {rule, comment}, each one line udev reads as written, into `side`."""
-        rules = mapping.get("udev_rules") or []
-        if not isinstance(rules, list):
-            self.error("must be a list of {rule, comment}", mapping, "udev_rules", f"{path}.udev_rules")
-            rules = []
-        for rule in rules:
-            if not isinstance(rule, dict) or not isinstance(rule.get("rule"), str):
-                self.error("each udev rule is a mapping with 'rule' (and 'comment')", mapping, "udev_rules",
-                           f"{path}.udev_rules")
-                continue
-            self.unknown_keys(rule, RULE_KEYS, f"{path}.udev_rules")
-            for key in RULE_KEYS:
-                text = rule.get(key)
-                if text is not None and (not isinstance(text, str) or formats.single_line(text)):
-                    self.error("must be one line of text", rule, key, f"{path}.udev_rules.{key}")
-                elif key == "comment" and text is not None and "\\" in text:
-                    self.error("holds a backslash: udev may join a line ending in \\ to the next one", rule, key,
-                               f"{path}.udev_rules.{key}")
-            self.check_text(rule["rule"], known, rule, "rule", f"{path}.udev_rules")
-            problem = udev.rule_problem(rule["rule"])
-            if problem:
-                self.error(problem, rule, "rule", f"{path}.udev_rules")
-                continue
-            side.udev_rules.append({"rule": rule["rule"], "comment": str(rule.get("comment") or "")})
+    def read_devices(self, mapping, path: str, known: set[str], side: Side) -> None:
+        """`devices`: the devices the side opens, as data (roslab/profiles/devices.py), into `side`.
+        `udev_rules` (rule text) is refused: roslab writes the rules from the devices."""
+        if "udev_rules" in mapping:
+            self.error("a profile declares its devices, not udev rule text: write each device under `devices:` "
+                       "(kind, usb_ids, identify_by, symlink, group, mode; see roslab/profiles/devices.py) and "
+                       "roslab writes its rule", mapping, "udev_rules", f"{path}.udev_rules")
+        specs = mapping.get("devices") or []
+        if not isinstance(specs, list):
+            self.error("must be a list of devices (name, kind, ...)", mapping, "devices", f"{path}.devices")
+            specs = []
+        for index, spec in enumerate(specs, 1):
+            here = f"{path}.devices[{index}]"
+            device, problems = device_data.read_device(spec, known)
+            for key, message in problems:
+                self.error(message, spec if isinstance(spec, dict) and key in spec else mapping,
+                           key if isinstance(spec, dict) and key in spec else "devices",
+                           f"{here}.{key}" if key else here)
+            if device is not None:
+                side.devices.append(device)
 
     def read_cmake_args(self, mapping, path: str, side: Side) -> None:
         """`cmake_args`: {ROS package name: ["-DNAME=value", ...]} for the underlay's build."""
@@ -750,14 +744,14 @@ def variable_problem(name, value, service: bool = False) -> str | None:
 
 def login_group_problem(group: str) -> str | None:
     """Why a profile may not put the login user (the students' account) in `group`, or None:
-    hardware-access groups only (udev.HARDWARE_GROUPS); sudo, adm, disk, shadow, docker, lxd
+    hardware-access groups only (devices.LOGIN_GROUPS); sudo, adm, disk, shadow, docker, lxd
     and the like would make every student root."""
     problem = formats.linux_user(group)
     if problem:
         return problem
-    if group not in udev.HARDWARE_GROUPS:
+    if group not in device_data.LOGIN_GROUPS:
         return (f"{group!r} is not a hardware-access group a profile may give the login user "
-                f"({', '.join(udev.HARDWARE_GROUPS)})")
+                f"({', '.join(device_data.LOGIN_GROUPS)})")
     return None
 
 
@@ -936,7 +930,7 @@ def merged_side(base: Side, own: Side) -> Side:
         apt_packages=union(base.apt_packages, own.apt_packages),
         environment={**base.environment, **own.environment},
         groups=union(base.groups, own.groups),
-        udev_rules=[*base.udev_rules, *own.udev_rules],
+        devices=[*base.devices, *own.devices],
         launch=own.launch or base.launch,
         variant=own.variant or base.variant,
         checklist=[*base.checklist, *own.checklist],

@@ -203,8 +203,9 @@ def test_udev_rules_and_the_dialout_group_are_in_place(sandbox, first_run):
     team2 = sandbox.ssh("team2-robot", f"cat {RULES}", check=True).stdout
     for rules in (team1, team2):
         assert 'ATTRS{idVendor}=="0483", ATTRS{idProduct}=="5740", ENV{ID_MM_DEVICE_IGNORE}="1"' in rules
-        assert 'ATTRS{idProduct}=="df11"' in rules
-    assert "tb3_lidar" not in team1 and 'SYMLINK+="tb3_lidar"' in team2  # only an LDS-01 gets the name
+        assert 'ATTR{idProduct}=="df11"' in rules  # the USB device itself, in DFU mode
+        # every LDS model's CP2102 is /dev/tb3_lidar, as ROBOTIS's 99-turtlebot3-cdc.rules names it
+        assert 'ENV{ROSLAB_DEVICE}="lidar", GROUP="dialout", MODE="0666", SYMLINK+="tb3_lidar"' in rules
     assert sandbox.ssh("team1-main", f"test -e {RULES}").returncode == 1
     reloaded = {host for name, hosts in first_run.changed.items() if "udev has read" in name for host in hosts}
     assert reloaded == {"team1-robot", "team2-robot"}

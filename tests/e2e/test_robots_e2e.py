@@ -247,7 +247,7 @@ def test_the_boot_config_block_is_in_place_and_the_cmdline_backed_up(sandbox, fi
     config = sandbox.ssh(ROVER, "cat /boot/firmware/config.txt", check=True).stdout
     assert config.startswith(STANDIN_CONFIG)  # nothing above the block changed
     assert ("# BEGIN roslab managed block (robot profile boot config)\n[all]\nenable_uart=1\n"
-            "dtparam=i2c_arm=on\n# END roslab managed block (robot profile boot config)\n") in config
+            "dtoverlay=disable-bt\ndtparam=i2c_arm=on\n# END roslab managed block (robot profile boot config)\n") in config
     cmdline = sandbox.ssh(ROVER, "cat /boot/firmware/cmdline.txt", check=True).stdout
     assert cmdline == STANDIN_CMDLINE.replace("console=serial0,115200 ", "")
     backups = sandbox.ssh(ROVER, "cat /boot/firmware/cmdline.txt.roslab-*", check=True).stdout
@@ -263,7 +263,8 @@ def test_the_rover_has_its_groups_udev_rules_and_its_service(sandbox, first_run)
     groups = sandbox.ssh(ROVER, "id -nG ubuntu", check=True).stdout.split()
     assert {"tty", "dialout", "input"} <= set(groups)
     rules = sandbox.ssh(ROVER, "cat /etc/udev/rules.d/60-roslab-profile.rules", check=True).stdout
-    assert 'KERNEL=="ttyS0", SYMLINK+="serial0", GROUP="tty", MODE="0660"' in rules
+    # the RoboClaws' UART as /dev/serial1, which roboclaw_params.yaml opens at the pinned v4.1.0
+    assert 'KERNEL=="ttyAMA0", ENV{ROSLAB_DEVICE}="roboclaw_uart", GROUP="dialout", MODE="0660", SYMLINK+="serial1"' in rules
     props = show(sandbox, ROVER, "osr_startup.service", "LoadState", "UnitFileState", "ActiveState", "ExecStart",
                  "Restart", "User")
     assert props["LoadState"] == "loaded" and props["Restart"] == "always" and props["User"] == "ubuntu", props
@@ -293,8 +294,8 @@ def test_the_agent_unit_runs_the_udp_transport_with_fast_dds(sandbox, first_run)
     # esp32_present where the agent is real; the stand-in agent is installed, not started
     expected = ("enabled", "active") if is_real(sandbox) else ("disabled", "inactive")
     assert (props["UnitFileState"], props["ActiveState"]) == expected, props
-    rules = sandbox.ssh(BOARD_HOST, "cat /etc/udev/rules.d/60-roslab-profile.rules", check=True).stdout
-    assert 'ATTRS{serial}=="0001A2B3"' in rules and 'SYMLINK+="esp32"' in rules
+    # a board on UDP (WiFi) has no USB link to its host: no device, no rules file
+    assert sandbox.ssh(BOARD_HOST, "test -e /etc/udev/rules.d/60-roslab-profile.rules").returncode == 1
     assert "dialout" in sandbox.ssh(BOARD_HOST, "id -nG ubuntu", check=True).stdout.split()
     assert sandbox.ssh(BOARD_HOST, "dpkg-query -W brltty 2>/dev/null | grep -q .").returncode != 0
     assert sandbox.ssh("team2-main", "test -e /etc/systemd/system/micro_ros_agent.service").returncode != 0

@@ -117,12 +117,13 @@ def test_a_first_run_updates_apt_once_and_a_noop_run_reads_the_host_in_two_comma
     assert second.facts_asked == ["HostProbe", "HostProbe"]
 
 
-def turtlebot3_robot_data(tmp_path, lds_model="LDS-02", **settings):
+def turtlebot3_robot_data(tmp_path, lds_model="LDS-02", lds_usb_serial=None, **settings):
     from roslab.profiles.library import builtin_profiles
     from roslab.profiles.resolve import resolve_host
 
+    given = {"turtlebot3_model": "burger", "lds_model": lds_model}
     profile, problems = resolve_host(builtin_profiles()["turtlebot3"],
-                                     {"turtlebot3_model": "burger", "lds_model": lds_model},
+                                     {**given, **({"lds_usb_serial": lds_usb_serial} if lds_usb_serial else {})},
                                      distro="jazzy", role="robot")
     assert not problems
     return host_data(tmp_path, "noble", "robot", roslab_profile=profile,
@@ -140,7 +141,7 @@ def test_a_turtlebot3_robot_gets_its_packages_udev_rules_group_and_variables_the
             "ros-jazzy-turtlebot3-msgs ros-jazzy-dynamixel-sdk ros-jazzy-hls-lfcd-lds-driver "
             "ros-jazzy-ld08-driver ros-jazzy-coin-d4-driver; status=$?;") in install[0]
     rules = first.uploads()["/etc/udev/rules.d/60-roslab-profile.rules"]
-    assert 'ATTRS{idVendor}=="0483", ATTRS{idProduct}=="5740"' in rules and "tb3_lidar" not in rules
+    assert 'ATTRS{idVendor}=="0483", ATTRS{idProduct}=="5740"' in rules and 'SYMLINK+="tb3_lidar"' in rules
     assert any("udevadm control --reload-rules" in " ".join(c) for n, c in changing.items() if "udev has read" in n)
     assert ["usermod -a -G dialout student"] in changing.values()
     bashrc = host_bashrc_after(host, first)
@@ -151,18 +152,18 @@ def test_a_turtlebot3_robot_gets_its_packages_udev_rules_group_and_variables_the
     assert "student is already in dialout" in second.noops
 
 
-def test_another_lidar_changes_the_variable_only_and_an_lds_01_its_udev_name(tmp_path):
+def test_another_lidar_changes_the_variable_only_and_the_lidars_serial_its_udev_rule(tmp_path):
     host = with_stand_in_deb(FakeUbuntu())
     host.apply(plan(run_deploy_py, host.facts(), turtlebot3_robot_data(tmp_path)))
-    result = plan(run_deploy_py, host.facts(), turtlebot3_robot_data(tmp_path, lds_model="LDS-03"))
-    assert [name.split(" | ")[1] for name in result.changing()] == [
-        "Ensure student's ~/.bashrc sets up the ROS 2 environment"]
-    result = plan(run_deploy_py, host.facts(), turtlebot3_robot_data(tmp_path, lds_model="LDS-01"))
+    for lds_model in ("LDS-03", "LDS-01"):  # every LDS model's adapter is /dev/tb3_lidar
+        result = plan(run_deploy_py, host.facts(), turtlebot3_robot_data(tmp_path, lds_model=lds_model))
+        assert [name.split(" | ")[1] for name in result.changing()] == [
+            "Ensure student's ~/.bashrc sets up the ROS 2 environment"]
+    result = plan(run_deploy_py, host.facts(), turtlebot3_robot_data(tmp_path, lds_usb_serial="0001"))
     names = [name.split(" | ")[1] for name in result.changing()]
     assert names == ["Ensure 60-roslab-profile.rules holds robot profile turtlebot3's udev rules",
-                     "Ensure udev has read the robot profile's rules",
-                     "Ensure student's ~/.bashrc sets up the ROS 2 environment"]
-    assert 'SYMLINK+="tb3_lidar"' in result.uploads()["/etc/udev/rules.d/60-roslab-profile.rules"]
+                     "Ensure udev has read the robot profile's rules"]
+    assert 'ATTRS{serial}=="0001"' in result.uploads()["/etc/udev/rules.d/60-roslab-profile.rules"]
 
 
 def test_an_opted_in_2_gb_robot_gets_the_e_manuals_tweaks_once_and_a_noop_reads_in_two_commands(tmp_path):

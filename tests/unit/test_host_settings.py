@@ -123,3 +123,26 @@ def test_the_settings_are_the_same_whichever_deploy_asks_first(concern):
     inside = typed.host_settings(inside_host)
     assert inside == outside
     assert inside.locale == "de_DE.UTF-8" and inside.apt_cache_port == 3142
+
+
+@pytest.mark.parametrize("rule", [
+    'SUBSYSTEM=="tty", ATTR{dev}=="4:*", MODE="0666"',  # every virtual console
+    'SUBSYSTEM=="input", KERNEL=="*e*", MODE="0666"',  # every keyboard
+    'SUBSYSTEM=="tty", KERNEL=="ttyAMA0", ENV{ROSLAB_DEVICE}="uart", RUN+="/bin/sh -c id"',
+    'SUBSYSTEM=="tty", ATTRS{idVendor}=="10c4", ATTRS{idProduct}=="ea60", ENV{ROSLAB_DEVICE}="x", GROUP="disk"',
+])
+def test_hand_made_profile_data_carries_only_rules_roslab_writes_from_devices(rule):
+    """A hand-made inventory or --data may bring a resolved profile: its udev rules are read back
+    as roslab writes them from a profile's devices, and rule text of its own is refused."""
+    from roslab.profiles.library import builtin_profiles
+    from roslab.profiles.resolve import resolve_host
+
+    profile, _ = resolve_host(builtin_profiles()["turtlebot3"], {"turtlebot3_model": "burger", "lds_model": "LDS-03"},
+                              distro="jazzy", role="robot")
+    good = Inventory(([("pi", {"roslab_profile": profile})], {}))
+    assert "tb3_lidar" in typed.host_settings(good.get_host("pi")).roslab_profile.udev_rules
+    inventory = Inventory(([("pi", {"roslab_profile": {**profile, "udev_rules": profile["udev_rules"] + rule + "\n"}})],
+                           {}))
+    with pytest.raises(typed.HostSettingsError, match="roslab_profile: line 9 of its udev rules is not one roslab "
+                                                      "writes from a profile's devices"):
+        typed.host_settings(inventory.get_host("pi"))

@@ -5,7 +5,7 @@ Each case writes a real roster and runs `roslab check` on it (or loads it throug
 inventories/lab.py, as pyinfra does, for `--data`), with every outgoing connection made to
 fail the test. The classes: environment names (an allow-list: a form plus refused families
 naming the setting that governs them), the login user's groups, the units a tweak may mask,
-udev rules read as udev reads them, setting patterns that could backtrack, file:// rewrites
+devices as data (no udev rule text), setting patterns that could backtrack, file:// rewrites
 and caches outside their purpose, system unit names, `extends` loops, .repos files that are
 not regular files. Good values still pass: the built-in profiles load, and so do a lab's own.
 """
@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 
 from roslab.cli.main import main
-from roslab.profiles import library, udev
+from roslab.profiles import library
 from roslab.roster import RosterError, load_roster
 
 REPO = Path(__file__).resolve().parents[2]
@@ -232,98 +232,98 @@ def test_a_service_named_like_a_system_unit_is_refused_before_connecting(name, t
               "a unit roslab or the system owns")
 
 
-# --- udev rules, read as udev reads them ---------------------------------------------------------
+# --- devices as data: no rule text, each field allow-listed ---------------------------------------
 
+# Rule text a profile may no longer write, whatever it says (issue 36's held-out values among them:
+# every virtual console, /dev/console, every keyboard).
 HOSTILE_RULES = [
-    ('KERNEL=="ttyUSB0", RU\\\\', "backslash"),
-    ('KERNEL=="ttyUSB0", SYMLINK+="x" \\\\', "backslash"),
-    ('SYSCTL{kernel.core_pattern}="|/tmp/x"', "SYSCTL{kernel.core_pattern} is not a key"),
-    ('SUBSYSTEM=="tty", ENV{SYSTEMD_WANTS}+="poweroff.target"', "ENV allows"),
-    ('SUBSYSTEM=="tty", ENV{SYSTEMD_WANTS}="poweroff.target"', "may set only"),
-    ('SUBSYSTEM=="tty", ENV{SYSTEMD_USER_WANTS}="x.service"', "may set only"),
-    ('SUBSYSTEM=="tty", TAG+="systemd"', "may add only the tags"),
-    ('SUBSYSTEM=="block", MODE="0666"', "never a disk"),
-    ('KERNEL=="sd*", MODE="0666"', "never a disk"),
-    ('KERNEL=="mmcblk0*", GROUP="dialout", MODE="0660"', "never a disk"),
-    ('SUBSYSTEM=="tty", SUBSYSTEM=="block", MODE="0666"', "never a disk"),
-    ('SUBSYSTEM!="tty", MODE="0666"', "never a disk"),
-    ('SUBSYSTEM=="tty", MODE="4777"', "plain octal mode"),
-    ('SUBSYSTEM=="tty", MODE="rw"', "plain octal mode"),
-    ('SUBSYSTEM=="tty", GROUP="disk"', "not a hardware-access group"),
-    ('SUBSYSTEM=="tty", GROUP="sudo"', "not a hardware-access group"),
-    ('SUBSYSTEM=="tty", OWNER="ubuntu"', "OWNER is not a key"),
-    ('SUBSYSTEM=="tty", RUN+="/bin/sh -c id"', "RUN is not a key"),
-    ('SUBSYSTEM=="tty", RUN{program}+="/bin/sh"', "RUN{program} is not a key"),
-    ('SUBSYSTEM=="tty", PROGRAM=="/bin/sh -c id"', "PROGRAM is not a key"),
-    ('SUBSYSTEM=="tty", IMPORT{program}="x"', "IMPORT{program} is not a key"),
-    ('SUBSYSTEM=="tty", IMPORT{builtin}="hwdb"', "IMPORT{builtin} is not a key"),
-    ('SUBSYSTEM=="net", NAME="eth0"', "NAME is not a key"),
-    ('SUBSYSTEM=="tty", OPTIONS+="last_rule"', "OPTIONS is not a key"),
-    ('SUBSYSTEM=="tty", ATTR{power/control}="on"', "ATTR allows"),
-    ('SUBSYSTEM=="tty", SECLABEL{selinux}="x"', "is not a key"),
-    ('SUBSYSTEM=="tty", GOTO="end"', "GOTO is not a key"),
-    ('SUBSYSTEM=="tty", SYMLINK+="disk/by-uuid/1234"', "no folders"),
-    ('SUBSYSTEM=="tty", SYMLINK+="../sda"', "no folders"),
-    ('SUBSYSTEM=="tty", SYMLINK+="%k-link"', "substitutes"),
-    ('SUBSYSTEM=="tty", ATTRS{serial}=="$env{X}"', "substitutes"),
-    ('SUBSYSTEM=="tty", SYMLINK+=e"x"', "double quotes"),
-    ('SUBSYSTEM=="tty", MODE=0666', "double quotes"),
-    ('SUBSYSTEM=="tty" MODE="0660"', "commas"),
-    ('SUBSYSTEM=="tty", ${key}+="x"', "double quotes"),
-    ('SUBSYSTEM=="tty", SYMLINK+="${key}"', "compared, not one that is set"),
-    ('# a comment', "comment"),
-    ('SUBSYSTEM=="tty", MODE="0666"', "names its device too"),
-    ('SUBSYSTEM=="usb", MODE="0666"', "names its device too"),
-    ('SUBSYSTEM=="tty", KERNEL=="tty*", MODE="0666"', "names its device too"),
-    ('SUBSYSTEM=="tty", KERNEL=="tty1", GROUP="dialout"', "names its device too"),
-    ('SUBSYSTEM=="tty", KERNEL=="ttyUSB0|console", MODE="0666"', "names its device too"),
-    ('SUBSYSTEM=="usb", ATTRS{idVendor}=="*", MODE="0666"', "names its device too"),
-    ('SUBSYSTEM=="tty", ATTRS{../../idVendor}=="0483"', "no '..'"),
-    ('SUBSYSTEM=="tty|block", ATTRS{idVendor}=="0483", MODE="0666"', "never a disk"),
+    'SUBSYSTEM=="tty", ATTR{dev}=="4:*", MODE="0666"',
+    'SUBSYSTEM=="tty", ATTR{dev}=="5:1", MODE="0666"',
+    'SUBSYSTEM=="input", KERNEL=="*e*", MODE="0666"',
+    'SUBSYSTEM=="tty", ATTRS{idVendor}=="10c4", SYMLINK+="esp32"',
+    'KERNEL=="ttyUSB0", RU\\\\',
 ]
 
 
-def test_a_udev_comment_udev_could_join_to_the_next_line_is_refused(tmp_path, capsys, no_connections):
-    part = 'udev_rules: [{rule: \'SUBSYSTEM=="tty", SYMLINK+="x"\', comment: "ends in a backslash \\\\"}]'
-    errors = checked_errors(roster(tmp_path, part=part), capsys, no_connections)
-    one_error(errors, f"lab.yaml:{PART_LINE}: field 'profiles.mine.robot.udev_rules.comment': ", "backslash")
-
-
-@pytest.mark.parametrize("rule, words", HOSTILE_RULES)
-def test_a_udev_rule_is_read_as_udev_reads_it(rule, words, tmp_path, capsys, no_connections):
+@pytest.mark.parametrize("rule", HOSTILE_RULES)
+def test_rule_text_is_refused_pointing_to_devices(rule, tmp_path, capsys, no_connections):
     part = f"udev_rules: [{{rule: {json.dumps(rule)}}}]"
-    text = template(part=part, host="").replace("    robot:\n", "    settings: {key: {pattern: '[A-Z]+'}}\n"
-                                                                    "    robot:\n")
-    path = tmp_path / "lab.yaml"
-    path.write_text(text)
-    errors = checked_errors(path, capsys, no_connections)
-    one_error(errors, f"lab.yaml:{PART_LINE + 1}: field 'profiles.mine.robot.udev_rules'", words)
+    errors = checked_errors(roster(tmp_path, part=part), capsys, no_connections)
+    one_error(errors, f"lab.yaml:{PART_LINE}: field 'profiles.mine.robot.udev_rules': ", "write each device under "
+              "`devices:`")
 
 
-def test_two_rules_udev_would_join_are_refused_as_the_file_is_written():
-    rules = '# managed\nSUBSYSTEM=="tty", SYMLINK+="esp32", RU\\\nN+="/bin/sh -c id"\n'
-    assert "backslash" in udev.file_problem(rules)
-    assert udev.file_problem('# a comment \\\nRUN+="/bin/sh"\n').startswith("line 1 ")
-    assert udev.file_problem('# ok\nSUBSYSTEM=="tty", ATTRS{serial}=="A1", MODE="0660", GROUP="dialout"\n') is None
+GOOD_DEVICE = {"name": "board", "kind": "usb_serial", "usb_ids": ["0483:5740"], "symlink": "lab_board",
+               "group": "dialout", "mode": "0660", "modemmanager": "ignore"}
+HOSTILE_DEVICES = [
+    ({"kind": "block"}, "kind", "not a device kind"),
+    ({"kind": "input"}, "kind", "not a device kind"),
+    ({"usb_ids": ["*:*"]}, "usb_ids", "not a USB vendor:product id"),
+    ({"usb_ids": ["10c4"]}, "usb_ids", "not a USB vendor:product id"),
+    ({"usb_ids": ["10C4:EA60"]}, "usb_ids", "not a USB vendor:product id"),
+    ({"usb_ids": ['10c4:ea60", RUN+="/bin/sh']}, "usb_ids", "not a USB vendor:product id"),
+    ({"usb_ids": ["10c4:*"]}, "usb_ids", "names its product"),
+    ({"usb_ids": []}, "usb_ids", "must be a list"),
+    ({"group": "input"}, "group", "not a group a device may be given"),
+    ({"group": "tty"}, "group", "not a group a device may be given"),
+    ({"group": "disk"}, "group", "not a group a device may be given"),
+    ({"group": "root"}, "group", "not a group a device may be given"),
+    ({"mode": "4777"}, "mode", "not a mode a device may be given"),
+    ({"mode": "0777"}, "mode", "not a mode a device may be given"),
+    ({"symlink": "disk/by-uuid/1"}, "symlink", "no folders"),
+    ({"symlink": "../sda"}, "symlink", "no folders"),
+    ({"symlink": "%k"}, "symlink", "no folders"),
+    ({"symlink": "console"}, "symlink", "the system's own devices"),
+    ({"symlink": "tty1"}, "symlink", "the system's own devices"),
+    ({"symlink": "sda"}, "symlink", "the system's own devices"),
+    ({"symlink": "stdin"}, "symlink", "the system's own devices"),
+    ({"identify_by": "serial"}, "serial", "needs serial"),
+    ({"identify_by": "port"}, "port_path", "needs port_path"),
+    ({"identify_by": "serial", "serial": 'A1", RUN+="x'}, "serial", "is not a value"),
+    ({"identify_by": "serial", "serial": "${nope}"}, "serial", "not a setting of this profile"),
+    ({"identify_by": "port", "port_path": "1-1*"}, "port_path", "is not a value"),
+    ({"identify_by": "guess"}, "identify_by", "not one of"),
+    ({"serial": "A1"}, "serial", "only with identify_by serial"),
+    ({"kernel": "ttyUSB0"}, "kernel", "has no kernel"),
+    ({"modemmanager": "probe"}, "modemmanager", "ignore"),
+    ({"comment": "two\nlines"}, "comment", "line"),
+    ({"name": "Bad Name"}, "name", "lower-case"),
+    ({"run": "/bin/sh"}, "run", "unknown key"),
+    ({"kind": "i2c", "usb_ids": None, "kernel": "i2c-*"}, "kernel", "not the kernel's name"),
+    ({"kind": "uart", "usb_ids": None, "kernel": "tty1"}, "kernel", "not the kernel's name"),
+    ({"kind": "uart", "usb_ids": None, "kernel": "console"}, "kernel", "not the kernel's name"),
+    ({"kind": "gpio", "usb_ids": None, "kernel": "gpiomem"}, "kernel", "not the kernel's name"),
+    ({"kind": "spi", "usb_ids": None, "kernel": "mem"}, "kernel", "not the kernel's name"),
+]
 
 
-def test_good_udev_rules_pass_and_are_written_as_checked(tmp_path):
-    rule = ('SUBSYSTEM=="tty", ATTRS{idVendor}=="0483", ATTRS{serial}=="${serial}", ENV{ID_MM_DEVICE_IGNORE}="1", '
-            'MODE="0660", GROUP="dialout", SYMLINK+="lab_board", TAG+="uaccess"')
-    text = template(part=f"udev_rules: [{{rule: {json.dumps(rule)}, comment: the lab's board}}]",
-                         host="\n        serial: A1B2").replace(
+@pytest.mark.parametrize("change, key, words", HOSTILE_DEVICES)
+def test_a_hostile_device_field_is_refused(change, key, words, tmp_path, capsys, no_connections):
+    device = {name: value for name, value in {**GOOD_DEVICE, **change}.items() if value is not None}
+    part = f"devices: [{json.dumps(device)}]"
+    errors = checked_errors(roster(tmp_path, part=part), capsys, no_connections)
+    own = [line for line in errors if line.startswith(f"lab.yaml:{PART_LINE}: field 'profiles.mine.robot.devices[1]")]
+    assert own and any(f"devices[1].{key}'" in line and words in line for line in own), errors
+
+
+def test_a_good_device_passes_and_roslab_writes_its_rule(tmp_path):
+    device = {**GOOD_DEVICE, "identify_by": "serial", "serial": "${serial}", "comment": "the lab's board"}
+    text = template(part=f"devices: [{json.dumps(device)}]", host="\n        serial: A1B2").replace(
         "    robot:\n", "    settings: {serial: {pattern: '[A-Z0-9]+'}}\n    robot:\n")
     (tmp_path / "lab.yaml").write_text(text)
     written = load_roster(tmp_path / "lab.yaml").hosts[0].data["roslab_profile"]["udev_rules"]
-    assert 'ATTRS{serial}=="A1B2"' in written and udev.file_problem(written) is None
+    assert ('SUBSYSTEM=="tty", ATTRS{idVendor}=="0483", ATTRS{idProduct}=="5740", ATTRS{serial}=="A1B2", '
+            'ENV{ID_MM_DEVICE_IGNORE}="1", ENV{ROSLAB_DEVICE}="board", GROUP="dialout", MODE="0660", '
+            'SYMLINK+="lab_board"') in written.splitlines()
+    assert "# board (usb_serial): the lab's board" in written
 
 
-def test_the_built_in_profiles_rules_pass_the_same_reading():
+def test_the_built_in_profiles_declare_devices_only():
     profiles = library.builtin_profiles()
-    rules = [rule["rule"] for profile in profiles.values() for side in profile.sides.values()
-             for part in [side, *(block["side"] for block in side.when)] for rule in part.udev_rules]
-    assert len(rules) >= 8 and all(udev.rule_problem(rule) is None for rule in rules)
-    assert {"demo", "turtlebot3", "sim", "osr", "esp32_microros"} <= set(profiles)
+    devices = [device for profile in profiles.values() for side in profile.sides.values()
+               for part in [side, *(block["side"] for block in side.when)] for device in part.devices]
+    assert len(devices) >= 10
+    assert {"demo", "turtlebot3", "turtlebot4", "sim", "osr", "esp32_microros"} <= set(profiles)
 
 
 # --- a setting's pattern runs in bounded time -----------------------------------------------------

@@ -99,9 +99,19 @@ def test_a_hostile_usb_serial_number_is_refused(tmp_path, rosdistro_url, serial)
     assert errors and all("field 'esp32_usb_serial'" in error for error in errors)
 
 
-def test_the_esp32_board_needs_its_usb_serial_number(tmp_path, rosdistro_url):
-    errors = errors_of(roster(tmp_path, rosdistro_url, "esp32_microros"))
-    assert all("field 'esp32_usb_serial': profile 'esp32_microros' needs esp32_usb_serial" in e for e in errors)
+def test_the_esp32_board_is_the_only_chip_its_port_or_its_serial_and_on_udp_no_device(tmp_path, rosdistro_url):
+    def rules(settings: str) -> str:
+        return load_roster(roster(tmp_path, rosdistro_url, "esp32_microros", settings)).hosts[1].data[
+            "roslab_profile"]["udev_rules"]
+
+    only = rules("esp32_transport: serial")
+    assert 'SYMLINK+="esp32"' in only and "ATTRS{serial}" not in only and "KERNELS" not in only
+    by_port = rules("esp32_usb_port: 1-1.3")  # a CH340 has no serial number
+    assert by_port.count('KERNELS=="1-1.3"') == 3 and "ATTRS{serial}" not in by_port
+    assert rules("esp32_usb_port: 1-1.3\nesp32_usb_serial: A1").count('ATTRS{serial}=="A1"') == 3
+    assert rules("esp32_transport: udp") == ""  # a board on WiFi has no USB link to the host
+    errors = errors_of(roster(tmp_path, rosdistro_url, "esp32_microros", "esp32_usb_port: '1-1*'"))
+    assert errors and all("field 'esp32_usb_port'" in error for error in errors)
 
 
 @pytest.mark.parametrize("port", ["80", "65536", "8888x", "0"])
@@ -172,10 +182,13 @@ def test_a_profile_naming_an_unknown_middleware_is_refused():
 
 def test_osr_robot_gets_serial_and_i2c_on_and_its_service_disabled_until_calibrated():
     robot = resolved("osr", board="pi4")
-    assert robot["boot_config"] == {"config_txt": ["enable_uart=1", "dtparam=i2c_arm=on"],
+    # At the pinned v4.1.0 the RoboClaws are on /dev/serial1 (the PL011), on GPIO 14/15 only with
+    # Bluetooth off (setup/serial_config_info.md; tests/unit/test_devices_upstream.py reads the pin).
+    assert robot["boot_config"] == {"config_txt": ["enable_uart=1", "dtoverlay=disable-bt", "dtparam=i2c_arm=on"],
                                     "cmdline_remove": ["console=serial0,115200"]}
     assert robot["groups"] == ["tty", "dialout", "input"]
-    assert 'SUBSYSTEM=="tty", KERNEL=="ttyS0", SYMLINK+="serial0", GROUP="tty", MODE="0660"' in robot["udev_rules"]
+    assert ('SUBSYSTEM=="tty", KERNEL=="ttyAMA0", ENV{ROSLAB_DEVICE}="roboclaw_uart", GROUP="dialout", '
+            'MODE="0660", SYMLINK+="serial1"') in robot["udev_rules"]
     (service,) = robot["services"]
     assert service["command"] == "ros2 launch osr_bringup osr_launch.py"
     assert service["enabled"] is False and "osr_calibrated is false" in service["disabled_because"]
@@ -193,7 +206,11 @@ def test_esp32_agent_runs_on_the_side_the_board_is_attached_to():
     assert agent["environment"] == {"RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"}
     assert robot["remove_apt_packages"] == ["brltty"] and robot["groups"] == ["dialout"]
     assert 'ATTRS{serial}=="A1B2"' in robot["udev_rules"] and 'SYMLINK+="esp32"' in robot["udev_rules"]
-    assert "idVendor" not in robot["udev_rules"]  # keyed on the board, not its chip
+    # CP2102, CH340 and CH9102 boards, each by the serial number
+    assert [line.split(", ")[1:4] for line in robot["udev_rules"].splitlines() if not line.startswith("#")] == [
+        ['ATTRS{idVendor}=="10c4"', 'ATTRS{idProduct}=="ea60"', 'ATTRS{serial}=="A1B2"'],
+        ['ATTRS{idVendor}=="1a86"', 'ATTRS{idProduct}=="7523"', 'ATTRS{serial}=="A1B2"'],
+        ['ATTRS{idVendor}=="1a86"', 'ATTRS{idProduct}=="55d4"', 'ATTRS{serial}=="A1B2"']]
     assert main["services"] == [] and main["udev_rules"] == "" and main["remove_apt_packages"] == []
     on_main = resolved("esp32_microros", role="main", esp32_usb_serial="A1B2", esp32_attached_to="main",
                        esp32_transport="udp", esp32_udp_port="9000")
@@ -262,7 +279,7 @@ def test_a_pi_gets_the_block_the_cmdline_backed_up_and_a_reboot_recorded():
     block = result.uploads()[CONFIG_TXT]
     assert block.startswith("[pi4]\nmax_framebuffers=2\n[all]\narm_64bit=1\n")
     assert ("# BEGIN roslab managed block (robot profile boot config)\n[all]\nenable_uart=1\n"
-            "dtparam=i2c_arm=on\n# END roslab managed block (robot profile boot config)\n") in block
+            "dtoverlay=disable-bt\ndtparam=i2c_arm=on\n# END roslab managed block (robot profile boot config)\n") in block
     (cmdline,) = [commands for name, commands in changes.items() if CMDLINE_TXT in name]
     assert cmdline[0].startswith(f"cp -p -- {CMDLINE_TXT} {CMDLINE_TXT}.roslab-")
     assert "multipath=off" in cmdline[0] and "console=serial0" not in cmdline[0].split("printf")[1]
@@ -314,7 +331,7 @@ def test_boot_files_and_the_reboot_record_are_renamed_durably(tmp_path):
 
 def test_a_converged_pi_changes_nothing_and_records_no_reboot():
     block = ["[all]", "# BEGIN roslab managed block (robot profile boot config)", "[all]", "enable_uart=1",
-             "dtparam=i2c_arm=on", "# END roslab managed block (robot profile boot config)"]
+             "dtoverlay=disable-bt", "dtparam=i2c_arm=on", "# END roslab managed block (robot profile boot config)"]
     result = osr_plan(boot_facts(config=block, cmdline=UBUNTU_CMDLINE.replace("console=serial0,115200 ", "")))
     assert result.changing() == {}
     assert any("holds none of console=serial0,115200" in noop for noop in result.noops)
