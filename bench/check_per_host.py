@@ -6,7 +6,10 @@ round (interleaved, so the load of a shared machine falls on both alike). CPU se
 the child process (user + system, getrusage) are what compare; the median per size is kept.
 Per host = (median(10,000) - median(10)) / 9,990. Results: bench/results/check_per_host.{md,json}.
 
-    .venv/bin/python bench/check_per_host.py [--rounds 5] [--note TEXT] [--profile]
+    .venv/bin/python bench/check_per_host.py [--rounds 5] [--note TEXT] [--profile] [--baseline REF]
+
+--baseline REF also measures the git ref REF (exported to a temporary folder, run from there)
+in the same interleaved rounds, so both figures share the machine's load.
 
 --profile also writes the 25 costliest functions (cProfile, cumulative) of one 10,000-host check.
 """
@@ -40,9 +43,9 @@ def roster(hosts: int) -> str:
     return "classroom: {name: bench}\nteams:\n" + "\n".join(teams) + "\n"
 
 
-def cpu_of(command: list[str]) -> float:
+def cpu_of(command: list[str], cwd: Path = REPO) -> float:
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    subprocess.run(command, check=True, stdout=subprocess.DEVNULL, cwd=REPO)
+    subprocess.run(command, check=True, stdout=subprocess.DEVNULL, cwd=cwd)
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     return (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
@@ -59,43 +62,61 @@ def profile(path: Path) -> str:
     return out.stderr
 
 
+def measure(checkouts: dict[str, Path], rounds: int, folder: Path) -> dict[str, dict[int, list[float]]]:
+    """CPU-seconds of `roslab check` per checkout and size, interleaved round after round."""
+    paths = {size: folder / f"lab-{size}.yaml" for size in SIZES}
+    for size, path in paths.items():
+        path.write_text(roster(size))
+    cpu = {name: {size: [] for size in SIZES} for name in checkouts}
+    runs = [(name, size) for name in checkouts for size in SIZES]
+    for round_ in range(rounds):
+        for name, size in (runs if round_ % 2 == 0 else runs[::-1]):
+            cpu[name][size].append(cpu_of([sys.executable, "-m", "roslab", "check", str(paths[size])],
+                                          checkouts[name]))
+    return cpu
+
+
+def per_host(values: dict[int, list[float]]) -> float:
+    small, large = (statistics.median(values[size]) for size in SIZES)
+    return (large - small) / (SIZES[1] - SIZES[0]) * 1000
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--note", default="")
     parser.add_argument("--profile", action="store_true")
+    parser.add_argument("--baseline", default="")
     args = parser.parse_args()
-    command = [sys.executable, "-m", "roslab", "check"]
-    cpu: dict[int, list[float]] = {size: [] for size in SIZES}
     with tempfile.TemporaryDirectory() as folder:
-        paths = {size: Path(folder) / f"lab-{size}.yaml" for size in SIZES}
-        for size, path in paths.items():
-            path.write_text(roster(size))
-        for round_ in range(args.rounds):
-            for size in (SIZES if round_ % 2 == 0 else SIZES[::-1]):
-                cpu[size].append(cpu_of([*command, str(paths[size])]))
-        profiled = profile(paths[SIZES[-1]]) if args.profile else ""
-    median = {size: statistics.median(values) for size, values in cpu.items()}
-    per_host_ms = (median[SIZES[1]] - median[SIZES[0]]) / (SIZES[1] - SIZES[0]) * 1000
+        checkouts = {"this": REPO}
+        if args.baseline:
+            checkouts[args.baseline] = Path(folder) / "baseline"
+            checkouts[args.baseline].mkdir()
+            subprocess.run(f"git archive {args.baseline} | tar -x -C {checkouts[args.baseline]}", shell=True,
+                           cwd=REPO, check=True)
+        cpu = measure(checkouts, args.rounds, Path(folder))
+        profiled = profile(Path(folder) / f"lab-{SIZES[-1]}.yaml") if args.profile else ""
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
                             text=True).stdout.strip()
     result = {"commit": commit, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
               "machine": platform.machine(), "python": platform.python_version(), "rounds": args.rounds,
-              "cpu_seconds": {str(size): values for size, values in cpu.items()},
-              "median_cpu_seconds": {str(size): value for size, value in median.items()},
-              "per_host_ms": round(per_host_ms, 3), "note": args.note}
+              "cpu_seconds": {name: {str(size): v for size, v in values.items()} for name, values in cpu.items()},
+              "per_host_ms": {name: round(per_host(values), 3) for name, values in cpu.items()}, "note": args.note}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "check_per_host.json").write_text(json.dumps(result, indent=2) + "\n")
     lines = ["# `roslab check`: CPU per host", "",
              f"Commit {commit}, {result['date']}, {args.rounds} interleaved rounds (bench/check_per_host.py). "
-             + args.note, "", "| hosts | median CPU-s | rounds (CPU-s) |", "|---:|---:|---|"]
-    lines += [f"| {size} | {median[size]:.3f} | {', '.join(f'{v:.2f}' for v in cpu[size])} |" for size in SIZES]
-    lines += ["", f"**Per host: {per_host_ms:.3f} ms** (check of {SIZES[1]:,} hosts minus that of {SIZES[0]}, "
-              f"over {SIZES[1] - SIZES[0]:,}). The goal (issue 41): at most 0.35 ms."]
+             + args.note, "", "| checkout | hosts | median CPU-s | rounds (CPU-s) |", "|---|---:|---:|---|"]
+    lines += [f"| {name} | {size} | {statistics.median(values[size]):.3f} | "
+              f"{', '.join(f'{v:.2f}' for v in values[size])} |" for name, values in cpu.items() for size in SIZES]
+    lines += [""] + [f"**{name}: {per_host(values):.3f} ms per host** (check of {SIZES[1]:,} hosts minus that of "
+                     f"{SIZES[0]}, over {SIZES[1] - SIZES[0]:,})." for name, values in cpu.items()]
+    lines += ["", "The goal (issue 41): at most 0.35 ms per host."]
     if profiled:
         lines += ["", "## Profile of one 10,000-host check (cumulative)", "", "```", profiled.strip(), "```"]
     (RESULTS / "check_per_host.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines[:10 + len(SIZES)]))
+    print("\n".join(line for line in lines if not line.startswith("```")))
     return 0
 
 
