@@ -78,3 +78,12 @@ def test_a_pytest_run_prints_the_durations_and_leaves_the_file(tmp_path):
     rows = [line for line in text.splitlines() if "::test_" in line]
     assert "test_sample.py::test_slow |" in rows[0]
     assert float(rows[0].split("|")[1]) >= 0.2
+
+
+def test_make_test_and_so_ci_run_leave_the_durations_in_the_checkout():
+    """`.ci/run` ends in `make test`; its pytest writes test-durations.md beside the Makefile (gitignored)."""
+    shown = subprocess.run(["make", "-n", "test"], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert shown.returncode == 0, shown.stderr
+    assert f"{ENV}={REPO}/test-durations.md " in shown.stdout.splitlines()[-1]
+    assert "exec make test" in (REPO / ".ci/run").read_text()
+    assert "test-durations.md" in (REPO / ".gitignore").read_text().splitlines()
