@@ -276,7 +276,7 @@ def load_yaml(path: Path, report: Report, secret: bool = False, limit: int = MAX
     if _fast_path_applies(text):
         try:
             return _parse(FastStrictLoader, text)
-        except Exception:  # noqa: BLE001 - the pure loader below reads it again and names the problem
+        except Exception:  # noqa: B902 - the pure loader below reads it again and names the problem
             pass
     try:
         return _parse(StrictLoader, text)

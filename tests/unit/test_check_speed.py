@@ -24,8 +24,12 @@ def roster(tmp_path, classroom: str = "") -> str:
 def test_each_distinct_folder_is_resolved_once_for_the_whole_class(tmp_path, monkeypatch):
     calls = []
     real = os.path.realpath
-    monkeypatch.setattr(os.path, "realpath", lambda path, *args, **kwargs: calls.append(path) or real(path, *args,
-                                                                                                          **kwargs))
+
+    def counted(path, *args, **kwargs):
+        calls.append(path)
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(os.path, "realpath", counted)
     assert len(load_roster(roster(tmp_path)).hosts) == 100
     folders = [path for path in calls if "cache" in str(path) or "wheel" in str(path)]
     assert folders and len(folders) == len(set(folders)), sorted(folders)

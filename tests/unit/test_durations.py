@@ -11,7 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from tests.durations import ENV, Durations
+from tests.durations import Durations, ENV
 
 REPO = Path(__file__).resolve().parents[2]
 
