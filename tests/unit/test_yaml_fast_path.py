@@ -25,6 +25,11 @@ TEXTS = {
     "unicode": "name: \"Ünïcödé ✓\"\nssid: 'A #1: {x}'\n",
     "empty": "",
     "comments only": "# nothing here\n",
+    "crlf": "a: 1\r\nb:\r\n  c: 2\r\n",
+    "byte order mark": "\ufeffa: 1\nb: 2\n",
+    "outside the BMP": "name: \"robot \U0001f916\"\nx: 1\n",
+    "folded plain": "a: this is\n  folded\nb: 2\n",
+    "keys YAML reads as values": "~: 1\n1.5: a\n010: b\n",
 }
 
 BAD = {
