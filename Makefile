@@ -40,9 +40,10 @@ demo-down: setup
 	$(BIN)/roslab sandbox down
 
 # Unit tests first (seconds), then end-to-end tests on sandbox hosts, in one pytest run;
-# the 25 slowest are listed at the end, so a test that grew slow shows in CI's log.
+# every module's seconds and the 25 slowest tests are printed at the end and kept in
+# test-durations.md (tests/durations.py), so a test that grew slow shows and stays readable.
 test: setup
-	$(BIN)/pytest --durations=25 tests/unit tests/e2e
+	ROSLAB_TEST_DURATIONS=$(CURDIR)/test-durations.md $(BIN)/pytest tests/unit tests/e2e
 
 unit: $(VENV)/.installed
 	$(BIN)/pytest tests/unit

@@ -6,6 +6,8 @@ import sys
 
 import pytest
 
+from tests.durations import Durations
+
 
 def _gevent_patched() -> bool:
     monkey = sys.modules.get("gevent.monkey")
@@ -33,3 +35,22 @@ def pytest_collection_finish(session):
     if _gevent_patched():
         raise pytest.UsageError("a test module gevent-patched the test process at import "
                                 "(imported pyinfra_cli?): run that code in a child process")
+
+
+# The run's cost, kept (tests/durations.py): every module's seconds and the 25 slowest tests,
+# printed at the end and written to the file ROSLAB_TEST_DURATIONS names (`make test`).
+_DURATIONS = Durations()
+
+
+def pytest_runtest_logreport(report):
+    _DURATIONS.add(report.nodeid, report.duration, report.outcome)
+
+
+def pytest_terminal_summary(terminalreporter):
+    if not _DURATIONS.tests:
+        return
+    terminalreporter.section("durations (tests/durations.py)")
+    terminalreporter.write(_DURATIONS.render())
+    written = _DURATIONS.write()
+    if written:
+        terminalreporter.write_line(f"durations written to {written}")

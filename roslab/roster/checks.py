@@ -52,9 +52,10 @@ def check_classroom(classroom: Classroom, report: Report) -> None:
     check_unique(classroom, report, "network_address", _network_ip_key)
     check_apt_cache_host(classroom, report)
     seen: set = set()
+    resolved: dict = {}  # each distinct folder value resolved on disk once, not once per host
     for host in classroom.hosts:
         check_host(host, report)
-        check_controller_folders(host, report, seen)
+        check_controller_folders(host, report, seen, resolved)
 
 
 def check_host(host: Host, report: Report) -> None:
@@ -108,13 +109,19 @@ def check_host(host: Host, report: Report) -> None:
 CACHE_SETTINGS = ("ros_apt_source_cache_dir", "rosdep_cache_dir", "sources_cache_dir", "python_wheelhouse_dir")
 
 
-def check_controller_folders(host: Host, report: Report, seen: set) -> None:
+def check_controller_folders(host: Host, report: Report, seen: set, resolved: dict | None = None) -> None:
     """The host's cache folders are apart from each other and from workspace_nodes_dir; each
-    clash is reported once (`seen`), at the first host that has it."""
+    clash is reported once (`seen`), at the first host that has it. `resolved` keeps each
+    value's real path for the next host (the same few folders on every host of a class)."""
     import os
 
+    resolved = {} if resolved is None else resolved
+
     def real(value):
-        return os.path.realpath(os.path.expanduser(str(value)))
+        value = str(value)
+        if value not in resolved:
+            resolved[value] = os.path.realpath(os.path.expanduser(value))
+        return resolved[value]
 
     def inside(inner, outer):
         return inner == outer or inner.startswith(outer.rstrip("/") + "/")

@@ -89,19 +89,31 @@ def write_boot_partition(path: Path, files: dict[str, SeedFile]) -> list[str]:
         if old == files[name].content:
             continue
         backup = path / (name + BACKUP_SUFFIX)
+        written = [name]
         if old is not None and not backup.exists():
             backup.write_bytes(old)
+            written.append(backup.name)
         _write_private_or_public(target, files[name])
         changed.append(name)
-    _sync(path)
+        _flush(path, written)
     return changed
 
 
-def _sync(path: Path) -> None:
+def _flush(path: Path, names: list[str]) -> None:
+    """The files just written and their folder flushed to the card (fsync): it may be pulled at once.
+
+    Only these: the whole machine's os.sync() (Python has no os.syncfs) waited minutes for
+    every other filesystem's writes on a busy controller. A folder that refuses fsync: os.sync()."""
+    for name in names:
+        fd = os.open(path / name, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
     try:
         fd = os.open(path, os.O_RDONLY)
         try:
-            os.syncfs(fd) if hasattr(os, "syncfs") else os.sync()
+            os.fsync(fd)
         finally:
             os.close(fd)
     except OSError:
