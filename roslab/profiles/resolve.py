@@ -88,7 +88,7 @@ class ResolvedProfile:
     skip_packages: list[str]  # packages of the sources not built
     python: PythonEnv
     remove_apt_packages: list[str]
-    boot_config: dict[str, list[str]]  # config_txt lines, cmdline_remove words
+    boot_config: dict[str, list[str]]  # config_txt lines, cmdline_add and cmdline_remove words
     services: list[ResolvedService]
     underlay_build_memory_mb: int | None  # a host with less memory never builds the underlay
 
