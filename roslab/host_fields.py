@@ -119,6 +119,11 @@ class HostSettings:
     ros_dev_tools: bool
     # Extra apt packages for every host; "{distro}" is replaced, e.g. "ros-{distro}-turtlesim".
     ros_extra_packages: list[str]
+    # --- robot_base ---
+    # Set up the robot's base computer where the profile has one (TurtleBot 4: usb0 at 192.168.186.3/24,
+    # chrony serving the Create 3, and the Create 3's domain, namespace, middleware and NTP server over its
+    # HTTP API).
+    robot_base_enabled: bool
     # --- robot_profile ---
     # Apply the robot profile's udev rules and the login user's groups.
     robot_profile_enabled: bool

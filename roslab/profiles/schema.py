@@ -52,7 +52,7 @@ BUILTIN_CONDITIONS = ("distro", "board")
 
 TOP_KEYS = ("profile", "extends", "description", "distros", "tools", "boards", "middlewares", "dds_only_packages",
             "discovery", "verify_topic", "verify_type", "verify_if", "verify_source", "underlay_build_memory_mb",
-            "settings", *SIDES)
+            "settings", "base", *SIDES)
 # `underlay_build_memory_mb`: the memory (MiB) a host needs to build the profile's underlay;
 # a smaller host never builds it, it receives the build of a host of its group (issue 31).
 UNDERLAY_BUILD_MEMORY_MB = (256, 65536)
@@ -292,6 +292,8 @@ class Profile:
     dds_only_packages: dict[str, str] = field(default_factory=dict)
     # The memory (MiB) a host needs to build the underlay (None: any host may build it).
     underlay_build_memory_mb: int | None = None
+    # The robot's base computer on its own link (roslab/robot_base.py): the TurtleBot 4's Create 3.
+    base: dict | None = None
 
     @property
     def distros(self) -> tuple[str, ...]:
@@ -873,6 +875,7 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
     topic, message_type, verify_if, verify_source = _read_verify(reader, mapping, base, known)
     tools, dds_only = _read_tools(reader, mapping, base)
     build_memory = _read_build_memory(reader, mapping, base)
+    robot_base = _read_base(reader, mapping, base)
     sides = _read_sides(reader, mapping, base, known)
     description = mapping.get("description", base.description if base else "")
     if not reader.ok:
@@ -880,7 +883,24 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
     return Profile(name, str(description or ""), tuple(distros), tuple(boards), tuple(middlewares), discovery,
                    topic, message_type, dict(verify_if), settings, sides, source, line_of(mapping),
                    verify_source=verify_source, tools=tuple(tools), dds_only_packages=dict(dds_only),
-                   underlay_build_memory_mb=build_memory)
+                   underlay_build_memory_mb=build_memory, base=robot_base)
+
+
+def _read_base(reader: ProfileReader, mapping, base: Profile | None) -> dict | None:
+    """`base:` the robot's base computer on its own link (roslab/robot_base.py), or None."""
+    from roslab.robot_base import BASE_KEYS, base_problems
+
+    value = mapping.get("base", base.base if base else None)
+    if value is None:
+        return None
+    problems = base_problems(value)
+    for key, problem in problems:
+        reader.error(problem, value if key and isinstance(value, dict) else mapping, key or "base",
+                     f"base.{key}" if key else "base")
+    if problems:
+        return None
+    return {key: (dict(value[key]) if isinstance(value.get(key), dict) else value.get(key, {}))
+            for key in BASE_KEYS}
 
 
 def _read_distros(reader: ProfileReader, mapping, base: Profile | None) -> list[str]:

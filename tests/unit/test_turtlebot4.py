@@ -144,3 +144,156 @@ def test_a_converged_turtlebot4_pi_changes_nothing():
     result = tb4_plan(boot_facts(config=block, cmdline=UBUNTU_CMDLINE + " " + GADGET_MODULES))
     assert result.changing() == {}
     assert any(f"holds {GADGET_MODULES}" in noop for noop in result.noops)
+
+
+# --- the Create 3 (profile base:, roslab/robot_base.py, deploy/robot_base.py) ------------------
+
+from pyinfra.facts.deb import DebPackages  # noqa: E402
+from pyinfra.facts.files import Directory, File, Sha1File  # noqa: E402
+from pyinfra.facts.server import LinuxDistribution  # noqa: E402
+from pyinfra.facts.systemd import SystemdStatus  # noqa: E402
+
+from deploy.robot_base import CHRONY_DROP_IN, BaseAnswer, robot_base  # noqa: E402
+from roslab.robot_base import (  # noqa: E402
+    POSTED_RECORD,
+    RobotBase,
+    base_problems,
+    chrony_text,
+    create3_posts,
+    create3_wanted,
+    firmware_generation,
+    firmware_problem,
+    netplan_text,
+    record_text,
+)
+
+TB4_BASE = RobotBase.from_data(resolved("turtlebot4", board="pi4", turtlebot4_model="lite")["base"])
+TEAM = {"ROS_DOMAIN_ID": "7", "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"}
+
+
+def test_the_base_block_is_turtlebot4_setups_link():
+    assert (TB4_BASE.interface, TB4_BASE.pi_address, TB4_BASE.base_address, TB4_BASE.ntp_allow) == (
+        "usb0", "192.168.186.3/24", "192.168.186.2", "192.168.186.0/24")
+    assert resolved("turtlebot4", role="main", board="pi4")["base"] is None
+
+
+@pytest.mark.parametrize("change, key", [
+    ({"kind": "roomba"}, "kind"),
+    ({"interface": "eth0; reboot"}, "interface"),
+    ({"pi_address": "192.168.186.3"}, "pi_address"),
+    ({"pi_address": "8.8.8.8/24"}, "pi_address"),
+    ({"base_address": "192.168.187.2"}, "base_address"),
+    ({"base_address": "http://evil/"}, "base_address"),
+    ({"ntp_allow": "0.0.0.0/0"}, "ntp_allow"),
+    ({"firmware": {"jazzy": "I.*"}}, "firmware"),
+    ({"namespace_suffix": {"jazzy": "/x y"}}, "namespace_suffix"),
+    ({"url": "http://elsewhere"}, "url"),
+])
+def test_a_hostile_base_block_is_refused(change, key):
+    base = {**resolved("turtlebot4", board="pi4", turtlebot4_model="lite")["base"], **change}
+    assert key in dict(base_problems(base)), base_problems(base)
+    problems = problems_of({**BASE, "base": base, "robot": {}})
+    assert any(f"base.{key}" in problem for problem in problems), problems
+
+
+def test_netplan_and_chrony_files():
+    assert netplan_text(TB4_BASE).endswith(
+        "network:\n  version: 2\n  ethernets:\n    usb0:\n      addresses: [192.168.186.3/24]\n"
+        "      dhcp4: false\n      optional: true\n")
+    assert chrony_text(TB4_BASE).splitlines()[-1] == "allow 192.168.186.0/24"
+
+
+@pytest.mark.parametrize("distro, namespace, team_ns", [
+    ("jazzy", "/_do_not_use", None), ("jazzy", "/team3/_do_not_use", "/team3"), ("humble", "", None),
+    ("humble", "/team3", "/team3/")])
+def test_the_posts_carry_the_teams_settings_per_distro(distro, namespace, team_ns):
+    environment = {**TEAM, **({"ROBOT_NAMESPACE": team_ns} if team_ns else {})}
+    wanted = create3_wanted(TB4_BASE, distro, environment)
+    posts = create3_posts(wanted, None)
+    from urllib.parse import parse_qs
+
+    assert [path for path, _ in posts] == ["/ros-config-save-main", "/beta-ntp-conf-save", "/api/reboot"]
+    assert parse_qs(posts[0][1]) == {"ros_domain_id": ["7"], "rmw_implementation": ["rmw_fastrtps_cpp"],
+                                     **({"ros_namespace": [namespace]} if namespace else {})}
+    assert parse_qs(posts[1][1]) == {"config": ["server 192.168.186.3 prefer iburst minpoll 4 maxpoll 6"]}
+
+
+def test_only_what_differs_is_posted_and_a_zenoh_team_is_told():
+    wanted = create3_wanted(TB4_BASE, "jazzy", TEAM)
+    assert create3_posts(wanted, dict(wanted)) == []
+    assert [path for path, _ in create3_posts(wanted, {**wanted, "ros_domain_id": "3"})] == [
+        "/ros-config-save-main", "/api/reboot"]
+    with pytest.raises(ValueError, match="not the team's rmw_zenoh_cpp"):
+        create3_wanted(TB4_BASE, "jazzy", {"RMW_IMPLEMENTATION": "rmw_zenoh_cpp"})
+
+
+def test_the_firmware_generation_is_checked_against_the_distro():
+    assert firmware_generation('{"version": "I.0.0.FastDDS", "model": "Create 3"}') == "I.0.0.FastDDS"
+    assert firmware_generation("no version here") is None
+    assert firmware_problem("I.0.0.FastDDS", "jazzy", TB4_BASE) is None
+    assert firmware_problem("H.2.6.CycloneDDS", "humble", TB4_BASE) is None
+    assert firmware_problem("H.2.6.FastDDS", "jazzy", TB4_BASE) == (
+        "Create 3 firmware H.2.6.FastDDS on a Jazzy class: update it to I.* (iRobot's Create 3 firmware page; "
+        "turtlebot4_setup's scripts/create_update.sh)")
+
+
+def base_facts(about="{\"version\": \"I.0.0.FastDDS\"}", posted=None, installed=True, converged=False):
+    digests = {}
+    if converged:
+        digests = {"/etc/netplan/61-roslab-usb0.yaml": netplan_text(TB4_BASE), CHRONY_DROP_IN: chrony_text(TB4_BASE)}
+    import hashlib
+
+    return {
+        BaseAnswer: lambda url, record: {"about": about, "posted": posted},
+        SystemdStatus: {"chrony.service": True},
+        LinuxDistribution: {"release_meta": {"ID": "ubuntu", "UBUNTU_CODENAME": "noble"}},
+        DebPackages: {"chrony": ["4.5-1"]} if installed else {},
+        File: lambda path: {"user": "root", "group": "root", "mode": 600 if "netplan" in path else 644}
+        if path in digests else None,
+        Directory: lambda path: {"mode": 755} if path in ("/etc/netplan", "/etc/chrony/conf.d") else None,
+        Sha1File: lambda path: hashlib.sha1(digests[path].encode()).hexdigest() if path in digests else None,
+    }
+
+
+def base_plan(facts, distro="jazzy", environment=None):
+    profile = resolved("turtlebot4", distro=distro, board="pi4", turtlebot4_model="standard")
+    data = {"roslab_profile": profile, "robot_base_enabled": True, "ros_distro": distro, "ros_domain_id": 7,
+            "ros_environment": environment or {}}
+    return plan(robot_base, facts, data=data)
+
+
+def test_a_fresh_pi_gets_usb0_chrony_and_the_create3_configured():
+    result = base_plan(base_facts(installed=False))
+    uploads = result.uploads()
+    assert uploads["/etc/netplan/61-roslab-usb0.yaml"] == netplan_text(TB4_BASE)
+    assert uploads[CHRONY_DROP_IN] == chrony_text(TB4_BASE)
+    changes = result.changing()
+    (now,) = [commands for name, commands in changes.items() if "holds 192.168.186.3/24 now" in name]
+    assert "ip addr replace 192.168.186.3/24 dev usb0" in now[0]
+    assert any("chrony" in name and "restart" in " ".join(commands) for name, commands in changes.items())
+    (posts,) = [commands for name, commands in changes.items() if "posted, then it reboots" in name]
+    command = posts[0]
+    assert "http://192.168.186.2/ros-config-save-main" in command
+    assert "ros_domain_id=7" in command and "ros_namespace=%2F_do_not_use" in command
+    assert "http://192.168.186.2/beta-ntp-conf-save" in command and "http://192.168.186.2/api/reboot" in command
+    assert command.index("/api/reboot") < command.index(POSTED_RECORD) and "umask 077" in command
+
+
+def test_a_converged_robot_posts_nothing_and_says_why():
+    wanted = create3_wanted(TB4_BASE, "jazzy", {"ROS_DOMAIN_ID": "7", "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"})
+    result = base_plan(base_facts(posted=wanted, converged=True))
+    assert result.changing() == {}
+    assert any("already has domain 7" in noop for noop in result.noops), result.noops
+    assert record_text(wanted) == record_text(dict(reversed(list(wanted.items()))))
+
+
+def test_a_silent_create3_is_one_line_and_the_rest_converges():
+    result = base_plan(base_facts(about=None, converged=True))
+    assert result.changing() == {}
+    assert any("192.168.186.2 does not answer on usb0" in noop for noop in result.noops), result.noops
+
+
+def test_a_humble_firmware_on_a_jazzy_class_is_said():
+    wanted = create3_wanted(TB4_BASE, "jazzy", {"ROS_DOMAIN_ID": "7", "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"})
+    result = base_plan(base_facts(about='{"version": "H.2.6.FastDDS"}', posted=wanted, converged=True))
+    assert any("Create 3 firmware H.2.6.FastDDS on a Jazzy class: update it to I.*" in n for n in result.noops)
