@@ -12,6 +12,7 @@ too (and in `roslab status`); roslab never flashes the base.
 from __future__ import annotations
 
 import json
+import posixpath
 from io import StringIO
 
 from pyinfra import host
@@ -99,7 +100,7 @@ def base_settings_kept(base: dict, distro: str, wanted: dict, record: str = POST
     commands = [f"curl -fsS -m {HTTP_TIMEOUT_S} -o /dev/null -X POST "
                 f"{'--data ' + shell_word(body) + ' ' if body else ''}{shell_word(url + path)}" for path, body in posts]
     new = record + ".roslab-new"
-    yield (" && ".join(commands) + " && install -d -m 0755 /var/lib/roslab && umask 077 && "
+    yield (" && ".join(commands) + f" && install -d -m 0755 {shell_word(posixpath.dirname(record))} && umask 077 && "
            f"printf '%s\\n' {shell_word(record_text(wanted))} > {shell_word(new)} && "
            f"mv -f -- {shell_word(new)} {shell_word(record)}")
 

@@ -297,3 +297,51 @@ def test_a_humble_firmware_on_a_jazzy_class_is_said():
     wanted = create3_wanted(TB4_BASE, "jazzy", {"ROS_DOMAIN_ID": "7", "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"})
     result = base_plan(base_facts(about='{"version": "H.2.6.FastDDS"}', posted=wanted, converged=True))
     assert any("Create 3 firmware H.2.6.FastDDS on a Jazzy class: update it to I.*" in n for n in result.noops)
+
+
+# --- the deploy's own commands against the Create 3 stand-in (roslab/sandbox/create3.py) ---------
+
+@pytest.fixture
+def create3(tmp_path):
+    """The stand-in on loopback; the deploy's curl reaches it through http_proxy, as if it were
+    192.168.186.2 (its request line carries the real URL)."""
+    import os
+
+    from roslab.sandbox.create3 import serve
+
+    record = tmp_path / "posts.jsonl"
+    server = serve("127.0.0.1", 0, "I.0.0.FastDDS", record)
+    env = {**{k: v for k, v in os.environ.items() if k.lower() not in ("no_proxy", "all_proxy")},
+           "http_proxy": f"http://127.0.0.1:{server.server_address[1]}"}
+    yield record, env
+    server.shutdown()
+
+
+def test_the_deploys_requests_reach_a_create3_stand_in_and_a_second_run_posts_nothing(create3, tmp_path):
+    from deploy.robot_base import base_settings_kept
+    from roslab.sandbox.create3 import recorded_posts
+
+    record, env = create3
+    posted = tmp_path / "lib" / "create3-posted.json"
+    fact = BaseAnswer()
+    output = subprocess.run(["sh", "-c", fact.command(url="http://192.168.186.2", record=str(posted))],
+                            env=env, capture_output=True, text=True, timeout=20).stdout.splitlines()
+    answer = fact.process(output)
+    assert firmware_generation(answer["about"]) == "I.0.0.FastDDS" and answer["posted"] is None
+    wanted = create3_wanted(TB4_BASE, "jazzy", {**TEAM, "ROBOT_NAMESPACE": "/team3"})
+    result = plan(lambda: base_settings_kept(name="create3", base=TB4_BASE.__dict__, distro="jazzy", wanted=wanted,
+                                             record=str(posted)), {BaseAnswer: answer})
+    (command,) = [line for op in result.operations for line in op.text()]
+    subprocess.run(["sh", "-c", command], env=env, check=True, timeout=30)
+    assert recorded_posts(record) == [
+        {"path": "/ros-config-save-main", "form": {"ros_domain_id": "7", "ros_namespace": "/team3/_do_not_use",
+                                                   "rmw_implementation": "rmw_fastrtps_cpp"}},
+        {"path": "/beta-ntp-conf-save", "form": {"config": "server 192.168.186.3 prefer iburst minpoll 4 maxpoll 6"}},
+        {"path": "/api/reboot", "form": {}},
+    ]
+    assert oct(posted.stat().st_mode & 0o777) == "0o600"
+    output = subprocess.run(["sh", "-c", fact.command(url="http://192.168.186.2", record=str(posted))],
+                            env=env, capture_output=True, text=True, timeout=20).stdout.splitlines()
+    again = plan(lambda: base_settings_kept(name="create3", base=TB4_BASE.__dict__, distro="jazzy", wanted=wanted,
+                                            record=str(posted)), {BaseAnswer: fact.process(output)})
+    assert again.changing() == {} and len(recorded_posts(record)) == 3
