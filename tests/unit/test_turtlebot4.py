@@ -345,3 +345,22 @@ def test_the_deploys_requests_reach_a_create3_stand_in_and_a_second_run_posts_no
     again = plan(lambda: base_settings_kept(name="create3", base=TB4_BASE.__dict__, distro="jazzy", wanted=wanted,
                                             record=str(posted)), {BaseAnswer: fact.process(output)})
     assert again.changing() == {} and len(recorded_posts(record)) == 3
+
+
+# --- roslab status ------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("answer, distro, note", [
+    (['{"version": "I.0.0.FastDDS"}'], "jazzy", "create3 firmware I.0.0.FastDDS"),
+    (['{"version": "H.2.6.FastDDS"}'], "jazzy", "Create 3 firmware H.2.6.FastDDS on a Jazzy class: update it to I.*"),
+    (["#no-answer"], "jazzy", "create3 at 192.168.186.2: no answer"),
+])
+def test_status_shows_the_create3_firmware(answer, distro, note):
+    from roslab.cli.status import HostStatus, base_note, parse_probe, probe_script
+
+    assert "curl -fsS -m 3 http://192.168.186.2/api/about" in probe_script(base_url="http://192.168.186.2")
+    assert "## base" not in probe_script()
+    probe = parse_probe(["## base", *answer, "## end"])
+    status = HostStatus(name="t1-robot", team="t1", role="robot", address="10.0.0.2", expected_distro=distro,
+                        reachable=True, probe=probe, base=TB4_BASE.__dict__)
+    assert base_note(status).startswith(note)
+    assert parse_probe(["## end"])["base"] is None
