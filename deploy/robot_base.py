@@ -1,4 +1,4 @@
-"""The robot's base computer on its own link (profile `base:`, roslab/robot_base.py): on a
+"""The robot's base computer on its own link (profile `base:`, roslab/profiles/robot_base.py): on a
 TurtleBot 4's Pi, usb0 at 192.168.186.3/24, chrony serving time to 192.168.186.0/24, and the
 Create 3 at 192.168.186.2 set to the team's domain, namespace and middleware with the Pi as its
 NTP server, by the HTTP form POSTs turtlebot4_setup sends (only the Pi reaches the base).
@@ -23,7 +23,7 @@ from deploy.common import host_distro, should_run
 from roslab import settings
 from roslab.host_settings import host_settings
 from roslab.quoting import shell_word
-from roslab.robot_base import (
+from roslab.profiles.robot_base import (
     POSTED_RECORD,
     RobotBase,
     chrony_text,
@@ -77,9 +77,9 @@ def base_settings_kept(base: dict, distro: str, wanted: dict, record: str = POST
     POST answered: a failed run posts again next time). A base that does not answer, or runs
     another generation's firmware than the distro's, is said in one line.
 
-    + base: the profile's checked `base:` (roslab/robot_base.py RobotBase's data)
+    + base: the profile's checked `base:` (roslab/profiles/robot_base.py RobotBase's data)
     + distro: the class's ROS distro (the firmware generation and the namespace follow it)
-    + wanted: the form fields (roslab.robot_base.create3_wanted)
+    + wanted: the form fields (roslab.profiles.robot_base.create3_wanted)
     + record: the Pi's record of the last post
     """
     link = RobotBase.from_data(base)

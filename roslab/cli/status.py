@@ -99,7 +99,7 @@ def probe_script(service: str = NODES_SERVICE, others: tuple[str, ...] = (), lau
     run `ros2 launch`, whose journal's last lines go into a `## journal <name>` section (which
     of the launch's nodes died, roslab.cli.launch_journal); `underlay`: the shell word naming its
     underlay's origin record (`origin_file`), read into `## underlay`; `base_url`: the robot's
-    base (a TurtleBot 4's Create 3, roslab.robot_base), whose /api/about goes into `## base`."""
+    base (a TurtleBot 4's Create 3, roslab.profiles.robot_base), whose /api/about goes into `## base`."""
     return "; ".join([
         *(("echo '## underlay'", f"head -c 200 {underlay} 2>/dev/null; echo") if underlay else ()),
         "echo '## os-release'",
@@ -180,7 +180,7 @@ def parse_probe(lines) -> dict:
 
 def parse_base(lines) -> dict:
     """The `## base` section: ``{"answered": bool, "firmware": "I.0.0.FastDDS" or None}``."""
-    from roslab.robot_base import firmware_generation
+    from roslab.profiles.robot_base import firmware_generation
 
     text = "\n".join(lines).strip()
     answered = bool(text) and not text.endswith("#no-answer")
@@ -248,7 +248,7 @@ class HostStatus:
     listen_timeout: int = LISTEN_TIMEOUT  # --listen: seconds its check waits for a message
     # The shell word naming its underlay's origin record (origin_file); "" when it builds none.
     underlay: str = ""
-    base: dict | None = None  # the robot profile's base (roslab.robot_base), robot hosts only
+    base: dict | None = None  # the robot profile's base (roslab.profiles.robot_base), robot hosts only
 
     @property
     def release(self) -> str | None:
@@ -412,7 +412,7 @@ def host_cells(host: HostStatus, now: datetime) -> dict[str, Cell]:
 
 def base_note(host: HostStatus) -> str:
     """The robot's base in one note: its firmware (and whether it is the distro's), or silence."""
-    from roslab.robot_base import RobotBase, firmware_problem
+    from roslab.profiles.robot_base import RobotBase, firmware_problem
 
     base, seen = RobotBase.from_data(host.base), host.probe["base"]
     if not seen["answered"]:

@@ -92,7 +92,7 @@ class ResolvedProfile:
     boot_config: dict[str, list[str]]  # config_txt lines, cmdline_add and cmdline_remove words
     services: list[ResolvedService]
     underlay_build_memory_mb: int | None  # a host with less memory never builds the underlay
-    base: dict | None = None  # the robot's base on its own link (roslab/robot_base.py), robot side only
+    base: dict | None = None  # the robot's base on its own link (roslab/profiles/robot_base.py), robot side only
 
     @classmethod
     def from_data(cls, data: Mapping) -> ResolvedProfile:

@@ -292,7 +292,7 @@ class Profile:
     dds_only_packages: dict[str, str] = field(default_factory=dict)
     # The memory (MiB) a host needs to build the underlay (None: any host may build it).
     underlay_build_memory_mb: int | None = None
-    # The robot's base computer on its own link (roslab/robot_base.py): the TurtleBot 4's Create 3.
+    # The robot's base computer on its own link (roslab/profiles/robot_base.py): the TurtleBot 4's Create 3.
     base: dict | None = None
 
     @property
@@ -887,8 +887,8 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
 
 
 def _read_base(reader: ProfileReader, mapping, base: Profile | None) -> dict | None:
-    """`base:` the robot's base computer on its own link (roslab/robot_base.py), or None."""
-    from roslab.robot_base import BASE_KEYS, base_problems
+    """`base:` the robot's base computer on its own link (roslab/profiles/robot_base.py), or None."""
+    from roslab.profiles.robot_base import BASE_KEYS, base_problems
 
     value = mapping.get("base", base.base if base else None)
     if value is None:

@@ -146,7 +146,7 @@ def test_a_converged_turtlebot4_pi_changes_nothing():
     assert any(f"holds {GADGET_MODULES}" in noop for noop in result.noops)
 
 
-# --- the Create 3 (profile base:, roslab/robot_base.py, deploy/robot_base.py) ------------------
+# --- the Create 3 (profile base:, roslab/profiles/robot_base.py, deploy/robot_base.py) ------------------
 
 from pyinfra.facts.deb import DebPackages  # noqa: E402
 from pyinfra.facts.files import Directory, File, Sha1File  # noqa: E402
@@ -154,7 +154,7 @@ from pyinfra.facts.server import LinuxDistribution  # noqa: E402
 from pyinfra.facts.systemd import SystemdStatus  # noqa: E402
 
 from deploy.robot_base import CHRONY_DROP_IN, BaseAnswer, robot_base  # noqa: E402
-from roslab.robot_base import (  # noqa: E402
+from roslab.profiles.robot_base import (  # noqa: E402
     POSTED_RECORD,
     RobotBase,
     base_problems,
@@ -225,6 +225,9 @@ def test_only_what_differs_is_posted_and_a_zenoh_team_is_told():
         "/ros-config-save-main", "/api/reboot"]
     with pytest.raises(ValueError, match="not the team's rmw_zenoh_cpp"):
         create3_wanted(TB4_BASE, "jazzy", {"RMW_IMPLEMENTATION": "rmw_zenoh_cpp"})
+    for hostile in ("team 3", "/team3&ros_domain_id=0", "/../x", "team3"):
+        with pytest.raises(ValueError, match="not a ROS namespace"):
+            create3_wanted(TB4_BASE, "jazzy", {**TEAM, "ROBOT_NAMESPACE": hostile})
 
 
 def test_the_firmware_generation_is_checked_against_the_distro():

@@ -31,6 +31,7 @@ BASE_KEYS = ("kind", "interface", "pi_address", "base_address", "ntp_allow", "fi
 BASE_KINDS = ("create3",)
 _INTERFACE = re.compile(r"usb[0-9]", re.ASCII)
 _GENERATION = re.compile(r"[A-Z]", re.ASCII)
+_NAMESPACE = re.compile(r"(/[A-Za-z][A-Za-z0-9_]{0,62}){1,8}", re.ASCII)
 _SUFFIX = re.compile(r"(/[a-z_][a-z0-9_]{0,30}){1,2}", re.ASCII)
 # The middlewares the Create 3's firmware offers (its ros-config page).
 CREATE3_MIDDLEWARES = ("rmw_fastrtps_cpp", "rmw_cyclonedds_cpp")
@@ -152,6 +153,8 @@ def create3_wanted(base: RobotBase, distro: str, environment: dict[str, str]) ->
     if rmw not in CREATE3_MIDDLEWARES:
         raise ValueError(f"the Create 3 runs only {' or '.join(CREATE3_MIDDLEWARES)}, not the team's {rmw}")
     namespace = environment.get("ROBOT_NAMESPACE", "").rstrip("/")
+    if namespace and not _NAMESPACE.fullmatch(namespace):
+        raise ValueError(f"ROBOT_NAMESPACE {namespace!r} is not a ROS namespace (/name/name: letters, digits, _)")
     return {
         "ros_domain_id": environment.get("ROS_DOMAIN_ID", "0"),
         "ros_namespace": namespace + base.namespace_suffix.get(distro, ""),
