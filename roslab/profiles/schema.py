@@ -563,6 +563,9 @@ class ProfileReader:
             value, "cmdline_remove", f"{where}.cmdline_remove",
             lambda word: None if _CMDLINE_WORD.fullmatch(word) else
             f"{word!r} is not one word of cmdline.txt (ASCII letters, digits, _ . , : = / + -)")
+        for word in set(added) & set(words):
+            self.error(f"{word!r} is both added to and removed from cmdline.txt", value, "cmdline_add",
+                       f"{where}.cmdline_add")
         for key, items in (("config_txt", lines), ("cmdline_add", added), ("cmdline_remove", words)):
             known_items = side.boot_config.setdefault(key, [])
             known_items += [item for item in items if item not in known_items]

@@ -63,6 +63,9 @@ def test_hostile_cmdline_words_are_refused(word, words):
 def test_a_profile_with_a_hostile_boot_word_is_refused_naming_the_field():
     problems = problems_of({**BASE, "robot": {"boot_config": {"cmdline_add": ["init=/bin/sh"]}}})
     assert any("boot_config.cmdline_add" in problem and "init=/bin/sh" in problem for problem in problems), problems
+    both = {"cmdline_add": [GADGET_MODULES], "cmdline_remove": [GADGET_MODULES]}
+    problems = problems_of({**BASE, "robot": {"boot_config": both}})
+    assert any("both added to and removed from" in problem for problem in problems), problems
     problems = problems_of({**BASE, "robot": {"boot_config": {"config_txt": ["kernel=x"]}}})
     assert any("boot_config.config_txt" in problem for problem in problems), problems
 
