@@ -16,6 +16,7 @@ from deploy.network import network
 from deploy.profile_services import profile_services_in_place
 from deploy.profile_switch import profile_switch_cleaned
 from deploy.python_env import python_env
+from deploy.robot_base import robot_base
 from deploy.robot_profile import robot_profile
 from deploy.ros_apt_source import ros_apt_source
 from deploy.ros_install import ros_install
@@ -47,6 +48,7 @@ if supported_host():
     system_locale()
     ros_install()
     robot_profile()  # udev rules and groups (its packages are ros_install's)
+    robot_base()  # a TurtleBot 4's Create 3: usb0, chrony for it, its ROS settings over HTTP
     rosdep()
     python_env()  # the profile's venv, from the class's wheelhouse (before any workspace build)
     shell_env()

@@ -31,7 +31,7 @@ from roslab.profiles.host import (
     RebootRecord,
     SwapFile,
     UnitsMasked,
-    cmdline_words_absent,
+    cmdline_words_kept,
     config_txt_block,
     reboot_needed_recorded,
     reboot_pending,
@@ -105,8 +105,8 @@ def robot_profile():
 def boot_config_kept(name: str, boot: dict) -> None:
     """The profile's boot config on a Pi's boot partition; a change is recorded as "reboot
     needed" (the run summary and `roslab status` say so until the host has rebooted)."""
-    lines, words = boot.get("config_txt") or [], boot.get("cmdline_remove") or []
-    if not lines and not words:
+    lines, added, words = (boot.get(key) or [] for key in ("config_txt", "cmdline_add", "cmdline_remove"))
+    if not lines and not added and not words:
         return
     record = host.get_fact(RebootRecord)
     if record["exists"] and not reboot_pending(record):
@@ -117,11 +117,12 @@ def boot_config_kept(name: str, boot: dict) -> None:
             name=f"Ensure {CONFIG_TXT} holds robot profile {name}'s boot config ({', '.join(lines)})",
             path=CONFIG_TXT, lines=lines, label=BOOT_CONFIG_LABEL, backup_suffix=BACKUP_SUFFIX))
         reasons.append(f"{CONFIG_TXT} ({', '.join(lines)})")
-    if words:
-        changes.append(cmdline_words_absent(
-            name=f"Ensure {CMDLINE_TXT} holds none of {', '.join(words)} (robot profile {name})",
-            path=CMDLINE_TXT, words=words, backup_suffix=BACKUP_SUFFIX))
-        reasons.append(f"{CMDLINE_TXT} (without {', '.join(words)})")
+    if added or words:
+        parts = [*([f"with {', '.join(added)}"] if added else []), *([f"without {', '.join(words)}"] if words else [])]
+        changes.append(cmdline_words_kept(
+            name=f"Ensure {CMDLINE_TXT} is {' and '.join(parts)} (robot profile {name})",
+            path=CMDLINE_TXT, add=added, remove=words, backup_suffix=BACKUP_SUFFIX))
+        reasons.append(f"{CMDLINE_TXT} ({'; '.join(parts)})")
     reasons = [f"boot config changed: {reason}" for reason in reasons]
     reboot_needed_recorded(
         name="Ensure the host records that the boot config waits for a reboot",
@@ -175,7 +176,7 @@ def robot_profile_reads() -> list:
         reads += [probe.read(RebootRecord), probe.read(File, path=CONFIG_TXT)]
         if boot.get("config_txt"):
             reads += managed_block_reads(CONFIG_TXT)
-        if boot.get("cmdline_remove"):
+        if boot.get("cmdline_remove") or boot.get("cmdline_add"):
             reads.append(probe.read(CmdlineText, path=CMDLINE_TXT))
     tweaks = os_tweaks()
     if tweaks.get("mask_units"):

@@ -60,6 +60,8 @@ class HostSettings:
     ros_variant_robot: str
     ros_dev_tools: bool
     ros_extra_packages: list[str]
+    # --- robot_base ---
+    robot_base_enabled: bool
     # --- robot_profile ---
     robot_profile_enabled: bool
     robot_profile: str

@@ -250,6 +250,12 @@ SCHEMA: list[Setting] = [
          f.package_template, {"item": str, "allowed": "Debian package names"}),
     ),
     *_concern(
+        "robot_base",
+        _enabled("robot_base", "Set up the robot's base computer where the profile has one (TurtleBot 4: "
+                 "usb0 at 192.168.186.3/24, chrony serving the Create 3, and the Create 3's domain, namespace, "
+                 "middleware and NTP server over its HTTP API)."),
+    ),
+    *_concern(
         "robot_profile",
         _enabled("robot_profile", "Apply the robot profile's udev rules and the login user's groups."),
         ("robot_profile", "demo", str,

@@ -85,20 +85,21 @@ class StatusProbe(FactBase):
         return parse_probe([])
 
     def command(self, service: str = NODES_SERVICE, others: tuple[str, ...] = (), launches: tuple[str, ...] = (),
-                underlay: str = "") -> str:
-        return probe_script(service, others, launches, underlay)
+                underlay: str = "", base_url: str = "") -> str:
+        return probe_script(service, others, launches, underlay, base_url)
 
     def process(self, output):
         return parse_probe(output)
 
 
 def probe_script(service: str = NODES_SERVICE, others: tuple[str, ...] = (), launches: tuple[str, ...] = (),
-                 underlay: str = "") -> str:
+                 underlay: str = "", base_url: str = "") -> str:
     """`others`: the host's other services (roslab.cli.host_services: its discovery server or Zenoh
     router, its profile's), each read into a `## unit <name>` section; `launches`: those that
     run `ros2 launch`, whose journal's last lines go into a `## journal <name>` section (which
     of the launch's nodes died, roslab.cli.launch_journal); `underlay`: the shell word naming its
-    underlay's origin record (`origin_file`), read into `## underlay`."""
+    underlay's origin record (`origin_file`), read into `## underlay`; `base_url`: the robot's
+    base (a TurtleBot 4's Create 3, roslab.profiles.robot_base), whose /api/about goes into `## base`."""
     return "; ".join([
         *(("echo '## underlay'", f"head -c 200 {underlay} 2>/dev/null; echo") if underlay else ()),
         "echo '## os-release'",
@@ -113,6 +114,8 @@ def probe_script(service: str = NODES_SERVICE, others: tuple[str, ...] = (), lau
             f"systemctl show --property=LoadState,ActiveState,SubState,Result {shlex.quote(other)} 2>/dev/null")),
         *(part for unit in launches for part in (
             f"echo {shlex.quote(f'## journal {unit}')}", launch_journal.command(shlex.quote(unit)))),
+        *(("echo '## base'", f"curl -fsS -m 3 {shlex.quote(base_url + '/api/about')} 2>/dev/null || "
+           "echo '#no-answer'; echo") if base_url else ()),
         "echo '## reboot'",
         REBOOT_RECORD_COMMAND,
         "echo '## end'",
@@ -171,7 +174,17 @@ def parse_probe(lines) -> dict:
                      if name.startswith("journal ")},
         "reboot": parse_reboot_record(sections.get("reboot", [])),
         "underlay": parse_origin(sections.get("underlay", [])),
+        "base": parse_base(sections["base"]) if "base" in sections else None,
     }
+
+
+def parse_base(lines) -> dict:
+    """The `## base` section: ``{"answered": bool, "firmware": "I.0.0.FastDDS" or None}``."""
+    from roslab.profiles.robot_base import firmware_generation
+
+    text = "\n".join(lines).strip()
+    answered = bool(text) and not text.endswith("#no-answer")
+    return {"answered": answered, "firmware": firmware_generation(text) if answered else None}
 
 
 # "built here <digest>" or "shipped from <host> <digest>" (roslab.sources.underlay.origin_line)
@@ -237,6 +250,7 @@ class HostStatus:
     listen_timeout: int = LISTEN_TIMEOUT  # --listen: seconds its check waits for a message
     # The shell word naming its underlay's origin record (origin_file); "" when it builds none.
     underlay: str = ""
+    base: dict | None = None  # the robot profile's base (roslab.profiles.robot_base), robot hosts only
 
     @property
     def release(self) -> str | None:
@@ -386,6 +400,8 @@ def host_cells(host: HostStatus, now: datetime) -> dict[str, Cell]:
     cells["UNDERLAY"] = underlay_cell(host, probed)
     cells["LAST RUN"] = last_run_cell(host.run, now, notes)
     cells["LAST SUCCESS"] = last_success_cell(host.run, now)
+    if probed and host.probe.get("base") is not None:
+        notes.append(base_note(host))
     if host.reboot_needed:
         notes.append(f"reboot needed: {host.reboot_needed}")
     if host.listen_error:
@@ -394,6 +410,19 @@ def host_cells(host: HostStatus, now: datetime) -> dict[str, Cell]:
              else "warn" if host.reboot_needed or failures or (probed and host.services_stopped()) else "plain")
     cells["NOTE"] = Cell("; ".join(notes), level)
     return cells
+
+
+def base_note(host: HostStatus) -> str:
+    """The robot's base in one note: its firmware (and whether it is the distro's), or silence."""
+    from roslab.profiles.robot_base import RobotBase, firmware_problem
+
+    base, seen = RobotBase.from_data(host.base), host.probe["base"]
+    if not seen["answered"]:
+        return f"{base.kind} at {base.base_address}: no answer"
+    if not seen["firmware"]:
+        return f"{base.kind} answers, firmware version not shown"
+    problem = firmware_problem(seen["firmware"], host.expected_distro or "", base)
+    return problem or f"{base.kind} firmware {seen['firmware']}"
 
 
 def ssh_cell(host: HostStatus, notes: list[str]) -> Cell:
@@ -535,6 +564,7 @@ def host_statuses(classroom: Classroom, groups: dict, limit: list[str] | None = 
             not_started=services_not_started(host.data),
             listen_timeout=int(host.data.get("nodes_verify_timeout") or LISTEN_TIMEOUT),
             underlay=origin_file(host.data),
+            base=(host.data.get("roslab_profile") or {}).get("base"),
         ))
     return statuses
 
@@ -606,6 +636,7 @@ def _probe_host(state, host, status: HostStatus, listen: bool, listen_timeout: i
                 kwargs={"others": tuple(service.unit for service in status.other_services),
                         "launches": tuple(service.unit for service in status.other_services if service.launch),
                         "underlay": status.underlay,
+                        "base_url": f"http://{status.base['base_address']}" if status.base else "",
                         "_sudo": False, "_timeout": min(PROBE_TIMEOUT, bound), "_ignore_errors": True},
                 apply_failed_hosts=False,
             )

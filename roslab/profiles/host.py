@@ -287,22 +287,45 @@ def config_txt_block(path: str, lines: list[str], label: str, backup_suffix: str
     yield from commands
 
 
+def cmdline_with(text: str, add: list[str], remove: list[str]) -> str:
+    """cmdline.txt's one line without `remove` and with each word of `add` it lacks appended
+    (whole words; the line's other words keep their order)."""
+    words = cmdline_without(text, remove).split()
+    return " ".join([*words, *(word for word in dict.fromkeys(add) if word not in words)])
+
+
 @operation()
 def cmdline_words_absent(path: str, words: list[str], backup_suffix: str):
-    """The kernel command line file holds none of `words` (the serial console, for a UART a
-    robot talks on); the file is copied to `<path><backup_suffix>` before it changes.
+    """The kernel command line file holds none of `words` (cmdline_words_kept with nothing to add).
 
     + path: the file (/boot/firmware/cmdline.txt)
     + words: whole words to take out (``console=serial0,115200``)
     + backup_suffix: the backup's suffix (``.roslab-<date>-<time>``)
     """
+    yield from cmdline_words_kept._inner(path=path, add=[], remove=words, backup_suffix=backup_suffix)
+
+
+@operation()
+def cmdline_words_kept(path: str, add: list[str], remove: list[str], backup_suffix: str):
+    """The kernel command line file holds each word of `add` (``modules-load=dwc2,g_ether``, for
+    the TurtleBot 4's usb0) and none of `remove` (the serial console, for a UART a robot talks
+    on); its other words stay as they are; the file is copied to `<path><backup_suffix>` before
+    it changes.
+
+    + path: the file (/boot/firmware/cmdline.txt)
+    + add: whole words it must hold (appended when missing)
+    + remove: whole words to take out
+    + backup_suffix: the backup's suffix (``.roslab-<date>-<time>``)
+    """
     current = host.get_fact(CmdlineText, path=path)
     if current is None:
-        host.noop(f"{path} does not exist (not a Raspberry Pi's boot partition): nothing to take out")
+        host.noop(f"{path} does not exist (not a Raspberry Pi's boot partition): nothing to change")
         return
-    wanted = cmdline_without(current, words)
+    wanted = cmdline_with(current, add, remove)
     if wanted == " ".join(current.split()):
-        host.noop(f"{path} holds none of {', '.join(words)}")
+        described = [*([f"holds {', '.join(add)}"] if add else []),
+                     *([f"holds none of {', '.join(remove)}"] if remove else [])]
+        host.noop(f"{path} {' and '.join(described)}")
         return
     quoted, new, backup = shell_word(path), path + ".roslab-new", path + backup_suffix
     # One line, written beside the file and renamed over it: the firmware never reads half a file.

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import MISSING, dataclass, fields
 
 from roslab.ros.distro import DISTRO_RELEASES, PLATFORMS
 from roslab.profiles import devices as device_data
@@ -30,8 +30,9 @@ UDEV_RULES_PATH = "/etc/udev/rules.d/60-roslab-profile.rules"
 
 
 def _fields_of(cls, data: Mapping) -> dict:
-    """Each field of dataclass `cls` from the mapping `data` (KeyError: one is missing)."""
-    return {item.name: data[item.name] for item in fields(cls)}
+    """Each field of dataclass `cls` from the mapping `data` (KeyError: one without a default is missing)."""
+    return {item.name: data[item.name] if item.name in data or item.default is MISSING else item.default
+            for item in fields(cls)}
 
 
 @dataclass(frozen=True)
@@ -89,9 +90,10 @@ class ResolvedProfile:
     skip_packages: list[str]  # packages of the sources not built
     python: PythonEnv
     remove_apt_packages: list[str]
-    boot_config: dict[str, list[str]]  # config_txt lines, cmdline_remove words
+    boot_config: dict[str, list[str]]  # config_txt lines, cmdline_add and cmdline_remove words
     services: list[ResolvedService]
     underlay_build_memory_mb: int | None  # a host with less memory never builds the underlay
+    base: dict | None = None  # the robot's base on its own link (roslab/profiles/robot_base.py), robot side only
 
     @classmethod
     def from_data(cls, data: Mapping) -> ResolvedProfile:
@@ -309,6 +311,7 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         "remove_apt_packages": merged.remove_apt_packages,
         "boot_config": {key: items for key, items in merged.boot_config.items() if items},
         "services": [resolved_service(service, values, distro, profile.name) for service in merged.services],
+        "base": profile.base if role == "robot" else None,
     }, []
 
 

@@ -52,7 +52,7 @@ BUILTIN_CONDITIONS = ("distro", "board")
 
 TOP_KEYS = ("profile", "extends", "description", "distros", "tools", "boards", "middlewares", "dds_only_packages",
             "discovery", "verify_topic", "verify_type", "verify_if", "verify_source", "underlay_build_memory_mb",
-            "settings", *SIDES)
+            "settings", "base", *SIDES)
 # `underlay_build_memory_mb`: the memory (MiB) a host needs to build the profile's underlay;
 # a smaller host never builds it, it receives the build of a host of its group (issue 31).
 UNDERLAY_BUILD_MEMORY_MB = (256, 65536)
@@ -74,9 +74,78 @@ MIDDLEWARES = ("rmw_fastrtps_cpp", "rmw_cyclonedds_cpp", "rmw_zenoh_cpp")
 # A Pi's boot configuration (deploy/profile_extras.py): lines kept in a marked block of
 # config.txt, words taken out of cmdline.txt. Both are read by the firmware and the kernel,
 # which know no quoting: a line or a word is plain ASCII without spaces or comments.
-BOOT_CONFIG_KEYS = ("config_txt", "cmdline_remove")
+BOOT_CONFIG_KEYS = ("config_txt", "cmdline_add", "cmdline_remove")
 _CONFIG_LINE = re.compile(r"\[[a-z0-9_]{1,30}\]|[A-Za-z0-9_][A-Za-z0-9_.,:=+-]{0,119}", re.ASCII)
 _CMDLINE_WORD = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.,:=/+-]{0,119}", re.ASCII)
+# config.txt is the firmware's: a line roslab writes sets one of these keys (never kernel=,
+# initramfs, cmdline=, os_prefix=, include, device_tree=, which choose what boots), in one of
+# these sections; a dtoverlay or dtparam line names an overlay or parameter of these lists, its
+# parameters' values plain words (_OVERLAY_VALUE).
+CONFIG_TXT_KEYS = frozenset({"enable_uart", "dtoverlay", "dtparam", "gpu_mem", "camera_auto_detect",
+                             "display_auto_detect", "start_x", "disable_splash"})
+CONFIG_TXT_SECTIONS = frozenset({"all", "pi3", "pi4", "pi400", "pi5", "cm4", "cm5", "pi02"})
+DT_OVERLAYS = frozenset({
+    "dwc2", "i2c-gpio", "disable-bt", "miniuart-bt", "uart0", "uart1", "uart2", "uart3", "uart4", "uart5",
+    "i2c0", "i2c1", "i2c3", "i2c4", "i2c5", "i2c6", "spi0-1cs", "spi0-2cs", "spi1-1cs", "spi1-2cs", "pwm",
+    "pwm-2chan", "gpio-shutdown", "w1-gpio", "vc4-kms-v3d", "imx219", "imx477", "imx708", "ov5647"})
+DT_PARAMS = frozenset({"i2c_arm", "i2c_arm_baudrate", "i2c", "i2c_baudrate", "i2c_vc", "spi", "audio",
+                       "uart0", "uart1"})
+_OVERLAY_PARAM = re.compile(r"[a-z][a-z0-9_-]{0,39}", re.ASCII)
+_OVERLAY_VALUE = re.compile(r"[A-Za-z0-9_.-]{1,40}", re.ASCII)
+# cmdline.txt words a profile may add: the kernel modules loaded at boot (systemd's
+# modules-load=, a comma-separated list from KERNEL_MODULES_AT_BOOT), nothing that changes the
+# root, init or console.
+KERNEL_MODULES_AT_BOOT = frozenset({"dwc2", "g_ether", "g_serial", "libcomposite", "i2c-dev", "spidev"})
+def config_line_problem(line: str) -> str | None:
+    """Why `line` is not a config.txt line a profile may write (None: it is): a [section] of
+    CONFIG_TXT_SECTIONS or key=value with a key of CONFIG_TXT_KEYS, a dtoverlay's overlay and a
+    dtparam's parameters from DT_OVERLAYS / DT_PARAMS, every value a plain word."""
+    if not _CONFIG_LINE.fullmatch(line):
+        return (f"{line!r} is not a config.txt line roslab writes (key=value or [section]: ASCII letters, digits, "
+                "_ . , : = + -, no spaces or comments)")
+    if line.startswith("["):
+        return None if line[1:-1] in CONFIG_TXT_SECTIONS else \
+            f"{line!r}: a config.txt section roslab writes is one of {', '.join(sorted(CONFIG_TXT_SECTIONS))}"
+    key, _, value = line.partition("=")
+    if key not in CONFIG_TXT_KEYS:
+        return f"{line!r}: a config.txt key roslab writes is one of {', '.join(sorted(CONFIG_TXT_KEYS))}"
+    if key == "dtoverlay":
+        name, *params = value.split(",")
+        if name not in DT_OVERLAYS:
+            return f"{line!r}: the overlay {name!r} is not one roslab writes ({', '.join(sorted(DT_OVERLAYS))})"
+        return next(filter(None, (overlay_param_problem(line, param, None) for param in params)), None)
+    if key == "dtparam":
+        return next(filter(None, (overlay_param_problem(line, param, DT_PARAMS) for param in value.split(","))),
+                    None)
+    return None if _OVERLAY_VALUE.fullmatch(value) else f"{line!r}: the value is not a plain word"
+
+
+def overlay_param_problem(line: str, param: str, names: frozenset | None) -> str | None:
+    """Why one `name[=value]` of a dtoverlay/dtparam line is refused (names: the allowed names,
+    None: any parameter name of the overlay's own)."""
+    name, sep, value = param.partition("=")
+    if not _OVERLAY_PARAM.fullmatch(name) or (names is not None and name not in names):
+        allowed = f" ({', '.join(sorted(names))})" if names is not None else ""
+        return f"{line!r}: {name!r} is not a parameter roslab writes{allowed}"
+    if sep and not _OVERLAY_VALUE.fullmatch(value):
+        return f"{line!r}: the value of {name!r} is not a plain word"
+    return None
+
+
+def cmdline_add_problem(word: str) -> str | None:
+    """Why `word` is not a cmdline.txt word a profile may add (None: it is): modules-load= with
+    kernel modules from KERNEL_MODULES_AT_BOOT."""
+    key, sep, modules = word.partition("=")
+    if key != "modules-load" or not sep:
+        return f"{word!r}: a cmdline.txt word roslab adds is modules-load=<modules>"
+    unknown = [module for module in modules.split(",") if module not in KERNEL_MODULES_AT_BOOT]
+    if unknown or not modules:
+        return (f"{word!r}: modules-load names kernel modules from {', '.join(sorted(KERNEL_MODULES_AT_BOOT))}"
+                f"{' (not ' + ', '.join(map(repr, unknown)) + ')' if unknown else ''}")
+    return None
+
+
+
 # A profile's own services (deploy/profile_extras.py): one unit per entry.
 SERVICE_KEYS = ("name", "description", "command", "environment", "enabled_if")
 _SERVICE_NAME = re.compile(r"[a-z][a-z0-9_-]{0,62}", re.ASCII)
@@ -224,6 +293,8 @@ class Profile:
     dds_only_packages: dict[str, str] = field(default_factory=dict)
     # The memory (MiB) a host needs to build the underlay (None: any host may build it).
     underlay_build_memory_mb: int | None = None
+    # The robot's base computer on its own link (roslab/profiles/robot_base.py): the TurtleBot 4's Create 3.
+    base: dict | None = None
 
     @property
     def distros(self) -> tuple[str, ...]:
@@ -488,14 +559,16 @@ class ProfileReader:
         self.unknown_keys(value, BOOT_CONFIG_KEYS, where)
         lines = self.string_list(
             value, "config_txt", f"{where}.config_txt",
-            lambda line: None if _CONFIG_LINE.fullmatch(line) else
-            f"{line!r} is not a config.txt line roslab writes (key=value or [section]: ASCII letters, digits, "
-            "_ . , : = + -, no spaces or comments)")
+            config_line_problem)
+        added = self.string_list(value, "cmdline_add", f"{where}.cmdline_add", cmdline_add_problem)
         words = self.string_list(
             value, "cmdline_remove", f"{where}.cmdline_remove",
             lambda word: None if _CMDLINE_WORD.fullmatch(word) else
             f"{word!r} is not one word of cmdline.txt (ASCII letters, digits, _ . , : = / + -)")
-        for key, items in (("config_txt", lines), ("cmdline_remove", words)):
+        for word in set(added) & set(words):
+            self.error(f"{word!r} is both added to and removed from cmdline.txt", value, "cmdline_add",
+                       f"{where}.cmdline_add")
+        for key, items in (("config_txt", lines), ("cmdline_add", added), ("cmdline_remove", words)):
             known_items = side.boot_config.setdefault(key, [])
             known_items += [item for item in items if item not in known_items]
         side.boot_config = {key: items for key, items in side.boot_config.items() if items}
@@ -807,6 +880,7 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
     topic, message_type, verify_if, verify_source = _read_verify(reader, mapping, base, known)
     tools, dds_only = _read_tools(reader, mapping, base)
     build_memory = _read_build_memory(reader, mapping, base)
+    robot_base = _read_base(reader, mapping, base)
     sides = _read_sides(reader, mapping, base, known)
     description = mapping.get("description", base.description if base else "")
     if not reader.ok:
@@ -814,7 +888,24 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
     return Profile(name, str(description or ""), tuple(distros), tuple(boards), tuple(middlewares), discovery,
                    topic, message_type, dict(verify_if), settings, sides, source, line_of(mapping),
                    verify_source=verify_source, tools=tuple(tools), dds_only_packages=dict(dds_only),
-                   underlay_build_memory_mb=build_memory)
+                   underlay_build_memory_mb=build_memory, base=robot_base)
+
+
+def _read_base(reader: ProfileReader, mapping, base: Profile | None) -> dict | None:
+    """`base:` the robot's base computer on its own link (roslab/profiles/robot_base.py), or None."""
+    from roslab.profiles.robot_base import BASE_KEYS, base_problems
+
+    value = mapping.get("base", base.base if base else None)
+    if value is None:
+        return None
+    problems = base_problems(value)
+    for key, problem in problems:
+        reader.error(problem, value if key and isinstance(value, dict) else mapping, key or "base",
+                     f"base.{key}" if key else "base")
+    if problems:
+        return None
+    return {key: (dict(value[key]) if isinstance(value.get(key), dict) else value.get(key, {}))
+            for key in BASE_KEYS}
 
 
 def _read_distros(reader: ProfileReader, mapping, base: Profile | None) -> list[str]:

@@ -143,7 +143,7 @@ def test_host_data_holds_identity_connection_and_every_setting_with_its_default(
             "environment": {}, "groups": [], "udev_rules": "", "launch": "roslab_bringup main.launch.py",
             "variant": "desktop", "verify_topic": "/chatter", "verify_type": "std_msgs/msg/String",
             "verify_source": "", "discovery": None, "checklist": [], "os_tweaks": {}, "remove_apt_packages": [],
-            "boot_config": {}, "services": [],
+            "boot_config": {}, "services": [], "base": None,
             "sources": [],
             "cmake_args": {}, "build_dependencies": {}, "skip_packages": [], "underlay_build_memory_mb": None,
             "python": {"venv": None, "requirements": []},
