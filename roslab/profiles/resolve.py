@@ -18,6 +18,7 @@ from roslab.profiles import udev
 from roslab.profiles.schema import (
     BOOT_CONFIG_KEYS,
     PLACEHOLDER,
+    SERVICE_ENVIRONMENT_PLACEHOLDERS,
     Profile,
     Side,
     merged_build_dependencies,
@@ -320,6 +321,11 @@ def python_data(profile: Profile, side: Side) -> dict:
     return {"venv": venv, "requirements": requirements}
 
 
+# A service's environment's placeholders that only the host knows (schema.SERVICE_ENVIRONMENT_PLACEHOLDERS),
+# kept as they are: deploy/profile_services.py fills them from the host's ROS environment.
+HOST_KEPT = {name: f"${{{name}}}" for name in SERVICE_ENVIRONMENT_PLACEHOLDERS}
+
+
 def resolved_service(service: dict, values: dict, distro: str, profile_name: str) -> dict:
     """A profile's service for one host: its command with ${distro} and the settings filled in
     (each value one shell word), its environment filled in, and whether it is enabled here
@@ -335,7 +341,8 @@ def resolved_service(service: dict, values: dict, distro: str, profile_name: str
         "name": service["name"],
         "description": fill(service["description"], values) or f"{service['name']} (robot profile {profile_name})",
         "command": fill(service["command"], words),
-        "environment": {name: fill(text, values) for name, text in service["environment"].items()},
+        # the host's own placeholders (${ros_domain_id}) stay for the unit's writer to fill
+        "environment": {name: fill(text, {**HOST_KEPT, **values}) for name, text in service["environment"].items()},
         "enabled": not missing,
         "disabled_because": "; ".join(missing),
     }

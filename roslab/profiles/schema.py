@@ -98,6 +98,10 @@ RESERVED_SERVICE_PREFIXES = ("roslab", "systemd-", "dbus", "getty", "serial-gett
                              "apt-", "initrd-")
 # What a service's command may name besides the profile's settings.
 COMMAND_PLACEHOLDERS = ("distro",)
+# What a service's environment may name besides the profile's settings: the host's own ROS
+# domain (its ROS_DOMAIN_ID), filled in when the unit is written (deploy/profile_services.py);
+# the micro-ROS agent's XRCE_DOMAIN_ID_OVERRIDE takes it.
+SERVICE_ENVIRONMENT_PLACEHOLDERS = ("ros_domain_id",)
 # What a checklist item may name besides the profile's settings: the host it is for (filled
 # in by the roster loader, so a command in it can be copied as it is).
 CHECKLIST_PLACEHOLDERS = ("host",)
@@ -565,7 +569,8 @@ class ProfileReader:
             if problem:
                 self.error(problem, env, variable, f"{here}.environment.{variable}")
             else:
-                self.check_text(text, known, env, variable, f"{here}.environment.{variable}")
+                self.check_text(text, known | set(SERVICE_ENVIRONMENT_PLACEHOLDERS), env, variable,
+                                f"{here}.environment.{variable}")
         return dict(env)
 
     def read_enabled_if(self, spec: dict, here: str, known: set[str]) -> dict:
