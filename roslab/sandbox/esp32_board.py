@@ -102,10 +102,10 @@ def running_pid(pid_file: Path) -> int | None:
     """The pid of the board `pid_file` names while that process runs and is a board, else None."""
     try:
         pid = int(pid_file.read_text())
-        command = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[0]
+        command = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[:2]  # a program, or a script's
     except (OSError, ValueError):
         return None
-    return pid if command.endswith(EXECUTABLE.encode()) and pid_alive(pid) else None
+    return pid if any(word.endswith(EXECUTABLE.encode()) for word in command) and pid_alive(pid) else None
 
 
 def publishing_since(log_file: Path, offset: int) -> bool:
