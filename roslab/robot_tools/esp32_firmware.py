@@ -83,7 +83,8 @@ def board_values(classroom, team: str) -> BoardValues | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Print each selected ESP32 team's flash command; 1 when the selection holds none."""
+    """Print each selected ESP32 team's flash command; 1 when the selection holds none (or the
+    roster has errors), 2 when a --limit pattern selects no host."""
     from roslab.reach import RosterProblem, limited_hosts, load_classroom
 
     try:
@@ -92,9 +93,9 @@ def run(args: argparse.Namespace) -> int:
         print(problem, file=sys.stderr)
         return 1
     hosts, problem = limited_hosts(classroom, args.limit, "roslab esp32-firmware")
-    if problem:
+    if problem:  # a pattern that selects no host: bad usage, as for every command
         print(problem, file=sys.stderr)
-        return 1
+        return 2
     teams = list(dict.fromkeys(host.team for host in hosts if profile_settings(host) is not None))
     boards = [values for values in (board_values(classroom, team) for team in teams) if values]
     if not boards:
