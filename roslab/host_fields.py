@@ -359,6 +359,8 @@ class HostSettings:
     roslab_sources: list[dict[str, Any]] | None
     # What publishes the profile's verify topic, for verify to name.
     roslab_verify_source: str | None
+    # The node that must publish the verify topic ("" or None: any).
+    roslab_verify_publisher: str | None
     # The host's robot profile resolved for its side, distro and settings (roslab.profiles.resolve); host
     # data carries it as a plain mapping, this field as the dataclass.
     roslab_profile: ResolvedProfile | None

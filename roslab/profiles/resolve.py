@@ -80,6 +80,7 @@ class ResolvedProfile:
     verify_topic: str | None  # what `roslab verify` listens for on the main, None: nothing
     verify_type: str
     verify_source: str  # what publishes it, for a main that hears nothing
+    verify_publisher: str  # the node that must publish it ("": any), ${team} left for the roster to fill
     discovery: str | None  # the profile's discovery mode (sim: localhost), or None
     checklist: list[str]  # hardware steps by hand, ${host} filled
     os_tweaks: dict  # mask_units, swap_mb, swap_if_memory_mb_at_most
@@ -288,6 +289,7 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         "verify_topic": profile.verify_topic if _matches(profile.verify_if, values) else None,
         "verify_type": profile.verify_type,
         "verify_source": fill(profile.verify_source, values),
+        "verify_publisher": fill(profile.verify_publisher, {**values, "team": "${team}"}),
         "discovery": profile.discovery,
         "checklist": [fill(item, {**values, "host": host or "HOST"}) for item in merged.checklist],
         "os_tweaks": dict(side.os_tweaks),

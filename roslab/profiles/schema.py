@@ -51,7 +51,7 @@ ALL_DISTROS = "all"
 BUILTIN_CONDITIONS = ("distro", "board")
 
 TOP_KEYS = ("profile", "extends", "description", "distros", "tools", "boards", "middlewares", "dds_only_packages",
-            "discovery", "verify_topic", "verify_type", "verify_if", "verify_source", "underlay_build_memory_mb",
+            "discovery", "verify_topic", "verify_type", "verify_if", "verify_source", "verify_publisher", "underlay_build_memory_mb",
             "settings", *SIDES)
 # `underlay_build_memory_mb`: the memory (MiB) a host needs to build the profile's underlay;
 # a smaller host never builds it, it receives the build of a host of its group (issue 31).
@@ -220,6 +220,10 @@ class Profile:
     # What publishes the verify topic, named when the main hears nothing (one line of text; the
     # profile's ${settings} filled): "the ESP32 board, through micro_ros_agent on ...".
     verify_source: str = ""
+    # The node that must publish the verify topic (one ROS name; the profile's ${settings} and
+    # ${team}, the team's name as a ROS name, filled): "esp32_board_${team}", the node name the
+    # ESP32 firmware is flashed with. Empty: any publisher.
+    verify_publisher: str = ""
     # Commands the robot brings (roslab/robot_tools): `roslab opencr-update` for a TurtleBot3.
     tools: tuple[str, ...] = ()
     # ROS packages of this robot that speak DDS only, with what they are in words: a roster that
@@ -807,7 +811,7 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
     known = set(settings)
     distros = _read_distros(reader, mapping, base)
     boards, middlewares, discovery = _read_placement(reader, mapping, base)
-    topic, message_type, verify_if, verify_source = _read_verify(reader, mapping, base, known)
+    topic, message_type, verify_if, verify_source, verify_publisher = _read_verify(reader, mapping, base, known)
     tools, dds_only = _read_tools(reader, mapping, base)
     build_memory = _read_build_memory(reader, mapping, base)
     sides = _read_sides(reader, mapping, base, known)
@@ -816,7 +820,7 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
         return None
     return Profile(name, str(description or ""), tuple(distros), tuple(boards), tuple(middlewares), discovery,
                    topic, message_type, dict(verify_if), settings, sides, source, line_of(mapping),
-                   verify_source=verify_source, tools=tuple(tools), dds_only_packages=dict(dds_only),
+                   verify_source=verify_source, verify_publisher=verify_publisher, tools=tuple(tools), dds_only_packages=dict(dds_only),
                    underlay_build_memory_mb=build_memory)
 
 
@@ -850,7 +854,8 @@ def _read_placement(reader: ProfileReader, mapping, base: Profile | None) -> tup
 
 
 def _read_verify(reader: ProfileReader, mapping, base: Profile | None, known: set[str]) -> tuple:
-    """(`verify_topic:`, `verify_type:`, `verify_if:`, `verify_source:`): what `roslab verify` hears."""
+    """(`verify_topic:`, `verify_type:`, `verify_if:`, `verify_source:`, `verify_publisher:`): what
+    `roslab verify` hears, and from which node."""
     topic = mapping.get("verify_topic", base.verify_topic if base else None)
     if topic is not None and (not isinstance(topic, str) or formats.ros_topic(topic)):
         reader.error("must be a ROS topic name (or null: nothing to verify)", mapping, "verify_topic",
@@ -873,7 +878,15 @@ def _read_verify(reader: ProfileReader, mapping, base: Profile | None, known: se
         verify_source = ""
     elif verify_source:
         reader.check_text(verify_source, known, mapping, "verify_source", "verify_source")
-    return topic, message_type, verify_if, verify_source
+    verify_publisher = mapping.get("verify_publisher", base.verify_publisher if base else "")
+    if not isinstance(verify_publisher, str) or (
+            verify_publisher and not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", PLACEHOLDER.sub("x", verify_publisher))):
+        reader.error("must be a ROS node name (letters, digits and _; ${settings} and ${team} filled in)", mapping,
+                     "verify_publisher", "verify_publisher")
+        verify_publisher = ""
+    elif verify_publisher:
+        reader.check_text(verify_publisher, known | {"team"}, mapping, "verify_publisher", "verify_publisher")
+    return topic, message_type, verify_if, verify_source, verify_publisher
 
 
 def _read_tools(reader: ProfileReader, mapping, base: Profile | None) -> tuple[list[str], dict[str, str]]:

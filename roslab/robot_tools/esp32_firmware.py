@@ -15,7 +15,6 @@ firmware's source. The WiFi name and password are never printed: the teacher exp
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 from dataclasses import dataclass
 
@@ -28,13 +27,15 @@ NODE_ENV = "ROSLAB_NODE_NAME"
 AGENT_IP_ENV = "ROSLAB_AGENT_IP"
 AGENT_PORT_ENV = "ROSLAB_AGENT_PORT"
 WIFI_ENVS = ("ROSLAB_WIFI_SSID", "ROSLAB_WIFI_PASSWORD")
-NODE_PREFIX = "esp32_board_"
 
 
 def node_name(team: str) -> str:
-    """The board's ROS node name, which says whose board it is: `esp32_board_<team>` (each
-    character a ROS name cannot hold becomes `_`)."""
-    return NODE_PREFIX + re.sub(r"[^A-Za-z0-9_]", "_", team)
+    """The board's ROS node name, which says whose board it is: the profile's verify_publisher
+    (`esp32_board_${team}`, which `roslab verify` expects), the team's name as a ROS name."""
+    from roslab.profiles.library import builtin_profiles
+    from roslab.roster.reader import ros_name
+
+    return builtin_profiles()[PROFILE].verify_publisher.replace("${team}", ros_name(team))
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 from test_profiles import _in_tmp, rosdistro_url  # noqa: F401  (fixtures)
-from test_robots import resolved, roster
+from test_robots import BASE, problems_of, resolved, roster
 
 from deploy.profile_services import host_filled, unit_text
 from roslab.cli.main import main
@@ -202,3 +202,24 @@ def test_a_pid_file_naming_another_program_is_not_a_board(tmp_path):
     pid_file.write_text("1\n")  # init: never a board, never signalled
     assert esp32_board.running_pid(pid_file) is None
     assert esp32_board.stop(tmp_path, "t1") is False and not pid_file.exists()
+
+
+def test_the_roster_gives_the_main_the_boards_node_name_for_verify(tmp_path, rosdistro_url):
+    classroom = load_roster(esp32_roster(tmp_path, rosdistro_url))
+    main_host = next(host for host in classroom.hosts if host.role == "main")
+    assert main_host.data["roslab_verify_publisher"] == esp32_firmware.node_name("t1") == "esp32_board_t1"
+    assert builtin_profiles()["esp32_microros"].verify_publisher == "esp32_board_${team}"
+
+
+def publisher_problems(value: str) -> list[str]:
+    return [problem for problem in problems_of({**BASE, "verify_topic": "/x", "verify_publisher": value})
+            if "verify_publisher" in problem]
+
+
+@pytest.mark.parametrize("value", ["esp32 board", "x; rm -rf /", "${nosuch}_board", "1board"])
+def test_a_verify_publisher_that_is_no_node_name_is_refused(value):
+    assert publisher_problems(value)
+
+
+def test_a_verify_publisher_may_name_the_team_and_the_profiles_settings():
+    assert publisher_problems("b_${team}_${on}") == []

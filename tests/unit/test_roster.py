@@ -138,11 +138,12 @@ def test_host_data_holds_identity_connection_and_every_setting_with_its_default(
         "ros_variant": "desktop",
         "nodes_verify_topic": "/chatter", "nodes_verify_type": "std_msgs/msg/String",
         "roslab_verify_source": "",
+        "roslab_verify_publisher": "",
         "roslab_profile": {
             "name": "demo", "distro": "humble", "settings": {}, "ros_packages": [], "packages": [],
             "environment": {}, "groups": [], "udev_rules": "", "launch": "roslab_bringup main.launch.py",
             "variant": "desktop", "verify_topic": "/chatter", "verify_type": "std_msgs/msg/String",
-            "verify_source": "", "discovery": None, "checklist": [], "os_tweaks": {}, "remove_apt_packages": [],
+            "verify_source": "", "verify_publisher": "", "discovery": None, "checklist": [], "os_tweaks": {}, "remove_apt_packages": [],
             "boot_config": {}, "services": [],
             "sources": [],
             "cmake_args": {}, "build_dependencies": {}, "skip_packages": [], "underlay_build_memory_mb": None,
