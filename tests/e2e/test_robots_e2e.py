@@ -407,7 +407,8 @@ def test_the_board_on_its_teams_domain_is_heard_reconnects_after_the_agent_is_ki
                 "publishing") in started.stdout, started.stdout
         heard = verify(sandbox, roster, "--limit", "team2")
         assert heard.returncode == 0, heard.stdout + heard.stderr
-        assert "/esp32/potentiometer" in heard.stdout, heard.stdout
+        # its publisher is the board's node, named as the firmware is flashed (verify_publisher)
+        assert "/esp32/potentiometer from esp32_board_team2" in heard.stdout, heard.stdout
         before = board(sandbox, roster, "status").stdout
         assert before.rstrip().endswith(")") and ": publishing (pid " in before, before
         sandbox.sudo(BOARD_HOST, "systemctl kill -s KILL micro_ros_agent", check=True)
@@ -426,6 +427,7 @@ def test_the_board_on_its_teams_domain_is_heard_reconnects_after_the_agent_is_ki
         assert ": publishing (pid " in status and board_pid(status) == board_pid(before), (before, status)
         again = verify(sandbox, roster, "--limit", "team2")
         assert again.returncode == 0, again.stdout + again.stderr
+        assert "/esp32/potentiometer from esp32_board_team2" in again.stdout, again.stdout
     finally:
         stopped = board(sandbox, roster, "stop")
     assert stopped.returncode == 0 and "team2: board esp32_board_team2 stopped" in stopped.stdout, stopped
