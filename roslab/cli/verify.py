@@ -313,6 +313,8 @@ class TeamResult:
         if not heard["finished"]:
             return f"the check on {self.main} did not finish in time"
         because = f": {self.source} publishes nothing" if self.source else ""
+        if self.publisher:  # the topic is listed by the team's own subscriber (the servo node) anyway
+            return f"no message from {self.publisher} on {self.topic} within {self.timeout} s{because}"
         if self.topic in heard["topics"]:
             return f"{self.topic} listed but no message within {self.timeout} s{because}"
         return f"{self.main} does not see {self.topic}{because}"

@@ -584,3 +584,8 @@ def test_an_esp32_team_passes_only_on_its_own_boards_node():
     assert other.verdict().startswith(f"heard a {INT32} on /esp32/potentiometer, but not from esp32_board_team2 "
                                       "(its publishers: esp32_board_team1): another team's board")
     assert not board([]).passed and "(its publishers: none seen)" in board([]).verdict()
+    silent = result("team2", heard=heard(topics=("/esp32/potentiometer",)), topic="/esp32/potentiometer",
+                    message_type=INT32, publisher="esp32_board_team2", source="the ESP32 board")
+    assert not silent.passed
+    assert silent.verdict() == ("no message from esp32_board_team2 on /esp32/potentiometer within 20 s: "
+                                "the ESP32 board publishes nothing")
