@@ -223,3 +223,13 @@ def test_a_verify_publisher_that_is_no_node_name_is_refused(value):
 
 def test_a_verify_publisher_may_name_the_team_and_the_profiles_settings():
     assert publisher_problems("b_${team}_${on}") == []
+
+
+def test_the_sandboxs_down_stops_every_board(tmp_path):
+    state_dir = tmp_path / "state"
+    teams = ("t1", "t2")
+    for team in teams:
+        values = esp32_firmware.BoardValues(**{**VALUES.__dict__, "team": team})
+        assert esp32_board.start(fake_board(tmp_path), values, state_dir, timeout=5)
+    esp32_board.stop_all(state_dir)
+    assert [esp32_board.state(state_dir, team) for team in teams] == ["stopped", "stopped"]
