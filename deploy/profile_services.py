@@ -58,12 +58,26 @@ def exec_script(*, distro: str, workspace_dir: str, command: str, venv_dir: str 
     ])
 
 
+def host_filled(service_environment: dict[str, str], environment: dict[str, str]) -> dict[str, str]:
+    """A service's own variables with the host's placeholders filled: ${ros_domain_id} is the
+    host's ROS_DOMAIN_ID (a variable that names it is left out on a host without one)."""
+    domain = environment.get("ROS_DOMAIN_ID")
+    filled = {}
+    for name, text in service_environment.items():
+        if "${ros_domain_id}" in text:
+            if domain is None:
+                continue
+            text = text.replace("${ros_domain_id}", domain)
+        filled[name] = text
+    return filled
+
+
 def unit_text(*, service: ResolvedService, profile: str, user: str, home: str, workspace_dir: str, distro: str,
               environment: dict[str, str], venv_dir: str | None = None) -> str:
     """templates/profile-service.service.j2 with every value written for systemd."""
     script = exec_script(distro=distro, workspace_dir=workspace_dir, command=service.command,
                          venv_dir=venv_dir)
-    merged = {**environment, **service.environment}
+    merged = {**environment, **host_filled(service.environment, environment)}
     return render(
         "profile-service.service.j2",
         profile=systemd_value(profile),

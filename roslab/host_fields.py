@@ -155,6 +155,7 @@ class HostSettings:
     roslab_roster_path: str | None
     roslab_sources: list[dict[str, Any]] | None
     roslab_verify_source: str | None
+    roslab_verify_publisher: str | None
     roslab_profile: ResolvedProfile | None
     ssh_hostname: str | None
     # The host data these were built from, a plain mapping (roslab_profile too), for the helpers that read a

@@ -568,6 +568,7 @@ HOST_KEYS: list[HostKey] = [
     HostKey("roslab_sources", "list[dict[str, Any]]", list,
             "The repositories of the host's .repos files (its profile side's and workspace_sources)."),
     HostKey("roslab_verify_source", "str", str, "What publishes the profile's verify topic, for verify to name."),
+    HostKey("roslab_verify_publisher", "str", str, "The node that must publish the verify topic (\"\" or None: any)."),
     HostKey("roslab_profile", "ResolvedProfile", dict,
             "The host's robot profile resolved for its side, distro and settings (roslab.profiles.resolve); "
             "host data carries it as a plain mapping, this field as the dataclass."),

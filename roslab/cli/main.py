@@ -12,6 +12,8 @@
                               remove a Pi's recorded host key (roslab.cli.trust)
     roslab opencr-update [ROSTER] --limit NAME
                               flash a TurtleBot3's OpenCR firmware (roslab.robot_tools.opencr_update)
+    roslab esp32-firmware [ROSTER] [--limit NAME]
+                              print each ESP32 team's flash command (roslab.robot_tools.esp32_firmware)
     roslab status [ROSTER]    every host's state, as a table and an HTML page (roslab.cli.status)
 
 Every command takes the roster and its hosts one way (roslab.reach): ROSTER first, then

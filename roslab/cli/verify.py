@@ -111,8 +111,10 @@ class NodesHeard(FactBase):
         return parse_check_output([])
 
     def command(self, distro: str, environment: dict, workspace_dir: str, topic: str,
-                timeout: int, kill_after: int = KILL_AFTER, message_type: str = CHATTER_TYPE) -> str:
-        script = check_script(distro, environment, workspace_dir, topic, timeout, kill_after, message_type)
+                timeout: int, kill_after: int = KILL_AFTER, message_type: str = CHATTER_TYPE,
+                publisher: str = "") -> str:
+        script = check_script(distro, environment, workspace_dir, topic, timeout, kill_after, message_type,
+                              publisher)
         bound = check_bound(timeout, kill_after)
         # The check always "succeeds" as a command; what happened is in its sections.
         return (f"timeout --kill-after={int(kill_after)} {bound} bash -c {shlex.quote(script)}; "
@@ -123,11 +125,12 @@ class NodesHeard(FactBase):
 
 
 def check_script(distro: str, environment: dict, workspace_dir: str, topic: str, timeout: int,
-                 kill_after: int = KILL_AFTER, message_type: str = CHATTER_TYPE) -> str:
+                 kill_after: int = KILL_AFTER, message_type: str = CHATTER_TYPE, publisher: str = "") -> str:
     """The bash script the fact runs (as the login user): it reports in `## ` sections.
 
     A greeting (CHATTER_TYPE) is echoed as its text (`--field data`); any other message type
-    as ros2 prints it (YAML), to show that one came.
+    as ros2 prints it (YAML), to show that one came. With a `publisher` to check (the profile's
+    verify_publisher), the node names of the topic's publishers follow (`ros2 topic info -v`).
     """
     timeout, kill_after = int(timeout), int(kill_after)
 
@@ -154,6 +157,11 @@ def check_script(distro: str, environment: dict, workspace_dir: str, topic: str,
             f"{' --field data' if message_type == CHATTER_TYPE else ''} --full-length"
             f" {shell_word(topic)} {shell_word(message_type)} 2>/dev/null | head -c {MESSAGE_LIMIT}",
             "echo \"## echo status ${PIPESTATUS[0]}\"",
+            *([
+                "echo '## publishers'",
+                f"{bounded(LIST_TIMEOUT)} ros2 topic info --no-daemon --spin-time {LIST_SPIN_TIME} --verbose"
+                f" {shell_word(topic)} 2>/dev/null | awk '/^Subscription count/ {{exit}} /^Node name: / {{print $3}}'",
+            ] if publisher else []),
             # --no-daemon starts none; should one have been started anyway, stop it.
             f"if [ $daemon_before = 0 ] && {daemon_status}; then",
             f"  {bounded(DAEMON_TIMEOUT)} ros2 daemon stop >/dev/null 2>&1",
@@ -166,7 +174,7 @@ def check_script(distro: str, environment: dict, workspace_dir: str, topic: str,
 
 def parse_check_output(lines) -> dict:
     result = {"ros": True, "topics": [], "message": None, "robot": None, "echo_status": None,
-              "daemon_stopped": False, "finished": False}
+              "daemon_stopped": False, "finished": False, "publishers": []}
     section = None
     message: list[str] = []
     seen = False
@@ -186,6 +194,8 @@ def parse_check_output(lines) -> dict:
             continue
         if section == "topics" and line.strip():
             result["topics"].append(line.strip())
+        elif section == "publishers" and line.strip():
+            result["publishers"].append(line.strip())
         elif section == "message":
             message.append(line)
     if not seen:
@@ -239,6 +249,9 @@ class TeamResult:
     # (host, unit, node, deaths, why) of nodes of the team's launch services that died in the
     # last minute (a respawning node): a running unit is not a working robot.
     node_deaths: list = field(default_factory=list)
+    # the node that must publish the topic (the profile's verify_publisher: the ESP32 board's
+    # flashed name), "" for any
+    publisher: str = ""
 
     def services_down(self) -> list[tuple[str, str]]:
         """(host, state) of the team's hosts whose nodes service is not active (running).
@@ -270,6 +283,8 @@ class TeamResult:
             return []
         if self.greeting:
             return [heard["robot"]] if heard.get("robot") in self.robots else []
+        if self.publisher and self.publisher not in heard.get("publishers", []):
+            return []  # a message, but not from the team's own board
         return list(self.robots) if heard.get("message") else []
 
     @property
@@ -324,6 +339,12 @@ class TeamResult:
         down = self.services_down()
         if down:
             return "; ".join(f"{NODES_SERVICE} on {host} is {state}" for host, state in down)
+        if not self.greeting and heard["message"] and self.publisher:
+            if self.publisher in heard.get("publishers", []):
+                return f"heard a {self.message_type} on {self.topic} from {self.publisher}"
+            return (f"heard a {self.message_type} on {self.topic}, but not from {self.publisher} (its publishers: "
+                    f"{', '.join(heard.get('publishers') or []) or 'none seen'}): another team's board, or one "
+                    "flashed for another team (roslab esp32-firmware prints this team's values)")
         if not self.greeting and heard["message"]:
             return f"heard a {self.message_type} on {self.topic}"
         if heard["robot"] is not None:
@@ -336,6 +357,8 @@ class TeamResult:
         if not heard["finished"]:
             return f"the check on {self.main} did not finish in time"
         because = f": {self.source} publishes nothing" if self.source else ""
+        if self.publisher:  # the topic is listed by the team's own subscriber (the servo node) anyway
+            return f"no message from {self.publisher} on {self.topic} within {self.timeout} s{because}"
         if self.topic in heard["topics"]:
             return f"{self.topic} listed but no message within {self.timeout} s{because}"
         return f"{self.main} does not see {self.topic}{because}"
@@ -438,6 +461,7 @@ def hear(host, distro: str | None = None, timeout: int | None = None) -> dict:
         topic=host.data.nodes_verify_topic,
         timeout=timeout,
         message_type=host.data.get("nodes_verify_type") or CHATTER_TYPE,
+        publisher=host.data.get("roslab_verify_publisher") or "",
         **user,
         # The connection's own bound, beyond the check's.
         _timeout=check_bound(timeout) + 30,
@@ -501,6 +525,7 @@ def verify(state: State) -> list[TeamResult]:
             team.timeout = host.data.get("nodes_verify_timeout") or team.timeout
             team.message_type = host.data.get("nodes_verify_type") or team.message_type
             team.source = host.data.get("roslab_verify_source") or ""
+            team.publisher = host.data.get("roslab_verify_publisher") or ""
         else:
             team.robots.append(host.name)
         team.not_started += [(host.name, name, why) for name, why in services_not_started(host.data)]

@@ -19,6 +19,7 @@ from roslab.profiles import devices as device_data
 from roslab.profiles.schema import (
     BOOT_CONFIG_KEYS,
     PLACEHOLDER,
+    SERVICE_ENVIRONMENT_PLACEHOLDERS,
     Profile,
     Side,
     merged_build_dependencies,
@@ -81,6 +82,7 @@ class ResolvedProfile:
     verify_topic: str | None  # what `roslab verify` listens for on the main, None: nothing
     verify_type: str
     verify_source: str  # what publishes it, for a main that hears nothing
+    verify_publisher: str  # the node that must publish it ("": any), ${team} left for the roster to fill
     discovery: str | None  # the profile's discovery mode (sim: localhost), or None
     checklist: list[str]  # hardware steps by hand, ${host} filled
     os_tweaks: dict  # mask_units, swap_mb, swap_if_memory_mb_at_most
@@ -294,6 +296,7 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         "verify_topic": profile.verify_topic if _matches(profile.verify_if, values) else None,
         "verify_type": profile.verify_type,
         "verify_source": fill(profile.verify_source, values),
+        "verify_publisher": fill(profile.verify_publisher, {**values, "team": "${team}"}),
         "discovery": profile.discovery,
         "checklist": [fill(item, {**values, "host": host or "HOST"}) for item in merged.checklist],
         "os_tweaks": dict(side.os_tweaks),
@@ -371,6 +374,11 @@ def python_data(profile: Profile, side: Side) -> dict:
     return {"venv": venv, "requirements": requirements}
 
 
+# A service's environment's placeholders that only the host knows (schema.SERVICE_ENVIRONMENT_PLACEHOLDERS),
+# kept as they are: deploy/profile_services.py fills them from the host's ROS environment.
+HOST_KEPT = {name: f"${{{name}}}" for name in SERVICE_ENVIRONMENT_PLACEHOLDERS}
+
+
 def resolved_service(service: dict, values: dict, distro: str, profile_name: str) -> dict:
     """A profile's service for one host: its command with ${distro} and the settings filled in
     (each value one shell word), its environment filled in, and whether it is enabled here
@@ -386,7 +394,8 @@ def resolved_service(service: dict, values: dict, distro: str, profile_name: str
         "name": service["name"],
         "description": fill(service["description"], values) or f"{service['name']} (robot profile {profile_name})",
         "command": fill(service["command"], words),
-        "environment": {name: fill(text, values) for name, text in service["environment"].items()},
+        # the host's own placeholders (${ros_domain_id}) stay for the unit's writer to fill
+        "environment": {name: fill(text, {**HOST_KEPT, **values}) for name, text in service["environment"].items()},
         "enabled": not missing,
         "disabled_because": "; ".join(missing),
     }

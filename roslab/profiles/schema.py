@@ -51,8 +51,8 @@ ALL_DISTROS = "all"
 BUILTIN_CONDITIONS = ("distro", "board")
 
 TOP_KEYS = ("profile", "extends", "description", "distros", "tools", "boards", "middlewares", "dds_only_packages",
-            "discovery", "verify_topic", "verify_type", "verify_if", "verify_source", "underlay_build_memory_mb",
-            "settings", "base", *SIDES)
+            "discovery", "verify_topic", "verify_type", "verify_if", "verify_source", "verify_publisher",
+            "underlay_build_memory_mb", "settings", "base", *SIDES)
 # `underlay_build_memory_mb`: the memory (MiB) a host needs to build the profile's underlay;
 # a smaller host never builds it, it receives the build of a host of its group (issue 31).
 UNDERLAY_BUILD_MEMORY_MB = (256, 65536)
@@ -167,6 +167,10 @@ RESERVED_SERVICE_PREFIXES = ("roslab", "systemd-", "dbus", "getty", "serial-gett
                              "apt-", "initrd-")
 # What a service's command may name besides the profile's settings.
 COMMAND_PLACEHOLDERS = ("distro",)
+# What a service's environment may name besides the profile's settings: the host's own ROS
+# domain (its ROS_DOMAIN_ID), filled in when the unit is written (deploy/profile_services.py);
+# the micro-ROS agent's XRCE_DOMAIN_ID_OVERRIDE takes it.
+SERVICE_ENVIRONMENT_PLACEHOLDERS = ("ros_domain_id",)
 # What a checklist item may name besides the profile's settings: the host it is for (filled
 # in by the roster loader, so a command in it can be copied as it is).
 CHECKLIST_PLACEHOLDERS = ("host",)
@@ -286,6 +290,10 @@ class Profile:
     # What publishes the verify topic, named when the main hears nothing (one line of text; the
     # profile's ${settings} filled): "the ESP32 board, through micro_ros_agent on ...".
     verify_source: str = ""
+    # The node that must publish the verify topic (one ROS name; the profile's ${settings} and
+    # ${team}, the team's name as a ROS name, filled): "esp32_board_${team}", the node name the
+    # ESP32 firmware is flashed with. Empty: any publisher.
+    verify_publisher: str = ""
     # Commands the robot brings (roslab/robot_tools): `roslab opencr-update` for a TurtleBot3.
     tools: tuple[str, ...] = ()
     # ROS packages of this robot that speak DDS only, with what they are in words: a roster that
@@ -640,7 +648,8 @@ class ProfileReader:
             if problem:
                 self.error(problem, env, variable, f"{here}.environment.{variable}")
             else:
-                self.check_text(text, known, env, variable, f"{here}.environment.{variable}")
+                self.check_text(text, known | set(SERVICE_ENVIRONMENT_PLACEHOLDERS), env, variable,
+                                f"{here}.environment.{variable}")
         return dict(env)
 
     def read_enabled_if(self, spec: dict, here: str, known: set[str]) -> dict:
@@ -877,7 +886,7 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
     known = set(settings)
     distros = _read_distros(reader, mapping, base)
     boards, middlewares, discovery = _read_placement(reader, mapping, base)
-    topic, message_type, verify_if, verify_source = _read_verify(reader, mapping, base, known)
+    topic, message_type, verify_if, verify_source, verify_publisher = _read_verify(reader, mapping, base, known)
     tools, dds_only = _read_tools(reader, mapping, base)
     build_memory = _read_build_memory(reader, mapping, base)
     robot_base = _read_base(reader, mapping, base)
@@ -887,8 +896,8 @@ def read_profile(mapping, report: Report, prefix: str, source: str, base: Profil
         return None
     return Profile(name, str(description or ""), tuple(distros), tuple(boards), tuple(middlewares), discovery,
                    topic, message_type, dict(verify_if), settings, sides, source, line_of(mapping),
-                   verify_source=verify_source, tools=tuple(tools), dds_only_packages=dict(dds_only),
-                   underlay_build_memory_mb=build_memory, base=robot_base)
+                   verify_source=verify_source, verify_publisher=verify_publisher, tools=tuple(tools),
+                   dds_only_packages=dict(dds_only), underlay_build_memory_mb=build_memory, base=robot_base)
 
 
 def _read_base(reader: ProfileReader, mapping, base: Profile | None) -> dict | None:
@@ -938,7 +947,8 @@ def _read_placement(reader: ProfileReader, mapping, base: Profile | None) -> tup
 
 
 def _read_verify(reader: ProfileReader, mapping, base: Profile | None, known: set[str]) -> tuple:
-    """(`verify_topic:`, `verify_type:`, `verify_if:`, `verify_source:`): what `roslab verify` hears."""
+    """(`verify_topic:`, `verify_type:`, `verify_if:`, `verify_source:`, `verify_publisher:`): what
+    `roslab verify` hears, and from which node."""
     topic = mapping.get("verify_topic", base.verify_topic if base else None)
     if topic is not None and (not isinstance(topic, str) or formats.ros_topic(topic)):
         reader.error("must be a ROS topic name (or null: nothing to verify)", mapping, "verify_topic",
@@ -961,7 +971,15 @@ def _read_verify(reader: ProfileReader, mapping, base: Profile | None, known: se
         verify_source = ""
     elif verify_source:
         reader.check_text(verify_source, known, mapping, "verify_source", "verify_source")
-    return topic, message_type, verify_if, verify_source
+    verify_publisher = mapping.get("verify_publisher", base.verify_publisher if base else "")
+    if not isinstance(verify_publisher, str) or (
+            verify_publisher and not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", PLACEHOLDER.sub("x", verify_publisher))):
+        reader.error("must be a ROS node name (letters, digits and _; ${settings} and ${team} filled in)", mapping,
+                     "verify_publisher", "verify_publisher")
+        verify_publisher = ""
+    elif verify_publisher:
+        reader.check_text(verify_publisher, known | {"team"}, mapping, "verify_publisher", "verify_publisher")
+    return topic, message_type, verify_if, verify_source, verify_publisher
 
 
 def _read_tools(reader: ProfileReader, mapping, base: Profile | None) -> tuple[list[str], dict[str, str]]:

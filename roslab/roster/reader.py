@@ -629,6 +629,11 @@ def apply_profile_defaults(data: dict, resolved: dict, result) -> None:
             data[key] = profile_value or data.get(old_key)
 
 
+def ros_name(text: str) -> str:
+    """`text` as part of a ROS name: each character a name cannot hold becomes `_`."""
+    return re.sub(r"[^A-Za-z0-9_]", "_", text)
+
+
 def apply_profile_verify_and_discovery(data: dict, resolved: dict, set_here: set, result) -> None:
     """The resolved profile's topic for `roslab verify` and its discovery, where the roster
     sets neither."""
@@ -639,6 +644,9 @@ def apply_profile_verify_and_discovery(data: dict, resolved: dict, set_here: set
     # what publishes the profile's topic, for `roslab verify` to name when nothing comes
     data["roslab_verify_source"] = result["verify_source"] if data["nodes_verify_topic"] == \
         result["verify_topic"] else ""
+    # the node that must publish it (the ESP32 board's flashed name), the team's name as a ROS name
+    data["roslab_verify_publisher"] = result["verify_publisher"].replace(
+        "${team}", ros_name(data["roslab_team"])) if data["nodes_verify_topic"] == result["verify_topic"] else ""
     if result["discovery"] == "localhost" and "ros_automatic_discovery_range" not in resolved \
             and "ros_discovery_mode" not in set_here:
         # The profile keeps discovery on the host (sim) unless the team or host chose a mode.

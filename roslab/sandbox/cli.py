@@ -55,6 +55,17 @@ def register(subparsers) -> argparse.ArgumentParser:
     ssh = commands.add_parser("ssh", help="log in to a host as the login user (or run CMD there)")
     ssh.add_argument("host")
     ssh.add_argument("cmd", nargs=argparse.REMAINDER, metavar="CMD")
+    board = commands.add_parser(
+        "board", help="start, stop or show a team's emulated ESP32 board",
+        description="The emulated ESP32 board of an esp32_microros team (esp32_transport: udp): a program on "
+                    "this machine that publishes what firmware/esp32_microros publishes, with the team's domain "
+                    "and node name (the values `roslab esp32-firmware` prints), through the real micro-ROS agent "
+                    "on the team's host, and reconnects when the agent restarts. Needs ROSLAB_SANDBOX_SOURCES "
+                    "(the board is built from the Micro-XRCE-DDS-Client bundle).")
+    board.add_argument("team")
+    board.add_argument("action", choices=("start", "stop", "status"))
+    board.add_argument("--roster", type=Path, metavar="FILE",
+                       help="the roster the class was deployed with (default: the sandbox's own roster)")
     parser.set_defaults(run=run)  # the `roslab` command calls args.run(args)
     return parser
 
@@ -70,6 +81,49 @@ def print_status(report: dict) -> None:
         state = "ssh ok" if host["ssh"] else ("booting" if host["running"] else "STOPPED")
         kind = "Desktop" if host["flavour"] == "desktop" else "Server"
         print(f"  {host['name']:<16} {host['address']:<15} Ubuntu {host['release']} {kind} (emulated)  {state}")
+
+
+def board_line(values) -> str:
+    """What the team's board is and where it talks, in one line."""
+    return (f"{values.team}: board {values.node_name} (domain {values.domain_id}) publishes /esp32/potentiometer "
+            f"(std_msgs/msg/Int32) through the micro-ROS agent on {values.agent_host} at "
+            f"{values.agent_address}:{values.agent_port}/udp")
+
+
+def run_board(args: argparse.Namespace) -> int:
+    """`roslab sandbox board TEAM start|stop|status`."""
+    from roslab.robot_tools.esp32_firmware import board_values
+    from roslab.reach import RosterProblem, load_classroom
+
+    from . import esp32_board
+    from .instance import Instance
+    from .real_sources import Bundles
+
+    instance = Instance.from_env()
+    roster = args.roster or instance.roster_path
+    try:
+        classroom = load_classroom(str(roster), "sandbox board")
+    except RosterProblem as problem:
+        raise SandboxError(str(problem)) from None
+    values = board_values(classroom, args.team)
+    if values is None:
+        teams = sorted({host.team for host in classroom.hosts if board_values(classroom, host.team)})
+        raise SandboxError(f"{roster}: team {args.team!r} has no ESP32 board (robot_profile esp32_microros); "
+                           f"teams with one: {', '.join(teams) or 'none'}")
+    if values.transport != "udp":
+        raise SandboxError(f"{roster}: team {args.team!r} has esp32_transport {values.transport}: the sandbox "
+                           "emulates a board on WiFi only (no USB link reaches a sandbox host); set it to udp")
+    if args.action == "stop":
+        stopped = esp32_board.stop(instance.state_dir, args.team)
+        print(f"{args.team}: board {values.node_name} {'stopped' if stopped else 'was not running'}")
+    elif args.action == "status":
+        print(f"{board_line(values)}: {esp32_board.state(instance.state_dir, args.team)}")
+    else:
+        publishing = esp32_board.start(esp32_board.binary(Bundles.from_env()), values, instance.state_dir)
+        log_file = esp32_board.board_files(instance.state_dir, args.team)[1]
+        print(f"{board_line(values)}: " + ("publishing" if publishing else
+              f"started, still waiting for the agent (is micro_ros_agent running there?); log: {log_file}"))
+    return 0
 
 
 def _interrupt(signum, frame):
@@ -104,6 +158,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"{args.host}: rebooted, ssh ready after {lifecycle.reboot(args.host):.1f} s")
         elif args.sandbox_command == "ssh":
             lifecycle.ssh(args.host, args.cmd)
+        elif args.sandbox_command == "board":
+            return run_board(args)
     except SandboxError as exc:
         print(f"roslab sandbox: {exc}", file=sys.stderr)
         return 1

@@ -7,6 +7,12 @@ Micro-CDR, from the bundles ROSLAB_SANDBOX_SOURCES names: real_sources.py), and 
 potentiometer reading the firmware publishes. It runs on this machine (the controller) and
 talks to the agent's host over the sandbox's bridge, as a board on the classroom's WiFi would.
 
+It is "flashed" as the firmware is: the same environment variables, with the values
+`roslab esp32-firmware` prints for the team (roslab/robot_tools/esp32_firmware.py: the team's
+domain, the node name esp32_board_<team>, the agent's address and port), and it reconnects to
+a restarted agent as the firmware does. `roslab sandbox board TEAM start|stop|status` runs it
+(one process per team, its pid and log in the sandbox's state folder, `esp32-boards/`).
+
 Built once per bundle and source digest into the sandbox cache (`esp32-board/<key>/`).
 """
 
@@ -14,15 +20,16 @@ from __future__ import annotations
 
 import hashlib
 import os
-import signal
 import subprocess
 import tempfile
 import time
 from pathlib import Path
 
 from . import upstream
+from roslab.robot_tools.esp32_firmware import BoardValues
+
 from .real_sources import Bundles
-from .system import SandboxError, log
+from .system import SandboxError, log, pid_alive, terminate
 
 SOURCE = Path(__file__).resolve().parent / "board" / "esp32_board_standin.c"
 # The client the board's firmware uses for Jazzy (micro_ros_platformio builds it at v2.4.3) and
@@ -82,40 +89,80 @@ def binary(bundles: Bundles) -> Path:
     return upstream._cached_build("esp32-board", upstream._cache_key(*_key(bundles)), build) / EXECUTABLE
 
 
-class Board:
-    """One running stand-in board, publishing through the agent at `address`:`port`."""
+PUBLISHING = b"esp32 stand-in: publishing"
 
-    def __init__(self, executable: Path, address: str, port: int, domain_id: int, log_file: Path):
-        self.argv = [str(executable), address, str(port), str(domain_id)]
-        self.log_file = Path(log_file)
-        self.process: subprocess.Popen | None = None
 
-    def start(self, timeout: float = 30) -> "Board":
-        """Start it and wait until it says it publishes (it retries while the agent starts)."""
-        deadline = time.monotonic() + timeout
-        while True:
-            with open(self.log_file, "ab") as log_handle:
-                self.process = subprocess.Popen(self.argv, stdout=log_handle, stderr=subprocess.STDOUT,
-                                                stdin=subprocess.DEVNULL, start_new_session=True)
-            while self.process.poll() is None and time.monotonic() < deadline:
-                if b"esp32 stand-in: publishing" in self.log_file.read_bytes():
-                    return self
-                time.sleep(0.2)
-            if self.process.poll() is None:
-                self.stop()
-                raise SandboxError(f"the ESP32 stand-in did not start publishing in {timeout:g} s "
-                                   f"({self.log_file})")
-            if time.monotonic() >= deadline:
-                raise SandboxError(f"the ESP32 stand-in found no agent at {self.argv[1]}:{self.argv[2]} "
-                                   f"in {timeout:g} s ({self.log_file})")
-            time.sleep(1)  # the agent is not up yet: a board retries too
+def board_files(state_dir: Path, team: str) -> tuple[Path, Path]:
+    """(pid file, log file) of team `team`'s board in the sandbox's state folder."""
+    folder = Path(state_dir) / "esp32-boards"
+    return folder / f"{team}.pid", folder / f"{team}.log"
 
-    def stop(self) -> None:
-        if self.process and self.process.poll() is None:
-            os.killpg(self.process.pid, signal.SIGTERM)
-            try:
-                self.process.wait(10)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.process.pid, signal.SIGKILL)
-                self.process.wait(10)
-        self.process = None
+
+def running_pid(pid_file: Path) -> int | None:
+    """The pid of the board `pid_file` names while that process runs and is a board, else None."""
+    try:
+        pid = int(pid_file.read_text())
+        command = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[:2]  # a program, or a script's
+    except (OSError, ValueError):
+        return None
+    return pid if any(word.endswith(EXECUTABLE.encode()) for word in command) and pid_alive(pid) else None
+
+
+def publishing_since(log_file: Path, offset: int) -> bool:
+    """Whether the board said it publishes after byte `offset` of its log (its latest connection)."""
+    try:
+        text = log_file.read_bytes()[offset:]
+    except OSError:
+        return False
+    last = text.rfind(PUBLISHING)
+    return last >= 0 and b"stopped answering" not in text[last:]
+
+
+def start(executable: Path, values: BoardValues, state_dir: Path, timeout: float = 30) -> bool:
+    """Start team `values.team`'s board (a no-op when it runs) and wait up to `timeout` s until it
+    publishes; False: it runs, still waiting for the agent (as a real board would)."""
+    pid_file, log_file = board_files(state_dir, values.team)
+    if running_pid(pid_file) is not None:
+        return publishing_since(log_file, 0)
+    pid_file.parent.mkdir(parents=True, exist_ok=True)
+    offset = log_file.stat().st_size if log_file.exists() else 0
+    environment = {"PATH": os.environ.get("PATH", "/usr/bin:/bin"), **values.environment()}
+    with open(log_file, "ab") as log_handle:
+        process = subprocess.Popen([str(executable)], stdout=log_handle, stderr=subprocess.STDOUT,
+                                   stdin=subprocess.DEVNULL, start_new_session=True, env=environment)
+    pid_file.write_text(f"{process.pid}\n")
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            pid_file.unlink(missing_ok=True)
+            raise SandboxError(f"the ESP32 stand-in of {values.team} exited (rc {process.returncode}): "
+                               f"{log_file.read_text(errors='replace')[offset:].strip()[-500:]}")
+        if publishing_since(log_file, offset):
+            return True
+        time.sleep(0.2)
+    return False
+
+
+def stop(state_dir: Path, team: str) -> bool:
+    """Stop team `team`'s board; False: none was running."""
+    pid_file, _ = board_files(state_dir, team)
+    pid = running_pid(pid_file)
+    if pid is not None:
+        terminate(pid)
+    pid_file.unlink(missing_ok=True)
+    return pid is not None
+
+
+def state(state_dir: Path, team: str) -> str:
+    """In words: stopped, waiting for the agent, or publishing (with its pid)."""
+    pid_file, log_file = board_files(state_dir, team)
+    pid = running_pid(pid_file)
+    if pid is None:
+        return "stopped"
+    return f"{'publishing' if publishing_since(log_file, 0) else 'waiting for the agent'} (pid {pid})"
+
+
+def stop_all(state_dir: Path) -> None:
+    """Stop every board of the sandbox (its `down`)."""
+    for pid_file in sorted((Path(state_dir) / "esp32-boards").glob("*.pid")):
+        stop(state_dir, pid_file.stem)

@@ -20,7 +20,7 @@ import yaml
 
 from roslab.ssh import identity
 
-from . import git_standins, hosts, image, seeding, upstream
+from . import esp32_board, git_standins, hosts, image, seeding, upstream
 from .instance import STATE_ROOT, UPSTREAM_PORT, Instance, SandboxHost, releases_by_team
 from .system import SandboxError, announced, discard, file_lock, log, run, sweep_discarded, write_file
 
@@ -468,6 +468,7 @@ def _down_locked(instance: Instance) -> None:
             except OSError:
                 pass
         upstream.stop_server(instance.state_dir / "upstream.pid")
+        esp32_board.stop_all(instance.state_dir)  # `roslab sandbox board` processes, on this machine
         if instance.state_dir.exists():
             hosts.unmount_all(instance.state_dir)
         hosts.remove_network(instance)

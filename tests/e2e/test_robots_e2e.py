@@ -10,9 +10,11 @@ With the robots' REAL repositories (ROSLAB_SANDBOX_SOURCES: git bundles, `.ci/ru
 osr-rover-code v4.1.0's osr_interfaces, osr_control and osr_bringup and its launch starts, the
 board's host builds the real micro-ROS agent (micro-ROS-Agent 5.0.2 on Micro-XRCE-DDS-Agent
 v2.4.3) and its service listens on UDP, and a STAND-IN board (roslab/sandbox/esp32_board.py: a
-Linux DDS-XRCE client from the bundles' Micro-XRCE-DDS-Client, on this machine) publishes
-through that agent, so `roslab verify` hears the board on team2's main, and fails naming the
-board when it stops. What stays a stand-in and why: the rover's joy and teleop_twist_joy (the
+Linux DDS-XRCE client from the bundles' Micro-XRCE-DDS-Client, on this machine), started by
+`roslab sandbox board team2 start` with the firmware's values (the team's domain, node
+esp32_board_team2), publishes through that agent, so `roslab verify` hears the board on team2's
+main, hears it again after the agent is killed (the board reconnects, as the firmware does), and
+fails naming the board when `roslab sandbox board team2 stop` stops it. What stays a stand-in and why: the rover's joy and teleop_twist_joy (the
 shared runtime lacks them: the sandbox's stand-in executables), its RoboClaws and servo board
 (serial and I2C hardware: those nodes fail, each in its own line of the launch's journal).
 Without bundles or a real runtime, every robot repository is a stand-in (git_standins.py): the
@@ -42,7 +44,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from roslab.sandbox import esp32_board, git_standins, real_sources, upstream
+from roslab.sandbox import git_standins, upstream
 from tests.e2e.conftest import bring_up, summary_lines
 
 pytestmark = pytest.mark.e2e
@@ -289,6 +291,8 @@ def test_the_agent_unit_runs_the_udp_transport_with_fast_dds(sandbox, first_run)
                  "ExecStart", "Environment", "Restart")
     assert props["LoadState"] == "loaded" and props["Restart"] == "always", props
     assert "RMW_IMPLEMENTATION=rmw_fastrtps_cpp" in props["Environment"].split()
+    # for a board that asks for domain 255 only (the firmware sets the team's domain itself)
+    assert f"XRCE_DOMAIN_ID_OVERRIDE={domain_id(sandbox, BOARD_HOST)}" in props["Environment"].split()
     assert f"exec ros2 run micro_ros_agent micro_ros_agent udp4 --port {AGENT_PORT}" in props["ExecStart"]
     assert "source /opt/ros/jazzy/setup.bash" in props["ExecStart"]
     # esp32_present where the agent is real; the stand-in agent is installed, not started
@@ -377,19 +381,58 @@ def test_the_rovers_real_packages_have_their_generated_code_and_its_launch_start
     assert "osr_startup: rover died" in text and "No module named 'tf2_ros'" in text, text
 
 
-def test_verify_hears_the_board_through_the_real_agent_and_names_the_board_when_it_stops(
-        sandbox, roster, first_run, tmp_path):
+def board(sandbox, roster: Path, action: str) -> subprocess.CompletedProcess:
+    """`roslab sandbox board team2 ACTION --roster ROSTER`, as a teacher runs it."""
+    return subprocess.run([sys.executable, "-m", "roslab", "sandbox", "board", "team2", action, "--roster",
+                           str(roster)], env=sandbox.env, capture_output=True, text=True, timeout=900)
+
+
+def board_pid(status: str) -> str:
+    return status.rsplit("(pid ", 1)[1].split(")")[0]
+
+
+def test_the_board_on_its_teams_domain_is_heard_reconnects_after_the_agent_is_killed_and_fails_when_stopped(
+        sandbox, roster, first_run):
+    """The emulated board, started by `roslab sandbox board` with the values the firmware is
+    flashed with (the team's domain, esp32_board_team2), is heard by verify through the real
+    agent; after a kill -9 of the agent (systemd restarts it 5 s later) the same board process
+    reconnects and verify passes again; `board stop` makes verify fail naming the board."""
     needs_real(sandbox)
-    executable = esp32_board.binary(real_sources.Bundles.from_env())
-    board = esp32_board.Board(executable, sandbox.host(BOARD_HOST).address, AGENT_PORT,
-                              domain_id(sandbox, BOARD_HOST), tmp_path / "board.log")
-    board.start()
+    domain = domain_id(sandbox, BOARD_HOST)
+    started = board(sandbox, roster, "start")
     try:
+        assert started.returncode == 0, started.stdout + started.stderr
+        address = sandbox.host(BOARD_HOST).address
+        assert (f"team2: board esp32_board_team2 (domain {domain}) publishes /esp32/potentiometer "
+                f"(std_msgs/msg/Int32) through the micro-ROS agent on {BOARD_HOST} at {address}:{AGENT_PORT}/udp: "
+                "publishing") in started.stdout, started.stdout
         heard = verify(sandbox, roster, "--limit", "team2")
         assert heard.returncode == 0, heard.stdout + heard.stderr
-        assert "/esp32/potentiometer" in heard.stdout, heard.stdout
+        # its publisher is the board's node, named as the firmware is flashed (verify_publisher)
+        assert "/esp32/potentiometer from esp32_board_team2" in heard.stdout, heard.stdout
+        before = board(sandbox, roster, "status").stdout
+        assert before.rstrip().endswith(")") and ": publishing (pid " in before, before
+        sandbox.sudo(BOARD_HOST, "systemctl kill -s KILL micro_ros_agent", check=True)
+        status = ""
+        for _ in range(10):  # the board's ping fails within 0.2 s; the agent is back after 5 s
+            status = board(sandbox, roster, "status").stdout
+            if "waiting for the agent" in status:
+                break
+            time.sleep(0.5)
+        assert "waiting for the agent" in status, status
+        for _ in range(60):
+            status = board(sandbox, roster, "status").stdout
+            if ": publishing (pid " in status:
+                break
+            time.sleep(1)
+        assert ": publishing (pid " in status and board_pid(status) == board_pid(before), (before, status)
+        again = verify(sandbox, roster, "--limit", "team2")
+        assert again.returncode == 0, again.stdout + again.stderr
+        assert "/esp32/potentiometer from esp32_board_team2" in again.stdout, again.stdout
     finally:
-        board.stop()
+        stopped = board(sandbox, roster, "stop")
+    assert stopped.returncode == 0 and "team2: board esp32_board_team2 stopped" in stopped.stdout, stopped
+    assert "stopped" in board(sandbox, roster, "status").stdout
     silent = verify(sandbox, roster, "--limit", "team2")
     assert silent.returncode == 1, silent.stdout + silent.stderr
     assert "ESP32 board" in silent.stdout and BOARD_HOST in silent.stdout, silent.stdout

@@ -278,7 +278,7 @@ def test_trust_seed_and_forget_take_hosts_by_limit_as_every_command_does(tmp_pat
     assert main(["seed", str(FIXTURE), "--out", str(out), "--limit", "nosuch"]) == 2
     assert "roslab seed: --limit 'nosuch' selects no host of the roster" in capsys.readouterr().err
     assert not out.exists()
-    for command in ("trust", "forget", "opencr-update"):
+    for command in ("trust", "forget", "opencr-update", "esp32-firmware"):
         assert main([command, str(FIXTURE), "--limit", "team1,team-2"]) == 2
         err = capsys.readouterr().err
         assert err.startswith(f"roslab {command}: --limit 'team1,team-2' selects no host of the roster"), err
@@ -319,7 +319,7 @@ def test_forget_without_limit_forgets_nothing_and_says_how(tmp_path, capsys):
 def test_host_is_still_read_as_the_older_name_of_limit_but_only_limit_is_shown(capsys):
     from roslab.cli.main import build_parser
 
-    for command in ("verify", "status", "trust", "seed", "forget", "opencr-update"):
+    for command in ("verify", "status", "trust", "seed", "forget", "opencr-update", "esp32-firmware"):
         required = ["--out", "seeds"] if command == "seed" else []
         assert build_parser().parse_args([command, *required, "--host", "team1-main", "--limit", "robot"]).limit == [
             "team1-main", "robot"]

@@ -85,7 +85,7 @@ def test_robot_commands_are_the_ones_profiles_name():
     from roslab.cli.main import build_parser
 
     named = {tool for profile in builtin_profiles().values() for tool in profile.tools}
-    assert named == {"opencr-update"} and set(known_tools()) >= named
+    assert named == {"opencr-update", "esp32-firmware"} and set(known_tools()) >= named
     parser = build_parser()
     commands = next(action for action in parser._actions if action.dest == "command").choices
     assert named <= set(commands)

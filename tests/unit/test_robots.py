@@ -203,7 +203,8 @@ def test_esp32_agent_runs_on_the_side_the_board_is_attached_to():
     main = resolved("esp32_microros", role="main", esp32_usb_serial="A1B2")
     (agent,) = robot["services"]
     assert agent["command"] == "ros2 run micro_ros_agent micro_ros_agent serial --dev /dev/esp32 -b 115200"
-    assert agent["environment"] == {"RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"}
+    assert agent["environment"] == {"RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
+                                    "XRCE_DOMAIN_ID_OVERRIDE": "${ros_domain_id}"}
     assert robot["remove_apt_packages"] == ["brltty"] and robot["groups"] == ["dialout"]
     assert 'ATTRS{serial}=="A1B2"' in robot["udev_rules"] and 'SYMLINK+="esp32"' in robot["udev_rules"]
     # CP2102, CH340 and CH9102 boards, each by the serial number

@@ -614,3 +614,45 @@ def test_the_launch_deaths_fact_reads_the_last_minute_of_the_unit():
     assert fact.command("osr_startup.service").startswith(
         "journalctl -u osr_startup.service --since=-60s --no-pager -o cat")
     assert fact.process(["a", "b"]) == ["a", "b"]
+
+
+# The publisher a profile names (verify_publisher: the ESP32 board's flashed node name)
+# ------------------------------------------------------------------------------------
+
+INT32 = "std_msgs/msg/Int32"
+
+
+def test_the_topics_publishers_are_asked_for_only_where_a_profile_names_one(tmp_path):
+    home = stand_in_ros(tmp_path, "case \"$1 $2\" in \"topic echo\") printf 'data: 7\\n---\\n' ;;\n"
+                                  "\"topic info\") printf 'Type: std_msgs/msg/Int32\\n\\nPublisher count: 1\\n\\n"
+                                  "Node name: esp32_board_team2\\nNode namespace: /\\n\\nSubscription count: 1\\n\\n"
+                                  "Node name: servo_follower\\n' ;; esac")
+    script = verify.check_script("jazzy", ENV, "~/ros2_ws", "/esp32/potentiometer", 2, 1, INT32,
+                                 "esp32_board_team2")
+    script = script.replace("/opt/ros/jazzy/setup.bash", str(tmp_path / "setup.bash"))
+    output = subprocess.run(["bash", "-c", script], capture_output=True, text=True, env={"HOME": str(home)},
+                            timeout=120).stdout
+    assert "topic info --no-daemon --spin-time 3 --verbose /esp32/potentiometer" in calls(tmp_path)
+    found = verify.parse_check_output(output.splitlines())
+    assert found["publishers"] == ["esp32_board_team2"] and found["message"] == "data: 7"  # not the subscriber
+    assert "topic info" not in verify.check_script("jazzy", ENV, "~/ros2_ws", "/scan", 2, 1, SCAN)
+
+
+def test_an_esp32_team_passes_only_on_its_own_boards_node():
+    def board(publishers):
+        found = {**heard(topics=("/esp32/potentiometer",), message="data: 7"), "publishers": publishers}
+        return result("team2", heard=found, topic="/esp32/potentiometer", message_type=INT32,
+                      publisher="esp32_board_team2")
+
+    own = board(["esp32_board_team2"])
+    assert own.passed and own.verdict() == f"heard a {INT32} on /esp32/potentiometer from esp32_board_team2"
+    other = board(["esp32_board_team1"])  # team1's board behind team2's agent, or flashed with team1's values
+    assert not other.passed
+    assert other.verdict().startswith(f"heard a {INT32} on /esp32/potentiometer, but not from esp32_board_team2 "
+                                      "(its publishers: esp32_board_team1): another team's board")
+    assert not board([]).passed and "(its publishers: none seen)" in board([]).verdict()
+    silent = result("team2", heard=heard(topics=("/esp32/potentiometer",)), topic="/esp32/potentiometer",
+                    message_type=INT32, publisher="esp32_board_team2", source="the ESP32 board")
+    assert not silent.passed
+    assert silent.verdict() == ("no message from esp32_board_team2 on /esp32/potentiometer within 20 s: "
+                                "the ESP32 board publishes nothing")

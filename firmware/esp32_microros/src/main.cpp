@@ -3,8 +3,15 @@
 // Publishes the potentiometer's raw 12-bit reading (0-4095) on /esp32/potentiometer
 // (std_msgs/Int32) ten times a second, and turns the servo to each angle (0-180) that arrives
 // on /esp32/servo_angle (std_msgs/Int32), which roslab_esp32's servo_follower node publishes
-// on the Pi. When the agent goes away (the Pi reboots, the cable is pulled) the board waits
-// for it and connects again, so the demo heals without a reset.
+// on the Pi. When the agent goes away (the Pi reboots, the cable is pulled, the agent is
+// killed) the board waits for it and connects again, so the demo heals without a reset: the
+// state machine of micro_ros_platformio's examples/ethernet_pubsub (ping the agent; create the
+// entities; ping while connected; destroy them when a ping fails; wait again).
+//
+// The team's ROS domain (ROSLAB_ROS_DOMAIN_ID) and the board's node name (ROSLAB_NODE_NAME,
+// esp32_board_<team>) come from the build's environment (platformio.ini); `roslab
+// esp32-firmware` prints them for each team. The domain is set on rcl's init options: the
+// micro-ROS agent's XRCE_DOMAIN_ID_OVERRIDE applies only to a board that asks for domain 255.
 //
 // It cannot be compiled here (roslab's controller): see README.md for building and flashing.
 
@@ -21,6 +28,25 @@
 #endif
 
 namespace {
+
+constexpr bool all_digits(const char *text) {
+  return *text == '\0' || (*text >= '0' && *text <= '9' && all_digits(text + 1));
+}
+constexpr unsigned long parsed(const char *text, unsigned long value) {
+  return *text == '\0' ? value : parsed(text + 1, value * 10 + (*text - '0'));
+}
+
+static_assert(ROSLAB_ROS_DOMAIN_ID[0] != '\0' && all_digits(ROSLAB_ROS_DOMAIN_ID),
+              "set ROSLAB_ROS_DOMAIN_ID to the team's ROS domain (roslab esp32-firmware prints it)");
+static_assert(ROSLAB_NODE_NAME[0] != '\0',
+              "set ROSLAB_NODE_NAME to the board's node name (roslab esp32-firmware prints it)");
+constexpr size_t kDomainId = parsed(ROSLAB_ROS_DOMAIN_ID, 0);
+static_assert(kDomainId <= 232, "ROSLAB_ROS_DOMAIN_ID is not a ROS domain (0-232)");
+#if defined(ROSLAB_TRANSPORT_UDP)
+static_assert(ROSLAB_AGENT_PORT[0] != '\0' && all_digits(ROSLAB_AGENT_PORT) &&
+                  parsed(ROSLAB_AGENT_PORT, 0) <= 65535,
+              "set ROSLAB_AGENT_PORT to the agent's UDP port (the roster's esp32_udp_port)");
+#endif
 
 constexpr int kPublishPeriodMs = 100;
 constexpr int kAgentPingTimeoutMs = 100;
@@ -51,8 +77,14 @@ void on_servo_angle(const void *message) {
 
 bool create_entities() {
   allocator = rcl_get_default_allocator();
-  if (rclc_support_init(&support, 0, nullptr, &allocator) != RCL_RET_OK) return false;
-  if (rclc_node_init_default(&node, "esp32_board", "", &support) != RCL_RET_OK) return false;
+  rcl_init_options_t init_options = rcl_get_zero_initialized_init_options();
+  if (rcl_init_options_init(&init_options, allocator) != RCL_RET_OK) return false;
+  if (rcl_init_options_set_domain_id(&init_options, kDomainId) != RCL_RET_OK) return false;
+  const bool supported =
+      rclc_support_init_with_options(&support, 0, nullptr, &init_options, &allocator) == RCL_RET_OK;
+  (void)rcl_init_options_fini(&init_options);
+  if (!supported) return false;
+  if (rclc_node_init_default(&node, ROSLAB_NODE_NAME, "", &support) != RCL_RET_OK) return false;
   if (rclc_publisher_init_default(&potentiometer_publisher, &node,
                                   ROSIDL_GET_MSG_TYPE_SUPPORT(std_msgs, msg, Int32),
                                   "esp32/potentiometer") != RCL_RET_OK) return false;
@@ -86,7 +118,8 @@ void setup() {
   IPAddress agent;
   agent.fromString(ROSLAB_AGENT_IP);
   set_microros_wifi_transports(const_cast<char *>(ROSLAB_WIFI_SSID),
-                               const_cast<char *>(ROSLAB_WIFI_PASSWORD), agent, ROSLAB_AGENT_PORT);
+                               const_cast<char *>(ROSLAB_WIFI_PASSWORD), agent,
+                               parsed(ROSLAB_AGENT_PORT, 0));
 #else
   Serial.begin(115200);
   set_microros_serial_transports(Serial);
