@@ -188,16 +188,21 @@ def workspace():
         stop_host(f"{where()}: workspace: {error}; nothing was changed by this step")
         return
 
-    for path in (workspace_dir, src_dir):
-        files.directory(
-            name=f"Ensure {path} exists, owned by {user}", path=path, user=user,
-        )
     # Before anything runs as the user: a tree a student gave to root would fail the build.
+    # (First: a repair is said once, and the folders below then need nothing.)
     ws_ops.owned(
         name=f"Ensure everything in {workspace_dir} belongs to {user}",
         workspace_dir=workspace_dir,
         user=user,
     )
+    # With the user's primary group (read ahead with the ownership fact, no command of its
+    # own): a folder left in root's group would be "given back" by the next run, a warning
+    # about nothing a student did.
+    group = host.get_fact(ws_ops.WorkspaceForeign, workspace_dir=workspace_dir, user=user).get("group")
+    for path in (workspace_dir, src_dir):
+        files.directory(
+            name=f"Ensure {path} exists, owned by {user}", path=path, user=user, group=group,
+        )
     ws_ops.packages(
         name=f"Ensure {src_dir} holds the packages of {source_dir}",
         nodes_dir=source_dir,

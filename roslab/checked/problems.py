@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 
@@ -38,6 +38,30 @@ class Problem:
         if not context:
             return f"{where}: {self.message}"
         return f"{where}: {', '.join(context)}: {self.message}"
+
+
+def team_wide(problems: list[Problem], team_hosts: dict[str, set[str]]) -> list[Problem]:
+    """`problems` with one that every host of a team has (the same file, line, field and
+    message: a value the team or the classroom sets) said once for the team, where its
+    first host's was; one that only some of the team's hosts have still names each host.
+
+    `team_hosts`: each team's hosts (those the roster could read)."""
+    hosts_of: dict[Problem, set[str]] = {}
+    for problem in problems:
+        if problem.team is not None and problem.host is not None:
+            hosts_of.setdefault(replace(problem, host=None), set()).add(problem.host)
+    shown: list[Problem] = []
+    said: set[Problem] = set()
+    for problem in problems:
+        team_problem = replace(problem, host=None)
+        hosts = hosts_of.get(team_problem, set()) if problem.host is not None else set()
+        if len(hosts) > 1 and hosts >= team_hosts.get(problem.team, {None}):
+            if team_problem not in said:
+                said.add(team_problem)
+                shown.append(team_problem)
+        else:
+            shown.append(problem)
+    return shown
 
 
 class RosterError(Exception):

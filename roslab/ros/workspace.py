@@ -406,21 +406,23 @@ class WorkspaceForeign(FactBase):
     """
     Paths in a workspace that do not belong to its user (and the user's primary group).
 
-    Returns ``{"count": n, "examples": [up to 3 paths relative to the workspace]}``;
-    a count of 0 when every path does, or when there is no workspace yet. The whole tree
-    is read (build/, install/, log/, src/ and roslab's state): a student who ran
-    `sudo colcon build` or `sudo chown -R root ~/ros2_ws` left root's files anywhere.
-    Symbolic links are not followed.
+    Returns ``{"count": n, "examples": [up to 3 paths relative to the workspace],
+    "group": <the user's primary group, or None>}``; a count of 0 when every path does,
+    or when there is no workspace yet (the group is read even then: the deploy creates
+    the workspace's folders with it, so a fresh workspace is not "given back" later).
+    The whole tree is read (build/, install/, log/, src/ and roslab's state): a student
+    who ran `sudo colcon build` or `sudo chown -R root ~/ros2_ws` left root's files
+    anywhere. Symbolic links are not followed.
     """
 
     @staticmethod
     def default():
-        return {"count": 0, "examples": []}
+        return {"count": 0, "examples": [], "group": None}
 
     def command(self, workspace_dir: str, user: str) -> str:
         ws, who = shlex.quote(workspace_dir), shlex.quote(user)
         return (
-            f"[ -d {ws} ] || exit 0; group=$(id -gn {who}) || exit 0; "
+            f"group=$(id -gn {who}) || exit 0; echo \"group $group\"; [ -d {ws} ] || exit 0; "
             f"find {ws} \\( ! -user {who} -o ! -group \"$group\" \\) -printf '%P\\n' 2>/dev/null"
             f" | awk 'NR <= {FOREIGN_EXAMPLES} {{ print \"path \" $0 }} END {{ print \"count \" NR }}'"
         )
@@ -433,6 +435,8 @@ class WorkspaceForeign(FactBase):
                 result["count"] = int(value)
             elif kind == "path":
                 result["examples"].append(value or ".")
+            elif kind == "group":
+                result["group"] = value.strip() or None
         return result
 
 
@@ -464,7 +468,8 @@ def owned(workspace_dir: str, user: str):
         examples = ", ".join(foreign["examples"])
         more = ", ..." if foreign["count"] > len(foreign["examples"]) else ""
         host.log(
-            f"workspace: {foreign['count']} paths in {workspace_dir} do not belong to {user} "
+            f"workspace: {foreign['count']} {'path' if foreign['count'] == 1 else 'paths'} in {workspace_dir}"
+            f" {'does' if foreign['count'] == 1 else 'do'} not belong to {user} "
             f"({examples}{more}): giving them back",
             logger.warning,
         )

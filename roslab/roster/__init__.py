@@ -19,7 +19,7 @@ from roslab.profiles.packages import check_classroom as _check_ros_packages
 from roslab.roster.checks import Validator, assign_domain_ids, check_classroom
 from roslab.roster.inventory import add_host_lists, default_roster_path, group_names, inventory_groups
 from roslab.roster.model import ROLES, Classroom, Host, Team
-from roslab.checked.problems import Problem, Report, RosterError, display_path
+from roslab.checked.problems import Problem, Report, RosterError, display_path, team_wide
 from roslab.roster.reader import RosterReader
 from roslab.sources.groups import check_underlay_builders as _check_underlay_builders
 
@@ -44,9 +44,12 @@ def load_roster(path: Path | str, validators: list[Validator] | None = None,
         for validator in VALIDATORS if validators is None else validators:
             validator(classroom, reader.report)
         reader.blame_command_line()
-    if reader.report.errors:
-        raise RosterError(reader.report.errors)
-    classroom.warnings = reader.report.warnings
+    # A team's or the classroom's value is read for each host: its problem is said once per team.
+    team_hosts = {team.name: {host.name for host in team.hosts} for team in classroom.teams} if classroom else {}
+    errors = team_wide(reader.report.errors, team_hosts)
+    if errors:
+        raise RosterError(errors)
+    classroom.warnings = team_wide(reader.report.warnings, team_hosts)
     return classroom
 
 

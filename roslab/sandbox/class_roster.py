@@ -11,7 +11,8 @@ sandbox's roster is the class's own, with what the sandbox must serve itself put
   folder) is left out: the sandbox's roster lives elsewhere; an absolute one is kept.
 
 Every setting left out or replaced that the class had set is one note line (the caller logs
-them), e.g. Fast DDS on a distro the sandbox's real ROS runtime serves only with Cyclone DDS.
+them), e.g. Fast DDS on a distro the sandbox's real ROS runtime serves only with Cyclone DDS
+(roslab's default Fast DDS too, when the class sets no middleware).
 """
 
 from __future__ import annotations
@@ -89,6 +90,16 @@ def why_left_out(key: str, value, replaced: dict) -> str | None:
     return None
 
 
+def default_middleware_note(class_settings: dict, replaced: dict) -> str | None:
+    """The note for a class on roslab's default middleware (its roster sets none) that the
+    sandbox runs on another (its real ROS runtime's Cyclone DDS), or None."""
+    default = settings.SETTINGS["ros_middleware"].default
+    if "ros_middleware" in class_settings or replaced.get("ros_middleware", default) == default:
+        return None  # set by the class: why_left_out says it; or the sandbox runs the default
+    return (f"classroom: ros_middleware (not set: roslab's default {default}): the sandbox's real ROS runtime "
+            f"serves {replaced['ros_middleware']} only (its Humble has no Fast DDS); the sandbox runs that")
+
+
 def sandbox_roster(class_path: Path, base: dict, addresses: dict[str, str],
                    releases: dict[str, str]) -> tuple[dict, list[str]]:
     """The sandbox's roster for the class at `class_path`: `base` is the roster the sandbox
@@ -120,6 +131,9 @@ def sandbox_roster(class_path: Path, base: dict, addresses: dict[str, str],
         return result
 
     classroom = {**kept(raw.get("classroom") or {}, "classroom"), **replaced}
+    default_note = default_middleware_note(raw.get("classroom") or {}, replaced)
+    if default_note:
+        notes.append(default_note)
     if raw.get("classroom", {}).get("name"):
         classroom["name"] = f"{replaced.get('name')} ({raw['classroom']['name']})"
     teams = {}

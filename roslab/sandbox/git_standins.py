@@ -162,6 +162,16 @@ STANDIN_PACKAGES = {
 }
 
 
+def content_key() -> str:
+    """A digest of what the stand-ins hold: it changes when their files do (their commits too)."""
+    import hashlib
+
+    files = {package: package_files(package, executables) for packages in STANDIN_PACKAGES.values()
+             for package, executables in packages.items()}
+    files["<default>"] = package_files("standin", ["standin"])
+    return hashlib.sha256(repr(sorted((k, sorted(v.items())) for k, v in files.items())).encode()).hexdigest()
+
+
 def repositories(repos_files):
     """(repository path, URL, version) of each http(s) repository the .repos files name."""
     import yaml

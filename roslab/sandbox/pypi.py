@@ -13,8 +13,8 @@ requirement's dependency is downloaded as well.
 
 Served for every `python_packages` entry of roslab's built-in profiles, and for
 EXTRA_REQUIREMENTS: what the e2e tests' roster profiles name (the OSR rover's list from
-/work/shared/notes/field-facts.md). The requests land in the upstream's request log, so a
-test counts how often each file was fetched.
+the shared notes' field-facts.md, `../shared/notes` beside the clone). The requests land in
+the upstream's request log, so a test counts how often each file was fetched.
 """
 
 from __future__ import annotations

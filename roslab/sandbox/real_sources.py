@@ -2,7 +2,7 @@
 
 `ROSLAB_SANDBOX_SOURCES=DIR` (a setting any user of the sandbox may set) names a folder of
 git bundles of the public repositories the built-in robot profiles build from source
-(`micro-ROS-Agent.bundle`, `osr-rover-code.bundle`, ...; `/work/shared/sources/` holds them,
+(`micro-ROS-Agent.bundle`, `osr-rover-code.bundle`, ...; the shared `../shared/sources` beside the clone holds them,
 see its README). A repository of a built-in .repos file whose name has a bundle there is served
 as that real repository, under the URL the profile names (`<upstream>/git/github.com/owner/
 name.git`, where the sandbox roster's `source_url_rewrites` points), the way a lab's git

@@ -3,7 +3,8 @@
 `ROSLAB_SANDBOX_ROS_RUNTIME=DIR` (a setting any user of the sandbox may set) names a folder
 of `ros-<distro>-core-*.tar.zst` files: real ROS 2 install trees built for hosts with a
 Debian 12 userland and Python 3.11, whose files are relative to `/opt/ros/<distro>` and
-already name that prefix (as `/work/shared/ros-runtime/` holds them: see its README).
+already name that prefix (as the shared folder `../shared/ros-runtime` beside the clone holds
+them: see its README).
 For each distro with such a file, `roslab sandbox up` serves in its ROS archive:
 
   ros-<distro>-ros-core   REAL: the whole install tree in /opt/ros/<distro> (rclpy, rcl,

@@ -796,8 +796,19 @@ class Upstream:
             # The built-in profiles' commit pins cannot be stood in: their stand-ins' tag instead.
             "source_pins": git_standins.commit_pins(builtin_repos_files(), real=self.real_repositories),
             "python_index_url": f"{self.url}/pypi/simple",  # the stand-in index (sandbox/pypi.py)
+            "sources_cache_dir": self.sources_cache_dir(),
             **self.middleware_settings(),
         }
+
+    def sources_cache_dir(self) -> str:
+        """The controller's mirrors and lock for what this upstream serves under the real URLs:
+        one cache for stand-ins only, one per set of real repositories. The shared default
+        would take one for the other: a real micro-ROS-Agent an earlier sandbox fetched (with
+        ROSLAB_SANDBOX_SOURCES), whose rosdep keys a stand-in sandbox does not serve."""
+        # The stand-ins' own content too: a changed stand-in is another commit under the same tag.
+        served = [*sorted(self.real_repositories), git_standins.content_key()]
+        digest = hashlib.sha256("\n".join(served).encode()).hexdigest()[:12]
+        return f"~/.cache/roslab/sandbox-sources/{'real' if self.real_repositories else 'stand-ins'}-{digest}"
 
     def middleware_settings(self) -> dict:
         """The class's middleware where a distro is served from a real runtime: Cyclone DDS,
@@ -816,6 +827,14 @@ def builtin_repos_files() -> list[Path]:
     return sorted(Path(__file__).resolve().parent.parent.joinpath("profiles", "data").glob("*.repos"))
 
 
+def served_keys(nodes_dir: Path, bundles: real_sources.Bundles) -> tuple[set[str], dict[str, str]]:
+    """(ROS keys, system keys -> Debian package) the sandbox's rosdep data resolves, besides the
+    ROS keys every distro gets (`ros_keys_for`): the demo nodes' and the real repositories'."""
+    ros_keys, system_keys = node_dependencies(nodes_dir)
+    source_ros_keys, source_system_keys = source_keys(bundles)
+    return ros_keys | source_ros_keys, {**SYSTEM_ROSDEP_KEYS, **system_keys, **source_system_keys}
+
+
 def build(serve_dir: Path, url: str, rootfs: Path, nodes_dir: Path | None = None,
           runtime: ros_runtime.Runtime | None = None) -> Upstream:
     """Assemble the served tree for one instance (archives from the cache, the rest fresh).
@@ -824,10 +843,7 @@ def build(serve_dir: Path, url: str, rootfs: Path, nodes_dir: Path | None = None
     """
     runtime = runtime if runtime is not None else ros_runtime.Runtime.from_env(ROS_DISTROS.values())
     bundles = real_sources.Bundles.from_env() if runtime.trees else real_sources.Bundles(None)
-    ros_keys, system_keys = node_dependencies(nodes_dir or default_nodes_dir())
-    source_ros_keys, source_system_keys = source_keys(bundles)
-    ros_keys |= source_ros_keys
-    system_keys = {**SYSTEM_ROSDEP_KEYS, **system_keys, **source_system_keys}
+    ros_keys, system_keys = served_keys(nodes_dir or default_nodes_dir(), bundles)
     # the real ros-core's stand-ins depend on them as Ubuntu's debs do (real_sources.BUILD_DEPENDS)
     build_tools = sorted({package for packages in real_sources.BUILD_DEPENDS.values() for package in packages}
                          ) if runtime.trees else []

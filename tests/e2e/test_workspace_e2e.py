@@ -170,6 +170,8 @@ def test_first_run_builds_and_starts_every_host(classroom, sandbox, first_run):
     assert changed(first_run, RESTART_OP) == everyone
     for host in everyone:
         assert unit_state(sandbox, host) == "active", host
+    # The folders it made are the login user's, group too: nothing to "give back" (issue 40).
+    assert output_lines(first_run, "workspace:", "not belong to") == []
 
 
 def test_workspace_is_synced_and_owned_by_the_login_user(classroom, sandbox, first_run, nodes_copy):
@@ -182,7 +184,7 @@ def test_workspace_is_synced_and_owned_by_the_login_user(classroom, sandbox, fir
     for host in names(classroom):
         listing = sandbox.ssh(host, "cd ~/ros2_ws/src && find roslab_* -type f | sort")
         assert listing.stdout.split() == local, host
-        foreign = sandbox.sudo(host, f"find {WORKSPACE} ! -user {LOGIN_USER}")
+        foreign = sandbox.sudo(host, f"find {WORKSPACE} ! -user {LOGIN_USER} -o ! -group {LOGIN_USER}")
         assert foreign.stdout == "", f"{host}: not owned by {LOGIN_USER}: {foreign.stdout}"
         manifest = sandbox.ssh(host, "cat ~/ros2_ws/src/.roslab-manifest").stdout
         assert manifest.splitlines()[-len(packages):] == sorted(package.name for package in packages)

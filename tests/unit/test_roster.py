@@ -283,6 +283,41 @@ def test_validators_hook_reports_through_the_same_report(tmp_path):
         "lab.yaml:8: team 'team1', host 'team1-main', field 'role': robots are banned")
 
 
+def test_a_teams_mistake_is_said_once_for_the_team_and_a_hosts_own_for_each_host(tmp_path):
+    path = write(tmp_path, """\
+        classroom:
+          ssh_user: ubuntu
+          ubuntu_release: "22.04"
+        teams:
+          team1:
+            robot_profile: turtlebot4
+            turtlebot4_model: bogus
+            hosts:
+              team1-main: {role: main, address: 192.0.2.11}
+              team1-robot: {role: robot, address: 192.0.2.12}
+          team2:
+            hosts:
+              team2-main: {role: main, address: 192.0.2.21, robot_profile: osrr}
+              team2-robot: {role: robot, address: 192.0.2.22, robot_profile: osrr}
+        """)
+    errors = errors_of(path)
+    assert [error.split(": ", 2)[:2] for error in errors] == [
+        ["lab.yaml:7", "team 'team1', field 'turtlebot4_model'"],  # the team's line: once, for the team
+        ["lab.yaml:13", "team 'team2', host 'team2-main', field 'robot_profile'"],  # each host's own line
+        ["lab.yaml:14", "team 'team2', host 'team2-robot', field 'robot_profile'"],
+    ]
+
+
+def test_a_problem_only_some_of_a_teams_hosts_have_still_names_them():
+    from roslab.checked.problems import Problem, team_wide
+
+    main, robot = (Problem("lab.yaml", "no such board", 9, "team1", host, "board") for host in ("m", "r"))
+    other = Problem("lab.yaml", "no such board", 9, "team2", "x", "board")
+    assert team_wide([main, other, robot], {"team1": {"m", "r"}, "team2": {"x"}}) == [
+        Problem("lab.yaml", "no such board", 9, "team1", None, "board"), other]
+    assert team_wide([main, robot], {"team1": {"m", "r", "s"}}) == [main, robot]
+
+
 def test_default_roster_path_prefers_env_then_classroom_then_example(tmp_path, monkeypatch):
     assert roster.default_roster_path(tmp_path) == tmp_path / "inventories/lab.yaml"
     (tmp_path / "inventories").mkdir()

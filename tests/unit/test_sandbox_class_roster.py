@@ -110,6 +110,30 @@ def test_the_class_settings_are_kept_where_the_sandbox_can_serve_them(tmp_path, 
     ]
 
 
+@pytest.mark.parametrize(("served", "noted"), [
+    ({"ros_middleware": "rmw_cyclonedds_cpp"}, True),  # the real runtime: Cyclone DDS only
+    ({}, False),  # stand-ins only: roslab's default, as the class has it
+])
+def test_a_class_on_the_default_middleware_is_told_when_the_sandbox_runs_another(tmp_path, rosdistro_url,
+                                                                                 served, noted):
+    path = teachers_class(tmp_path, rosdistro_url)
+    path.write_text(path.read_text().replace("  ros_middleware: rmw_fastrtps_cpp\n", ""))  # the default
+    members, _ = class_roster.members(load_roster(path))
+    instance = Instance("try-class", IPv4Network("10.213.163.0/24"))
+    hosts = instance.plan_members(members)
+    published = SimpleNamespace(roster_settings=lambda: {
+        "rosdistro_index_url": SANDBOX_SETTINGS["rosdistro_index_url"], **served})
+    base = lifecycle.roster(lifecycle.Classroom(instance, hosts, path), published)
+    roster, notes = class_roster.sandbox_roster(path, base, {h.name: h.address for h in hosts},
+                                                {h.name: h.release for h in hosts})
+    said = [note for note in notes if "ros_middleware" in note]
+    assert said == ([
+        "classroom: ros_middleware (not set: roslab's default rmw_fastrtps_cpp): the sandbox's real ROS "
+        "runtime serves rmw_cyclonedds_cpp only (its Humble has no Fast DDS); the sandbox runs that",
+    ] if noted else [])
+    assert roster["classroom"].get("ros_middleware") == served.get("ros_middleware")
+
+
 def test_a_release_the_sandbox_does_not_emulate_is_a_note(tmp_path, rosdistro_url):
     classroom = load_roster(teachers_class(tmp_path, rosdistro_url))
     classroom.hosts[0].ubuntu_release = "20.04"  # as a roster of another time might say

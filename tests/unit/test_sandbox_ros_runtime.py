@@ -1,6 +1,6 @@
 """ROSLAB_SANDBOX_ROS_RUNTIME: the sandbox's ROS archive serves real ROS 2 from install trees.
 
-A small tree stands for the real tarball here (the e2e tests use /work/shared/ros-runtime's).
+A small tree stands for the real tarball here (the e2e tests use ROSLAB_SANDBOX_ROS_RUNTIME's, ../shared/ros-runtime).
 """
 
 from __future__ import annotations

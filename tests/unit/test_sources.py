@@ -679,3 +679,38 @@ def test_the_deploy_goes_on_from_the_lock_when_upstream_is_down_saying_so_in_one
     assert not result.failed, result.errors
     said = [record.getMessage() for record in caplog.records if "cannot be reached" in record.getMessage()]
     assert len(said) == 1 and f"tag 'v1' is taken as the lock records it ({made})" in said[0], said
+
+
+def test_every_rosdep_key_the_stand_in_repositories_name_is_in_the_sandboxs_rosdep_data(tmp_path):
+    """Issue 40: a stand-in sandbox (no ROSLAB_SANDBOX_SOURCES) must resolve every key of what it
+    serves under the built-in .repos files' URLs, or the underlay's rosdep step stops."""
+    from roslab.sandbox import real_sources, upstream
+
+    ros_keys, system_keys = upstream.served_keys(upstream.default_nodes_dir(), real_sources.Bundles(None))
+    served = set(upstream.ros_keys_for(ros_keys)) | set(system_keys)
+    manifests = []
+    for repo_path in sorted({path for path, _, _ in git_standins.repositories(upstream.builtin_repos_files())}):
+        packages = git_standins.STANDIN_PACKAGES.get(repo_path) or {
+            git_standins.package_name(repo_path): [git_standins.package_name(repo_path)]}
+        for package, executables in packages.items():
+            folder = tmp_path / git_standins.package_name(repo_path) / package
+            folder.mkdir(parents=True)
+            (folder / "package.xml").write_text(git_standins.package_files(package, executables)[f"{package}/package.xml"])
+            manifests.append(folder / "package.xml")
+    assert manifests
+    named_ros, named_system = upstream.manifest_dependencies(manifests)
+    assert named_ros | set(named_system) <= served, (named_ros | set(named_system)) - served
+
+
+def test_a_stand_in_sandbox_and_a_real_sources_one_keep_their_repositories_apart():
+    """The same URL and tag are a stand-in in one sandbox and the real repository in another: one
+    controller cache for both would hand a stand-in sandbox the real micro-ROS-Agent (its rosdep
+    keys unserved there), or refuse the tag as moved."""
+    from roslab.sandbox import upstream
+
+    real = "https://github.com/micro-ROS/micro-ROS-Agent.git"
+    settings_of = [upstream.Upstream(url="http://10.213.1.1:8080", ros_apt_source_sha256={}, ros={},
+                                     real_repositories=served).roster_settings() for served in ((), (real,))]
+    stand_ins, real_ones = (settings["sources_cache_dir"] for settings in settings_of)
+    assert stand_ins != real_ones and "stand-ins" in stand_ins and "real" in real_ones
+    assert all(path.startswith("~/.cache/roslab/") for path in (stand_ins, real_ones))

@@ -7,9 +7,11 @@ to root, a node with a syntax error, a nodes unit that gave up.
 from __future__ import annotations
 
 import configparser
+import grp
 import hashlib
 import os
 import posixpath
+import pwd
 import re
 import shlex
 import shutil
@@ -242,13 +244,15 @@ def test_restart_forgets_earlier_failures_first():
 def test_ownership_fact_reads_paths_of_others_and_a_missing_workspace_as_none(tmp_path):
     host = LocalDirHost()
     with ctx_host.use(host):
+        group = grp.getgrgid(pwd.getpwnam(USER).pw_gid).gr_name
         fact = dict(workspace_dir=str(tmp_path / "missing"), user=USER)
-        assert host.get_fact(workspace.WorkspaceForeign, **fact) == {"count": 0, "examples": []}
+        # no workspace yet: nothing foreign, and the group its folders are created with
+        assert host.get_fact(workspace.WorkspaceForeign, **fact) == {"count": 0, "examples": [], "group": group}
         ws = tmp_path / "ws"
         (ws / "build" / "demo").mkdir(parents=True)
         (ws / "log").mkdir()
         fact = dict(workspace_dir=str(ws), user=USER)
-        assert host.get_fact(workspace.WorkspaceForeign, **fact) == {"count": 0, "examples": []}
+        assert host.get_fact(workspace.WorkspaceForeign, **fact) == {"count": 0, "examples": [], "group": group}
         if os.geteuid() != 0:
             pytest.skip("giving files to another user needs root")
         for path in (ws / "build", ws / "build" / "demo", ws / "log"):
@@ -261,10 +265,11 @@ def test_ownership_fact_reads_paths_of_others_and_a_missing_workspace_as_none(tm
 
 def test_ownership_fact_output_is_parsed():
     fact = workspace.WorkspaceForeign()
-    assert fact.process(["path build", "path ", "path log/latest", "count 1234"]) == {
-        "count": 1234, "examples": ["build", ".", "log/latest"],
+    assert fact.process(["group ubuntu", "path build", "path ", "path log/latest", "count 1234"]) == {
+        "count": 1234, "examples": ["build", ".", "log/latest"], "group": "ubuntu",
     }
-    assert fact.process(["count 0"]) == {"count": 0, "examples": []}
+    assert fact.process(["group ubuntu"]) == {"count": 0, "examples": [], "group": "ubuntu"}
+    assert fact.process([]) == {"count": 0, "examples": [], "group": None}  # no such user
 
 
 def test_a_workspace_given_to_root_is_given_back_whole():
@@ -297,7 +302,6 @@ def test_chown_gives_back_the_whole_tree_without_following_links(tmp_path):
         workspace_dir=str(ws), user="nobody",
     )
     subprocess.run(["sh", "-c", commands[0].get_raw_value()], check=True)
-    import pwd
 
     nobody = pwd.getpwnam("nobody").pw_uid
     assert {p.lstat().st_uid for p in [ws, *ws.rglob("*")]} == {nobody}
@@ -575,7 +579,7 @@ class WorkspaceHost(FakeUbuntu):
         self.workspace_facts = {
             workspace.WorkspacePackages: {},
             workspace.WorkspaceStamps: {"rosdep": None, "build": None, "installed": False},
-            workspace.WorkspaceForeign: {"count": 0, "examples": []},
+            workspace.WorkspaceForeign: self._foreign,
             workspace.NodesUnitState: {"LoadState": "not-found", "ActiveState": "inactive",
                                        "SubState": "dead", "Result": "success"},
         }
@@ -608,6 +612,12 @@ class WorkspaceHost(FakeUbuntu):
     def facts(self) -> dict:
         return {**super().facts(), **self.workspace_facts}
 
+    def _foreign(self, workspace_dir: str, user: str) -> dict:
+        """WorkspaceForeign as the host's folders give it (the user's group is named as the user)."""
+        foreign = sorted(posixpath.relpath(path, workspace_dir) for path, (owner, group, _) in self.dirs.items()
+                         if (path + "/").startswith(workspace_dir + "/") and (owner, group) != (user, user))
+        return {"count": len(foreign), "examples": foreign[:workspace.FOREIGN_EXAMPLES], "group": user}
+
 
 def run_workspace(host: WorkspaceHost, **data):
     return plan(deploy_ws.workspace, host.facts(), host_data(**data))
@@ -639,8 +649,31 @@ def test_a_converged_healthy_host_changes_nothing():
     assert changes(result) == {}
 
 
+def test_a_fresh_workspace_gets_the_users_group_so_the_next_run_gives_nothing_back(caplog):
+    host = WorkspaceHost()
+    first = run_workspace(host)
+    for path in (STUDENT_WS, STUDENT_WS + "/src"):
+        assert changes(first)[f"Ensure {path} exists, owned by student"] == [
+            f"mkdir -p {path}", f"chown student:student {path}"]
+    host.apply(first)
+    with caplog.at_level("WARNING", logger="pyinfra"):
+        second = run_workspace(host)
+    assert f"Ensure everything in {STUDENT_WS} belongs to student" not in changes(second)
+    assert not [r for r in caplog.records if "not belong" in r.getMessage()]
+
+
+def test_a_students_sudo_build_is_given_back_and_said(caplog):
+    host = WorkspaceHost(converged=True)
+    host.dirs[STUDENT_WS + "/build"] = ("root", "root", 755)  # `sudo colcon build`
+    with caplog.at_level("WARNING", logger="pyinfra"):
+        result = run_workspace(host)
+    assert list(changes(result)) == [f"Ensure everything in {STUDENT_WS} belongs to student"]
+    (line,) = [r.getMessage() for r in caplog.records if "not belong" in r.getMessage()]
+    assert "1 path in /home/student/ros2_ws does not belong to student (build): giving" in line
+
+
 def test_a_workspace_given_to_root_is_the_one_change_and_is_named_for_its_host(caplog):
-    foreign = {"count": 2046, "examples": [".", "build", "build/roslab_demo"]}
+    foreign = {"count": 2046, "examples": [".", "build", "build/roslab_demo"], "group": "student"}
     host = WorkspaceHost(converged=True, facts={workspace.WorkspaceForeign: foreign})
     with caplog.at_level("WARNING", logger="pyinfra"):
         result = run_workspace(host)
