@@ -207,7 +207,8 @@ def _up_locked(instance: Instance, planned: list[SandboxHost], class_roster: Pat
     write_file(_state_file(instance), json.dumps(
         {"hosts": len(planned), "subnet": str(instance.subnet), "desktop": desktop,
          "releases": list(releases_by_team()),
-         **({"members": [{"name": host.name, "team": host.team, "role": host.role, "release": host.release}
+         **({"members": [{"name": host.name, "team": host.team, "role": host.role, "release": host.release,
+                          "board": host.board}
                          for host in planned], "class_roster": str(class_roster)} if class_roster else {})})
         + "\n")
     _claim_machine(instance)
@@ -258,7 +259,8 @@ def roster(classroom: Classroom, published: upstream.Upstream) -> dict:
             **({"ros_domain_id": 10 + int(number)} if number.isdigit() else {}),
             "hosts": {},
         })
-        team["hosts"][host.name] = {"role": host.role, "address": host.address}
+        team["hosts"][host.name] = {"role": host.role, "address": host.address,
+                                    **({"board": host.board} if host.board else {})}
     return {
         "classroom": {
             "name": f"sandbox-{instance.name}",
