@@ -11,8 +11,9 @@ filled into a file or a command is one of the values the profile allows.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import MISSING, dataclass, field, fields
 
+from roslab import formats
 from roslab.ros.distro import DISTRO_RELEASES, PLATFORMS
 from roslab.profiles import udev
 from roslab.profiles.schema import (
@@ -29,8 +30,10 @@ UDEV_RULES_PATH = "/etc/udev/rules.d/60-roslab-profile.rules"
 
 
 def _fields_of(cls, data: Mapping) -> dict:
-    """Each field of dataclass `cls` from the mapping `data` (KeyError: one is missing)."""
-    return {item.name: data[item.name] for item in fields(cls)}
+    """Each field of dataclass `cls` from the mapping `data` (KeyError: one without a default is
+    missing)."""
+    return {item.name: data[item.name] for item in fields(cls)
+            if item.name in data or (item.default is MISSING and item.default_factory is MISSING)}
 
 
 @dataclass(frozen=True)
@@ -91,6 +94,8 @@ class ResolvedProfile:
     boot_config: dict[str, list[str]]  # config_txt lines, cmdline_remove words
     services: list[ResolvedService]
     underlay_build_memory_mb: int | None  # a host with less memory never builds the underlay
+    # `ros2 launch` arguments of the side's launch, {name: value}, settings filled and checked
+    launch_arguments: dict[str, str] = field(default_factory=dict)
 
     @classmethod
     def from_data(cls, data: Mapping) -> ResolvedProfile:
@@ -239,6 +244,18 @@ def merged_parts(parts: list[Side]) -> Side:
     return merged
 
 
+def launch_arguments(parts: list[Side], values: dict) -> tuple[dict[str, str], list[ResolveError]]:
+    """The side's and its matching `when` blocks' launch arguments (a later one replaces an
+    earlier one of its name), settings filled; a filled value is checked again, as a setting's
+    value may hold what a launch argument must not."""
+    arguments: dict[str, str] = {}
+    for part in parts:
+        arguments.update({name: fill(value, values) for name, value in part.launch_arguments.items()})
+    problems = [ResolveError(f"launch_arguments.{name}", f"launch argument {name}: {problem}")
+                for name, value in arguments.items() if (problem := formats.launch_argument_value(value))]
+    return arguments, problems
+
+
 def udev_file(profile: Profile, rules: list[dict], values: dict) -> tuple[str, str | None]:
     """(the udev rules file's text with the settings filled in, "" for no rules; the problem udev
     would have with it, or None). Each rule was checked as a template; this is what is written."""
@@ -272,6 +289,9 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
     if problem:
         return None, [ResolveError("udev_rules", f"profile {profile.name!r}'s udev rules: {problem}")]
     ros_packages = [fill(name, {"gazebo": gazebo_package(distro)}) for name in merged.ros_packages]
+    arguments, problems = launch_arguments(parts, values)
+    if problems:
+        return None, problems
     return {
         "name": profile.name,
         "distro": distro,
@@ -283,6 +303,7 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         "groups": merged.groups,
         "udev_rules": rules,
         "launch": next((part.launch for part in reversed(parts) if part.launch), None),
+        "launch_arguments": arguments,
         "variant": side.variant,
         "verify_topic": profile.verify_topic if _matches(profile.verify_if, values) else None,
         "verify_type": profile.verify_type,
