@@ -38,7 +38,7 @@ from deploy.common import (
 )
 from deploy.python_env import filled_venv
 from deploy.sources import underlay_identity, underlay_setup
-from roslab import packaged, probe, settings
+from roslab import formats, packaged, probe, settings
 from roslab.ros import workspace as ws_ops
 from roslab.python_env.venv import venv_on_pythonpath
 from roslab.quoting import shell_word, systemd_value
@@ -65,18 +65,25 @@ def nodes_dir() -> str:
 
 
 def exec_script(*, distro: str, workspace_dir: str, launch: str, underlay_setup: str | None = None,
-                venv_dir: str | None = None) -> str:
+                venv_dir: str | None = None, launch_arguments: dict[str, str] | None = None) -> str:
     """The bash script the unit runs: the distro's, the underlay's (deploy/sources.py) and the
     workspace's setup, the profile's venv on PYTHONPATH (`venv_dir`, absolute, or None), then
-    the launch."""
+    the launch with its `launch_arguments` ({name: value}: one shell word `name:=value` each;
+    ValueError for a name or value roslab.formats refuses, checked where they were read too)."""
     package, launch_file = launch.split(" ")
+    words = []
+    for name, value in (launch_arguments or {}).items():
+        problem = formats.launch_argument_name(name) or formats.launch_argument_value(value)
+        if problem:
+            raise ValueError(f"launch argument {name!r}: {problem}")
+        words.append(" " + shell_word(f"{name}:={value}"))
     return " && ".join(
         [
             f"source {shell_word(f'/opt/ros/{distro}/setup.bash')}",
             *([f"source {shell_word(underlay_setup)}"] if underlay_setup else []),
             f"source {shell_word(posixpath.join(workspace_dir, 'install', 'setup.bash'))}",
             *([venv_on_pythonpath(shell_word(venv_dir))] if venv_dir else []),
-            f"exec ros2 launch {shell_word(package)} {shell_word(launch_file)}",
+            f"exec ros2 launch {shell_word(package)} {shell_word(launch_file)}" + "".join(words),
         ]
     )
 
@@ -85,6 +92,7 @@ def unit_text(
     *, role: str, user: str, home: str, workspace_dir: str, distro: str, launch: str,
     environment: dict[str, str], discovery_files: dict[str, str] | None = None,
     underlay_setup: str | None = None, venv_dir: str | None = None,
+    launch_arguments: dict[str, str] | None = None,
 ) -> str:
     """templates/roslab-nodes.service.j2 with every value written for systemd.
 
@@ -93,7 +101,7 @@ def unit_text(
     the unit, so a changed file restarts the nodes, as a changed variable does.
     """
     script = exec_script(distro=distro, workspace_dir=workspace_dir, launch=launch,
-                         underlay_setup=underlay_setup, venv_dir=venv_dir)
+                         underlay_setup=underlay_setup, venv_dir=venv_dir, launch_arguments=launch_arguments)
     return render(
         "roslab-nodes.service.j2",
         role=systemd_value(role),
@@ -136,6 +144,15 @@ def role_launch() -> str | None:
         side = builtin_profiles()[DEFAULT_PROFILE].sides.get(role)
         launch = side.launch if side else None
     return launch
+
+
+def role_launch_arguments(launch: str | None) -> dict[str, str]:
+    """The robot profile's launch arguments, where the host runs its profile's launch (a
+    roster's own nodes_launch gets none: they were written for the profile's file)."""
+    profile = host_settings(host).roslab_profile
+    if launch is None or profile is None or profile.launch != launch:
+        return {}
+    return dict(profile.launch_arguments)
 
 
 def profile_name() -> str:
@@ -182,7 +199,7 @@ def workspace():
             role=role, user=user, home=home, workspace_dir=workspace_dir, distro=distro,
             launch=launch, environment=host_environment(typed.data, distro),
             discovery_files=discovery_files(distro), underlay_setup=underlay,
-            venv_dir=filled_venv(home),
+            venv_dir=filled_venv(home), launch_arguments=role_launch_arguments(launch),
         ) if launch else None
     except ValueError as error:  # e.g. a home directory whose name holds a newline
         stop_host(f"{where()}: workspace: {error}; nothing was changed by this step")

@@ -160,10 +160,30 @@ apt_suite_suffix = pattern(r"[a-z0-9]+", "a suite suffix of lower-case letters a
 linux_user = pattern(r"[a-z_][a-z0-9_-]{0,31}", "a Linux user name (like ubuntu)")
 # A secret's name in the secrets file.
 secret_name = pattern(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}", "a secret name (letters, digits, _ . -)")
-# REP 144 package names; launch files by file name only (no path).
+# REP 144 package names; launch files by file name only (no path). `ros2 launch` takes a file
+# whose name ends in launch.py or a frontend's extension (Jazzy's ros2launch/api/api.py,
+# is_launch_file); packages name them <name>.launch.<ext> or <name>_launch.<ext> (rplidar_ros's
+# rplidar_c1_launch.py, osr_bringup's osr_launch.py): those two forms, for py, xml and yaml.
 ros_package = pattern(r"[a-z][a-z0-9_]*", "a ROS package name")
-launch_file_name = pattern(r"[A-Za-z0-9_][A-Za-z0-9_.-]*\.launch\.(py|xml|yaml)",
-                           "a launch file name (like main.launch.py)")
+launch_file_name = pattern(r"[A-Za-z0-9_][A-Za-z0-9_.-]*[._]launch\.(py|xml|yaml)",
+                           "a launch file name (like main.launch.py or rplidar_c1_launch.py)")
+# A launch argument (`ros2 launch PKG FILE name:=value`): a name as DeclareLaunchArgument's are
+# written, a value of one shell word with no `=` (so never a second `name:=`); ros2launch refuses
+# an empty value (`name:=`), and so does roslab.
+launch_argument_name = pattern(r"[A-Za-z_][A-Za-z0-9_]{0,63}", "a launch argument name (like serial_port)")
+_LAUNCH_ARGUMENT_VALUE = re.compile(r"[A-Za-z0-9_@+:,./-]{1,200}", re.ASCII)
+
+
+def launch_argument_value(value: str, context: Context | None = None) -> str | None:
+    """A launch argument's value: 1 to 200 of ASCII letters, digits and _ @ + : , . / -."""
+    if not isinstance(value, str):
+        return "must be a string"
+    if ":=" in value or "=" in value:
+        return f"{value!r} holds '=': a value cannot carry another launch argument (name:=value)"
+    if not _LAUNCH_ARGUMENT_VALUE.fullmatch(value):
+        return (f"{value!r} is not a launch argument value (1 to 200 of ASCII letters, digits and "
+                "_ @ + : , . / -; no spaces, quotes or shell characters)")
+    return None
 # ROS 2 topic names (absolute or relative), no substitutions.
 ros_topic = pattern(r"/?[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*", "a ROS topic name (like /chatter)")
 ros_message_type = pattern(r"[a-z][a-z0-9_]*/msg/[A-Z][A-Za-z0-9]*",
@@ -874,14 +894,14 @@ def environment(value: dict, context: Context | None = None) -> str | None:
 
 
 def launch(value: str, context: Context | None = None) -> str | None:
-    """`<package> <launch file>`, e.g. 'roslab_bringup main.launch.py'."""
+    """`<package> <launch file>`, e.g. 'roslab_bringup main.launch.py' or 'rplidar_ros rplidar_c1_launch.py'."""
     problem = single_line(value)
     if problem:
         return problem
     words = value.split(" ")
     if len(words) != 2 or ros_package(words[0]) or launch_file_name(words[1]):
         return (f"{value!r} is not '<package> <launch file>' "
-                "like 'roslab_bringup main.launch.py'")
+                "like 'roslab_bringup main.launch.py' or 'rplidar_ros rplidar_c1_launch.py'")
     return None
 
 

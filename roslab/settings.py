@@ -509,13 +509,13 @@ SCHEMA: list[Setting] = [
          "What the host's service runs: `ros2 launch <package> <launch file>`; None: its robot "
          "profile's launch for its side (demo: roslab_bringup main.launch.py / robot.launch.py, "
          "turtlebot3: the robot's bringup, nothing on the main).", f.launch,
-         {"allowed": "<package> <file>.launch.py", "nullable": True}),
+         {"allowed": "<package> <name>.launch.py or <name>_launch.py (.xml, .yaml)", "nullable": True}),
         ("nodes_launch_main", None, str,
          "Deprecated: set nodes_launch on the main host (or in a profile). Still honoured, with a "
-         "warning, for main hosts.", f.launch, {"allowed": "<package> <file>.launch.py", "nullable": True}),
+         "warning, for main hosts.", f.launch, {"allowed": "<package> <name>.launch.py or <name>_launch.py (.xml, .yaml)", "nullable": True}),
         ("nodes_launch_robot", None, str,
          "Deprecated: set nodes_launch on the robot (or in a profile). Still honoured, with a "
-         "warning, for robots.", f.launch, {"allowed": "<package> <file>.launch.py", "nullable": True}),
+         "warning, for robots.", f.launch, {"allowed": "<package> <name>.launch.py or <name>_launch.py (.xml, .yaml)", "nullable": True}),
         ("nodes_verify_topic", None, str,
          "The topic `roslab verify` expects each team's main host to hear from its robot; None: the "
          "robot profile's (demo: /chatter, turtlebot3: /scan).", f.ros_topic, {"nullable": True}),

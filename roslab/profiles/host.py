@@ -226,8 +226,10 @@ BOOT_DIR = "/boot/firmware"
 CONFIG_TXT = f"{BOOT_DIR}/config.txt"
 CMDLINE_TXT = f"{BOOT_DIR}/cmdline.txt"
 # The host's record that a change waits for a reboot: `boot_id=...` (the boot it was made in)
-# and `reason=...` lines. World-readable: `roslab status` reads it without sudo.
-REBOOT_RECORD = "/var/lib/roslab/reboot-needed"
+# and `reason=...` lines. World-readable: `roslab status` reads it without sudo. Under /run (a
+# tmpfs on Ubuntu): the reboot it asks for clears it, so the run after the reboot has nothing
+# to clean up and changes nothing; the boot id still guards a /run that outlived a boot.
+REBOOT_RECORD = "/run/roslab/reboot-needed"
 BOOT_ID = "/proc/sys/kernel/random/boot_id"
 
 

@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping
-from dataclasses import MISSING, dataclass, fields
+from dataclasses import MISSING, dataclass, field, fields
 
+from roslab import formats
 from roslab.ros.distro import DISTRO_RELEASES, PLATFORMS
 from roslab.profiles import devices as device_data
 from roslab.profiles.schema import (
@@ -31,9 +32,10 @@ UDEV_RULES_PATH = "/etc/udev/rules.d/60-roslab-profile.rules"
 
 
 def _fields_of(cls, data: Mapping) -> dict:
-    """Each field of dataclass `cls` from the mapping `data` (KeyError: one without a default is missing)."""
-    return {item.name: data[item.name] if item.name in data or item.default is MISSING else item.default
-            for item in fields(cls)}
+    """Each field of dataclass `cls` from the mapping `data` (KeyError: one without a default is
+    missing)."""
+    return {item.name: data[item.name] for item in fields(cls)
+            if item.name in data or (item.default is MISSING and item.default_factory is MISSING)}
 
 
 @dataclass(frozen=True)
@@ -96,6 +98,8 @@ class ResolvedProfile:
     services: list[ResolvedService]
     underlay_build_memory_mb: int | None  # a host with less memory never builds the underlay
     base: dict | None = None  # the robot's base on its own link (roslab/profiles/robot_base.py), robot side only
+    # `ros2 launch` arguments of the side's launch, {name: value}, settings filled and checked
+    launch_arguments: dict[str, str] = field(default_factory=dict)
 
     @classmethod
     def from_data(cls, data: Mapping) -> ResolvedProfile:
@@ -246,6 +250,18 @@ def merged_parts(parts: list[Side]) -> Side:
     return merged
 
 
+def launch_arguments(parts: list[Side], values: dict) -> tuple[dict[str, str], list[ResolveError]]:
+    """The side's and its matching `when` blocks' launch arguments (a later one replaces an
+    earlier one of its name), settings filled; a filled value is checked again, as a setting's
+    value may hold what a launch argument must not."""
+    arguments: dict[str, str] = {}
+    for part in parts:
+        arguments.update({name: fill(value, values) for name, value in part.launch_arguments.items()})
+    problems = [ResolveError(f"launch_arguments.{name}", f"launch argument {name}: {problem}")
+                for name, value in arguments.items() if (problem := formats.launch_argument_value(value))]
+    return arguments, problems
+
+
 def udev_file(profile: Profile, devices: list, values: dict) -> tuple[str, str | None]:
     """(the udev rules file's text roslab writes for the side's devices, settings filled in, ""
     for none; why a device's setting cannot fill its rule, or None)."""
@@ -281,6 +297,9 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
     if logic:
         return None, logic
     ros_packages = [fill(name, {"gazebo": gazebo_package(distro)}) for name in merged.ros_packages]
+    arguments, problems = launch_arguments(parts, values)
+    if problems:
+        return None, problems
     return {
         "name": profile.name,
         "distro": distro,
@@ -292,6 +311,7 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         "groups": merged.groups,
         "udev_rules": rules,
         "launch": next((part.launch for part in reversed(parts) if part.launch), None),
+        "launch_arguments": arguments,
         "variant": side.variant,
         "verify_topic": profile.verify_topic if _matches(profile.verify_if, values) else None,
         "verify_type": profile.verify_type,

@@ -58,10 +58,12 @@ TOP_KEYS = ("profile", "extends", "description", "distros", "tools", "boards", "
 UNDERLAY_BUILD_MEMORY_MB = (256, 65536)
 SETTING_KEYS = ("doc", "allowed", "pattern", "describe", "required", "default")
 SIDE_KEYS = ("variant", "boards", "ros_packages", "apt_packages", "remove_apt_packages", "environment", "groups",
-             "devices", "udev_rules", "boot_config", "services", "launch", "checklist", "os_tweaks", "sources",
-             "cmake_args", "build_dependencies", "skip_packages", "python_packages", "python_venv", "when")
-WHEN_KEYS = ("if", "launch", "ros_packages", "apt_packages", "remove_apt_packages", "environment", "groups", "devices",
-             "udev_rules", "boot_config", "services", "sources", "cmake_args", "build_dependencies", "skip_packages", "checklist")
+             "devices", "udev_rules", "boot_config", "services", "launch", "launch_arguments", "checklist",
+             "os_tweaks", "sources", "cmake_args", "build_dependencies", "skip_packages", "python_packages",
+             "python_venv", "when")
+WHEN_KEYS = ("if", "launch", "launch_arguments", "ros_packages", "apt_packages", "remove_apt_packages", "environment",
+             "groups", "devices", "udev_rules", "boot_config", "services", "sources", "cmake_args",
+             "build_dependencies", "skip_packages", "checklist")
 # An underlay package's name in `cmake_args`, `build_dependencies` and `skip_packages` (a ROS
 # package name, or a plain CMake package's as its colcon.pkg gives it).
 _UNDERLAY_PACKAGE = re.compile(r"[a-z][a-z0-9_]{0,99}", re.ASCII)
@@ -240,6 +242,8 @@ class Side:
     groups: list[str] = field(default_factory=list)
     devices: list[device_data.Device] = field(default_factory=list)  # roslab writes their udev rules
     launch: str | None = None
+    # `ros2 launch PKG FILE name:=value`: {name: value}, values may hold ${setting} placeholders
+    launch_arguments: dict[str, str] = field(default_factory=dict)
     variant: str | None = None  # ros-<distro>-<variant>: desktop, ros-base...
     checklist: list[str] = field(default_factory=list)
     os_tweaks: dict = field(default_factory=dict)  # OS_TWEAK_KEYS
@@ -320,6 +324,14 @@ PLACEHOLDER = re.compile(r"\$\{([A-Za-z0-9_]*)\}")
 def placeholders(text: str) -> list[str]:
     """The ${names} a text refers to."""
     return PLACEHOLDER.findall(text)
+
+
+def launch_argument_template(value) -> str | None:
+    """A launch argument's value as a profile writes it: formats.launch_argument_value, where a
+    ${setting} stands for a part of it (the filled value is checked again: resolve.py)."""
+    if not isinstance(value, str):
+        return "must be a string (quote a number: \"8888\")"
+    return formats.launch_argument_value(PLACEHOLDER.sub("x", value))
 
 
 class ProfileReader:
@@ -434,9 +446,25 @@ class ProfileReader:
             return None
         return value
 
-    def read_launch(self, mapping, path: str, side: Side) -> None:
-        """`launch: <package> <file>.launch.py`, into `side`."""
+    def read_launch(self, mapping, path: str, side: Side, known: set[str]) -> None:
+        """`launch: <package> <file>.launch.py` and `launch_arguments: {name: value}`, into `side`."""
         side.launch = self.read_checked(mapping, "launch", path, formats.launch) or side.launch
+        arguments = mapping.get("launch_arguments")
+        if arguments is None:
+            return
+        if not isinstance(arguments, dict):
+            self.error("must be a mapping of argument name -> value", mapping, "launch_arguments",
+                       f"{path}.launch_arguments")
+            return
+        for name, value in arguments.items():
+            where = f"{path}.launch_arguments.{name}"
+            problem = (formats.launch_argument_name(name) if isinstance(name, str) else "must be a name") or (
+                launch_argument_template(value))
+            if problem:
+                self.error(problem, arguments, name, where)
+                continue
+            self.check_text(value, known, arguments, name, where)
+            side.launch_arguments[name] = value
 
     def read_parts(self, mapping, path: str, known: set[str], side: Side, when_ok: bool) -> None:
         """The list and environment keys of a side or a `when` block, into `side`."""
@@ -736,7 +764,7 @@ class ProfileReader:
         self.unknown_keys(value, SIDE_KEYS, name)
         side = Side()
         self.read_parts(value, name, known, side, when_ok=True)
-        self.read_launch(value, name, side)
+        self.read_launch(value, name, side, known)
         side.variant = self.read_checked(value, "variant", name, formats.ros_variant) or side.variant
         side.os_tweaks = self.read_os_tweaks(value, name)
         side.sources = self.read_sources(value, name)
@@ -773,7 +801,7 @@ class ProfileReader:
             part = Side()
             self.read_parts(block, path, known, part, when_ok=False)
             part.sources = self.read_sources(block, path)
-            self.read_launch(block, path, part)  # a setting may choose the launch (a model's own)
+            self.read_launch(block, path, part, known)  # a setting may choose the launch (a model's own)
             side.when.append({"if": dict(block["if"]), "side": part})
         return side
 
@@ -1041,6 +1069,7 @@ def merged_side(base: Side, own: Side) -> Side:
         groups=union(base.groups, own.groups),
         devices=[*base.devices, *own.devices],
         launch=own.launch or base.launch,
+        launch_arguments={**base.launch_arguments, **own.launch_arguments},
         variant=own.variant or base.variant,
         checklist=[*base.checklist, *own.checklist],
         os_tweaks={**base.os_tweaks, **own.os_tweaks},

@@ -43,7 +43,8 @@ def members(classroom) -> tuple[list[dict], list[str]]:
             notes.append(f"{host.name}: Ubuntu {release} is not a release the sandbox emulates: it runs "
                          f"{DEFAULT_RELEASE}")
             release = DEFAULT_RELEASE
-        hosts.append({"name": host.name, "team": host.team, "role": host.role, "release": release})
+        hosts.append({"name": host.name, "team": host.team, "role": host.role, "release": release,
+                      "board": host.data.get("board")})
     return hosts, notes
 
 

@@ -24,7 +24,7 @@ import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
-from . import emulation, image, seeding
+from . import emulation, image, pi_boot, seeding
 from .instance import STATE_ROOT, Instance, SandboxHost
 from .system import SandboxError, discard, log, run, terminate, write_file
 
@@ -243,6 +243,9 @@ def write_host_files(instance: Instance, host: SandboxHost, root: Path, ubuntu_k
     if boot.seed:
         _prepare_seeded_boot(root, boot)
         return
+    # A Pi's boot partition (stand-ins of Ubuntu's files); a seeded host has its seed there instead.
+    for path, (content, mode) in pi_boot.boot_files(host.board, host.release).items():
+        write_file(root / path.lstrip("/"), content, mode=mode)
     write_file(root / "etc/hostname", f"{host.name}\n")
     write_file(root / "etc/hosts", f"127.0.0.1 localhost\n127.0.1.1 {host.name}\n"
                "::1 localhost ip6-localhost ip6-loopback\n")

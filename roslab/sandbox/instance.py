@@ -29,6 +29,9 @@ MAX_HOSTS = 200
 # lists the teams' releases in turn (e.g. "24.04,22.04,26.04"; the list repeats).
 RELEASES_BY_TEAM = ("24.04", "22.04")
 RELEASES_ENV = "ROSLAB_SANDBOX_RELEASES"
+# The board of a sandbox host whose roster says none: robots are Raspberry Pi 4s (the boot
+# partition stand-in, pi_boot.py), mains are PCs.
+BOARD_BY_ROLE = {"robot": "pi4", "main": "pc"}
 
 
 def releases_by_team() -> tuple[str, ...]:
@@ -59,6 +62,7 @@ class SandboxHost:
     index: int  # 0-based position in the classroom
     address: str
     flavour: str = "server"  # "desktop": NetworkManager runs the network instead of networkd
+    board: str | None = None  # the roster's `board`: a Pi's boots with a Pi's boot partition (pi_boot.py)
 
     def identity(self, prefixlen: int) -> HostIdentity:
         return HostIdentity(hostname=self.name, release=self.release, address=self.address,
@@ -152,7 +156,8 @@ class Instance:
         return [SandboxHost(name=member["name"], team=member["team"], role=member["role"],
                             release=member["release"], index=index,
                             address=str(self.subnet.network_address + FIRST_HOST_OCTET + index),
-                            flavour="desktop" if member["name"] in desktop else "server")
+                            flavour="desktop" if member["name"] in desktop else "server",
+                            board=member.get("board") or BOARD_BY_ROLE.get(member["role"]))
                 for index, member in zip(indexes, members)]
 
     def plan_hosts(self, count: int, desktop: Iterable[str] = (),
@@ -172,7 +177,7 @@ class Instance:
             hosts.append(SandboxHost(
                 name=f"{team}-{role}", team=team, role=role,
                 release=releases[team_number % len(releases)], index=index,
-                address=str(self.subnet.network_address + FIRST_HOST_OCTET + index),
+                address=str(self.subnet.network_address + FIRST_HOST_OCTET + index), board=BOARD_BY_ROLE[role],
             ))
         desktop = set(desktop)
         unknown = desktop - {host.name for host in hosts}

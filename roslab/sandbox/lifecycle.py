@@ -250,7 +250,7 @@ def _boot_new(instance: Instance, planned: list[SandboxHost], rootfs: Path, keyr
 
 def _members_state(planned: list[SandboxHost]) -> list[dict]:
     return [{"name": host.name, "team": host.team, "role": host.role, "release": host.release,
-             "index": host.index} for host in planned]
+             "board": host.board, "index": host.index} for host in planned]
 
 
 def _update_state(instance: Instance, **values) -> dict:
@@ -370,7 +370,8 @@ def roster(classroom: Classroom, published: upstream.Upstream) -> dict:
             **({"ros_domain_id": 10 + int(number)} if number.isdigit() else {}),
             "hosts": {},
         })
-        team["hosts"][host.name] = {"role": host.role, "address": host.address}
+        team["hosts"][host.name] = {"role": host.role, "address": host.address,
+                                    **({"board": host.board} if host.board else {})}
     return {
         "classroom": {
             "name": f"sandbox-{instance.name}",

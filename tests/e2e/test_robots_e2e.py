@@ -26,9 +26,10 @@ unreachable repository failing only the hosts that need it, offline mode converg
 controller's cache (`sources_cache_dir`: the test's folder), a failing build keeping the last
 good install (last: it is the one case that leaves a host unconverged).
 
-The robot's boot partition: a sandbox host has no /boot/firmware, so before the first run the
-test writes STAND-INS of a Pi's config.txt and cmdline.txt there (Ubuntu 24.04's for a Pi,
-abridged), as the Pi image has them.
+The robot's boot partition: the sandbox's robots are Raspberry Pi 4s (their roster `board`), so
+they boot with STAND-INS of Ubuntu 24.04's config.txt and cmdline.txt for the Pi
+(roslab/sandbox/pi_boot.py); the rover's boot config goes there, the run says the rover needs a
+reboot, and after a real reboot of the sandbox host the next run changes nothing and says no more.
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from roslab.sandbox import git_standins, upstream
+from roslab.sandbox import esp32_board, git_standins, pi_boot, real_sources, upstream
 from tests.e2e.conftest import bring_up, summary_lines
 
 pytestmark = pytest.mark.e2e
@@ -55,7 +56,7 @@ HOSTS = 4
 ROVER = "team1-robot"
 BOARD_HOST = "team2-robot"
 AGENT_PORT = 8888
-RECORD = "/var/lib/roslab/reboot-needed"
+RECORD = "/run/roslab/reboot-needed"
 UNDERLAY = "/home/ubuntu/roslab_underlay"
 OSR_URL = "https://github.com/nasa-jpl/osr-rover-code.git"
 AGENT_URL = "https://github.com/micro-ROS/micro-ROS-Agent.git"
@@ -66,12 +67,10 @@ LAB_TOOLS_URL = "https://github.com/roslab-standin/lab_tools.git"
 # every repository of the class, and the hosts that build it
 REPOSITORIES = {LAB_TOOLS_URL: {ROVER, BOARD_HOST, "team1-main", "team2-main"}, OSR_URL: {ROVER},
                 AGENT_URL: {BOARD_HOST}, XRCE_URL: {BOARD_HOST}}
-# Stand-ins of a Pi's boot files (Ubuntu 24.04 preinstalled server image for the Pi, abridged).
-STANDIN_CONFIG = ("# roslab e2e STAND-IN of a Pi's /boot/firmware/config.txt (Ubuntu 24.04, abridged)\n"
-                  "[all]\nkernel=vmlinuz\ncmdline=cmdline.txt\ninitramfs initrd.img followkernel\n"
-                  "[pi4]\nmax_framebuffers=2\narm_boost=1\n[all]\narm_64bit=1\ndtparam=audio=on\n")
-STANDIN_CMDLINE = ("console=serial0,115200 multipath=off dwc_otg.lpm_enable=0 console=tty1 "
-                   "root=LABEL=writable rootfstype=ext4 rootwait fixrtc\n")
+# The rover's boot partition as the sandbox boots a Pi 4 on 24.04 (stand-ins of Ubuntu's files).
+PI_BOOT = pi_boot.boot_files("pi4", "24.04")
+STANDIN_CONFIG = PI_BOOT["/boot/firmware/config.txt"][0]
+STANDIN_CMDLINE = PI_BOOT["/boot/firmware/cmdline.txt"][0]
 
 
 @pytest.fixture(scope="module")
@@ -203,18 +202,10 @@ def verify(sandbox, roster: Path, *args: str) -> subprocess.CompletedProcess:
 
 @pytest.fixture(scope="module")
 def first_run(sandbox, roster):
-    sandbox.sudo(ROVER, "mkdir -p /boot/firmware", check=True)
-    for name, text in (("config.txt", STANDIN_CONFIG), ("cmdline.txt", STANDIN_CMDLINE)):
-        sandbox.sudo(ROVER, f"printf '%s' {shell(text)} > /boot/firmware/{name}", check=True)
     start = request_count(sandbox)
     run = deploy(sandbox, roster)
     run.requests = requests_since(sandbox, start)
     return run
-
-
-def shell(text: str) -> str:
-    import shlex
-    return shlex.quote(text)
 
 
 def show(sandbox, host: str, unit: str, *properties: str) -> dict[str, str]:
@@ -257,8 +248,10 @@ def test_the_boot_config_block_is_in_place_and_the_cmdline_backed_up(sandbox, fi
     record = sandbox.ssh(ROVER, f"cat {RECORD}; echo now=$(cat /proc/sys/kernel/random/boot_id)", check=True)
     values = dict(line.split("=", 1) for line in record.stdout.splitlines())
     assert values["boot_id"] == values["now"] and values["reason"].startswith("boot config changed:")
-    # The main (a PC here) has no boot config to change, and says nothing about rebooting.
-    assert sandbox.ssh("team1-main", f"test -e {RECORD}").returncode != 0
+    # The main (a PC here: no boot partition) has no boot config to change, and says nothing about rebooting.
+    assert sandbox.ssh("team1-main", f"test -e {RECORD} || test -e /boot/firmware/config.txt").returncode != 0
+    # The board's host is a Pi too, whose profile has no boot config: its files are Ubuntu's still.
+    assert sandbox.ssh(BOARD_HOST, "cat /boot/firmware/config.txt", check=True).stdout == STANDIN_CONFIG
 
 
 def test_the_rover_has_its_groups_udev_rules_and_its_service(sandbox, first_run):
@@ -462,7 +455,7 @@ def test_a_rerun_changes_nothing_and_still_says_the_rover_waits_for_a_reboot(san
     assert len(lines) == 1 and lines[0].startswith(f"{ROVER} needs a reboot:"), lines
 
 
-def test_status_shows_reboot_needed_until_the_boot_changes(sandbox, roster, first_run):
+def test_status_shows_reboot_needed_until_a_reboot_after_which_a_run_changes_nothing(sandbox, roster, first_run):
     def status():
         result = subprocess.run([sys.executable, "-m", "roslab", "status", str(roster)], env=sandbox.env,
                                 capture_output=True, text=True, timeout=120)
@@ -471,10 +464,14 @@ def test_status_shows_reboot_needed_until_the_boot_changes(sandbox, roster, firs
     rows = status()
     assert "reboot needed: boot config changed:" in rows[ROVER]
     assert "reboot" not in rows["team1-main"] and "reboot" not in rows[BOARD_HOST]
-    # A reboot gives the host a new boot id: the record (kept as it was) then names an old boot.
-    sandbox.sudo(ROVER, f"sed -i 's/^boot_id=.*/boot_id=00000000-0000-0000-0000-000000000000/' {RECORD}",
-                 check=True)
+    # A real reboot of the sandbox host: /run is a fresh tmpfs, the boot partition is kept.
+    sandbox.reboot(ROVER)
     assert "reboot" not in status()[ROVER]
+    assert "enable_uart=1" in sandbox.ssh(ROVER, "cat /boot/firmware/config.txt", check=True).stdout
+    again = deploy(sandbox, roster)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert again.changed == {}, again.changed
+    assert reboot_lines(again.stderr) == [], again.stderr[-3000:]
 
 
 # --- the sources' ways of going wrong, each healed before the next test -----------------------

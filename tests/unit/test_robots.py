@@ -327,7 +327,7 @@ def test_boot_files_and_the_reboot_record_are_renamed_durably(tmp_path):
     assert cmdline.read_text() == UBUNTU_CMDLINE.replace("console=serial0,115200 ", "").strip() + "\n"
     (reboot,) = [commands for name, commands in osr_plan(boot_facts()).changing().items() if "reboot" in name]
     assert reboot[0].endswith(f"&& sync -- {REBOOT_RECORD}.roslab-new && mv -f -- {REBOOT_RECORD}.roslab-new "
-                              f"{REBOOT_RECORD} && {{ sync -- /var/lib/roslab 2>/dev/null || true; }}")
+                              f"{REBOOT_RECORD} && {{ sync -- /run/roslab 2>/dev/null || true; }}")
 
 
 def test_a_converged_pi_changes_nothing_and_records_no_reboot():

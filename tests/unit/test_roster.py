@@ -142,6 +142,7 @@ def test_host_data_holds_identity_connection_and_every_setting_with_its_default(
         "roslab_profile": {
             "name": "demo", "distro": "humble", "settings": {}, "ros_packages": [], "packages": [],
             "environment": {}, "groups": [], "udev_rules": "", "launch": "roslab_bringup main.launch.py",
+            "launch_arguments": {},
             "variant": "desktop", "verify_topic": "/chatter", "verify_type": "std_msgs/msg/String",
             "verify_source": "", "verify_publisher": "", "discovery": None, "checklist": [], "os_tweaks": {},
             "remove_apt_packages": [], "boot_config": {}, "services": [], "base": None,
