@@ -45,7 +45,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from roslab.sandbox import esp32_board, git_standins, pi_boot, real_sources, upstream
+from roslab.sandbox import git_standins, pi_boot, upstream
 from tests.e2e.conftest import bring_up, summary_lines
 
 pytestmark = pytest.mark.e2e
