@@ -43,6 +43,10 @@ class HostSettings:
     # Provision without the internet: the controller uses only its own cache (the ros2-apt-source .deb,
     # rosdep's data), the apt cache serves only what it holds, and no host downloads from upstream directly.
     offline: bool
+    # Seconds a run waits for another roslab run on the same host (a second teacher, a cron run) to end
+    # before it stops that host; the line names the other run's controller, user, pid and start time. The
+    # lock is held for the other run's SSH session only: a killed run never leaves it.
+    run_lock_wait: int
     # --- apt_ready ---
     # Prepare apt: wait for the dpkg lock, enable universe and the extra suites, refresh the lists.
     apt_ready_enabled: bool

@@ -6,7 +6,9 @@
 
 from __future__ import annotations
 
+import os
 import posixpath
+import secrets
 
 from pyinfra import host
 from pyinfra.api import FactBase, OperationError, operation
@@ -227,6 +229,15 @@ CMDLINE_TXT = f"{BOOT_DIR}/cmdline.txt"
 # The host's record that a change waits for a reboot: `boot_id=...` (the boot it was made in)
 # and `reason=...` lines. World-readable: `roslab status` reads it without sudo.
 REBOOT_RECORD = "/var/lib/roslab/reboot-needed"
+# This controller run's mark on the files it writes beside a record before renaming them over it:
+# two runs at once never write through the same temporary name (each run also holds the host's
+# run lock: roslab/ssh/run_lock.py).
+RUN_MARK = f"{os.getpid()}-{secrets.token_hex(4)}"
+
+
+def run_temporary(path: str) -> str:
+    """Where this run writes `path`'s new content before it is renamed over it."""
+    return f"{path}.roslab-new-{RUN_MARK}"
 BOOT_ID = "/proc/sys/kernel/random/boot_id"
 
 
@@ -303,7 +314,7 @@ def cmdline_words_absent(path: str, words: list[str], backup_suffix: str):
     if wanted == " ".join(current.split()):
         host.noop(f"{path} holds none of {', '.join(words)}")
         return
-    quoted, new, backup = shell_word(path), path + ".roslab-new", path + backup_suffix
+    quoted, new, backup = shell_word(path), run_temporary(path), path + backup_suffix
     # One line, written beside the file and renamed over it: the firmware never reads half a file.
     yield (f"cp -p -- {quoted} {shell_word(backup)} && "
            f"printf '%s\\n' {shell_word(wanted)} > {shell_word(new)} && {durably_renamed(new, path, backup)}")
@@ -354,7 +365,7 @@ def reboot_needed_recorded(reasons: list[str]):
     record = host.get_fact(RebootRecord)
     kept = record["reasons"] if reboot_pending(record) else []
     lines = [*kept, *(reason for reason in reasons if reason not in kept)]
-    new = REBOOT_RECORD + ".roslab-new"
+    new = run_temporary(REBOOT_RECORD)
     yield (f"mkdir -p {shell_word(REBOOT_RECORD.rsplit('/', 1)[0])} && "
            f"{{ printf 'boot_id=%s\\n' \"$(cat {BOOT_ID})\"; "
            f"printf 'reason=%s\\n' {' '.join(shell_word(line) for line in lines)}; }}"
