@@ -18,6 +18,9 @@ What a teacher notices, checked here:
   the host, never by a race with a sleep), while roslab reads it or while a step runs a command,
   is named in the summary in one line as lost in that step; the other host converges; once it is
   powered on again one re-run heals it and the next is a no-op;
+- two runs at once (two teachers): the second waits for the host's run lock for run_lock_wait
+  seconds, then stops each host in one line naming the first run (controller, user, pid, start);
+  the first run ends as if alone, and the next run is a no-op with no lock left behind;
 - a controller killed (SIGKILL) after a host applied a network change and before the change was
   confirmed: the host rolls itself back to its old address within its confirmation window; a run
   in that window names the address it tried and the pending change; the next run names what
@@ -348,6 +351,36 @@ def test_a_host_losing_its_power_mid_step_is_named_lost_in_that_step_and_one_rer
     assert set(healed.changes_per_host()) <= {MAIN}, healed.changed
     again = deploy(sandbox, roster)
     assert again.returncode == 0 and again.changed == {}, (again.changed, again.stderr[-3000:])
+
+
+def test_two_runs_at_once_the_second_stops_naming_the_first_and_one_rerun_after_it_is_a_no_op(
+        sandbox, roster, converged):
+    # The first run is held in its apt step on the main (the gate above), holding both hosts' run lock.
+    arm, held, disarm, _ = HOLDS["while a step runs a command"]
+    impatient = roster.parent / "impatient.yaml"
+    data = yaml.safe_load(roster.read_text())
+    data["classroom"]["run_lock_wait"] = 3
+    impatient.write_text(yaml.safe_dump(data, sort_keys=False))
+    sandbox.sudo(MAIN, arm, check=True)
+    first = start_deploy(sandbox, roster)
+    try:
+        wait_for(lambda: held(sandbox, MAIN), 120, f"{MAIN} to be held in its apt step", first)
+        owner = sandbox.ssh(MAIN, "cat /run/roslab/run.owner", check=True).stdout.strip()
+        assert "(user " in owner and f", pid {first.pid}, started " in owner, owner
+        second = deploy(sandbox, impatient)
+        sandbox.sudo(MAIN, disarm, check=True)
+        stderr = finished(first)
+    finally:
+        ended(first)
+        sandbox.sudo(MAIN, disarm)
+    assert second.returncode == 1, second.stderr[-3000:]
+    (line,) = lines_naming(second.stderr, MAIN)
+    assert f"another roslab run holds this host: {owner}; waited 3 s (run_lock_wait)" in line, line
+    assert "roslab-new" not in second.stderr
+    assert first.returncode == 0, stderr[-3000:]  # the first run never saw the second
+    again = deploy(sandbox, roster)
+    assert again.returncode == 0 and again.changed == {}, (again.changed, again.stderr[-3000:])
+    assert sandbox.sudo(MAIN, "flock -n /run/roslab/run.lock true").returncode == 0  # no stale lock
 
 
 def answers_ssh(address: str) -> bool:
