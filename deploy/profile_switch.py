@@ -103,8 +103,8 @@ def profile_switch_cleaned():
                               f"{previous.get('profile')})", user=user, groups=leave)
         removed.append(f"{user} from groups {', '.join(leave)}")
     old = previous.get("profile")
-    if old and old != record["profile"]:
-        kept = kept_after_switch(previous, record)
+    if old and old != record["profile"] and (removed or kept_after_switch(previous, record)):
+        kept = kept_after_switch(previous, record)  # (a host the switch left untouched gets no line)
         said = [f"removed {'; '.join(removed)}" if removed else "nothing of it to remove",
                 *(["kept " + "; ".join(kept)] if kept else [])]
         logger.warning(f"{host.print_prefix}roslab: {where()}: robot profile {old} -> {record['profile']}: "

@@ -213,6 +213,9 @@ def test_a_team_switching_profile_loses_the_old_units_and_groups_says_so_once_th
     said = [line for line in run.stderr.splitlines() if "robot profile faults_bot -> demo" in line]
     assert len(said) == 1 and ROBOT in said[0], said
     assert f"removed {SERVICE}.service; ubuntu from groups dialout" in said[0], said
+    # The class's workspace_sources keep the underlay sourced: no line may tell to delete it.
+    assert "underlay" not in said[0] and "no longer source" not in run.stderr, said
+    assert json.loads(sandbox.ssh(ROBOT, "cat /var/lib/roslab/profile.json", check=True).stdout)["sources"] is True
     assert sandbox.ssh(ROBOT, f"test -e /etc/systemd/system/{SERVICE}.service").returncode != 0
     assert sandbox.ssh(ROBOT, f"systemctl is-active {SERVICE}.service").stdout.strip() != "active"
     assert "dialout" not in sandbox.ssh(ROBOT, "id -nG ubuntu", check=True).stdout.split()
