@@ -22,9 +22,9 @@ What a teacher notices, checked here:
   seconds, then stops each host in one line naming the first run (controller, user, pid, start);
   the first run ends as if alone, and the next run is a no-op with no lock left behind;
 - a controller killed (SIGKILL) after a host applied a network change and before the change was
-  confirmed: the host rolls itself back to its old address within its confirmation window; a run
-  in that window names the address it tried and the pending change; the next run names what
-  became of the change, makes it again and confirms it; the one after is a no-op.
+  confirmed: one re-run inside the host's confirmation window finds it at its new address (the
+  inventory tries it when the old one does not answer), confirms the change and says so in one
+  line; the one after is a no-op.
 """
 
 from __future__ import annotations
@@ -403,7 +403,7 @@ def network_status(sandbox, host: str) -> dict:
         return {}
 
 
-CONFIRM_TIMEOUT = 60  # the host's window: a run started right after the kill connects well within it
+CONFIRM_TIMEOUT = 120  # the host's window: a run started right after the kill connects well within it
 
 
 def network_roster(sandbox, roster: Path, address: str) -> Path:
@@ -422,7 +422,7 @@ def network_roster(sandbox, roster: Path, address: str) -> Path:
     return path
 
 
-def test_a_controller_killed_mid_network_change_the_host_rolls_back_and_the_next_runs_say_so_and_heal(
+def test_a_controller_killed_mid_network_change_one_rerun_in_its_window_confirms_it_then_nothing(
         sandbox, roster, converged):
     robot = sandbox.host(ROBOT)
     old = robot.address
@@ -439,31 +439,17 @@ def test_a_controller_killed_mid_network_change_the_host_rolls_back_and_the_next
         assert network_state.pending_changes(moving)[ROBOT]["to"] == new  # launched, not confirmed
         run.send_signal(signal.SIGKILL)
         run.wait(timeout=60)
-        killed = time.monotonic()
         subprocess.run(["ip", "route", "del", "blackhole", f"{new}/32"], check=True)
 
-        # In the window: the host is at its new address, the next run tries the old one.
-        within = deploy(sandbox, moving)
-        assert network_status(sandbox, ROBOT).get("state") == "waiting-for-confirmation"  # still in the window
-        assert within.returncode == 1, within.stderr[-3000:]
-        (line,) = lines_naming(within.stderr, ROBOT)
-        assert line.startswith(f'{ROBOT} failed in "connect": tried {old}: '), line
-        assert f"(from {old} to {new}) was not seen to end: the controller stopped during it" in line, line
-        assert f"within {CONFIRM_TIMEOUT} s unless it was confirmed, so it answers at {old} or at {new}" in line
-        assert lines_naming(within.stderr, MAIN) == [f"{MAIN} ok"]
-
-        # The host rolls itself back to its old address within its window.
-        wait_for(lambda: network_status(sandbox, ROBOT).get("state") == "rolled-back" and answers_ssh(old),
-                 CONFIRM_TIMEOUT + ROLLBACK_GRACE, f"{ROBOT} to roll back to {old}")
-        assert time.monotonic() - killed < CONFIRM_TIMEOUT + ROLLBACK_GRACE
-
+        # In the window: the host waits at its new address; one re-run finds it there and confirms.
         healed = deploy(sandbox, moving)
         assert healed.returncode == 0, healed.stderr[-3000:]
         said = [line for line in healed.stderr.splitlines() if "network: found at" in line]
         assert len(said) == 1 and f"[{ROBOT}]" in said[0], said
-        assert f"found at {old}: the network change started " in said[0]
-        assert f"(from {old} to {new}) was not seen to end: the controller stopped during it; the host rolled it " \
-               f"back by itself (the controller did not confirm within {CONFIRM_TIMEOUT} s" in said[0], said[0]
+        assert f"found at {new} waiting for the confirmation of a change an earlier run started (its controller " \
+               "stopped during it): confirmed now, the host keeps it" in said[0], said[0]
+        assert lines_naming(healed.stderr, MAIN) == [f"{MAIN} ok"]
+        assert network_status(sandbox, ROBOT).get("state") == "confirmed"
         assert network_state.last_known_address(moving, ROBOT) == new and answers_ssh(new) and not answers_ssh(old)
         assert network_state.pending_changes(moving) == {}
         again = deploy(sandbox, moving)
