@@ -187,6 +187,14 @@ def ensure_cached(state, host, digest: str, builder: str, cache_dir: str, underl
         return False
 
 
+def builder_lost(source) -> bool:
+    """Whether the builder's connection was made and has ended (its power cut, its cable pulled):
+    it did not fail to build, it went away (roslab.reporting.summary says the same in its line)."""
+    from roslab.reporting.summary import connection_lost
+
+    return connection_lost(source)
+
+
 def _pull(state, digest: str, builder: str, cache_dir: Path, underlay_dir: str, stamp: str) -> None:
     entry = _builds.get(state, {}).get(digest)
     source = state.inventory.get_host(builder) if builder else None
@@ -195,6 +203,10 @@ def _pull(state, digest: str, builder: str, cache_dir: Path, underlay_dir: str, 
                         "build: its own line says why)")
     op_meta = entry[1]
     # (a build that had nothing to do may be left incomplete by pyinfra: only a failure counts)
+    if source in state.failed_hosts and builder_lost(source):
+        raise ShipError(f"its group's builder {builder} was lost before it finished building it (it stopped "
+                        "answering: powered off, rebooted or off the network; nothing failed to compile); "
+                        "this host receives its underlay from there: run again once the builder answers")
     if source in state.failed_hosts or (op_meta.is_complete() and not op_meta.did_succeed()):
         raise ShipError(f"its group's builder {builder} failed to build it: {build_failure(op_meta)}; "
                         "this host receives its underlay from there")

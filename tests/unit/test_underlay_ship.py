@@ -208,6 +208,26 @@ def test_a_failed_build_fails_its_receivers_naming_the_builder_and_the_package(t
     assert "builder team1-robot did not build it in this run" in said[0]
 
 
+def test_a_builder_lost_mid_build_is_named_lost_not_failed_by_its_receivers(tmp_path, monkeypatch):
+    from pyinfra.api import Config, Inventory, State
+
+    inventory = Inventory(([("team1-robot", {}), ("team2-robot", {})], {}))
+    state = State(inventory, Config())
+    digest = "cd" * 32
+    underlay_ship.note_build(state, digest, "team1-robot", FailedBuild())
+    builder = inventory.get_host("team1-robot")
+    state.failed_hosts.add(builder)
+    monkeypatch.setattr(underlay_ship, "builder_lost", lambda source: source is builder)
+    said = []
+    receiver = inventory.get_host("team2-robot")
+    receiver.log_styled = lambda text, **_: said.append(text)
+    assert underlay_ship.ensure_cached(state, receiver, digest, "team1-robot", str(tmp_path), "/u", "s") is False
+    (line,) = said
+    assert line.startswith("roslab: underlay: its group's builder team1-robot was lost before it finished building "
+                           "it (it stopped answering: powered off"), line
+    assert "failed to build" not in line and "run again once the builder answers" in line
+
+
 # --- the receive script, on a real folder ---------------------------------------------------
 
 
