@@ -240,6 +240,11 @@ def _write_ship_record(state, host, cache_dir: str, digest: str) -> bool:
     return True
 
 
+def _printf_safe(text: str) -> str:
+    """`text` inside a double-quoted shell string as itself: no $, `, \\ or " expands there."""
+    return "".join("\\" + char if char in '$`\\"' else char for char in text)
+
+
 def receive_script(underlay_dir: str, tar: str, record: str, stamp: str, digest: str, builder: str) -> str:
     """Run as the login user: the shipped tree into its install folder, then `install` switched
     to it (one rename); the build stamp and its origin written last."""
@@ -252,10 +257,17 @@ def receive_script(underlay_dir: str, tar: str, record: str, stamp: str, digest:
         f"rm -f {stamp_file}",  # no stamp while the tree changes: an interrupted receive is tried again
         *keep_in_use('"$slot"'),
         'rm -rf "$slot.roslab-new" && mkdir "$slot.roslab-new" || exit 1',
-        f'if ! tar -xzf {shlex.quote(tar)} --no-same-owner -C "$slot.roslab-new"; then',
+        # tar's own complaints are kept back: one line says what happened, naming the folder
+        f'if ! said=$(tar -xzf {shlex.quote(tar)} --no-same-owner -C "$slot.roslab-new" 2>&1 >/dev/null); then',
         '  rm -rf "$slot.roslab-new"',
-        f'  echo "roslab: underlay: the build shipped from {builder} does not extract; the last good install '
-        'stays in use" >&2',
+        '  case "$said" in',
+        f'  *"No space left on device"*) echo "roslab: underlay: the disk holding {_printf_safe(underlay_dir)} is full '
+        f'(the build shipped from {builder} did not fit; $(df -Ph . | awk \'NR == 2 {{print $4}}\') free there): '
+        'free space there and run again; the last good install stays in use" >&2;;',
+        f'  *) echo "roslab: underlay: the build shipped from {builder} does not extract into '
+        f'{_printf_safe(underlay_dir)} ($(printf \'%s\' "$said" | head -n 1 | cut -c 1-200)); the last good '
+        'install stays in use" >&2;;',
+        "  esac",
         "  exit 1",
         "fi",
         'rm -rf "$slot" && mv "$slot.roslab-new" "$slot" || exit 1',
