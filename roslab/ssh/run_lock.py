@@ -36,19 +36,24 @@ dir=$1; wait=$2; who=$3
 mkdir -p "$dir" && chmod 755 "$dir" || exit 3
 exec 9>>"$dir/run.lock" || exit 3
 owner() { tr -d '\n' < "$dir/run.owner" 2>/dev/null || echo 'an unknown run'; }
-if ! flock -n 9; then
-  echo "waiting $(owner)"
-  flock -w "$wait" 9 || { echo "held $(owner)"; exit 4; }
-fi
 pid=$$; session=
 while [ "$pid" -gt 1 ] 2>/dev/null; do
   case "$(cat /proc/$pid/comm 2>/dev/null)" in sshd*) session=$pid; break;; esac
   pid=$(awk '/^PPid:/ {print $2}' /proc/$pid/status 2>/dev/null)
 done
-printf '%s\n' "$who" > "$dir/run.owner.$$" && mv -f "$dir/run.owner.$$" "$dir/run.owner"
-if [ -n "$session" ]; then
-  (trap '' HUP; while kill -0 "$session" 2>/dev/null; do sleep POLL; done) </dev/null >/dev/null 2>&1 &
+hold() { [ -z "$session" ] || (trap '' HUP; "$@" && while kill -0 "$session" 2>/dev/null; do sleep POLL; done) \
+  </dev/null >/dev/null 2>&1 & }
+if ! flock -n 9; then
+  if [ "$(owner)" = "$who" ]; then
+    # this run's earlier session (the network step reconnects before it closes the old one):
+    # this session takes the lock over as soon as that one ends
+    hold flock 9; echo locked; exit 0
+  fi
+  echo "waiting $(owner)"
+  flock -w "$wait" 9 || { echo "held $(owner)"; exit 4; }
 fi
+printf '%s\n' "$who" > "$dir/run.owner.$$" && mv -f "$dir/run.owner.$$" "$dir/run.owner"
+hold true
 echo locked
 """.replace("POLL", str(HOLDER_POLL))
 

@@ -53,6 +53,19 @@ def test_a_second_run_that_waits_long_enough_goes_on_and_says_whom_it_waited_for
     assert outcome(done.stdout.splitlines(), 10) == (True, f"waited for {OTHER} to end")
 
 
+def test_a_second_session_of_the_same_run_goes_on_at_once(tmp_path):
+    who = this_run()
+    (tmp_path / "run.owner").write_text(who + "\n")
+    handle = open(tmp_path / "run.lock", "a")
+    fcntl.flock(handle, fcntl.LOCK_EX)  # this run's first session, still open
+    try:
+        done = subprocess.run(["sh", "-c", hold_command(600, who, str(tmp_path))], capture_output=True, text=True,
+                              timeout=10)
+    finally:
+        handle.close()
+    assert outcome(done.stdout.splitlines(), 600) == (True, None), done
+
+
 def test_the_lock_lives_as_long_as_the_ssh_session_and_no_longer(tmp_path):
     # A stand-in for sshd's session process: a copy of sh named sshd, the ancestor the holder looks for.
     session = tmp_path / "bin" / "sshd"
