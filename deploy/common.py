@@ -164,7 +164,7 @@ def supported_host() -> bool:
     except HostSettingsError as error:
         stop_host(f"{error}; nothing was changed on it")
         return False
-    busy = run_lock.run_lock_problem(host)  # before anything is read: one run at a time per host
+    busy = run_lock.run_lock_problem(host, host_settings(host).run_lock_wait)  # before anything is read: one run at a time per host
     if busy:
         stop_host(f"{where()}: {busy}")
         return False

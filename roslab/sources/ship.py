@@ -35,6 +35,7 @@ from pyinfra.api.arguments import CONNECTOR_ARGUMENT_KEYS
 from roslab.controller_files import file_sha256
 from roslab.sources.underlay import ARCHIVE_DIR, ORIGIN, _as_user, keep_in_use, origin_line, switch_script
 from roslab.sources.groups import short
+from roslab.connections import connection_lost
 from roslab.ros.workspace import STATE_DIR_NAME, _write_stamp
 
 CACHE_FOLDER = "underlays"
@@ -190,8 +191,6 @@ def ensure_cached(state, host, digest: str, builder: str, cache_dir: str, underl
 def builder_lost(source) -> bool:
     """Whether the builder's connection was made and has ended (its power cut, its cable pulled):
     it did not fail to build, it went away (roslab.reporting.summary says the same in its line)."""
-    from roslab.reporting.summary import connection_lost
-
     return connection_lost(source)
 
 

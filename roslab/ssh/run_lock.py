@@ -23,7 +23,6 @@ from datetime import datetime, timezone
 LOCK_DIR = "/run/roslab"
 LOCK_FILE = "run.lock"
 OWNER_FILE = "run.owner"
-DEFAULT_WAIT = 600
 # How often the holder looks whether its SSH session still exists (s).
 HOLDER_POLL = 2
 
@@ -88,24 +87,13 @@ def outcome(lines: list[str], wait: int) -> tuple[bool, str | None]:
     return False, "could not take the host's run lock in /run/roslab (sudo, flock): nothing was changed on it"
 
 
-def _wait_of(host) -> int:
-    """The host's run_lock_wait (checked by host_settings; its default when a value is wrong:
-    that host's own step then names the key)."""
-    from roslab.host_settings import HostSettingsError, host_settings
-
-    try:
-        return host_settings(host).run_lock_wait
-    except (HostSettingsError, AttributeError):
-        return DEFAULT_WAIT
-
-
-def lock_problem(connector, who: str) -> str | None:
-    """Take the run lock of `connector`'s host over its connection; why the host must stop
-    (another run held it for longer than run_lock_wait), else None."""
+def lock_problem(connector, who: str, wait: int) -> str | None:
+    """Take the run lock of `connector`'s host over its connection, waiting up to `wait` seconds
+    (its run_lock_wait); why the host must stop (another run held it longer), else None."""
     from pyinfra import logger
     from pyinfra.api import StringCommand
 
-    host, wait = connector.host, _wait_of(connector.host)
+    host = connector.host
     arguments = {"_sudo": True}
     if host.data.get("_sudo_password"):
         arguments["_sudo_password"] = host.data.get("_sudo_password")
@@ -113,7 +101,7 @@ def lock_problem(connector, who: str) -> str | None:
     locked, said = outcome(list(output.stdout_lines), wait)
     if not locked:
         return said
-    connector.roslab_run_locked = True  # its reconnections take the lock again
+    connector.roslab_run_locked = wait  # its reconnections take the lock again
     if said:
         logger.warning(f"{host.print_prefix}roslab: {said}")
     return None
@@ -122,9 +110,10 @@ def lock_problem(connector, who: str) -> str | None:
 _WHO: list[str] = []
 
 
-def run_lock_problem(host) -> str | None:
+def run_lock_problem(host, wait: int) -> str | None:
     """Take `host`'s run lock for this run (deploy/common.py's supported_host, before anything
-    is read): why the host stops, or None. Only SSH connections have a session to hold it."""
+    is read), waiting up to `wait` seconds (its run_lock_wait): why the host stops, or None.
+    Only SSH connections have a session to hold it."""
     from pyinfra.connectors.ssh import SSHConnector
 
     connector = host.connector
@@ -132,7 +121,7 @@ def run_lock_problem(host) -> str | None:
         return None  # no SSH session (another connector, or none open) to hold it
     if not _WHO:
         _WHO.append(this_run())
-    return lock_problem(connector, _WHO[0])
+    return lock_problem(connector, _WHO[0], wait)
 
 
 def install() -> None:
@@ -147,8 +136,9 @@ def install() -> None:
 
     def connect_locked(self, *args, **kwargs):
         result = connect(self, *args, **kwargs)
-        if getattr(self, "roslab_run_locked", False):
-            problem = lock_problem(self, _WHO[0] if _WHO else this_run())
+        wait = getattr(self, "roslab_run_locked", None)
+        if wait is not None:
+            problem = lock_problem(self, _WHO[0] if _WHO else this_run(), wait)
             if problem:
                 self.disconnect()
                 raise ConnectError(f"roslab stops this host: {problem}")

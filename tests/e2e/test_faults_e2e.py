@@ -383,7 +383,9 @@ def test_two_runs_at_once_the_second_stops_naming_the_first_and_one_rerun_after_
     assert first.returncode == 0, stderr[-3000:]  # the first run never saw the second
     again = deploy(sandbox, roster)
     assert again.returncode == 0 and again.changed == {}, (again.changed, again.stderr[-3000:])
-    assert sandbox.sudo(MAIN, "flock -n /run/roslab/run.lock true").returncode == 0  # no stale lock
+    # no stale lock: a run's holder sees its session end within its poll (2 s)
+    wait_for(lambda: sandbox.sudo(MAIN, "flock -n /run/roslab/run.lock true").returncode == 0, 15,
+             "the last run's lock to go with its session")
 
 
 def answers_ssh(address: str) -> bool:
