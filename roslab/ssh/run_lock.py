@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import getpass
 import os
+import re
 import shlex
 import socket
 from datetime import datetime, timezone
@@ -31,7 +32,7 @@ HOLDER_POLL = 2
 # The holder finds the session's sshd (sshd, or sshd-session on newer OpenSSH) among its
 # ancestors and keeps the lock (fd 9) until that process is gone.
 HOLD_SCRIPT = r"""
-dir=$1; wait=$2; who=$3
+dir=$1; wait=$2; who=$3; stale=$4
 mkdir -p "$dir" && chmod 755 "$dir" || exit 3
 exec 9>>"$dir/run.lock" || exit 3
 owner() { tr -d '\n' < "$dir/run.owner" 2>/dev/null || echo 'an unknown run'; }
@@ -40,14 +41,16 @@ while [ "$pid" -gt 1 ] 2>/dev/null; do
   case "$(cat /proc/$pid/comm 2>/dev/null)" in sshd*) session=$pid; break;; esac
   pid=$(awk '/^PPid:/ {print $2}' /proc/$pid/status 2>/dev/null)
 done
-hold() { [ -z "$session" ] || (trap '' HUP; "$@" && while kill -0 "$session" 2>/dev/null; do sleep POLL; done) \
-  </dev/null >/dev/null 2>&1 & }
+hold() { [ -z "$session" ] || { (trap '' HUP; "$@" && while kill -0 "$session" 2>/dev/null; do sleep POLL; done) \
+  </dev/null >/dev/null 2>&1 & echo $! > "$dir/run.holder"; }; }
 if ! flock -n 9; then
   if [ "$(owner)" = "$who" ]; then
     # this run's earlier session (the network step reconnects before it closes the old one):
     # this session takes the lock over as soon as that one ends
     hold flock 9; echo locked; exit 0
   fi
+  # a run its controller knows is gone (killed) whose session outlived it (its host moved address)
+  if [ -n "$stale" ] && [ "$(owner)" = "$stale" ]; then kill "$(cat "$dir/run.holder")" 2>/dev/null; fi
   echo "waiting $(owner)"
   flock -w "$wait" 9 || { echo "held $(owner)"; exit 4; }
 fi
@@ -68,10 +71,32 @@ def this_run() -> str:
             f"started {started})")
 
 
-def hold_command(wait: int, who: str, directory: str = LOCK_DIR) -> str:
+def hold_command(wait: int, who: str, directory: str = LOCK_DIR, stale: str = "") -> str:
     """The shell command that takes the run lock in `directory` (run as root) and keeps it for
-    the SSH session it runs in."""
-    return f"sh -c {shlex.quote(HOLD_SCRIPT)} roslab-run-lock {shlex.quote(directory)} {int(wait)} {shlex.quote(who)}"
+    the SSH session it runs in; `stale`: an owner known gone, whose holder it ends first."""
+    return (f"sh -c {shlex.quote(HOLD_SCRIPT)} roslab-run-lock {shlex.quote(directory)} {int(wait)} "
+            f"{shlex.quote(who)} {shlex.quote(stale)}")
+
+
+_OWNER = re.compile(r"a roslab run from controller (\S+) \(user .*, pid ([0-9]+), started ")
+
+
+def gone(owner: str, controller: str | None = None, alive=None) -> bool:
+    """Whether `owner` (the run.owner line) names a run of this controller whose process has
+    ended (killed): its session may outlive it when its host moved address mid-change."""
+    match = _OWNER.match(owner)
+    if match is None or match.group(1) != (controller or socket.gethostname()):
+        return False
+    pid = int(match.group(2))
+    if alive is not None:
+        return not alive(pid)
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except OSError:
+        return False
+    return False
 
 
 def outcome(lines: list[str], wait: int) -> tuple[bool, str | None]:
@@ -97,8 +122,14 @@ def lock_problem(connector, who: str, wait: int) -> str | None:
     arguments = {"_sudo": True}
     if host.data.get("_sudo_password"):
         arguments["_sudo_password"] = host.data.get("_sudo_password")
-    _, output = connector.run_shell_command(StringCommand(hold_command(wait, who)), **arguments)
-    locked, said = outcome(list(output.stdout_lines), wait)
+    _, output = connector.run_shell_command(StringCommand(hold_command(0, who)), **arguments)
+    lines = list(output.stdout_lines)
+    held = next((line.removeprefix("held ") for line in lines if line.startswith("held ")), None)
+    if held is not None and wait > 0:  # busy: end a gone run's holder, else wait for the other run
+        stale = held if gone(held) else ""
+        _, output = connector.run_shell_command(StringCommand(hold_command(wait, who, stale=stale)), **arguments)
+        lines = list(output.stdout_lines)
+    locked, said = outcome(lines, wait)
     if not locked:
         return said
     connector.roslab_run_locked = wait  # its reconnections take the lock again

@@ -101,3 +101,29 @@ def test_two_runs_write_a_record_through_different_temporary_names():
                            capture_output=True, text=True, check=True).stdout.strip()
     assert other and other != RUN_MARK
     assert run_temporary("/var/lib/roslab/profile.json") == f"/var/lib/roslab/profile.json.roslab-new-{RUN_MARK}"
+
+
+def test_a_killed_runs_session_that_outlived_it_is_ended_and_the_lock_taken(tmp_path):
+    import socket
+    import sys
+
+    from roslab.ssh.run_lock import gone
+
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    owner = (f"a roslab run from controller {socket.gethostname()} (user anna, pid {dead.pid}, "
+             "started 2026-11-28 17:00:00 UTC)")
+    assert gone(owner) and not gone(OTHER) and not gone(owner.replace(f"pid {dead.pid}", "pid 1"))
+    (tmp_path / "run.owner").write_text(owner + "\n")
+    holder = subprocess.Popen([sys.executable, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'a'); "
+                               "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(60)",
+                               str(tmp_path / "run.lock")], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        (tmp_path / "run.holder").write_text(f"{holder.pid}\n")
+        done = subprocess.run(["sh", "-c", hold_command(10, this_run(), str(tmp_path), stale=owner)],
+                              capture_output=True, text=True, timeout=20)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert outcome(done.stdout.splitlines(), 10) == (True, f"waited for {owner} to end"), done
