@@ -9,7 +9,9 @@ session ends and the lock goes with it within seconds.
 
 A run that finds the lock taken says who holds it (the other run's controller host, user, pid
 and start time, from OWNER_FILE) and waits up to `run_lock_wait` seconds; then it stops that
-host with the same words (the connection fails; the other hosts carry on).
+host with the same words (the other hosts carry on). A session can outlive its run when the host
+moved address mid-change (the end of the connection never reaches it): a run of the same
+controller whose pid is gone has its holder (run.holder) ended instead of waited for.
 """
 
 from __future__ import annotations
