@@ -28,12 +28,13 @@ from deploy.ssh_identity import ssh_identity
 from deploy.workspace import workspace
 from roslab import pyinfra_planning, remote_files
 from roslab.reporting import summary
-from roslab.ssh import keepalive as ssh_keepalive, sudo
+from roslab.ssh import keepalive as ssh_keepalive, run_lock, sudo
 
 summary.install()  # once per run, although pyinfra runs this file once per host
 sudo.install()  # for any inventory: the sudo password goes to an askpass file, never a command line
 remote_files.install()  # every upload: one command, never through a link (roslab.remote_files)
 ssh_keepalive.install()  # any inventory: a host that goes silent mid-step is lost in seconds (reconnections)
+run_lock.install()  # one run at a time per host: every connection first takes the host's run lock
 pyinfra_planning.install()  # pyinfra's operation order without reading source per operation (issue 32)
 
 if supported_host():

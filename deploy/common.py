@@ -16,6 +16,7 @@ from pyinfra.facts.server import Home, LinuxDistribution, User
 
 from roslab import settings
 from roslab.reporting import summary
+from roslab.ssh import run_lock
 from roslab.operations import as_user
 from roslab.probe import read, read_ahead, registered_reads
 from roslab.ros.distro import DistroError, UBUNTU_CODENAMES, check_distro, codename_for, default_distro
@@ -162,6 +163,10 @@ def supported_host() -> bool:
         host_settings(host)
     except HostSettingsError as error:
         stop_host(f"{error}; nothing was changed on it")
+        return False
+    busy = run_lock.run_lock_problem(host, host_settings(host).run_lock_wait)  # before anything is read: one run at a time per host
+    if busy:
+        stop_host(f"{where()}: {busy}")
         return False
     read_ahead([read(LinuxDistribution), read(Home, user=login_user())], _sudo=False)
     problem = host_problem()

@@ -28,6 +28,13 @@ def profile() -> ResolvedProfile | None:
     return host_settings(host).roslab_profile
 
 
+def underlay_sourced(typed) -> bool:
+    """Whether ~/.bashrc and the nodes source the underlay: while the host has any repositories,
+    its profile's or the class's (the roster's workspace_sources), as deploy/sources.py and
+    deploy/shell_env.py decide it, not only while its profile names some."""
+    return bool(typed.sources_enabled and typed.roslab_sources)
+
+
 def wanted_record(previous: dict, current_groups: list[str] | None) -> dict:
     """What roslab wrote for the host's profile as of this run: the groups it added are those of
     the profile the user was not in before roslab (kept from the record while still named)."""
@@ -42,7 +49,7 @@ def wanted_record(previous: dict, current_groups: list[str] | None) -> dict:
         "groups_added": sorted(added),
         "boot_config": list(resolved.boot_config.get("config_txt") or []) if resolved else [],
         "venv": resolved.python.venv if resolved and typed.python_env_enabled else None,
-        "sources": bool(resolved and resolved.sources),
+        "sources": underlay_sourced(typed),
         "masked_units": sorted(tweaks.get("mask_units") or []),
     }
 
@@ -56,8 +63,8 @@ def kept_after_switch(previous: dict, record: dict) -> list[str]:
     if previous.get("venv") and previous["venv"] != record["venv"]:
         kept.append(f"its venv ~/{previous['venv']}: the login user's files; delete it by hand if unused")
     if previous.get("sources") and not record["sources"]:
-        kept.append("its underlay's last build in sources_underlay_dir (its repositories are removed, the "
-                    "build is no longer sourced): delete it by hand")
+        kept.append("its underlay's last build in sources_underlay_dir (the host has no repositories now: they "
+                    "are removed, and ~/.bashrc and the nodes no longer source the build): delete it by hand")
     unmasked = sorted(set(previous.get("masked_units") or []) - set(record["masked_units"]))
     if unmasked:
         kept.append(f"the units its OS tweaks masked ({', '.join(unmasked)}) and any swap file: an OS "
@@ -96,8 +103,8 @@ def profile_switch_cleaned():
                               f"{previous.get('profile')})", user=user, groups=leave)
         removed.append(f"{user} from groups {', '.join(leave)}")
     old = previous.get("profile")
-    if old and old != record["profile"]:
-        kept = kept_after_switch(previous, record)
+    if old and old != record["profile"] and (removed or kept_after_switch(previous, record)):
+        kept = kept_after_switch(previous, record)  # (a host the switch left untouched gets no line)
         said = [f"removed {'; '.join(removed)}" if removed else "nothing of it to remove",
                 *(["kept " + "; ".join(kept)] if kept else [])]
         logger.warning(f"{host.print_prefix}roslab: {where()}: robot profile {old} -> {record['profile']}: "

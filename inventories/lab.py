@@ -13,12 +13,12 @@ Groups: `main`, `robot`, one per team (`-` in a team name becomes `_`), one per 
 """
 
 from roslab.packaged import checked_classroom as _checked_classroom
+from roslab.packaged import checked_groups as _checked_groups
 from roslab.reach import refuse_unmatched_limit as _refuse_unmatched_limit
 from roslab.roster import default_roster_path as _default_roster_path
-from roslab.roster import inventory_groups as _inventory_groups
 
 # Names without a leading underscore would become pyinfra groups.
 _classroom = _checked_classroom(_default_roster_path())  # found as every roslab command finds it
-_groups = _inventory_groups(_classroom)
+_groups = _checked_groups(_classroom)  # a refused network move: its line, exit 2, no traceback
 _refuse_unmatched_limit(_groups)  # a --limit that selects no host stops here, naming it
 globals().update(_groups)

@@ -27,6 +27,7 @@ class HostSettings:
     # --- common ---
     login_user: str | None
     offline: bool
+    run_lock_wait: int
     # --- apt_ready ---
     apt_ready_enabled: bool
     apt_lock_timeout: int

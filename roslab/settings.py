@@ -151,6 +151,11 @@ SCHEMA: list[Setting] = [
          "Provision without the internet: the controller uses only its own cache (the ros2-apt-source "
          ".deb, rosdep's data), the apt cache serves only what it holds, and no host downloads from "
          "upstream directly.", None, {"levels": ("classroom",)}),
+        ("run_lock_wait", 600, int,
+         "Seconds a run waits for another roslab run on the same host (a second teacher, a cron run) "
+         "to end before it stops that host; the line names the other run's controller, user, pid and "
+         "start time. The lock is held for the other run's SSH session only: a killed run never leaves it.",
+         f.int_range(0, SECONDS_PER_DAY, " s")),
     ),
     *_concern(
         "apt_ready",

@@ -144,6 +144,29 @@ def change_started(state, host, old_address: str, new_address: str, confirm_time
     return True
 
 
+def confirm_pending_change(state, host, token: str, new_address: str, roster_path: str | None) -> bool:
+    """Runs on the controller when this run reached a host at the new address of a change an
+    earlier (killed) run launched, still waiting for its confirmation: confirm it now, so the
+    host keeps the change instead of rolling it back, and remember the address. False (the
+    step fails, the host rolls back by itself; the next run makes the change again) when the
+    host does not say it kept it."""
+    arguments = _connector_arguments(state, host)
+    _run(host, arguments, "printf", "%s", token, ">", f"{RUN_DIR}/{CONFIRMATION_FILE}")
+    status = _wait_for_final_status(host, arguments, token, wait=15)
+    if status is None or status.state != STATE_CONFIRMED:
+        host.log_styled(f"roslab: network: found at {new_address} waiting for the confirmation of a change an "
+                        "earlier run started, which did not take it: the host restores its previous settings by "
+                        "itself; run again once it has", fg="yellow", log_func=logger.warning)
+        return False
+    if roster_path:
+        network_state.record_address(roster_path, host.name, new_address)
+        network_state.clear_pending(roster_path, host.name)
+    host.log_styled(f"roslab: network: found at {new_address} waiting for the confirmation of a change an earlier "
+                    "run started (its controller stopped during it): confirmed now, the host keeps it",
+                    fg="yellow", log_func=logger.warning)
+    return True
+
+
 def change_ended(state, host, roster_path: str | None) -> bool:
     """Runs on the controller when a run finds the host of a change an earlier run left pending
     with nothing more to change: that change is over (the run said what became of it)."""

@@ -40,7 +40,7 @@ from roslab.network.apply import (
     Status,
 )
 from roslab.network import state as network_state
-from roslab.network.confirm import change_ended, change_started, confirm_network_change
+from roslab.network.confirm import change_ended, change_started, confirm_network_change, confirm_pending_change
 from roslab.network.render import (
     CLOUD_INIT_DISABLE_FILE,
     CLOUD_INIT_FILE,
@@ -222,14 +222,15 @@ def network_in_effect(
     if recovered:
         yield from _report_recovered(recovered, current_address)
     unfinished = network_state.pending_changes(roster_path).get(host.name) if roster_path else None
-    if unfinished and not recovered:
+    awaiting = awaiting_confirmation(unfinished, found.get("last_change"), current_address)
+    if unfinished and not recovered and not awaiting:
         _report_unfinished(unfinished, found.get("last_change"), current_address)
 
     changed = [path for path, content in wanted.files.items()
                if host.get_fact(Sha256File, path=path) != sha256(content)]
     leftover = [path for path in wanted.superseded if host.get_fact(File, path=path)]
     if not changed and not leftover:
-        yield from _settle_unchanged(wanted, layout, unfinished, recovered, roster_path)
+        yield from _settle_unchanged(wanted, layout, unfinished, recovered, roster_path, awaiting)
         return
 
     if state.config.DIFF:
@@ -269,13 +270,26 @@ def _report_unfinished(unfinished: dict, last_change: Status | None, current_add
     )
 
 
-def _settle_unchanged(wanted, layout, unfinished: dict | None, recovered: dict | None, roster_path: str | None):
+def awaiting_confirmation(unfinished: dict | None, last_change: Status | None, current_address: str) -> bool:
+    """Whether this run reached the host at the new address of the change an earlier (killed)
+    run launched, while the host still waits for that change's confirmation."""
+    return bool(unfinished and last_change is not None and last_change.state == apply.STATE_WAITING
+                and unfinished.get("token") and last_change.token == unfinished.get("token")
+                and unfinished.get("to") == current_address)
+
+
+def _settle_unchanged(wanted, layout, unfinished: dict | None, recovered: dict | None, roster_path: str | None,
+                      awaiting: bool = False):
     """The files are in place already: only their owner or mode, or an earlier run's record, may need work."""
     loose = [path for path in wanted.files if not _is_private(host.get_fact(File, path=path))]
     for path in loose:
         # Same content, wrong owner or mode: fix in place, nothing to apply.
         yield StringCommand("chown", "root:root", path, "&&", "chmod", "0600", path)
-    if unfinished:
+    if awaiting:  # confirmed by this run: the host keeps the change the killed run made
+        yield FunctionCommand(confirm_pending_change, (), {"token": unfinished["token"],
+                                                            "new_address": unfinished["to"],
+                                                            "roster_path": roster_path})
+    elif unfinished:
         yield FunctionCommand(change_ended, (), {"roster_path": roster_path})
     elif not loose and not recovered:
         host.noop(f"network configuration already in place ({layout.reason})")

@@ -11,6 +11,7 @@ so the next run's inventory can find the host there:
 from __future__ import annotations
 
 import os
+import socket
 import tempfile
 import threading
 from pathlib import Path
@@ -128,3 +129,28 @@ def pending_description(entry: dict) -> str:
             f"{entry.get('to', '?')}) was not seen to end: the controller stopped during it; the host "
             f"restores its previous settings by itself within {entry.get('confirm_timeout', '?')} s unless "
             f"it was confirmed, so it answers at {entry.get('from', '?')} or at {entry.get('to', '?')}")
+
+
+# How long the inventory waits for a host's SSH port while it looks where a host in the middle
+# of a change answers (s).
+ANSWER_WAIT = 3
+
+
+def answers(address: str, port: int, wait: float = ANSWER_WAIT) -> bool:
+    """Whether something accepts a TCP connection at `address`:`port` within `wait` seconds."""
+    try:
+        with socket.create_connection((address, port), timeout=wait):
+            return True
+    except OSError:
+        return False
+
+
+def address_during_change(address: str, pending: dict | None, port: int, answering=answers) -> str:
+    """Where to reach a host whose network change an earlier run left pending (its controller was
+    killed): `address` (where it was last confirmed) if it answers there, else the change's new
+    address if it answers there (the host waits there for a confirmation this run can give),
+    else `address`. Without a pending change: `address`, nothing tried."""
+    new = pending.get("to") if pending else None
+    if not isinstance(new, str) or not new or new == address or answering(address, port):
+        return address
+    return new if answering(new, port) else address

@@ -6,7 +6,9 @@
 
 from __future__ import annotations
 
+import os
 import posixpath
+import secrets
 
 from pyinfra import host
 from pyinfra.api import FactBase, OperationError, operation
@@ -230,6 +232,15 @@ CMDLINE_TXT = f"{BOOT_DIR}/cmdline.txt"
 # tmpfs on Ubuntu): the reboot it asks for clears it, so the run after the reboot has nothing
 # to clean up and changes nothing; the boot id still guards a /run that outlived a boot.
 REBOOT_RECORD = "/run/roslab/reboot-needed"
+# This controller run's mark on the files it writes beside a record before renaming them over it:
+# two runs at once never write through the same temporary name (each run also holds the host's
+# run lock: roslab/ssh/run_lock.py).
+RUN_MARK = f"{os.getpid()}-{secrets.token_hex(4)}"
+
+
+def run_temporary(path: str) -> str:
+    """Where this run writes `path`'s new content before it is renamed over it."""
+    return f"{path}.roslab-new-{RUN_MARK}"
 BOOT_ID = "/proc/sys/kernel/random/boot_id"
 
 
@@ -329,7 +340,7 @@ def cmdline_words_kept(path: str, add: list[str], remove: list[str], backup_suff
                      *([f"holds none of {', '.join(remove)}"] if remove else [])]
         host.noop(f"{path} {' and '.join(described)}")
         return
-    quoted, new, backup = shell_word(path), path + ".roslab-new", path + backup_suffix
+    quoted, new, backup = shell_word(path), run_temporary(path), path + backup_suffix
     # One line, written beside the file and renamed over it: the firmware never reads half a file.
     yield (f"cp -p -- {quoted} {shell_word(backup)} && "
            f"printf '%s\\n' {shell_word(wanted)} > {shell_word(new)} && {durably_renamed(new, path, backup)}")
@@ -380,7 +391,7 @@ def reboot_needed_recorded(reasons: list[str]):
     record = host.get_fact(RebootRecord)
     kept = record["reasons"] if reboot_pending(record) else []
     lines = [*kept, *(reason for reason in reasons if reason not in kept)]
-    new = REBOOT_RECORD + ".roslab-new"
+    new = run_temporary(REBOOT_RECORD)
     yield (f"mkdir -p {shell_word(REBOOT_RECORD.rsplit('/', 1)[0])} && "
            f"{{ printf 'boot_id=%s\\n' \"$(cat {BOOT_ID})\"; "
            f"printf 'reason=%s\\n' {' '.join(shell_word(line) for line in lines)}; }}"

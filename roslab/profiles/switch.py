@@ -19,7 +19,7 @@ import json
 from pyinfra import host
 from pyinfra.api import FactBase, operation
 
-from roslab.profiles.host import durably_renamed
+from roslab.profiles.host import durably_renamed, run_temporary
 from roslab.quoting import shell_word
 
 PROFILE_RECORD = "/var/lib/roslab/profile.json"
@@ -99,7 +99,7 @@ def profile_recorded(record: dict, mark: str):
     if current == record:
         host.noop(f"{PROFILE_RECORD} already records robot profile {record.get('profile')}")
         return
-    new = PROFILE_RECORD + ".roslab-new"
+    new = run_temporary(PROFILE_RECORD)
     text = json.dumps(record, sort_keys=True)
     yield (f"mkdir -p {shell_word(PROFILE_RECORD.rsplit('/', 1)[0])} && printf '%s\\n' {shell_word(text)} > "
            f"{shell_word(new)} && chmod 644 {shell_word(new)} && {durably_renamed(new, PROFILE_RECORD)}")

@@ -58,6 +58,7 @@ from pyinfra.api.state import BaseStateCallback, State, StateStage
 from pyinfra.context import ctx_host, ctx_state
 
 from roslab.ssh import identity
+from roslab.connections import connection_lost
 from roslab.reporting.runs import HostRun, record_runs
 
 OK, CHANGED, FAILED, PLANNED, NOT_RUN = "ok", "changed", "failed", "planned", "not run"
@@ -147,20 +148,6 @@ NO_ERROR_PRINTED = "the operation failed without printing an error"
 _SOCKET_ERROR = re.compile(r"Command socket/SSH error|Socket is closed|EOFError|Connection reset", re.ASCII)
 LOST_CONNECTION = ("lost the connection to the host during this step (it stopped answering: powered off, "
                    "rebooted or off the network); run roslab again once it is back")
-
-
-def connection_lost(host) -> bool:
-    """Whether pyinfra's SSH connection to `host` was made and is closed now (the host lost
-    power, rebooted or left the network). False where it cannot tell (not SSH, never connected)."""
-    client = getattr(getattr(host, "connector", None), "client", None)
-    get_transport = getattr(client, "get_transport", None)
-    if get_transport is None:
-        return False
-    try:
-        transport = get_transport()
-        return transport is None or not transport.is_active()
-    except Exception:  # noqa: BLE001 - a half-closed client: nothing more to learn
-        return False
 
 
 def connection_of(host):

@@ -8,7 +8,7 @@ from pathlib import Path
 import yaml
 
 from roslab.ssh import identity
-from roslab.network.state import addresses_path, last_known_addresses
+from roslab.network.state import address_during_change, addresses_path, last_known_addresses, pending_changes
 from roslab.roster.checks import host_ip
 from roslab.roster.model import ROLES, Classroom
 from roslab.checked.problems import Problem, RosterError, display_path
@@ -61,7 +61,9 @@ def inventory_groups(classroom: Classroom) -> dict[str, list[tuple[str, dict]]]:
     """pyinfra inventory groups (`group_names`) of (host name, host data).
 
     A host the network deploy has moved is reached at its last confirmed address
-    (recorded beside the roster), not at the roster's now stale `address`.
+    (recorded beside the roster), not at the roster's now stale `address`. A host whose change
+    a killed run left pending is reached where it answers, its last address or the new one
+    (roslab.network.state.address_during_change), so one re-run confirms or makes the change.
 
     Hosts connect with strict host key checking against the classroom's known_hosts
     (`roslab.ssh.identity`) unless the roster sets `ssh_known_hosts_file` or
@@ -78,6 +80,7 @@ def inventory_groups(classroom: Classroom) -> dict[str, list[tuple[str, dict]]]:
             "not a mapping of host name to address")
         raise RosterError([Problem(state_file, f"cannot read where moved hosts are: {reason}; "
                                    "fix or delete the file")]) from None
+    pending = pending_changes(classroom.path)
     classroom_known_hosts = str(identity.known_hosts_path(classroom.path))
     checked: dict[str, tuple[list[str], int]] = {}
     entries: dict[str, tuple[str, dict]] = {}
@@ -88,8 +91,13 @@ def inventory_groups(classroom: Classroom) -> dict[str, list[tuple[str, dict]]]:
             **host.data,
             "ssh_hostname": moved.get(host.name) or host.address,
         }
+        if host.name in pending:  # a killed run's change: the host may answer at its new address
+            data["ssh_hostname"] = address_during_change(data["ssh_hostname"], pending[host.name],
+                                                         data.get("ssh_port") or 22)
         if data["ssh_known_hosts_file"] == classroom_known_hosts:
-            checked[host.name] = (known_addresses(host, moved.get(host.name)), data.get("ssh_port") or 22)
+            reached = known_addresses(host, moved.get(host.name))
+            reached += [data["ssh_hostname"]] if data["ssh_hostname"] not in reached else []
+            checked[host.name] = (reached, data.get("ssh_port") or 22)
         entries[host.name] = (host.name, data)
     own_files: dict[str, list] = {}  # each roster-named known_hosts file read once
     unknown_moves = [problem for host in classroom.hosts

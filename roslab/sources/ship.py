@@ -35,6 +35,7 @@ from pyinfra.api.arguments import CONNECTOR_ARGUMENT_KEYS
 from roslab.controller_files import file_sha256
 from roslab.sources.underlay import ARCHIVE_DIR, ORIGIN, _as_user, keep_in_use, origin_line, switch_script
 from roslab.sources.groups import short
+from roslab.connections import connection_lost
 from roslab.ros.workspace import STATE_DIR_NAME, _write_stamp
 
 CACHE_FOLDER = "underlays"
@@ -187,6 +188,12 @@ def ensure_cached(state, host, digest: str, builder: str, cache_dir: str, underl
         return False
 
 
+def builder_lost(source) -> bool:
+    """Whether the builder's connection was made and has ended (its power cut, its cable pulled):
+    it did not fail to build, it went away (roslab.reporting.summary says the same in its line)."""
+    return connection_lost(source)
+
+
 def _pull(state, digest: str, builder: str, cache_dir: Path, underlay_dir: str, stamp: str) -> None:
     entry = _builds.get(state, {}).get(digest)
     source = state.inventory.get_host(builder) if builder else None
@@ -195,6 +202,10 @@ def _pull(state, digest: str, builder: str, cache_dir: Path, underlay_dir: str, 
                         "build: its own line says why)")
     op_meta = entry[1]
     # (a build that had nothing to do may be left incomplete by pyinfra: only a failure counts)
+    if source in state.failed_hosts and builder_lost(source):
+        raise ShipError(f"its group's builder {builder} was lost before it finished building it (it stopped "
+                        "answering: powered off, rebooted or off the network; nothing failed to compile); "
+                        "this host receives its underlay from there: run again once the builder answers")
     if source in state.failed_hosts or (op_meta.is_complete() and not op_meta.did_succeed()):
         raise ShipError(f"its group's builder {builder} failed to build it: {build_failure(op_meta)}; "
                         "this host receives its underlay from there")
@@ -228,6 +239,11 @@ def _write_ship_record(state, host, cache_dir: str, digest: str) -> bool:
     return True
 
 
+def _printf_safe(text: str) -> str:
+    """`text` inside a double-quoted shell string as itself: no $, `, \\ or " expands there."""
+    return "".join("\\" + char if char in '$`\\"' else char for char in text)
+
+
 def receive_script(underlay_dir: str, tar: str, record: str, stamp: str, digest: str, builder: str) -> str:
     """Run as the login user: the shipped tree into its install folder, then `install` switched
     to it (one rename); the build stamp and its origin written last."""
@@ -240,10 +256,17 @@ def receive_script(underlay_dir: str, tar: str, record: str, stamp: str, digest:
         f"rm -f {stamp_file}",  # no stamp while the tree changes: an interrupted receive is tried again
         *keep_in_use('"$slot"'),
         'rm -rf "$slot.roslab-new" && mkdir "$slot.roslab-new" || exit 1',
-        f'if ! tar -xzf {shlex.quote(tar)} --no-same-owner -C "$slot.roslab-new"; then',
+        # tar's own complaints are kept back: one line says what happened, naming the folder
+        f'if ! said=$(tar -xzf {shlex.quote(tar)} --no-same-owner -C "$slot.roslab-new" 2>&1 >/dev/null); then',
         '  rm -rf "$slot.roslab-new"',
-        f'  echo "roslab: underlay: the build shipped from {builder} does not extract; the last good install '
-        'stays in use" >&2',
+        '  case "$said" in',
+        f'  *"No space left on device"*) echo "roslab: underlay: the disk holding {_printf_safe(underlay_dir)} is full '
+        f'(the build shipped from {builder} did not fit; $(df -Ph . | awk \'NR == 2 {{print $4}}\') free there): '
+        'free space there and run again; the last good install stays in use" >&2;;',
+        f'  *) echo "roslab: underlay: the build shipped from {builder} does not extract into '
+        f'{_printf_safe(underlay_dir)} ($(printf \'%s\' "$said" | head -n 1 | cut -c 1-200)); the last good '
+        'install stays in use" >&2;;',
+        "  esac",
         "  exit 1",
         "fi",
         'rm -rf "$slot" && mv "$slot.roslab-new" "$slot" || exit 1',

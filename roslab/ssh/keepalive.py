@@ -64,3 +64,4 @@ def install() -> None:
 
     connect_kept_alive.roslab_keeps_alive = True
     SSHConnector.connect = connect_kept_alive
+

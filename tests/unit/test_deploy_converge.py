@@ -292,3 +292,18 @@ def test_a_turtlebot3_team_switching_to_demo_is_told_its_masked_units_stay(tmp_p
     again = plan(run_deploy_py, host.facts(), host_data(tmp_path, "noble", "robot", profile_os_tweaks=True))
     assert again.changing() == {}
     assert not [record for record in caplog.records if "->" in record.getMessage()]
+
+
+def test_a_profile_switch_keeps_the_underlay_sourced_while_the_class_has_sources_and_says_so_only_when_not():
+    from types import SimpleNamespace
+
+    from deploy.profile_switch import kept_after_switch, underlay_sourced
+
+    class_sources = SimpleNamespace(sources_enabled=True, roslab_sources=[{"path": "lab_tools"}])
+    assert underlay_sourced(class_sources)  # the demo profile names none; the roster's workspace_sources do
+    assert not underlay_sourced(SimpleNamespace(sources_enabled=True, roslab_sources=[]))
+    assert not underlay_sourced(SimpleNamespace(sources_enabled=False, roslab_sources=[{"path": "lab_tools"}]))
+    record = {"boot_config": [], "venv": None, "sources": True, "masked_units": []}
+    assert not [line for line in kept_after_switch({"sources": True}, record) if "underlay" in line]
+    (line,) = kept_after_switch({"sources": True}, {**record, "sources": False})
+    assert "no longer source the build): delete it by hand" in line

@@ -310,7 +310,7 @@ def test_a_classroom_without_known_hosts_yet_gets_no_warning_about_the_missing_f
     (["192.0.2.12 {key}", "{hashed} {key}"], False),  # HashKnownHosts: the new address hashed
 ])
 def test_a_move_to_an_address_the_rosters_own_known_hosts_lacks_is_refused_before_connecting(
-        tmp_path, lines, refused):
+        tmp_path, lines, refused, capsys):
     """ssh_known_hosts_file is the teacher's file, which roslab does not add addresses to: a
     network change to an address it holds no key for would be refused by pyinfra and roll back on
     every run, so the roster is refused, naming the host, its line and network_address."""
@@ -337,3 +337,12 @@ def test_a_move_to_an_address_the_rosters_own_known_hosts_lacks_is_refused_befor
     assert "lab_known_hosts (ssh_known_hosts_file) holds its key for 192.0.2.12 but none for 192.0.2.42" in problem
     assert "roslab trust --limit team1-robot" in problem
     assert own.read_text().count("\n") == len(lines)  # the teacher's file is not written
+    # pyinfra's inventory file gets the same problem as one line and exit 2, never a traceback
+    from roslab.packaged import checked_groups
+
+    with pytest.raises(SystemExit) as stopped:
+        checked_groups(load_roster(path))
+    assert stopped.value.code == 2
+    said = capsys.readouterr().err
+    assert said.startswith("roslab: the roster has errors, no host was touched:\n") and "Traceback" not in said
+    assert "holds its key for 192.0.2.12 but none for 192.0.2.42" in said

@@ -482,6 +482,43 @@ def test_a_killed_runs_change_the_host_kept_is_named_then_cleared_and_the_next_r
     assert found_lines(caplog) == [] and [op for op in again.operations if op.commands] == []
 
 
+def test_a_rerun_in_a_killed_runs_confirmation_window_reaching_the_new_address_confirms_the_change(caplog, tmp_path):
+    roster = pending_from_a_killed_run(tmp_path)
+    in_place = {path: content for path, content in reaching_host(run_network()).items() if path.startswith(STAGED)}
+    files = {path[len(STAGED):]: content for path, content in in_place.items()}
+    renderer = {**SERVER_2404, "last_change": Status("t0k", "waiting-for-confirmation")}
+    with caplog.at_level(logging.WARNING):
+        result = run_network(data={"roslab_roster_path": roster, "ssh_hostname": "10.0.0.11"},
+                             renderer=renderer, files=files)
+    assert found_lines(caplog) == []  # the confirmation says what happened, once it is known
+    operation = the_operation(result)
+    assert text(operation) == ["confirm_pending_change"]
+    [confirm] = operation.commands
+    assert confirm.kwargs == {"token": "t0k", "new_address": "10.0.0.11", "roster_path": roster}
+    # At the old address (not the change's), or for another change, the host is not confirmed.
+    for address, token in (("10.0.0.200", "t0k"), ("10.0.0.11", "another")):
+        renderer = {**SERVER_2404, "last_change": Status(token, "waiting-for-confirmation")}
+        other = run_network(data={"roslab_roster_path": roster, "ssh_hostname": address}, renderer=renderer,
+                            files=files)
+        assert "confirm_pending_change" not in [name for op in other.operations for name in text(op)]
+
+
+def test_the_inventory_reaches_a_host_in_a_killed_runs_change_where_it_answers():
+    from roslab.network.state import address_during_change
+
+    pending = {"from": "10.0.0.200", "to": "10.0.0.11"}
+    asked = []
+
+    def answering(*up):
+        return lambda address, port: asked.append(address) or address in up
+
+    assert address_during_change("10.0.0.200", pending, 22, answering("10.0.0.11")) == "10.0.0.11"
+    assert address_during_change("10.0.0.200", pending, 22, answering("10.0.0.200")) == "10.0.0.200"
+    assert address_during_change("10.0.0.200", pending, 22, answering()) == "10.0.0.200"  # its line names it
+    asked.clear()
+    assert address_during_change("10.0.0.200", None, 22, answering()) == "10.0.0.200" and asked == []
+
+
 def test_the_hosts_status_of_its_last_change_is_read_with_the_renderer():
     fact = NetworkRenderer()
     assert "/run/roslab/network/status.json" in fact.command()

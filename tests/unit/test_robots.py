@@ -21,6 +21,7 @@ from roslab.profiles.host import (
     CMDLINE_TXT,
     CONFIG_TXT,
     REBOOT_RECORD,
+    RUN_MARK,
     CmdlineText,
     RebootRecord,
     cmdline_without,
@@ -321,12 +322,14 @@ def test_boot_files_and_the_reboot_record_are_renamed_durably(tmp_path):
     subprocess.run(["sh", "-c", command], check=True, env={**os.environ, "PATH": f"{stubs}:{os.environ['PATH']}"})
     assert (tmp_path / "log").read_text().splitlines() == [
         # before the rename: the new file and the backup, both beside the old one
-        f"sync -- {cmdline}.roslab-new {cmdline}.roslab-x cmdline.txt cmdline.txt.roslab-new cmdline.txt.roslab-x ",
+        f"sync -- {cmdline}.roslab-new-{RUN_MARK} {cmdline}.roslab-x cmdline.txt cmdline.txt.roslab-new-{RUN_MARK} "
+        "cmdline.txt.roslab-x ",
         f"sync -- {boot} cmdline.txt cmdline.txt.roslab-x ",  # after it: the folder
     ]
     assert cmdline.read_text() == UBUNTU_CMDLINE.replace("console=serial0,115200 ", "").strip() + "\n"
     (reboot,) = [commands for name, commands in osr_plan(boot_facts()).changing().items() if "reboot" in name]
-    assert reboot[0].endswith(f"&& sync -- {REBOOT_RECORD}.roslab-new && mv -f -- {REBOOT_RECORD}.roslab-new "
+    assert reboot[0].endswith(f"&& sync -- {REBOOT_RECORD}.roslab-new-{RUN_MARK} && mv -f -- "
+                              f"{REBOOT_RECORD}.roslab-new-{RUN_MARK} "
                               f"{REBOOT_RECORD} && {{ sync -- /run/roslab 2>/dev/null || true; }}")
 
 

@@ -52,6 +52,7 @@ BAD_VALUES: dict[str, list] = {
     "sudo_password_secret": ["../etc/passwd", NEWLINE],
     "login_user": [SUBSHELL, "a b", "-r"],
     "apt_lock_timeout": [-1, 10**9],
+    "run_lock_wait": [-1, 10**9],
     "apt_extra_suites": [["updates\nTrusted: yes"], ["-updates"], ["up dates"]],
     "apt_cache_max_age": [-5],
     "locale": ["C", "en_US.UTF-8\nLANG=C", "en_US.UTF-8 $(id)"],

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import os
 import io
 import subprocess
 import tarfile
@@ -208,6 +209,49 @@ def test_a_failed_build_fails_its_receivers_naming_the_builder_and_the_package(t
     assert "builder team1-robot did not build it in this run" in said[0]
 
 
+def test_a_builder_lost_mid_build_is_named_lost_not_failed_by_its_receivers(tmp_path, monkeypatch):
+    from pyinfra.api import Config, Inventory, State
+
+    inventory = Inventory(([("team1-robot", {}), ("team2-robot", {})], {}))
+    state = State(inventory, Config())
+    digest = "cd" * 32
+    underlay_ship.note_build(state, digest, "team1-robot", FailedBuild())
+    builder = inventory.get_host("team1-robot")
+    state.failed_hosts.add(builder)
+    monkeypatch.setattr(underlay_ship, "builder_lost", lambda source: source is builder)
+    said = []
+    receiver = inventory.get_host("team2-robot")
+    receiver.log_styled = lambda text, **_: said.append(text)
+    assert underlay_ship.ensure_cached(state, receiver, digest, "team1-robot", str(tmp_path), "/u", "s") is False
+    (line,) = said
+    assert line.startswith("roslab: underlay: its group's builder team1-robot was lost before it finished building "
+                           "it (it stopped answering: powered off"), line
+    assert "failed to build" not in line and "run again once the builder answers" in line
+
+
+def test_a_full_disk_is_one_line_naming_the_underlays_folder_not_tars_first_complaint(tmp_path):
+    ws = tmp_path / "roslab_underlay"
+    (ws / "install-a").mkdir(parents=True)
+    (ws / "install").symlink_to("install-a")
+    stubs = tmp_path / "bin"  # a stand-in for tar on a full disk: its complaints, exit 2
+    stubs.mkdir()
+    (stubs / "tar").write_text("#!/bin/sh\necho 'tar: ./lib/libx.so: Cannot write: No space left on device' >&2\n"
+                               "echo 'tar: Exiting with failure status due to previous errors' >&2\nexit 2\n")
+    (stubs / "tar").chmod(0o755)
+    tar, record = tmp_path / "shipped.tar.gz", tmp_path / "shipped.ship"
+    tar.write_bytes(b"")
+    record.write_text("slot=install-0123456789ab\n")
+    script = underlay_ship.receive_script(str(ws), str(tar), str(record), "stamp-2", "12" * 32, "team1-robot")
+    done = subprocess.run(["sh", "-c", script], capture_output=True, text=True,
+                          env={**os.environ, "PATH": f"{stubs}:{os.environ['PATH']}"})
+    assert done.returncode == 1
+    (line,) = done.stderr.splitlines()
+    assert line.startswith(f"roslab: underlay: the disk holding {ws} is full (the build shipped from team1-robot "
+                           "did not fit; "), line
+    assert line.endswith(" free there): free space there and run again; the last good install stays in use")
+    assert (ws / "install").readlink() == Path("install-a") and not list(ws.glob("*.roslab-new"))
+
+
 # --- the receive script, on a real folder ---------------------------------------------------
 
 
@@ -248,7 +292,8 @@ def test_a_shipped_tree_that_does_not_extract_keeps_the_last_good_install(tmp_pa
     script = underlay_ship.receive_script(str(ws), str(tar), str(record), "stamp-2", "12" * 32, "team1-robot")
     done = subprocess.run(["sh", "-c", script], capture_output=True, text=True)
     assert done.returncode != 0
-    assert "roslab: underlay: the build shipped from team1-robot does not extract" in done.stderr
+    assert "roslab: underlay: the build shipped from team1-robot does not extract into " in done.stderr
+    assert done.stderr.count("\n") == 1 and str(ws) in done.stderr  # one line, naming the folder
     assert (ws / "install").readlink() == Path("install-a")
     assert not (ws / ".roslab" / "build.sha256").exists()  # the next run tries again
     assert not list(ws.glob("*.roslab-new"))
