@@ -82,7 +82,11 @@ def test_a_pytest_run_prints_the_durations_and_leaves_the_file(tmp_path):
 
 def test_make_test_and_so_ci_run_leave_the_durations_in_the_checkout():
     """`.ci/run` ends in `make test`; its pytest writes test-durations.md beside the Makefile (gitignored)."""
-    shown = subprocess.run(["make", "-n", "test"], cwd=REPO, capture_output=True, text=True, timeout=60)
+    # Run inside `make test` too (CI): a nested make prints "make[1]: Leaving directory" last
+    # unless it is told not to and forgets the outer make.
+    outer = {key: value for key, value in os.environ.items() if key not in ("MAKEFLAGS", "MAKELEVEL", "MFLAGS")}
+    shown = subprocess.run(["make", "--no-print-directory", "-n", "test"], cwd=REPO, capture_output=True,
+                           text=True, timeout=60, env=outer)
     assert shown.returncode == 0, shown.stderr
     assert f"{ENV}={REPO}/test-durations.md " in shown.stdout.splitlines()[-1]
     assert "exec make test" in (REPO / ".ci/run").read_text()
