@@ -76,5 +76,9 @@ def _clip(text: str) -> str:
 def summary(unit: str, lines) -> list[str]:
     """One line per node of `unit`'s launch that died in the last minute:
     "osr_startup: rover died 3 times in the last minute: ..."."""
-    return [f"{unit}: {node} died {'once' if count == 1 else f'{count} times'} in the last minute: {why}"
-            for node, (count, why) in died_nodes(lines).items()]
+    return [death_line(unit, node, count, why) for node, (count, why) in died_nodes(lines).items()]
+
+
+def death_line(unit: str, node: str, count: int, why: str) -> str:
+    """"osr_startup: rover died 3 times in the last minute: <why>"."""
+    return f"{unit}: {node} died {'once' if count == 1 else f'{count} times'} in the last minute: {why}"

@@ -299,13 +299,17 @@ class HostStatus:
         units = self.probe.get("units") or {}
         return [(service, service_state(units.get(service.unit) or {})) for service in self.other_services]
 
-    def launch_failures(self) -> list[str]:
-        """One line per node that died in a running launch service of its profile (the rover's
-        roboclaw_wrapper without its serial port), from the journal's last lines."""
+    def node_deaths(self) -> list[tuple]:
+        """(host, unit, node, times, why) of each node that died in the last minute in a running
+        launch service of its profile (the rover's roboclaw_wrapper without its serial port)."""
         journals = self.probe.get("journals") or {}
-        return [line for service, state in self.other_states() if service.launch and state == SERVICE_RUNNING
-                for line in launch_journal.summary(service.unit.removesuffix(".service"),
-                                                   journals.get(service.unit) or [])]
+        return [(self.name, service.unit.removesuffix(".service"), node, count, why)
+                for service, state in self.other_states() if service.launch and state == SERVICE_RUNNING
+                for node, (count, why) in launch_journal.died_nodes(journals.get(service.unit) or []).items()]
+
+    def launch_failures(self) -> list[str]:
+        """One line per node of `node_deaths`."""
+        return [launch_journal.death_line(unit, node, count, why) for _, unit, node, count, why in self.node_deaths()]
 
     def services_stopped(self) -> list[tuple]:
         """(HostService, state) of its other services that do not run."""
@@ -793,10 +797,7 @@ def team_result(team: str, hosts: list[HostStatus], main: HostStatus | None, rob
                         other_services=[(host.name, service, state) for host in hosts
                                         for service, state in host.other_states()])
     result.not_started = [(host.name, service, why) for host in hosts for service, why in host.not_started]
-    result.node_deaths = [(host.name, service.unit.removesuffix(".service"), node, count, why) for host in hosts
-                          for service, state in host.other_states() if service.launch and state == SERVICE_RUNNING
-                          for node, (count, why) in launch_journal.died_nodes(
-                              (host.probe.get("journals") or {}).get(service.unit) or []).items()]
+    result.node_deaths = [death for host in hosts for death in host.node_deaths()]
     if main is not None:
         result.heard = main.heard
         result.listens, result.profile = main.listens, main.profile

@@ -474,10 +474,10 @@ def _check_host(state: State, host) -> tuple[str, dict, dict | None, str | None,
     with ctx_host.use(host):
         try:
             service = service_state(host.get_fact(NodesUnitState, service=NODES_SERVICE))
-            others = {item.unit: service_state(host.get_fact(NodesUnitState, service=item.unit))
-                      for item in host_services(host.data) if item.kind != "nodes"}
+            services = [item for item in host_services(host.data) if item.kind != "nodes"]
+            others = {item.unit: service_state(host.get_fact(NodesUnitState, service=item.unit)) for item in services}
             deaths = [(host.name, item.unit.removesuffix(".service"), node, count, why)
-                      for item in host_services(host.data) if item.launch and others.get(item.unit) == SERVICE_RUNNING
+                      for item in services if item.launch and others.get(item.unit) == SERVICE_RUNNING
                       for node, (count, why) in launch_journal.died_nodes(
                           host.get_fact(LaunchDeaths, unit=item.unit)).items()]
             if host.data.get("roslab_role") != "main" or not host.data.get("nodes_verify_topic"):
