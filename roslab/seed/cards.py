@@ -18,10 +18,11 @@ every card is written from that one stream of bytes.
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import json
 import lzma
 import os
-import shutil
 import struct
 import subprocess
 import tempfile
@@ -30,6 +31,7 @@ from pathlib import Path
 
 from roslab.seed import targets
 
+CHUNK = 4 << 20
 MAX_CARD_BYTES = 256 * 10**9  # larger: a disk, not an SD card, unless --allow-large says so
 LSBLK_COLUMNS = "NAME,PATH,TYPE,RM,HOTPLUG,SIZE,MOUNTPOINTS,TRAN,SERIAL,MODEL,MAJ:MIN"
 CARD_TRANSPORTS = ("usb", "mmc")
@@ -149,18 +151,30 @@ class Image:
     boot: targets.Partition
 
 
-def raw_image(source: Path, work_dir: Path) -> Path:
-    """The raw image: `source` itself, or a .xz decompressed once into `work_dir` (0600)."""
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as source:
+        while chunk := source.read(CHUNK):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def raw_image(source: Path, work_dir: Path) -> tuple[Path, str]:
+    """(the raw image, its sha256): `source` itself, or a .xz decompressed once into `work_dir`
+    (0600), its digest taken as it is written."""
     if source.suffix != ".xz":
-        return source
+        return source, file_sha256(source)
     fd, name = tempfile.mkstemp(prefix="roslab-flash-", suffix=".img", dir=work_dir)
+    digest = hashlib.sha256()
     try:
         with os.fdopen(fd, "wb") as out, lzma.open(source) as stream:
-            shutil.copyfileobj(stream, out, 4 << 20)
+            while chunk := stream.read(CHUNK):
+                digest.update(chunk)
+                out.write(chunk)
     except (lzma.LZMAError, EOFError) as error:
         os.unlink(name)
         raise CardError(f"{source}: not a readable .xz image ({error})") from None
-    return Path(name)
+    return Path(name), digest.hexdigest()
 
 
 def _partitions(image: Path) -> list[tuple[int, int, int]]:
@@ -185,19 +199,24 @@ def _writable(image: Path) -> tuple[int, int]:
     raise CardError(f"{image} has no ext4 partition (writable): not a Raspberry Pi preinstalled image")
 
 
-def _debugfs(image: Path, start: int, size: int, request: str) -> str:
-    """debugfs's answer about the ext4 filesystem at `start` of `image`, read through a
-    read-only loop device over exactly that partition (nothing is mounted)."""
+@contextlib.contextmanager
+def _partition_device(image: Path, start: int, size: int):
+    """A read-only loop device over exactly the partition at `start` of `image` (nothing is
+    mounted), detached afterwards."""
     loop = subprocess.run(["losetup", "--read-only", "--find", "--show", "--offset", str(start),
                            "--sizelimit", str(size), str(image)], capture_output=True, text=True)
     if loop.returncode:
         raise CardError(f"{image}: cannot read its writable partition: {loop.stderr.strip()}")
     device = loop.stdout.strip()
     try:
-        done = subprocess.run(["debugfs", "-R", request, device], capture_output=True, text=True)
-        return done.stdout
+        yield device
     finally:
         subprocess.run(["losetup", "--detach", device], capture_output=True)
+
+
+def _debugfs(device: str, request: str) -> str:
+    """debugfs's answer about the ext4 filesystem on `device`."""
+    return subprocess.run(["debugfs", "-R", request, device], capture_output=True, text=True).stdout
 
 
 def image_of(raw: Path) -> Image:
@@ -211,14 +230,13 @@ def image_of(raw: Path) -> Image:
     missing = [name for name in targets.PI_BOOT_FILES if not fat.has(name)]
     if missing:
         raise CardError(f"{raw}: its boot partition has no {', '.join(missing)}: not a Raspberry Pi image")
-    start, size = _writable(raw)
-    os_release = _debugfs(raw, start, size, "cat /usr/lib/os-release") or _debugfs(
-        raw, start, size, "cat /etc/os-release")
+    with _partition_device(raw, *_writable(raw)) as device:
+        os_release = _debugfs(device, "cat /usr/lib/os-release") or _debugfs(device, "cat /etc/os-release")
+        listing = _debugfs(device, "ls -l /usr/lib")
     fields = dict(line.split("=", 1) for line in os_release.splitlines() if "=" in line)
     release = fields.get("VERSION_ID", "").strip('"')
     if fields.get("ID", "").strip('"') != "ubuntu" or not release:
         raise CardError(f"{raw}: its writable partition is not Ubuntu (no ID=ubuntu in os-release)")
-    listing = _debugfs(raw, start, size, "ls -l /usr/lib")
     found = [arch for triplet, arch in ARCHITECTURES.items() if f" {triplet}" in listing]
     if len(found) != 1:
         raise CardError(f"{raw}: cannot tell its architecture from /usr/lib")

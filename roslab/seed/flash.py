@@ -63,14 +63,6 @@ class Job:
             self.result, self.reason = "FAILED", reason
 
 
-def file_digest(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as source:
-        while chunk := source.read(CHUNK):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
 # -- writing --------------------------------------------------------------------------------------
 
 
@@ -101,17 +93,17 @@ def _writer(job: Job, chunks: queue.Queue) -> None:
         os.close(fd)
 
 
-def write_all(image: cards.Image, jobs: list[Job], say=print) -> str:
-    """Read the image once and write it to every job's card at once; the image's sha256."""
+def write_all(image: cards.Image, jobs: list[Job], say=print) -> None:
+    """Read the image once and write it to every job's card at once (its digest was taken with
+    the image: `cards.raw_image`)."""
     queues = [queue.Queue(maxsize=4) for _ in jobs]
     writers = [threading.Thread(target=_writer, args=(job, chunks), daemon=True) for job, chunks in zip(jobs, queues)]
     for job, writer in zip(jobs, writers):
         job.result = "writing"
         writer.start()
-    digest, started, shown = hashlib.sha256(), time.monotonic(), time.monotonic()
+    started = shown = time.monotonic()
     with open(image.path, "rb") as source:
         while chunk := source.read(CHUNK):
-            digest.update(chunk)
             for chunks in queues:
                 chunks.put(chunk)
             if time.monotonic() - shown >= PROGRESS_EVERY:
@@ -122,7 +114,6 @@ def write_all(image: cards.Image, jobs: list[Job], say=print) -> str:
     for writer in writers:
         writer.join()
     say_progress(jobs, image.size, time.monotonic() - started, say)
-    return digest.hexdigest()
 
 
 def say_progress(jobs: list[Job], total: int, seconds: float, say=print) -> None:
@@ -259,11 +250,11 @@ def run_flash(args: argparse.Namespace) -> int:
 
 
 def _flash(args: argparse.Namespace, work: Path) -> int:
-    if args.image_sha256 and file_digest(Path(args.image)) != args.image_sha256.lower():
+    if args.image_sha256 and cards.file_sha256(Path(args.image)) != args.image_sha256.lower():
         raise _Stop(1, f"roslab flash: {args.image} is not the image --image-sha256 names: nothing was written")
-    image = cards.image_of(cards.raw_image(Path(args.image), work))
+    raw, image_sha256 = cards.raw_image(Path(args.image), work)
+    image = cards.image_of(raw)
     jobs, seeds, roster = _plan(args, image)
-    image_sha256 = file_digest(image.path)
     todo = []
     for job in jobs:
         if not args.force and already_done(job, image_sha256, seeds[job.host.name]):
