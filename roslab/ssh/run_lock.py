@@ -11,7 +11,9 @@ A run that finds the lock taken says who holds it (the other run's controller ho
 and start time, from OWNER_FILE) and waits up to `run_lock_wait` seconds; then it stops that
 host with the same words (the other hosts carry on). A session can outlive its run when the host
 moved address mid-change (the end of the connection never reaches it): a run of the same
-controller whose pid is gone has its holder (run.holder) ended instead of waited for.
+controller whose pid is gone has its holder (run.holder) ended instead of waited for, and so
+has the previous run of this controller whose session is still ending (a run straight after
+another): neither is another run, so neither is announced as one.
 """
 
 from __future__ import annotations
@@ -52,8 +54,9 @@ if ! flock -n 9; then
     hold flock 9; echo locked; exit 0
   fi
   # a run its controller knows is gone (killed) whose session outlived it (its host moved address)
-  if [ -n "$stale" ] && [ "$(owner)" = "$stale" ]; then kill "$(cat "$dir/run.holder")" 2>/dev/null; fi
-  echo "waiting $(owner)"
+  # (not another run: nothing to say while its holder lets go)
+  if [ -n "$stale" ] && [ "$(owner)" = "$stale" ]; then kill "$(cat "$dir/run.holder")" 2>/dev/null
+  else echo "waiting $(owner)"; fi
   flock -w "$wait" 9 || { echo "held $(owner)"; exit 4; }
 fi
 printf '%s\n' "$who" > "$dir/run.owner.$$" && mv -f "$dir/run.owner.$$" "$dir/run.owner"
@@ -133,7 +136,9 @@ def lock_problem(connector, who: str, wait: int) -> str | None:
         lines = list(output.stdout_lines)
     locked, said = outcome(lines, wait)
     if not locked:
-        return said
+        # the lock is the first thing a run does as root: a wrong sudo password shows here first
+        from roslab.reporting.summary import sudo_refusal
+        return sudo_refusal(host, output.stderr_lines) or said
     connector.roslab_run_locked = wait  # its reconnections take the lock again
     if said:
         logger.warning(f"{host.print_prefix}roslab: {said}")

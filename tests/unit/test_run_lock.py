@@ -126,4 +126,34 @@ def test_a_killed_runs_session_that_outlived_it_is_ended_and_the_lock_taken(tmp_
     finally:
         holder.kill()
         holder.wait()
-    assert outcome(done.stdout.splitlines(), 10) == (True, f"waited for {owner} to end"), done
+    # the run it waited for has ended already: nothing to tell the teacher (a run straight after
+    # another of this controller meets its session still ending, the same way)
+    assert outcome(done.stdout.splitlines(), 10) == (True, None), done
+
+
+class SudoRefusingConnector:
+    """A connection whose sudo refuses the roster's password: the run lock is its first root command."""
+
+    def __init__(self, secret: str | None):
+        from pyinfra.api.host import HostData
+
+        data = {"sudo_password_secret": secret, "_sudo_password": "Wrong-Pass-19"} if secret else {}
+        self.host = type("Host", (), {"data": HostData("team1-main", data), "print_prefix": ""})()
+
+    def run_shell_command(self, command, **arguments):
+        from pyinfra.connectors.util import CommandOutput, OutputLine
+
+        assert arguments.get("_sudo") is True
+        return False, CommandOutput([OutputLine("stderr", "Sorry, try again."),
+                                     OutputLine("stderr", "sudo: 3 incorrect password attempts")])
+
+
+def test_a_wrong_sudo_password_is_named_as_such_not_as_a_lock_problem():
+    from roslab.ssh.run_lock import lock_problem
+
+    assert lock_problem(SudoRefusingConnector("lab_sudo"), this_run(), 600) == (
+        "sudo refused the password from the roster's sudo_password_secret: the secret it names does not hold "
+        "this host's sudo password (sudo: 3 incorrect password attempts)")
+    assert lock_problem(SudoRefusingConnector(None), this_run(), 600) == (
+        "sudo asks for a password and the roster sets no sudo_password_secret for this host "
+        "(sudo: 3 incorrect password attempts)")
