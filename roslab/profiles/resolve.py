@@ -231,8 +231,12 @@ def placement_problems(profile: Profile, *, distro: str, role: str, board: str |
 
 def merged_parts(parts: list[Side]) -> Side:
     """The side and its matching `when` blocks as one: lists joined (each item once), the
-    environment merged, a later service replacing an earlier one of its name."""
+    environment merged, a later service replacing an earlier one of its name. The checklist
+    lists the blocks' items (how this host is set up: flash, plug in) before the side's own (what
+    every host of the side does once it is: try it)."""
     merged = Side()
+    for part in parts[1:] + parts[:1]:
+        merged.checklist += part.checklist
     for part in parts:
         merged.ros_packages += [p for p in part.ros_packages if p not in merged.ros_packages]
         merged.apt_packages += [p for p in part.apt_packages if p not in merged.apt_packages]
@@ -240,7 +244,6 @@ def merged_parts(parts: list[Side]) -> Side:
         merged.groups += [g for g in part.groups if g not in merged.groups]
         merged.devices = [d for d in merged.devices if d.name not in {p.name for p in part.devices}]
         merged.devices += part.devices
-        merged.checklist += part.checklist
         merged.remove_apt_packages += [p for p in part.remove_apt_packages if p not in merged.remove_apt_packages]
         for key in BOOT_CONFIG_KEYS:
             items = merged.boot_config.setdefault(key, [])

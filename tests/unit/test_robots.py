@@ -220,6 +220,12 @@ def test_esp32_agent_runs_on_the_side_the_board_is_attached_to():
     assert on_main["services"][0]["description"] == "micro-ROS agent for the ESP32 board (UDP port 9000)"
 
 
+def test_esp32_checklist_flashes_and_plugs_in_the_board_before_it_is_tried():
+    robot = resolved("esp32_microros", esp32_usb_serial="A1", esp32_transport="udp")
+    steps = [item.split()[0] for item in robot["checklist"]]
+    assert steps == ["Flash", "UDP:", "Turn"], robot["checklist"]
+
+
 def test_esp32_verify_expects_the_boards_reading_only_with_a_board_present_and_names_the_board():
     # the board's own topic: the robot's servo angle goes on after the board stops (the demo
     # node repeats its last angle), so only the potentiometer proves the board is there
