@@ -18,6 +18,7 @@ from roslab import settings
 from roslab.reporting import summary
 from roslab.ssh import run_lock
 from roslab.operations import as_user
+from roslab.facts import BOOT_WAIT, BootFinished
 from roslab.probe import read, read_ahead, registered_reads
 from roslab.ros.distro import DistroError, UBUNTU_CODENAMES, check_distro, codename_for, default_distro
 from roslab.host_settings import HostSettingsError, host_settings
@@ -148,6 +149,21 @@ def host_problem() -> str | None:
     "The host runs an Ubuntu release that has packages for its ROS 2 distro",
     data_defaults=DEFAULTS,
 )
+def said_boot_wait() -> None:
+    """Say that this run waited for the host to finish booting (read ahead in supported_host),
+    or that it is still booting after BOOT_WAIT seconds: what it reads of units may change."""
+    boot = host.get_fact(BootFinished, timeout=BOOT_WAIT)
+    if not boot or not boot["waited"]:
+        return
+    if boot["timed_out"]:
+        logger.warning(f"{host.print_prefix}roslab: {where()}: still booting after {BOOT_WAIT} s "
+                       "(systemctl is-system-running: starting); carrying on: a unit still starting "
+                       "may be started by this run")
+    elif boot["seconds"] > 0:
+        logger.warning(f"{host.print_prefix}roslab: {where()}: waited {boot['seconds']} s for the host to "
+                       f"finish booting (systemd: {boot['state'] or 'unknown'})")
+
+
 def supported_host() -> bool:
     """Stop this host (only) when it cannot get the ROS 2 the roster asks for.
 
@@ -156,8 +172,9 @@ def supported_host() -> bool:
     Returns whether the host is still active.
 
     Reads the host in two remote commands (roslab.probe): its release and the login
-    user's home (no sudo needed), then, for a host that can be provisioned, everything the
-    deploys' operations read when nothing needs changing (under sudo: apt's lock, root's files).
+    user's home (no sudo needed; first waiting for a host still booting: BootFinished), then,
+    for a host that can be provisioned, everything the deploys' operations read when nothing
+    needs changing (under sudo: apt's lock, root's files).
     """
     try:
         host_settings(host)
@@ -168,7 +185,9 @@ def supported_host() -> bool:
     if busy:
         stop_host(f"{where()}: {busy}")
         return False
-    read_ahead([read(LinuxDistribution), read(Home, user=login_user())], _sudo=False)
+    read_ahead([read(BootFinished, timeout=BOOT_WAIT), read(LinuxDistribution), read(Home, user=login_user())],
+               _sudo=False)
+    said_boot_wait()
     problem = host_problem()
     if problem:
         stop_host(f"{where()}: {problem}; nothing was changed on it")

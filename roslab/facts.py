@@ -144,3 +144,45 @@ class FileAge(FactBase):
             if line.lstrip("-").isdigit():
                 return int(line)
         return None
+
+
+_BOOT_PREFIX = "roslab-boot="
+# How long a run waits for a host that is still booting (s): Ubuntu's wait for the network
+# (systemd-networkd-wait-online) gives up after 120 s, so a boot is over well within this.
+BOOT_WAIT = 300
+
+
+class BootFinished(FactBase):
+    """
+    Waits (bounded by ``timeout`` seconds) until systemd has finished starting the host, and
+    says whether it had to.
+
+    A run right after a reboot meets units whose start is queued behind the network (a robot's
+    service waits for network-online.target): read then, they look stopped, and starting them
+    would be a change the boot was about to make itself. On a booted host this costs one
+    ``systemctl is-system-running``.
+
+    Returns ``None`` where systemd does not run the host, else ``{"waited": bool, "seconds":
+    int, "state": systemd's word after the wait ("running", "degraded"; "" when still starting
+    at the timeout), "timed_out": bool}``.
+    """
+
+    @override
+    def command(self, timeout: int) -> str:
+        return (
+            "if command -v systemctl >/dev/null 2>&1; then "
+            "state=$(systemctl is-system-running 2>/dev/null); "
+            'case "$state" in initializing|starting) started=$(date +%s); '
+            f"state=$(timeout {int(timeout) or 1} systemctl is-system-running --wait 2>/dev/null); rc=$?; "
+            f'echo "{_BOOT_PREFIX}waited $rc $(( $(date +%s) - started )) $state";; '
+            f'*) echo "{_BOOT_PREFIX}settled 0 0 $state";; esac; fi'
+        )
+
+    @override
+    def process(self, output):
+        for line in output:
+            if line.startswith(_BOOT_PREFIX):
+                how, status, seconds, *state = line[len(_BOOT_PREFIX):].split(" ", 3)
+                return {"waited": how == "waited", "seconds": int(seconds) if seconds.isdigit() else 0,
+                        "state": (state[0] if state else "").strip(), "timed_out": status == "124"}
+        return None

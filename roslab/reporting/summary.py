@@ -58,6 +58,7 @@ from pyinfra.api.state import BaseStateCallback, State, StateStage
 from pyinfra.context import ctx_host, ctx_state
 
 from roslab.ssh import identity
+from roslab.ssh.sudo import sudo_refusal
 from roslab.connections import connection_lost
 from roslab.reporting.runs import HostRun, record_runs
 
@@ -69,11 +70,6 @@ SIGNAL_NAMES = {signal.SIGINT: "SIGINT (Ctrl-C)", signal.SIGTERM: "SIGTERM"}
 NO_STDIN = ("pyinfra asked a question (a confirmation, or a password) but standard input is closed "
             "(cron, CI, no terminal): nothing more was executed; run with -y to apply without asking, "
             "or --dry to preview")
-# sudo's own words when the password it was given is wrong (or it got none).
-_SUDO_PASSWORD = re.compile(
-    r"^(?:sudo: )?(?:\d+ incorrect password attempts?|Sorry, try again\.?|a password is required|"
-    r"no password was provided|no askpass program specified.*)$"
-)
 MASK = "***"
 MAX_REASON = 240  # characters of a reason kept on its one line
 MAX_LOG_LINES = 200  # warning/error lines kept per host (the latest)
@@ -686,23 +682,6 @@ def condition_holds(conditions) -> bool:
         return all(condition() for condition in conditions)
     except Exception:  # noqa: BLE001 - a condition that cannot be known before running may hold
         return True
-
-
-def sudo_refusal(host, lines: Iterable[str]) -> str | None:
-    """One line naming the roster setting when sudo's own words say the password was wrong
-    (or that it needed one and got none), else None. sudo says it in whatever step first
-    needs root, which says nothing about the cause."""
-    words = [one_line(line) for line in lines]
-    said = next((line for line in reversed(words) if _SUDO_PASSWORD.match(line)), None)
-    if said is None:
-        return None
-    data = getattr(host, "data", None)
-    secret = data.get("sudo_password_secret") if data is not None else None
-    if secret and data.get("_sudo_password"):
-        return (f"sudo refused the password from the roster's sudo_password_secret: the secret it names "
-                f"does not hold this host's sudo password (sudo: {said.removeprefix('sudo: ')})")
-    return (f"sudo asks for a password and the roster sets no sudo_password_secret for this host "
-            f"(sudo: {said.removeprefix('sudo: ')})")
 
 
 def host_failed(state: State, host) -> bool:

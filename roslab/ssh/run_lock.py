@@ -137,7 +137,7 @@ def lock_problem(connector, who: str, wait: int) -> str | None:
     locked, said = outcome(lines, wait)
     if not locked:
         # the lock is the first thing a run does as root: a wrong sudo password shows here first
-        from roslab.reporting.summary import sudo_refusal
+        from roslab.ssh.sudo import sudo_refusal
         return sudo_refusal(host, output.stderr_lines) or said
     connector.roslab_run_locked = wait  # its reconnections take the lock again
     if said:

@@ -36,8 +36,10 @@ code this relies on: when pyinfra changes it, that test fails.
 
 from __future__ import annotations
 
+import re
 import shlex
 import sys
+from collections.abc import Iterable
 
 import gevent.lock
 from pyinfra.api import QuoteString, StringCommand
@@ -170,3 +172,28 @@ def install() -> None:
         if (name.startswith("pyinfra.connectors.") and module is not None
                 and getattr(module, "make_unix_command_for_host", None) is pyinfra_make_unix_command_for_host):
             module.make_unix_command_for_host = make_unix_command_for_host
+
+
+# sudo's own words when the password it was given is wrong (or it got none).
+_SUDO_PASSWORD = re.compile(
+    r"^(?:sudo: )?(?:\d+ incorrect password attempts?|Sorry, try again\.?|a password is required|"
+    r"no password was provided|no askpass program specified.*)$"
+)
+_ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
+
+
+def sudo_refusal(host, lines: Iterable[str]) -> str | None:
+    """One line naming the roster setting when sudo's own words say the password was wrong
+    (or that it needed one and got none), else None. sudo says it in whatever step first
+    needs root, which says nothing about the cause."""
+    words = [" ".join(_ANSI.sub("", str(line)).split()) for line in lines]
+    said = next((line for line in reversed(words) if _SUDO_PASSWORD.match(line)), None)
+    if said is None:
+        return None
+    data = getattr(host, "data", None)
+    secret = data.get("sudo_password_secret") if data is not None else None
+    if secret and data.get("_sudo_password"):
+        return (f"sudo refused the password from the roster's sudo_password_secret: the secret it names "
+                f"does not hold this host's sudo password (sudo: {said.removeprefix('sudo: ')})")
+    return (f"sudo asks for a password and the roster sets no sudo_password_secret for this host "
+            f"(sudo: {said.removeprefix('sudo: ')})")
