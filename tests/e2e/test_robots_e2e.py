@@ -468,9 +468,7 @@ def test_status_shows_reboot_needed_until_a_reboot_after_which_a_run_changes_not
     sandbox.reboot(ROVER)
     assert "reboot" not in status()[ROVER]
     assert "enable_uart=1" in sandbox.ssh(ROVER, "cat /boot/firmware/config.txt", check=True).stdout
-    print("DEBUG1", sandbox.sudo(ROVER, "systemctl is-system-running; systemctl status --no-pager osr_startup; systemctl list-jobs --no-pager; journalctl -b --no-pager -u osr_startup | tail -30").stdout)
     again = deploy(sandbox, roster)
-    print("DEBUG2", sandbox.sudo(ROVER, "systemctl is-system-running; systemctl status --no-pager osr_startup; journalctl -b --no-pager -u osr_startup | tail -30").stdout)
     assert again.returncode == 0, again.stderr[-3000:]
     assert again.changed == {}, again.changed
     assert reboot_lines(again.stderr) == [], again.stderr[-3000:]
