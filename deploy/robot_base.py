@@ -24,6 +24,7 @@ from roslab import settings
 from roslab.host_settings import host_settings
 from roslab.quoting import shell_word
 from roslab.profiles.robot_base import (
+    BASE_PACKAGES,
     POSTED_RECORD,
     RobotBase,
     chrony_text,
@@ -135,7 +136,7 @@ def link_addressed(base: RobotBase) -> None:
     # before the first reboot after the boot config there is no usb0 yet: the file does it at boot.
     server.shell(
         name=f"Ensure {base.interface} holds {base.pi_address} now (when it exists)",
-        commands=[f"if [ -e /sys/class/net/{interface} ]; then ip addr replace {shell_word(base.pi_address)} "
+        commands=[f"if ip link show dev {interface} >/dev/null 2>&1; then ip addr replace {shell_word(base.pi_address)} "
                   f"dev {interface} && ip link set {interface} up; fi"],
         _if=written.did_change)
 
@@ -143,7 +144,7 @@ def link_addressed(base: RobotBase) -> None:
 def time_served(base: RobotBase) -> None:
     """chrony installed, with a drop-in that serves the base's network; restarted on a change."""
     apt.packages(name="Ensure chrony is installed (the robot's base takes its time from the Pi)",
-                 packages=["chrony"])
+                 packages=list(BASE_PACKAGES))
     written = files.put(name=f"Ensure {CHRONY_DROP_IN} lets chrony serve {base.ntp_allow}",
                         src=StringIO(chrony_text(base)), dest=CHRONY_DROP_IN, user="root", group="root",
                         mode="644")

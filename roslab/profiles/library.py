@@ -242,9 +242,14 @@ def dds_only_packages() -> dict[str, str]:
 
 def builtin_debian_packages() -> set[str]:
     """Every apt package a built-in profile installs that is not a ROS one (python3-serial,
-    i2c-tools): the sandbox's Ubuntu-layout archive carries the real Debian packages."""
+    i2c-tools; chrony for a profile with a robot base): the sandbox's Ubuntu-layout archive
+    carries the real Debian packages."""
+    from roslab.profiles.robot_base import BASE_PACKAGES
+
     names: set[str] = set()
     for profile in builtin_profiles().values():
+        if getattr(profile, "base", None):
+            names |= set(BASE_PACKAGES)
         for side in profile.sides.values():
             for part in [side, *(block["side"] for block in side.when)]:
                 names |= {name for name in part.apt_packages if "{distro}" not in name}

@@ -138,6 +138,10 @@ def netplan_text(base: RobotBase) -> str:
             "      optional: true\n")
 
 
+# What a host with a robot base gets installed (deploy/robot_base.py): chrony serves the base its time.
+BASE_PACKAGES = ("chrony",)
+
+
 def chrony_text(base: RobotBase) -> str:
     """chrony's drop-in that serves time to the base (turtlebot4_setup's chrony.conf `allow`)."""
     return f"# roslab: the robot's base ({base.kind}) takes its time from this Pi\nallow {base.ntp_allow}\n"

@@ -66,6 +66,15 @@ def register(subparsers) -> argparse.ArgumentParser:
     board.add_argument("action", choices=("start", "stop", "status"))
     board.add_argument("--roster", type=Path, metavar="FILE",
                        help="the roster the class was deployed with (default: the sandbox's own roster)")
+    create3 = commands.add_parser(
+        "create3", help="plug a stand-in Create 3 into a host (a TurtleBot 4's base), unplug it, or show it",
+        description="A stand-in for a TurtleBot 4's Create 3 (an emulation of its web server, not the robot): "
+                    "usb0 appears in HOST, the base answers at 192.168.186.2 on its other end and records "
+                    "what roslab posts to it (domain, namespace, middleware, NTP server). Only HOST reaches it.")
+    create3.add_argument("host")
+    create3.add_argument("action", choices=("start", "stop", "status"))
+    create3.add_argument("--firmware", default=None, metavar="VERSION",
+                         help="the firmware it reports (default I.0.0.FastDDS, a Jazzy generation; H.x for Humble)")
     parser.set_defaults(run=run)  # the `roslab` command calls args.run(args)
     return parser
 
@@ -126,6 +135,24 @@ def run_board(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_create3(args: argparse.Namespace) -> int:
+    """`roslab sandbox create3 HOST start|stop|status`."""
+    from . import create3_link
+
+    classroom = lifecycle.load()
+    host = classroom.host(args.host)
+    if args.action == "start":
+        pid = create3_link.plug(classroom.instance, host, args.firmware or create3_link.DEFAULT_FIRMWARE)
+        print(f"{host.name}: a stand-in Create 3 is plugged in (usb0; it answers at 192.168.186.2, pid {pid}): "
+              "roslab's next run gives usb0 its address and configures it")
+    elif args.action == "stop":
+        unplugged = create3_link.unplug(classroom.instance, host)
+        print(f"{host.name}: Create 3 {'unplugged' if unplugged else 'was not plugged in'}")
+    else:
+        print(f"{host.name}: Create 3 {create3_link.state(classroom.instance, host)}")
+    return 0
+
+
 def _interrupt(signum, frame):
     raise KeyboardInterrupt(f"signal {signum}")
 
@@ -160,6 +187,8 @@ def run(args: argparse.Namespace) -> int:
             lifecycle.ssh(args.host, args.cmd)
         elif args.sandbox_command == "board":
             return run_board(args)
+        elif args.sandbox_command == "create3":
+            return run_create3(args)
     except SandboxError as exc:
         print(f"roslab sandbox: {exc}", file=sys.stderr)
         return 1

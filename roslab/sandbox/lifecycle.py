@@ -20,7 +20,7 @@ import yaml
 
 from roslab.ssh import identity
 
-from . import esp32_board, git_standins, hosts, image, seeding, upstream
+from . import create3_link, esp32_board, git_standins, hosts, image, seeding, upstream
 from .instance import STATE_ROOT, UPSTREAM_PORT, Instance, SandboxHost, releases_by_team
 from .system import SandboxError, announced, discard, file_lock, log, run, sweep_discarded, write_file
 
@@ -470,6 +470,7 @@ def _down_locked(instance: Instance) -> None:
                 pass
         upstream.stop_server(instance.state_dir / "upstream.pid")
         esp32_board.stop_all(instance.state_dir)  # `roslab sandbox board` processes, on this machine
+        create3_link.unplug_all(instance)  # `roslab sandbox create3` stand-ins (their netns go below)
         if instance.state_dir.exists():
             hosts.unmount_all(instance.state_dir)
         hosts.remove_network(instance)

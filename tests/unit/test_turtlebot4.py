@@ -370,3 +370,40 @@ def test_status_shows_the_create3_firmware(answer, distro, note):
                         reachable=True, probe=probe, base=TB4_BASE.__dict__)
     assert base_note(status).startswith(note)
     assert parse_probe(["## end"])["base"] is None
+
+
+# --- the sandbox's Create 3 link (roslab/sandbox/create3_link.py): names and values, no boots -----
+
+def test_the_sandbox_create3_link_names_fit_the_kernel_and_go_with_the_sandbox():
+    from roslab.sandbox import create3_link
+    from roslab.sandbox.instance import Instance, SandboxHost
+    import ipaddress
+
+    instance = Instance("a-very-long-sandbox-name-for-a-class", ipaddress.IPv4Network("10.213.181.0/24"))
+    host = SandboxHost(name="team12-robot", team="team12", role="robot", release="24.04", index=23,
+                       address="10.213.181.34")
+    assert len(create3_link.veth(instance, host)) <= 15  # IFNAMSIZ - 1
+    assert create3_link.netns(instance, host).startswith(instance.netns_prefix)  # `down` deletes it
+    pid_file, record = create3_link.files(instance, host)
+    assert pid_file.parent == record.parent == instance.state_dir / "create3"
+
+
+@pytest.mark.parametrize("firmware", ["I.0.0.FastDDS", "H.2.6", "G.5.3.CycloneDDS"])
+def test_a_create3_firmware_version_is_taken(firmware):
+    from roslab.sandbox.create3_link import FIRMWARE
+
+    assert FIRMWARE.fullmatch(firmware)
+
+
+@pytest.mark.parametrize("firmware", ["", "I", "i.0.0", "I.0.0.Fast DDS", "I.0.0;reboot", "I.0.0.FastDDS\n"])
+def test_a_create3_firmware_that_is_no_version_is_refused(firmware):
+    from roslab.sandbox.create3_link import FIRMWARE, plug
+    from roslab.sandbox.instance import Instance, SandboxHost
+    from roslab.sandbox.system import SandboxError
+    import ipaddress
+
+    assert not FIRMWARE.fullmatch(firmware)
+    instance = Instance("unit", ipaddress.IPv4Network("10.213.181.0/24"))
+    host = SandboxHost(name="team1-robot", team="team1", role="robot", release="24.04", index=1, address="10.213.181.12")
+    with pytest.raises(SandboxError, match="firmware version"):
+        plug(instance, host, firmware)
