@@ -28,6 +28,7 @@ from deploy.ssh_identity import ssh_identity
 from deploy.workspace import workspace
 from roslab import pyinfra_planning, remote_files
 from roslab.reporting import summary
+from roslab.ros import colcon_progress
 from roslab.ssh import keepalive as ssh_keepalive, run_lock, sudo
 
 summary.install()  # once per run, although pyinfra runs this file once per host
@@ -36,6 +37,7 @@ remote_files.install()  # every upload: one command, never through a link (rosla
 ssh_keepalive.install()  # any inventory: a host that goes silent mid-step is lost in seconds (reconnections)
 run_lock.install()  # one run at a time per host: every connection first takes the host's run lock
 pyinfra_planning.install()  # pyinfra's operation order without reading source per operation (issue 32)
+colcon_progress.install()  # a long colcon build says which package it is at (roslab.ros.colcon_progress)
 
 if supported_host():
     # The cache host first: pyinfra runs each operation on every host before the next, so

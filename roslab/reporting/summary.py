@@ -59,6 +59,7 @@ from pyinfra.context import ctx_host, ctx_state
 
 from roslab.ssh import identity
 from roslab.ssh.sudo import sudo_refusal
+from roslab.ros import colcon_progress
 from roslab.connections import connection_lost
 from roslab.reporting.runs import HostRun, record_runs
 
@@ -955,6 +956,8 @@ class _LogCapture(logging.Handler):
             if not match:
                 return
             name, text = match.groups()
+            if text.startswith(colcon_progress.PREFIX):
+                return  # a build's progress line: no reason for the summary
             host = ctx_host.get()
             if host is None or getattr(host, "name", None) != name:
                 host = None
@@ -1057,10 +1060,13 @@ class CompactOutput(logging.Filter):
         if record.levelno > logging.INFO:
             self.show_pending()
             return True
+        if colcon_progress.PREFIX in text:
+            return False  # a build's progress line (a failed build's output): said while it ran
         if _STARTING.match(text):
             self.drop_pending()
             self.pending = self.step = record
             self.done = set()
+            colcon_progress.BUILDS.clear()
             if self.long_step is not None:
                 self._later(record)
             return False
@@ -1107,8 +1113,12 @@ class CompactOutput(logging.Filter):
             else:
                 waiting = [name for name in self.hosts() if name not in self.done]
                 if waiting:
+                    # a colcon build's package, as its progress lines told it (roslab.ros.colcon_progress)
+                    doing = "; ".join(f"{name}: {words}" for name in waiting
+                                      if (words := colcon_progress.BUILDS.words(name)))
                     self.logger.info(f"    still running on {', '.join(waiting)} "
-                                     f"({time.monotonic() - started:.0f} s)", extra={"roslab_shown": True})
+                                     f"({time.monotonic() - started:.0f} s)" + (f": {doing}" if doing else ""),
+                                     extra={"roslab_shown": True})
             gevent.spawn_later(self.every, still_running, False)
 
         gevent.spawn_later(self.long_step, still_running, True)

@@ -36,6 +36,7 @@ from pyinfra.api import FactBase, FileUploadCommand, OperationError, StringComma
 from pyinfra.facts.files import FileContents
 from pyinfra.operations.util.files import generate_color_diff
 from roslab.controller_files import file_sha256
+from roslab.ros import colcon_progress
 
 MANIFEST_NAME = ".roslab-manifest"
 MANIFEST_HEADER = (
@@ -597,6 +598,7 @@ def build_script(
     build_stamp = posixpath.join(state_dir, "build.sha256")
     log = posixpath.join("log", BUILD_LOG_NAME)
     colcon = " ".join(shlex.quote(arg) for arg in ["colcon", "build", *colcon_args])
+    progress = colcon_progress.build_lines(colcon, log)
     syntax_check = []
     if python_paths:
         paths = " ".join(shlex.quote(path) for path in python_paths)
@@ -616,7 +618,8 @@ def build_script(
             f"source /opt/ros/{shlex.quote(distro)}/setup.bash || exit 1",
             *(f"source {shlex.quote(setup)} || exit 1" for setup in underlays),
             *syntax_check,
-            f"if {colcon} > {log} 2>&1; then",
+            progress[0],  # how many packages: the run's "still running" line counts them (colcon_progress)
+            f"if {progress[1]}; then",
             f"  {_write_stamp(build_stamp, stamp)}",
             "else",
             "  status=$?",

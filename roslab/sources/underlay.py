@@ -26,6 +26,7 @@ from pyinfra import host
 from pyinfra.api import FactBase, FileUploadCommand, StringCommand, operation
 
 from roslab.sources.repos import REPO_PATH
+from roslab.ros import colcon_progress
 from roslab.ros.workspace import STATE_DIR_NAME, WorkspaceStamps, _write_stamp
 
 MANIFEST = f"{STATE_DIR_NAME}/sources.json"
@@ -213,6 +214,8 @@ def build_script(underlay_dir: str, distro: str, colcon_args: list[str], stamp: 
     # colcon reads the packages' CMake settings only from a meta file it is pointed at
     metas = ["--metas", COLCON_META] if meta else []
     colcon = " ".join(shlex.quote(arg) for arg in ["colcon", "build", *colcon_args, *metas])
+    progress = colcon_progress.build_lines(f'{colcon} --base-paths src --build-base "build-$slot" --install-base "$slot"',
+                                           BUILD_LOG, "--base-paths src")
     write_meta = (f"printf '%s' {shlex.quote(meta)} > {COLCON_META}" if meta else f"rm -f {COLCON_META}")
     return "\n".join([
         f"cd {shlex.quote(underlay_dir)} || exit 1",
@@ -225,7 +228,8 @@ def build_script(underlay_dir: str, distro: str, colcon_args: list[str], stamp: 
         *keep_in_use("$slot"),
         'rm -rf "$slot" "build-$slot"',
         f"source /opt/ros/{shlex.quote(distro)}/setup.bash || exit 1",
-        f'if {colcon} --base-paths src --build-base "build-$slot" --install-base "$slot" > {BUILD_LOG} 2>&1; then',
+        progress[0],  # how many packages: the run's "still running" line counts them (colcon_progress)
+        f"if {progress[1]}; then",
         *(f"  {line}" for line in switch_script('"$slot"')),
         f"  {_write_stamp(stamp_file, stamp)}",
         f"  {_write_stamp(ORIGIN, origin_line(digest or stamp))}",
