@@ -145,10 +145,6 @@ def host_problem() -> str | None:
     return None
 
 
-@deploy(
-    "The host runs an Ubuntu release that has packages for its ROS 2 distro",
-    data_defaults=DEFAULTS,
-)
 def said_boot_wait() -> None:
     """Say that this run waited for the host to finish booting (read ahead in supported_host),
     or that it is still booting after BOOT_WAIT seconds: what it reads of units may change."""
@@ -164,6 +160,10 @@ def said_boot_wait() -> None:
                        f"finish booting (systemd: {boot['state'] or 'unknown'})")
 
 
+@deploy(
+    "The host runs an Ubuntu release that has packages for its ROS 2 distro",
+    data_defaults=DEFAULTS,
+)
 def supported_host() -> bool:
     """Stop this host (only) when it cannot get the ROS 2 the roster asks for.
 

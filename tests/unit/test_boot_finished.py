@@ -50,3 +50,13 @@ def test_a_host_without_systemd_has_no_boot_to_wait_for(tmp_path):
     done = subprocess.run(["/bin/sh", "-c", fact.command(timeout=5)], capture_output=True, text=True, timeout=10,
                           env={"PATH": str(tmp_path)})  # no systemctl on the PATH (sh found by its path)
     assert fact.process(done.stdout.splitlines()) is None
+
+
+def test_the_first_step_is_still_the_deploy_the_summary_names():
+    # a failure while the host is read (a lost connection, a wrong sudo password) is named in
+    # this step: the boot wait's helper sits beside it, not under its decorator
+    from deploy.common import said_boot_wait, supported_host
+
+    assert getattr(supported_host, "deploy_name", None) == \
+        "The host runs an Ubuntu release that has packages for its ROS 2 distro"
+    assert getattr(said_boot_wait, "deploy_name", None) is None
