@@ -748,10 +748,9 @@ def _boot_disk(classroom: Classroom, host: SandboxHost, timeout: float = 120.0) 
     """Boot a stopped host from its disk as it is and wait for its SSH (at its seed's address
     when it boots from a seed and cloud-init has not yet moved it)."""
     instance = classroom.instance
-    # A Pi's network card starts empty; the host's netns outlives its processes here.
-    netns = instance.netns(host)
-    run("ip", "-n", netns, "address", "flush", "dev", "eth0", check=False)
-    run("ip", "-n", netns, "route", "flush", "dev", "eth0", check=False)
+    # The host's netns and its eth0 stay as they are, as for a reset: a flush would also take
+    # the IPv6 link-local address the kernel gives only when the link comes up, and networkd
+    # would wait for it ("configuring"), holding network-online.target and the nodes' service.
     seed = _host_states(instance).get(host.name, {}).get("seed")
     hosts.start(instance, host, instance.host_dir(host) / "merged", Path(seed) if seed else None)
     hosts.wait_for_ssh(host.address, timeout=timeout)

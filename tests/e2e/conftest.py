@@ -280,5 +280,7 @@ def default_class(e2e_sandbox, default_class_saved):
     hosts' disks and roslab's run records), and freshly imaged hosts after it for the next module.
     test_summary_e2e's no-op on it reports 0 changed: restored is converged."""
     e2e_sandbox.restore(DEFAULT_CLASS)
+    for host in e2e_sandbox.hosts:  # booted to the end, as the converge left it: its services run
+        e2e_sandbox.ssh(host.name, "systemctl is-system-running --wait", timeout=180)
     yield e2e_sandbox
     e2e_sandbox.reset()
