@@ -249,7 +249,9 @@ def fresh_hosts(e2e_sandbox):
     e2e_sandbox.reset()
 
 
-DEFAULT_CLASS = "default-class"  # the saved state `default_class_saved` makes
+# The saved state `default_class_saved` makes; per session, so that a session never meets one
+# of an earlier session that could not take its instance down (saved states go with `down`).
+DEFAULT_CLASS = f"default-class-{os.getpid()}"
 
 
 @dataclass
