@@ -272,7 +272,7 @@ def default_class_saved(e2e_sandbox) -> SavedClass:
     run = e2e_sandbox.pyinfra()
     assert run.returncode == 0 and not run.failed_hosts, run.stderr[-6000:]
     assert set(run.changes_per_host()) == {host.name for host in e2e_sandbox.hosts}, run.changed
-    e2e_sandbox.save(DEFAULT_CLASS)
+    print(f"\ndefault class converged from fresh hosts, saved in {e2e_sandbox.save(DEFAULT_CLASS):.1f} s")
     return SavedClass(run, started)
 
 
@@ -281,7 +281,7 @@ def default_class(e2e_sandbox, default_class_saved):
     """The session sandbox with the saved converged default class restored for this module (its
     hosts' disks and roslab's run records), and freshly imaged hosts after it for the next module.
     test_summary_e2e's no-op on it reports 0 changed: restored is converged."""
-    e2e_sandbox.restore(DEFAULT_CLASS)
+    print(f"\ndefault class restored, ssh ready after {e2e_sandbox.restore(DEFAULT_CLASS):.1f} s")
     for host in e2e_sandbox.hosts:  # booted to the end, as the converge left it: its services run
         e2e_sandbox.ssh(host.name, "systemctl is-system-running --wait", timeout=180)
     yield e2e_sandbox
