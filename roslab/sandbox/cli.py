@@ -50,6 +50,7 @@ def register(subparsers) -> argparse.ArgumentParser:
                        help="on a boot from a seed, how long the stand-in for first-boot "
                             f"unattended-upgrades holds the dpkg lock (default {seeding.FIRST_BOOT_APT_LOCK_SECONDS}; "
                             "0: not at all)")
+    _register_saved_states(commands)
     reboot = commands.add_parser("reboot", help="reboot a host")
     reboot.add_argument("host")
     ssh = commands.add_parser("ssh", help="log in to a host as the login user (or run CMD there)")
@@ -77,6 +78,21 @@ def register(subparsers) -> argparse.ArgumentParser:
                          help="the firmware it reports (default I.0.0.FastDDS, a Jazzy generation; H.x for Humble)")
     parser.set_defaults(run=run)  # the `roslab` command calls args.run(args)
     return parser
+
+
+def _register_saved_states(commands) -> None:
+    """`sandbox save NAME` and `sandbox restore NAME`."""
+    save = commands.add_parser(
+        "save", help="save every host's disk (and roslab's run records) under NAME, to restore later",
+        description="Save the classroom as it is now: each host's disk (stopped for the copy, booted again) "
+                    "and roslab's run records beside the sandbox roster, under NAME in the sandbox's folder "
+                    "(`down` removes it). A name is saved once.")
+    save.add_argument("name", metavar="NAME")
+    restore = commands.add_parser(
+        "restore", help="bring every host back to the state saved under NAME (seconds, not a converge)",
+        description="Give every host the disk saved under NAME (what changed since is lost) and boot it; "
+                    "same hosts, addresses and keys. The saved state stays as it is for the next restore.")
+    restore.add_argument("name", metavar="NAME")
 
 
 def print_status(report: dict) -> None:
@@ -181,6 +197,10 @@ def run(args: argparse.Namespace) -> int:
             how = ("booted from the seed with cloud-init" if args.seed else
                    "new random SSH host key, unknown to roslab" if args.unseeded else "fresh image")
             print(f"{', '.join(args.hosts)}: {how}, ssh ready after {seconds:.1f} s")
+        elif args.sandbox_command == "save":
+            print(f"saved as {args.name!r} in {lifecycle.save(args.name):.1f} s")
+        elif args.sandbox_command == "restore":
+            print(f"restored {args.name!r}, ssh ready after {lifecycle.restore(args.name):.1f} s")
         elif args.sandbox_command == "reboot":
             print(f"{args.host}: rebooted, ssh ready after {lifecycle.reboot(args.host):.1f} s")
         elif args.sandbox_command == "ssh":

@@ -192,17 +192,35 @@ def _host_paths(instance: Instance, host: SandboxHost) -> dict[str, Path]:
     return {name: base / name for name in ("upper", "work", "merged")}
 
 
-def mount_fresh(instance: Instance, host: SandboxHost, rootfs: Path) -> Path:
-    """Mount a fresh overlay for the host (any earlier changes are wiped); return the merged dir."""
+def mount_fresh(instance: Instance, host: SandboxHost, rootfs: Path, layers: list[Path] = ()) -> Path:
+    """Mount a fresh overlay for the host (any earlier changes are wiped); return the merged dir.
+
+    `layers`: saved disk states (`lifecycle.save`), topmost first, laid read-only over the
+    base image, so the host boots as it was saved while the saved layers stay as they are."""
     paths = _host_paths(instance, host)
     unmount_all(paths["merged"])
     for name in ("upper", "work"):
         discard(paths[name], STATE_ROOT)  # a converged host's upper dir is large: deleted in the background
     for path in paths.values():
         path.mkdir(parents=True, exist_ok=True)
+    write_file(layers_file(instance, host), "".join(f"{layer}\n" for layer in layers))
+    lower = ":".join(str(path) for path in [*layers, rootfs])
     run("mount", "-t", "overlay", "overlay", "-o",
-        f"lowerdir={rootfs},upperdir={paths['upper']},workdir={paths['work']}", paths["merged"])
+        f"lowerdir={lower},upperdir={paths['upper']},workdir={paths['work']}", paths["merged"])
     return paths["merged"]
+
+
+def layers_file(instance: Instance, host: SandboxHost) -> Path:
+    """Where a host's saved layers below its own changes are listed, one per line, topmost first."""
+    return instance.host_dir(host) / "layers"
+
+
+def host_layers(instance: Instance, host: SandboxHost) -> list[Path]:
+    """The saved layers the host's disk lies on (none: a fresh image)."""
+    try:
+        return [Path(line) for line in layers_file(instance, host).read_text().splitlines() if line]
+    except FileNotFoundError:
+        return []
 
 
 @dataclass(frozen=True)

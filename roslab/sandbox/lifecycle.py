@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import yaml
 
+from roslab.network.state import STATE_DIR
 from roslab.ssh import identity
 
 from . import create3_link, esp32_board, git_standins, hosts, image, seeding, upstream
@@ -628,3 +630,128 @@ def ssh(host_name: str, command: list[str], instance: Instance | None = None) ->
     classroom = load(instance)
     argv = ssh_argv(classroom.instance, classroom.host(host_name).address, *command, host_name=host_name)
     os.execvp(argv[0], argv)
+
+
+# -- saved states ----------------------------------------------------------------------------
+# `save NAME` keeps each host's disk changes (its overlay's upper directory, copied with owners,
+# modes and xattrs, so overlay whiteouts too) and roslab's run records beside the sandbox roster
+# under the instance's folder (`down` removes them). `restore NAME` lays the saved layer read-only
+# under a fresh, empty upper directory: seconds, not a converge, and the saved state stays as it
+# was for the next restore. Same instance, same subnet: every address and key is the saved one.
+
+SAVED_DIR = "saved"
+_SAVE_NAME_RE = re.compile(r"^[a-z0-9][a-z0-9._-]{0,39}$")
+
+
+def saved_path(instance: Instance, name: str) -> Path:
+    """Where the saved state NAME of the instance lives; SandboxError for a name that is no name."""
+    if not _SAVE_NAME_RE.match(name) or ".." in name:
+        raise SandboxError(f"saved state name {name!r} is invalid: use 1-40 lowercase letters, digits, "
+                           "'.', '_' and '-', starting with a letter or digit")
+    return instance.state_dir / SAVED_DIR / name
+
+
+def saved_names(instance: Instance) -> list[str]:
+    """The states saved on the instance, by name."""
+    folder = instance.state_dir / SAVED_DIR
+    return sorted(path.name for path in folder.iterdir() if (path / "saved.json").is_file()) \
+        if folder.is_dir() else []
+
+
+def saved_record(classroom: Classroom, states: dict[str, dict], host_layers: dict[str, list[str]]) -> dict:
+    """What saved.json says of a saved state: its hosts as they were (name, address) with their
+    boot states and the saved layers each lay on."""
+    return {"subnet": str(classroom.instance.subnet),
+            "hosts": {host.name: {"address": host.address, "boot": states.get(host.name, {}),
+                                  "layers": host_layers.get(host.name, [])} for host in classroom.hosts}}
+
+
+def check_restorable(record: dict, classroom: Classroom, name: str) -> None:
+    """Refuse a saved state whose hosts are not the running ones at the same addresses."""
+    saved = {host: values["address"] for host, values in record["hosts"].items()}
+    running = {host.name: host.address for host in classroom.hosts}
+    if record["subnet"] != str(classroom.instance.subnet) or saved != running:
+        raise SandboxError(f"saved state {name!r} of sandbox {classroom.instance.name!r} holds other hosts "
+                           f"({', '.join(f'{h} {a}' for h, a in sorted(saved.items()))}) than run now: "
+                           "restore it on the classroom it was saved from")
+
+
+def save(name: str, instance: Instance | None = None) -> float:
+    """Save every host's disk (stopped for the copy, booted again if it ran) and roslab's run
+    records beside the sandbox roster as NAME; return the seconds taken."""
+    started = time.monotonic()
+    classroom = load(instance)
+    instance = classroom.instance
+    target = saved_path(instance, name)
+    with file_lock(_instance_lock(instance)):
+        if target.exists():
+            raise SandboxError(f"sandbox {instance.name!r} already has a saved state {name!r}: choose another name "
+                               f"(saved: {', '.join(saved_names(instance))})")
+        partial = target.with_name(f".{name}.partial")
+        discard(partial, STATE_ROOT)
+        layers = {}
+
+        def keep(host: SandboxHost) -> None:
+            running = hosts.is_running(instance, host.name)
+            hosts.stop(instance, host.name)
+            layers[host.name] = [str(path) for path in hosts.host_layers(instance, host)]
+            copy_tree(instance.host_dir(host) / "upper", partial / "hosts" / host.name)
+            if running:
+                _boot_disk(classroom, host)
+
+        _on_all(classroom.hosts, keep)
+        controller = instance.roster_path.parent / STATE_DIR
+        if controller.is_dir():
+            copy_tree(controller, partial / "controller")
+        write_file(partial / "saved.json", json.dumps(saved_record(classroom, _host_states(instance), layers)) + "\n")
+        os.rename(partial, target)
+    return time.monotonic() - started
+
+
+def restore(name: str, instance: Instance | None = None) -> float:
+    """Bring every host back to the saved state NAME (its disk, its boot state) and roslab's run
+    records beside the sandbox roster with it; return the seconds until every host offers SSH."""
+    started = time.monotonic()
+    classroom = load(instance)
+    instance = classroom.instance
+    source = saved_path(instance, name)
+    with file_lock(_instance_lock(instance)):
+        try:
+            record = json.loads((source / "saved.json").read_text())
+        except FileNotFoundError:
+            raise SandboxError(f"sandbox {instance.name!r} has no saved state {name!r} "
+                               f"(saved: {', '.join(saved_names(instance)) or 'none'})") from None
+        check_restorable(record, classroom, name)
+        rootfs = image.base_image()
+        _save_host_states(instance, {host: values["boot"] for host, values in record["hosts"].items()})
+
+        def back(host: SandboxHost) -> None:
+            hosts.stop(instance, host.name)
+            layers = [source / "hosts" / host.name, *map(Path, record["hosts"][host.name]["layers"])]
+            hosts.mount_fresh(instance, host, rootfs, layers)
+            _boot_disk(classroom, host)
+
+        _on_all(classroom.hosts, back)
+        controller = instance.roster_path.parent / STATE_DIR
+        discard(controller, STATE_ROOT)
+        if (source / "controller").is_dir():
+            copy_tree(source / "controller", controller)
+    return time.monotonic() - started
+
+
+def copy_tree(source: Path, target: Path) -> None:
+    """A copy of a directory keeping owners, modes, times, xattrs and device nodes (overlay whiteouts)."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    run("cp", "-a", "--reflink=auto", "--", source, target)
+
+
+def _boot_disk(classroom: Classroom, host: SandboxHost, timeout: float = 120.0) -> None:
+    """Boot a stopped host from its disk as it is and wait for its SSH (at its seed's address
+    when it boots from a seed and cloud-init has not yet moved it)."""
+    instance = classroom.instance
+    # The host's netns and its eth0 stay as they are, as for a reset: a flush would also take
+    # the IPv6 link-local address the kernel gives only when the link comes up, and networkd
+    # would wait for it ("configuring"), holding network-online.target and the nodes' service.
+    seed = _host_states(instance).get(host.name, {}).get("seed")
+    hosts.start(instance, host, instance.host_dir(host) / "merged", Path(seed) if seed else None)
+    hosts.wait_for_ssh(host.address, timeout=timeout)

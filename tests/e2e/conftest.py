@@ -4,6 +4,8 @@
 always takes it down again: at the end of the session, when a test fails, on
 Ctrl-C, on SIGTERM, and (as a last resort) at interpreter exit.
 `fresh_hosts` gives a test freshly imaged hosts (about a second).
+`default_class` gives a module the default class converged: converged once per session from
+fresh hosts (`default_class_saved`), saved, and restored per module (seconds, not minutes).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import subprocess
 import sys
 from collections import Counter
 from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from pathlib import Path
 
 import pytest
@@ -158,6 +161,12 @@ class SandboxClassroom:
     def reboot(self, host: str) -> float:
         return lifecycle.reboot(host, self.instance)
 
+    def save(self, name: str) -> float:
+        return lifecycle.save(name, self.instance)
+
+    def restore(self, name: str) -> float:
+        return lifecycle.restore(name, self.instance)
+
 
 def bring_up(name: str, subnet: str, hosts: int | None = None,
              releases: str | None = None) -> tuple[SandboxClassroom, callable]:
@@ -236,5 +245,44 @@ def fresh_hosts(e2e_sandbox):
     """The session sandbox with every host freshly imaged for this test, and again after it
     (whatever the test changed, e.g. an address, does not reach the next test)."""
     e2e_sandbox.reset()
+    yield e2e_sandbox
+    e2e_sandbox.reset()
+
+
+# The saved state `default_class_saved` makes; per session, so that a session never meets one
+# of an earlier session that could not take its instance down (saved states go with `down`).
+DEFAULT_CLASS = f"default-class-{os.getpid()}"
+
+
+@dataclass
+class SavedClass:
+    """The session's converge of the default class from fresh hosts, as it was saved."""
+
+    run: PyinfraRun  # `pyinfra inventories/sandbox.py deploy.py` on freshly imaged hosts
+    started: datetime  # when that run started (UTC, whole seconds, as roslab's run records)
+
+
+@pytest.fixture(scope="session")
+def default_class_saved(e2e_sandbox) -> SavedClass:
+    """The default class converged ONCE per session from freshly imaged hosts (the sandbox's
+    roster, deploy.py, no --data), every host changed and none failed, then saved as
+    DEFAULT_CLASS: what each module that starts from "a converged default class" restores."""
+    e2e_sandbox.reset()
+    started = datetime.now(timezone.utc).replace(microsecond=0)
+    run = e2e_sandbox.pyinfra()
+    assert run.returncode == 0 and not run.failed_hosts, run.stderr[-6000:]
+    assert set(run.changes_per_host()) == {host.name for host in e2e_sandbox.hosts}, run.changed
+    print(f"\ndefault class converged from fresh hosts, saved in {e2e_sandbox.save(DEFAULT_CLASS):.1f} s")
+    return SavedClass(run, started)
+
+
+@pytest.fixture(scope="module")
+def default_class(e2e_sandbox, default_class_saved):
+    """The session sandbox with the saved converged default class restored for this module (its
+    hosts' disks and roslab's run records), and freshly imaged hosts after it for the next module.
+    test_summary_e2e's no-op on it reports 0 changed: restored is converged."""
+    print(f"\ndefault class restored, ssh ready after {e2e_sandbox.restore(DEFAULT_CLASS):.1f} s")
+    for host in e2e_sandbox.hosts:  # booted to the end, as the converge left it: its services run
+        e2e_sandbox.ssh(host.name, "systemctl is-system-running --wait", timeout=180)
     yield e2e_sandbox
     e2e_sandbox.reset()

@@ -38,18 +38,13 @@ BACK_WITHIN = 30
 
 
 @pytest.fixture(scope="module")
-def real(e2e_sandbox):
-    """The session's classroom on real ROS 2, freshly imaged and converged once for this module."""
+def real(e2e_sandbox, request):
+    """The session's classroom on real ROS 2, converged: the session's converge from fresh hosts,
+    restored for this module (fresh hosts after it)."""
     if not e2e_sandbox.real_ros:
         pytest.skip(f"the sandbox serves stand-in ROS 2 ({e2e_sandbox.ros_served}): set "
                     "ROSLAB_SANDBOX_ROS_RUNTIME (docs/sandbox.md) to run the nodes on real ROS")
-    e2e_sandbox.reset()
-    started = time.monotonic()
-    run = e2e_sandbox.pyinfra()
-    assert run.returncode == 0, run.stderr[-6000:]
-    print(f"\nconverge on real ROS 2, {len(e2e_sandbox.hosts)} hosts: {time.monotonic() - started:.0f} s")
-    yield e2e_sandbox
-    e2e_sandbox.reset()  # the next module gets fresh hosts
+    return request.getfixturevalue("default_class")
 
 
 def roslab(sandbox, *args: str, timeout: float = 300) -> subprocess.CompletedProcess:

@@ -14,7 +14,6 @@ import re
 import subprocess
 import sys
 import time
-from datetime import datetime, timezone
 
 import pytest
 
@@ -36,15 +35,11 @@ COLUMNS = ("TEAM", "HOST", "ROLE", "ADDRESS", "SSH", "UBUNTU", "ROS", "DOMAIN", 
 
 
 @pytest.fixture(scope="module")
-def class_converged(e2e_sandbox):
-    """The session's classroom, freshly imaged and converged once for this module."""
-    assert sorted(host.name for host in e2e_sandbox.hosts) == sorted(EXPECTED)
-    e2e_sandbox.reset()
-    started = datetime.now(timezone.utc).replace(microsecond=0)
-    run = e2e_sandbox.pyinfra()
-    assert run.returncode == 0, run.stderr[-6000:]
-    yield e2e_sandbox, started
-    e2e_sandbox.reset()  # the next module gets fresh hosts (and the stopped one back)
+def class_converged(default_class, default_class_saved):
+    """The session's classroom converged (the session's converge from fresh hosts, restored for
+    this module with its run records); fresh hosts after it (and the stopped one back)."""
+    assert sorted(host.name for host in default_class.hosts) == sorted(EXPECTED)
+    return default_class, default_class_saved.started
 
 
 def status(sandbox, *args: str, timeout: float = 120) -> tuple[subprocess.CompletedProcess, float]:

@@ -179,7 +179,7 @@ def test_every_roster_command_says_a_missing_roster_in_lines_not_a_traceback(com
     assert err.strip().endswith(f"roslab {command}: 1 error in the roster; no host was touched, nothing was written")
 
 
-@pytest.mark.parametrize("subcommand", [["status"], ["up"], ["down"], ["reset", "team1-main"]])
+@pytest.mark.parametrize("subcommand", [["status"], ["up"], ["down"], ["reset", "team1-main"], ["save", "a"], ["restore", "a"]])
 def test_every_sandbox_command_says_it_needs_root_in_one_line(subcommand, monkeypatch, capsys):
     monkeypatch.setattr(os, "geteuid", lambda: 1000)
     assert main(["sandbox", *subcommand]) == 1
