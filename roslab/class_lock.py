@@ -91,6 +91,14 @@ def read_lock(path: Path) -> tuple[ClassLock | None, Report]:
     return (None if report.errors else lock), report
 
 
+def check_class_lock(classroom, report: Report) -> None:
+    """A roster validator (roslab.roster.VALIDATORS): the lock beside the roster is read and
+    checked with the roster, so a hostile or broken lock stops the run before any host."""
+    _lock, own = read_lock(Path(classroom.path).parent / LOCK_FILE)
+    for problem in own.errors:
+        report.add(problem)
+
+
 def parse_lock(data, report: Report) -> ClassLock:
     """A loaded lock document checked field by field; every problem goes to `report`."""
     if not isinstance(data, dict):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from fixtures.fake_host import plan
 from pyinfra.facts.files import FileContents
@@ -12,6 +14,7 @@ from roslab.checked.problems import Report
 KEY = "jazzy/arm64"
 TAKEN = "2026-11-28T22:00:00Z"
 INSTALLED = {"ros-jazzy-ros-base": "0.11.0-1noble.20250101.000000", "libc6": "2.39-0ubuntu8.4"}
+ROSTERS = Path(__file__).parent / "rosters"
 COMMIT = "0123456789abcdef0123456789abcdef01234567"
 
 
@@ -105,3 +108,16 @@ def test_apt_is_pinned_to_the_locked_versions_by_one_whole_file():
     current = text.splitlines()
     result = plan(class_lock.locked_versions_pinned, {FileContents: lambda path: current}, group=group)
     assert result.changing() == {} and result.noops == ["apt is pinned to the class lock's 2 versions"]
+
+
+def test_a_broken_lock_beside_the_roster_stops_the_roster_before_any_host(tmp_path):
+    from roslab.roster import RosterError, load_roster
+
+    roster = tmp_path / "classroom.yaml"
+    roster.write_text((ROSTERS / "two_teams.yaml").read_text())
+    load_roster(roster)  # no lock yet: nothing to check
+    (tmp_path / "classroom.lock").write_text(
+        "groups:\n  jazzy/arm64:\n    taken: '2026-11-28T22:00:00Z'\n    taken_from: r1\n"
+        "    packages:\n      libc6: '1.0\\nPackage: *'\n")
+    with pytest.raises(RosterError, match=r"classroom.lock: field 'groups.jazzy/arm64.packages.libc6'"):
+        load_roster(roster)
