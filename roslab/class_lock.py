@@ -23,17 +23,20 @@ locked version is `roslab lock --update`'s job (`updates`), never a run's.
 
 from __future__ import annotations
 
+import functools
 import re
+import shlex
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from pyinfra import host
-from pyinfra.api import operation
+from pyinfra.api import FactBase, StringCommand, operation
+from pyinfra.facts.deb import DebPackages
 from pyinfra.facts.files import FileContents
 
 from roslab.checked.loading import load_yaml
 from roslab.checked.problems import Report
-from roslab.operations import _log_diff, _upload_text
+from roslab.operations import DPKG_KEEP_CONFFILES, _log_diff, _upload_text, apt_get, reporting_a_signal
 from roslab.probe import read
 
 LOCK_FILE = "classroom.lock"
@@ -50,6 +53,8 @@ REPOSITORY = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*(?:/[A-Za-z0-9][A-Za-z0-9._-
 TIMESTAMP = re.compile(r"[0-9]{4}-[0-9]{2}-[0-9]{2}T[0-9]{2}:[0-9]{2}:[0-9]{2}Z")
 HOST_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,62}")
 GROUP_KEYS = ("taken", "taken_from", "packages", "sources")
+# `uname -m` (pyinfra's Arch fact) -> the Debian architecture a lock group is named by.
+DEBIAN_ARCHITECTURES = {"aarch64": "arm64", "x86_64": "amd64", "armv7l": "armhf"}
 
 
 @dataclass(frozen=True)
@@ -228,6 +233,51 @@ def updated(lock: ClassLock, key: str, moves: list[tuple[str, str, str]], taken:
 # --- on a host ---------------------------------------------------------------------------
 
 
+def lock_beside(roster_path: str | None) -> ClassLock | None:
+    """The lock beside the roster (checked with it: roslab.roster.VALIDATORS), or None if
+    there is none (or no roster: a hand-made inventory)."""
+    if not roster_path:
+        return None
+    path = Path(roster_path).parent / LOCK_FILE
+    try:
+        stat = path.stat()
+    except FileNotFoundError:
+        return None
+    return _read_once(path, stat.st_mtime_ns, stat.st_size)
+
+
+@functools.lru_cache(maxsize=4)
+def _read_once(path: Path, _mtime_ns: int, _size: int) -> ClassLock | None:
+    """One read per run (and per change of the file) for all the hosts."""
+    return read_lock(path)[0]
+
+
+def host_group(roster_path: str | None, distro: str, machine: str | None) -> LockedGroup | None:
+    """The locked group of a host of `distro` whose `uname -m` is `machine`, if the lock has it."""
+    lock = lock_beside(roster_path)
+    architecture = DEBIAN_ARCHITECTURES.get(machine or "")
+    if lock is None or architecture is None:
+        return None
+    return lock.groups.get(f"{distro}/{architecture}")
+
+
+class AptVersions(FactBase):
+    """package -> the versions apt can install from the host's sources (`apt-cache madison`);
+    read only when a locked host has packages to install, never on a no-op."""
+
+    def command(self, packages: list[str]) -> str:
+        names = [name for name in packages if PACKAGE_NAME.fullmatch(name)]  # checked: never an option
+        return "apt-cache madison -- " + " ".join(shlex.quote(name) for name in names) + " || true"
+
+    def process(self, output) -> dict[str, list[str]]:
+        versions: dict[str, list[str]] = {}
+        for line in output:
+            parts = [part.strip() for part in line.split("|")]
+            if len(parts) >= 3 and parts[1] not in versions.get(parts[0], []):
+                versions.setdefault(parts[0], []).append(parts[1])
+        return versions
+
+
 def preferences_lines(group: LockedGroup) -> list[str]:
     """The apt preferences that hold a host on its group's versions: priority 1001 installs
     the locked version even where the archive offers a newer one (and downgrades to it)."""
@@ -268,3 +318,23 @@ def locked_versions_pinned(group: LockedGroup):
 def locked_versions_pinned_reads() -> list:
     """What `locked_versions_pinned` reads (roslab.probe)."""
     return [read(FileContents, path=PREFERENCES_FILE)]
+
+
+@operation()
+def packages_at_locked_versions(group: LockedGroup, lock_timeout: int):
+    """
+    Ensure every installed package the class lock names is at its locked version: after
+    `roslab lock --update` the next run moves the hosts (up, or down to a held version).
+
+    + group: the host's (distro, architecture) group of the class lock
+    + lock_timeout: seconds apt waits for the dpkg lock
+    """
+    installed = host.get_fact(DebPackages) or {}
+    moves = [f"{name}={version}" for name, version in sorted(group.packages.items())
+             if name in installed and version not in installed[name]]
+    if not moves:
+        host.noop("the installed packages are at the class lock's versions")
+        return
+    install = f"{apt_get(f'{DPKG_KEEP_CONFFILES} --allow-downgrades install --', lock_timeout)} " + " ".join(
+        shlex.quote(move) for move in moves)
+    yield StringCommand(reporting_a_signal(install, "apt-get install"))
