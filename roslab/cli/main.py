@@ -134,6 +134,9 @@ def build_parser() -> argparse.ArgumentParser:
     register_seed(commands)  # roslab seed
     register_flash(commands)  # roslab flash
     register_trust(commands)  # roslab trust, roslab forget
+    from roslab.cli.lock import register as register_lock
+
+    register_lock(commands)  # roslab lock
 
     from roslab.robot_tools import register_profile_tools
 

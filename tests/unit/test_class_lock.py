@@ -121,3 +121,16 @@ def test_a_broken_lock_beside_the_roster_stops_the_roster_before_any_host(tmp_pa
         "    packages:\n      libc6: '1.0\\nPackage: *'\n")
     with pytest.raises(RosterError, match=r"classroom.lock: field 'groups.jazzy/arm64.packages.libc6'"):
         load_roster(roster)
+
+
+def test_a_hosts_installed_packages_are_read_for_its_architecture_and_checked():
+    from roslab.cli.lock import parse_installed, update_lines
+
+    reading = parse_installed(["arm64", "ii \tlibc6\tarm64\t2.39-0ubuntu8.4", "ii \ttzdata\tall\t2024a-3ubuntu1",
+                               "ii \tlibc6\ti386\t2.39-0ubuntu8.4", "rc \told\tarm64\t1.0",
+                               "ii \tevil\tarm64\t1.0\nPackage: *"])
+    assert reading == {"architecture": "arm64", "packages": {"libc6": "2.39-0ubuntu8.4", "tzdata": "2024a-3ubuntu1"}}
+    lines = update_lines({KEY: [("libc6", "2.39-0ubuntu8.4", "2.39-0ubuntu9")], "humble/arm64": []},
+                         {KEY: ["team1-main", "team2-main"], "humble/arm64": ["old-robot"]})
+    assert lines == ["humble/arm64: the archives offer nothing newer than the lock",
+                     "jazzy/arm64: libc6 2.39-0ubuntu8.4 -> 2.39-0ubuntu9 (team1-main, team2-main)"]
