@@ -92,8 +92,9 @@ def locked_versions_met(roster_path: str | None, distro: str, packages: list[str
     if group is None:
         return True
     installed = host.get_fact(DebPackages) or {}
-    needed = [name for name in packages if name in group.packages
-              and group.packages[name] not in installed.get(name, ())]
+    # what this run would install or move: each must be at its locked version in some source
+    needed = [name for name in packages if name in group.packages and name not in installed]
+    needed += [name for name in class_lock.off_lock(group, installed) if name not in needed]
     problems = class_lock.unmet(group, needed, host.get_fact(class_lock.AptVersions, packages=needed)) if needed else []
     if problems:
         stop_host(f"{where()}: {problems[0]}" + (f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""))

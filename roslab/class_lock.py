@@ -53,6 +53,9 @@ REPOSITORY = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*(?:/[A-Za-z0-9][A-Za-z0-9._-
 TIMESTAMP = re.compile(r"[0-9]{4}-[0-9]{2}-[0-9]{2}T[0-9]{2}:[0-9]{2}:[0-9]{2}Z")
 HOST_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,62}")
 GROUP_KEYS = ("taken", "taken_from", "packages", "sources")
+# Installed by roslab from a downloaded .deb at the roster's ros_apt_source_version, from no apt
+# archive: its version is the roster's to set (deploy/ros_apt_source.py), never the lock's.
+NOT_LOCKED = frozenset({"ros2-apt-source"})
 # `uname -m` (pyinfra's Arch fact) -> the Debian architecture a lock group is named by.
 DEBIAN_ARCHITECTURES = {"aarch64": "arm64", "x86_64": "amd64", "armv7l": "armhf"}
 
@@ -139,6 +142,9 @@ def _group(value, where: str, report: Report) -> LockedGroup | None:
     taken_from = _matching(value.get("taken_from"), HOST_NAME, f"{where}.taken_from", "a host name", report)
     packages = _pairs(value.get("packages") or {}, f"{where}.packages", PACKAGE_NAME, VERSION,
                       "a Debian version ([epoch:]upstream[-revision])", report)
+    for name in NOT_LOCKED & set(packages):
+        report.error(f"{name} is not locked: its version is the roster's (ros_apt_source_version)",
+                     field=f"{where}.packages.{name}")
     sources = _pairs(value.get("sources") or {}, f"{where}.sources", REPOSITORY, COMMIT,
                      "a 40-hex-digit commit", report)
     return LockedGroup(taken or "", taken_from or "", packages, sources)
@@ -201,6 +207,7 @@ def merged(lock: ClassLock, key: str, installed: dict[str, str], sources: dict[s
     repositories it does not name yet (a package a profile gained later is locked at its first
     install). A locked version is never changed here: that is `updates`' decision.
     """
+    installed = {name: version for name, version in installed.items() if name not in NOT_LOCKED}
     old = lock.groups.get(key)
     if old is None:
         group = LockedGroup(taken, taken_from, dict(installed), dict(sources))
@@ -320,6 +327,13 @@ def locked_versions_pinned_reads() -> list:
     return [read(FileContents, path=PREFERENCES_FILE)]
 
 
+def off_lock(group: LockedGroup, installed: dict) -> list[str]:
+    """The installed packages of the group's lock that are on another version, sorted
+    (`installed`: pyinfra's DebPackages, package -> its installed versions)."""
+    return sorted(name for name, version in group.packages.items()
+                  if name in installed and version not in installed[name])
+
+
 @operation()
 def packages_at_locked_versions(group: LockedGroup, lock_timeout: int):
     """
@@ -329,9 +343,7 @@ def packages_at_locked_versions(group: LockedGroup, lock_timeout: int):
     + group: the host's (distro, architecture) group of the class lock
     + lock_timeout: seconds apt waits for the dpkg lock
     """
-    installed = host.get_fact(DebPackages) or {}
-    moves = [f"{name}={version}" for name, version in sorted(group.packages.items())
-             if name in installed and version not in installed[name]]
+    moves = [f"{name}={group.packages[name]}" for name in off_lock(group, host.get_fact(DebPackages) or {})]
     if not moves:
         host.noop("the installed packages are at the class lock's versions")
         return

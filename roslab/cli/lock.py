@@ -42,7 +42,8 @@ def parse_installed(lines: list[str]) -> dict:
         fields = line.split("\t")
         if len(fields) != 4 or fields[0].strip() != "ii" or fields[2] not in (architecture, "all"):
             continue
-        if class_lock.PACKAGE_NAME.fullmatch(fields[1]) and class_lock.VERSION.fullmatch(fields[3]):
+        if (class_lock.PACKAGE_NAME.fullmatch(fields[1]) and class_lock.VERSION.fullmatch(fields[3])
+                and fields[1] not in class_lock.NOT_LOCKED):
             packages[fields[1]] = fields[3]
     return {"architecture": architecture, "packages": packages}
 

@@ -128,9 +128,20 @@ def test_a_hosts_installed_packages_are_read_for_its_architecture_and_checked():
 
     reading = parse_installed(["arm64", "ii \tlibc6\tarm64\t2.39-0ubuntu8.4", "ii \ttzdata\tall\t2024a-3ubuntu1",
                                "ii \tlibc6\ti386\t2.39-0ubuntu8.4", "rc \told\tarm64\t1.0",
+                               "ii \tros2-apt-source\tall\t1.1.0~noble",
                                "ii \tevil\tarm64\t1.0\nPackage: *"])
     assert reading == {"architecture": "arm64", "packages": {"libc6": "2.39-0ubuntu8.4", "tzdata": "2024a-3ubuntu1"}}
     lines = update_lines({KEY: [("libc6", "2.39-0ubuntu8.4", "2.39-0ubuntu9")], "humble/arm64": []},
                          {KEY: ["team1-main", "team2-main"], "humble/arm64": ["old-robot"]})
     assert lines == ["humble/arm64: the archives offer nothing newer than the lock",
                      "jazzy/arm64: libc6 2.39-0ubuntu8.4 -> 2.39-0ubuntu9 (team1-main, team2-main)"]
+
+
+def test_ros2_apt_source_is_the_rosters_to_version_never_the_locks():
+    lock, added = class_lock.merged(class_lock.ClassLock(), KEY, {**INSTALLED, "ros2-apt-source": "1.1.0"}, {},
+                                    TAKEN, "r1")
+    assert "ros2-apt-source" not in lock.groups[KEY].packages and "ros2-apt-source" not in added
+    report = Report("classroom.lock")
+    class_lock.parse_lock({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1",
+                                            "packages": {"ros2-apt-source": "1.1.0"}}}}, report)
+    assert "ros_apt_source_version" in str(report.errors[0])

@@ -180,3 +180,11 @@ def test_a_locked_version_nobody_serves_stops_the_host_before_anything_is_instal
     assert result.failed and result.changing() == {}  # nothing pinned, nothing installed
     (error,) = result.errors
     assert "ros-jazzy-desktop=0.11.0-1noble.20250101.000000 is locked but neither the archive nor" in error
+
+
+def test_a_move_to_a_locked_version_nobody_serves_stops_the_host_too(tmp_path):
+    host = FakeUbuntu()
+    host.packages.update({"ros-jazzy-desktop": {"0.11.0-1noble.20250101.000000"}, "ros-dev-tools": {"1.0.2"}})
+    result = locked(tmp_path, host, {"ros-dev-tools": ["1.0.2"]})
+    assert result.failed and result.changing() == {}
+    assert "ros-dev-tools=1.0.1 is locked but" in result.errors[0]
