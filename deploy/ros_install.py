@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from pyinfra import host
 from pyinfra.api import deploy
+from pyinfra.facts.deb import DebPackages
+from pyinfra.facts.server import Arch
 
-from deploy.common import host_codename, host_distro, should_run
-from roslab import probe, settings
+from deploy.common import host_codename, host_distro, should_run, stop_host, where
+from roslab import class_lock, probe, settings
 from roslab.ros.discovery import middleware_of, middleware_package
 from roslab.ros.distro import default_distro
 from roslab.operations import packages_installed
@@ -68,6 +70,8 @@ def ros_install():
     # The title names the first two packages and counts the rest: a robot's list (ten packages
     # for a TurtleBot3) would make a 290-character step name; the no-op line lists them all.
     shown = ", ".join(packages[:2]) + (f" and {len(packages) - 2} more" if len(packages) > 2 else "")
+    if not locked_versions_met(typed.roslab_roster_path, distro, packages, typed.apt_lock_timeout):
+        return
     packages_installed(
         name=f"Ensure ROS 2 {distro} is installed ({shown})",
         packages=packages,
@@ -75,7 +79,40 @@ def ros_install():
     )
 
 
+def locked_versions_met(roster_path: str | None, distro: str, packages: list[str], lock_timeout: int) -> bool:
+    """Pin apt to the class lock's versions of this host's group (classroom.lock beside the
+    roster), and stop the host before anything is installed if a package it lacks is locked at
+    a version no source of the host offers; True when the install may go on.
+
+    Without a lock, or without this group in it, nothing is pinned (the group's first converge).
+    """
+    if class_lock.lock_beside(roster_path) is None:  # no lock: no architecture read either
+        return True
+    group = class_lock.host_group(roster_path, distro, host.get_fact(Arch))
+    if group is None:
+        return True
+    installed = host.get_fact(DebPackages) or {}
+    # what this run would install or move: each must be at its locked version in some source
+    needed = [name for name in packages if name in group.packages and name not in installed]
+    needed += [name for name in class_lock.off_lock(group, installed) if name not in needed]
+    problems = class_lock.unmet(group, needed, host.get_fact(class_lock.AptVersions, packages=needed)) if needed else []
+    if problems:
+        stop_host(f"{where()}: {problems[0]}" + (f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""))
+        return False
+    class_lock.locked_versions_pinned(
+        name=f"Ensure apt installs the class lock's versions ({len(group.packages)} packages)", group=group)
+    class_lock.packages_at_locked_versions(
+        name="Ensure the installed packages are at the class lock's versions", group=group, lock_timeout=lock_timeout)
+    return True
+
+
 @probe.reader
 def ros_install_reads() -> list:
-    """What ros_install's operation reads on a host that needs no change."""
-    return probe.packages_reads() if should_run("ros_install_enabled") else []
+    """What ros_install's operation reads on a host that needs no change (with a class lock: the
+    architecture and the pin file, in the same one read)."""
+    if not should_run("ros_install_enabled"):
+        return []
+    reads = probe.packages_reads()
+    if class_lock.lock_beside(host_settings(host).roslab_roster_path) is not None:
+        reads += [probe.read(Arch), *class_lock.locked_versions_pinned_reads()]
+    return reads

@@ -125,15 +125,12 @@ def build_parser() -> argparse.ArgumentParser:
     add_roster_argument(verify)
     verify.set_defaults(run=run_verify)
 
-    from roslab.cli.init import register as register_init
-    from roslab.seed.command import register as register_seed
-    from roslab.seed.flash import register as register_flash
-    from roslab.cli.trust import register as register_trust
+    from roslab.cli import init, lock, trust
+    from roslab.seed import command as seed_command, flash
 
-    register_init(commands)  # roslab init
-    register_seed(commands)  # roslab seed
-    register_flash(commands)  # roslab flash
-    register_trust(commands)  # roslab trust, roslab forget
+    # roslab init, seed, flash, trust and forget, lock
+    for register_command in (init.register, seed_command.register, flash.register, trust.register, lock.register):
+        register_command(commands)
 
     from roslab.robot_tools import register_profile_tools
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from roslab.class_lock import check_class_lock as _check_class_lock
 from roslab.network.settings import validate_roster as _validate_network
 from roslab.profiles.packages import check_classroom as _check_ros_packages
 from roslab.roster.checks import Validator, assign_domain_ids, check_classroom
@@ -24,7 +25,8 @@ from roslab.roster.reader import RosterReader
 from roslab.sources.groups import check_underlay_builders as _check_underlay_builders
 
 # Checks across the classroom that live with their concern, each `(classroom, report)`.
-VALIDATORS: list[Validator] = [_validate_network, _check_ros_packages, _check_underlay_builders]
+VALIDATORS: list[Validator] = [_validate_network, _check_ros_packages, _check_underlay_builders,
+                               _check_class_lock]
 
 
 def load_roster(path: Path | str, validators: list[Validator] | None = None,

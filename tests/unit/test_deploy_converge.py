@@ -307,3 +307,23 @@ def test_a_profile_switch_keeps_the_underlay_sourced_while_the_class_has_sources
     assert not [line for line in kept_after_switch({"sources": True}, record) if "underlay" in line]
     (line,) = kept_after_switch({"sources": True}, {**record, "sources": False})
     assert "no longer source the build): delete it by hand" in line
+
+
+def test_a_lock_taken_after_the_first_converge_pins_once_and_the_noop_still_reads_in_two_commands(tmp_path):
+    from roslab import class_lock
+
+    host = with_stand_in_deb(FakeUbuntu())
+    data = host_data(tmp_path, roslab_roster_path=str(tmp_path / "classroom.yaml"))
+    host.apply(plan(run_deploy_py, host.facts(), data))
+    installed = {name: sorted(versions)[0] for name, versions in host.packages.items()}
+    lock, _ = class_lock.merged(class_lock.ClassLock(), "jazzy/arm64", installed, {}, "2026-11-28T22:00:00Z",
+                                "team1-main")
+    (tmp_path / "classroom.lock").write_text(class_lock.render_lock(lock))
+
+    pinned = plan(run_deploy_py, host.facts(), data)
+    assert [name.split(" | ")[1] for name in pinned.changing()] == [
+        f"Ensure apt installs the class lock's versions ({len(lock.groups['jazzy/arm64'].packages)} packages)"]
+    host.apply(pinned)
+    noop = plan(run_deploy_py, host.facts(), data)
+    assert noop.changing() == {}
+    assert noop.facts_asked == ["HostProbe", "HostProbe"]  # the lock adds no remote command

@@ -13,6 +13,7 @@ from fixtures.fake_ubuntu import FakeUbuntu
 from deploy.ros_install import DEFAULTS, ros_install, ros_packages
 from deploy.rosdep import rosdep
 from roslab import settings as schema
+from roslab.class_lock import AptVersions
 from roslab.operations import reporting_a_signal
 
 
@@ -132,3 +133,58 @@ def test_rosdep_for_a_login_user_the_host_lacks_stops_that_host(tmp_path):
     result = plan(rosdep, host.facts(), host_data(tmp_path, login_user="ghost"))
     assert result.failed and result.operations == []
     assert "login_user 'ghost' does not exist on the host" in result.errors[0]
+
+
+# --- the class lock (roslab.class_lock): facts in, commands out ------------------------------
+
+LOCK = """groups:
+  'jazzy/arm64':
+    taken: '2026-11-28T22:00:00Z'
+    taken_from: 'team1-main'
+    packages:
+      'ros-dev-tools': '1.0.1'
+      'ros-jazzy-desktop': '0.11.0-1noble.20250101.000000'
+"""
+
+
+def locked(tmp_path, host: FakeUbuntu, available: dict | None = None):
+    (tmp_path / "classroom.lock").write_text(LOCK)
+    data = host_data(tmp_path, roslab_roster_path=str(tmp_path / "classroom.yaml"))
+    facts = {**host.facts(), AptVersions: lambda packages: {name: available.get(name, []) for name in packages}}
+    return plan(ros_install, facts, data)
+
+
+def test_a_locked_host_is_pinned_and_installs_the_locked_versions(tmp_path):
+    result = locked(tmp_path, FakeUbuntu(), {"ros-jazzy-desktop": ["0.11.1", "0.11.0-1noble.20250101.000000"],
+                                               "ros-dev-tools": ["1.0.1"]})
+    pins = result.uploads()["/etc/apt/preferences.d/roslab-lock"]
+    assert "Package: ros-jazzy-desktop\nPin: version 0.11.0-1noble.20250101.000000\nPin-Priority: 1001" in pins
+    (command,) = result.operation("Ensure ROS 2 jazzy is installed").text()
+    assert " install -- ros-jazzy-desktop ros-dev-tools;" in command
+
+
+def test_a_host_on_other_versions_is_moved_to_the_lock_and_a_host_on_them_is_a_noop(tmp_path):
+    host = FakeUbuntu()
+    host.packages.update({"ros-jazzy-desktop": {"0.11.1"}, "ros-dev-tools": {"1.0.1"}})
+    available = {"ros-jazzy-desktop": ["0.11.0-1noble.20250101.000000"]}
+    (command,) = locked(tmp_path, host, available).operation("at the class lock's versions").text()
+    assert "--allow-downgrades install -- ros-jazzy-desktop=0.11.0-1noble.20250101.000000;" in command
+    host.packages["ros-jazzy-desktop"] = {"0.11.0-1noble.20250101.000000"}
+    host.files["/etc/apt/preferences.d/roslab-lock"] = locked(tmp_path, host).uploads()[
+        "/etc/apt/preferences.d/roslab-lock"].splitlines()
+    assert locked(tmp_path, host).changing() == {}
+
+
+def test_a_locked_version_nobody_serves_stops_the_host_before_anything_is_installed(tmp_path):
+    result = locked(tmp_path, FakeUbuntu(), {"ros-jazzy-desktop": ["0.11.1"], "ros-dev-tools": ["1.0.1"]})
+    assert result.failed and result.changing() == {}  # nothing pinned, nothing installed
+    (error,) = result.errors
+    assert "ros-jazzy-desktop=0.11.0-1noble.20250101.000000 is locked but neither the archive nor" in error
+
+
+def test_a_move_to_a_locked_version_nobody_serves_stops_the_host_too(tmp_path):
+    host = FakeUbuntu()
+    host.packages.update({"ros-jazzy-desktop": {"0.11.0-1noble.20250101.000000"}, "ros-dev-tools": {"1.0.2"}})
+    result = locked(tmp_path, host, {"ros-dev-tools": ["1.0.2"]})
+    assert result.failed and result.changing() == {}
+    assert "ros-dev-tools=1.0.1 is locked but" in result.errors[0]

@@ -1,0 +1,125 @@
+"""`roslab lock`: take and move the class lock (classroom.lock beside the roster; roslab.class_lock).
+
+    roslab lock [ROSTER] [--limit NAME ...]                 lock each group the lock lacks, as a converged
+                                                            host of it has it now (dpkg-query)
+    roslab lock [ROSTER] --update [--limit NAME ...] --dry  list package old -> new, for which hosts
+    roslab lock [ROSTER] --update [--limit NAME ...]        move the lock; the next run moves the hosts
+
+A group is (ROS distro, Debian architecture). A locked group is never rewritten by taking:
+only `--update` moves its versions, and never those of the lock's `hold:` list.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import time
+from pathlib import Path
+
+from pyinfra.api import FactBase
+
+from roslab import class_lock
+from roslab.reach import RosterProblem, add_roster_argument, connected_state, fail, load_classroom_groups
+
+
+class InstalledVersions(FactBase):
+    """The host's Debian architecture, then `package<TAB>version` of every installed package."""
+
+    def command(self) -> str:
+        return ("dpkg --print-architecture && dpkg-query -W "
+                + shlex.quote("-f=${db:Status-Abbrev}\t${Package}\t${Architecture}\t${Version}\n"))
+
+    def process(self, output) -> dict:
+        return parse_installed(list(output))
+
+
+def parse_installed(lines: list[str]) -> dict:
+    """{"architecture": ..., "packages": {name: version}} from `InstalledVersions`' output: the
+    packages installed ("ii") for the native architecture or "all", names and versions checked."""
+    architecture = lines[0].strip() if lines else ""
+    packages = {}
+    for line in lines[1:]:
+        fields = line.split("\t")
+        if len(fields) != 4 or fields[0].strip() != "ii" or fields[2] not in (architecture, "all"):
+            continue
+        if (class_lock.PACKAGE_NAME.fullmatch(fields[1]) and class_lock.VERSION.fullmatch(fields[3])
+                and fields[1] not in class_lock.NOT_LOCKED):
+            packages[fields[1]] = fields[3]
+    return {"architecture": architecture, "packages": packages}
+
+
+def update_lines(moves: dict[str, list[tuple[str, str, str]]], hosts: dict[str, list[str]]) -> list[str]:
+    """`--dry`'s listing: per group, each package old -> new and the hosts it moves."""
+    lines = []
+    for key, changes in sorted(moves.items()):
+        for name, old, new in changes:
+            lines.append(f"{key}: {name} {old} -> {new} ({', '.join(hosts[key])})")
+        if not changes:
+            lines.append(f"{key}: the archives offer nothing newer than the lock")
+    return lines
+
+
+def read_hosts(args, classroom, groups, with_candidates: class_lock.ClassLock | None) -> dict:
+    """Per lock group: {"hosts": [...], "installed": {...}, "from": host, "candidates": {...}}
+    read from the hosts --limit selects that answer (the first one of each group is read)."""
+    from pyinfra.api.facts import get_fact
+
+    state = connected_state(groups, args.limit)
+    distro_of = {host.name: host.distro for host in classroom.hosts}
+    found: dict[str, dict] = {}
+    for host in state.inventory:
+        if host not in state.active_hosts or not distro_of.get(host.name):
+            continue
+        reading = get_fact(state, host, InstalledVersions)
+        key = class_lock.group_key(distro_of[host.name], reading["architecture"])
+        entry = found.setdefault(key, {"hosts": [], "installed": reading["packages"], "from": host.name})
+        entry["hosts"].append(host.name)
+        if with_candidates is not None and "candidates" not in entry and key in with_candidates.groups:
+            locked = sorted(with_candidates.groups[key].packages)
+            versions = get_fact(state, host, class_lock.AptVersions, packages=locked) if locked else {}
+            entry["candidates"] = {name: found_versions[0] for name, found_versions in versions.items()}
+    return found
+
+
+def run_lock(args: argparse.Namespace) -> int:
+    try:
+        classroom, groups = load_classroom_groups(args.roster, "lock")
+    except RosterProblem as problem:
+        return fail(problem)
+    path = Path(classroom.path).parent / class_lock.LOCK_FILE
+    lock, report = class_lock.read_lock(path)
+    if lock is None:
+        return fail(RosterProblem("\n".join(str(problem) for problem in report.errors)))
+    found = read_hosts(args, classroom, groups, lock if args.update else None)
+    taken = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    if args.update:
+        moves = {key: class_lock.updates(lock, key, entry.get("candidates", {}))
+                 for key, entry in found.items() if key in lock.groups}
+        print("\n".join(update_lines(moves, {key: entry["hosts"] for key, entry in found.items()})))
+        for key, changes in moves.items():
+            lock = class_lock.updated(lock, key, changes, taken) if changes else lock
+    else:
+        for key, entry in sorted(found.items()):
+            lock, added = class_lock.merged(lock, key, entry["installed"], {}, taken, entry["from"])
+            print(f"{key}: {len(added)} packages locked from {entry['from']}" if added
+                  else f"{key}: already locked; nothing new (roslab lock --update moves it)")
+    if args.dry:
+        print(f"--dry: {path.name} was not changed")
+        return 0
+    path.write_text(class_lock.render_lock(lock))
+    return 0
+
+
+def register(commands) -> None:
+    lock = commands.add_parser(
+        "lock",
+        help="take or move the class lock (classroom.lock): one set of package versions per group",
+        description="Without --update: lock each (distro, architecture) group the lock lacks, at the versions "
+        "a converged host of the group has installed. With --update: move the locked versions to what the "
+        "archives offer now (--dry only lists package old -> new and the hosts), except the lock's hold: list.",
+    )
+    add_roster_argument(lock)
+    lock.add_argument("--update", action="store_true", help="move the locked versions to the archives' newest")
+    lock.add_argument("--dry", action="store_true", help="list what would change; write nothing")
+    lock.set_defaults(run=run_lock)
+

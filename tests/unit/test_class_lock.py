@@ -1,0 +1,147 @@
+"""The class lock (roslab.class_lock): its format, its errors, its merge, and the apt pin it puts on a host."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from fixtures.fake_host import plan
+from pyinfra.facts.files import FileContents
+
+from roslab import class_lock
+from roslab.checked.problems import Report
+
+KEY = "jazzy/arm64"
+TAKEN = "2026-11-28T22:00:00Z"
+INSTALLED = {"ros-jazzy-ros-base": "0.11.0-1noble.20250101.000000", "libc6": "2.39-0ubuntu8.4"}
+ROSTERS = Path(__file__).parent / "rosters"
+COMMIT = "0123456789abcdef0123456789abcdef01234567"
+
+
+def first_lock() -> class_lock.ClassLock:
+    lock, _ = class_lock.merged(class_lock.ClassLock(), KEY, INSTALLED, {"turtlebot3": COMMIT}, TAKEN, "robot1-1")
+    return lock
+
+
+def test_lock_round_trips_sorted_and_quoted(tmp_path):
+    lock = class_lock.ClassLock(groups=first_lock().groups, hold=("libc6",))
+    text = class_lock.render_lock(lock)
+    assert text.index("'libc6'") < text.index("'ros-jazzy-ros-base'")  # sorted: a small git diff
+    path = tmp_path / "classroom.lock"
+    path.write_text(text)
+    again, report = class_lock.read_lock(path)
+    assert report.errors == []
+    assert again == lock
+    assert class_lock.render_lock(again) == text
+
+
+def test_a_missing_lock_is_an_empty_one(tmp_path):
+    lock, report = class_lock.read_lock(tmp_path / "classroom.lock")
+    assert lock == class_lock.ClassLock() and report.errors == []
+
+
+@pytest.mark.parametrize(("document", "field", "words"), [
+    ({"groups": {"jazzy": {}}}, "groups.jazzy", "distro/architecture"),
+    ({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1", "packages": {"-oAPT::x": "1.0"}}}},
+     f"groups.{KEY}.packages.-oAPT::x", "not a name"),
+    ({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1", "packages": {"libc6": "1.0; rm -rf /"}}}},
+     f"groups.{KEY}.packages.libc6", "Debian version"),
+    ({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1", "sources": {"tb3": "main"}}}},
+     f"groups.{KEY}.sources.tb3", "40-hex-digit commit"),
+    ({"groups": {KEY: {"taken": "yesterday", "taken_from": "r1"}}}, f"groups.{KEY}.taken", "UTC time"),
+    ({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1", "extra": 1}}}, f"groups.{KEY}.extra", "unknown key"),
+    ({"hold": ["Bad Name"]}, "hold", "Debian package name"),
+    ({"pins": {}}, "pins", "unknown key"),
+])
+def test_hostile_values_are_refused_naming_file_and_field(document, field, words):
+    report = Report("classroom.lock")
+    class_lock.parse_lock(document, report)
+    assert [p.field for p in report.errors] == [field]
+    assert words in str(report.errors[0]) and str(report.errors[0]).startswith("classroom.lock: ")
+
+
+def test_broken_yaml_names_the_file(tmp_path):
+    path = tmp_path / "classroom.lock"
+    path.write_text("groups: [\n")
+    lock, report = class_lock.read_lock(path)
+    assert lock is None and "not valid YAML" in str(report.errors[0])
+
+
+def test_merge_locks_a_new_package_at_first_install_and_never_moves_a_locked_one():
+    newer = {**INSTALLED, "libc6": "2.39-0ubuntu8.5", "ros-jazzy-turtlesim": "1.8.3-1noble"}
+    lock, added = class_lock.merged(first_lock(), KEY, newer, {"turtlebot3": "f" * 40}, "2026-12-01T08:00:00Z", "r2")
+    group = lock.groups[KEY]
+    assert added == ["ros-jazzy-turtlesim"]
+    assert group.packages["libc6"] == "2.39-0ubuntu8.4"  # locked: only `lock --update` moves it
+    assert group.packages["ros-jazzy-turtlesim"] == "1.8.3-1noble"
+    assert (group.taken, group.taken_from, group.sources["turtlebot3"]) == (TAKEN, "robot1-1", COMMIT)
+    same, added = class_lock.merged(lock, KEY, newer, {}, TAKEN, "r2")
+    assert same is lock and added == []  # nothing new: the file is not rewritten
+
+
+def test_update_lists_old_to_new_and_keeps_held_packages_back():
+    lock = class_lock.ClassLock(groups=first_lock().groups, hold=("libc6",))
+    candidates = {"libc6": "2.39-0ubuntu9", "ros-jazzy-ros-base": "0.11.0-1noble.20260101.000000"}
+    moves = class_lock.updates(lock, KEY, candidates)
+    assert moves == [("ros-jazzy-ros-base", INSTALLED["ros-jazzy-ros-base"], candidates["ros-jazzy-ros-base"])]
+    moved = class_lock.updated(lock, KEY, moves, "2026-12-01T08:00:00Z")
+    assert moved.groups[KEY].packages["ros-jazzy-ros-base"] == candidates["ros-jazzy-ros-base"]
+    assert moved.groups[KEY].packages["libc6"] == INSTALLED["libc6"]
+    assert class_lock.updates(moved, KEY, candidates) == []
+
+
+def test_a_version_nobody_serves_is_one_line_naming_package_version_and_what_to_do():
+    group = first_lock().groups[KEY]
+    lines = class_lock.unmet(group, ["libc6", "ros-jazzy-ros-base"],
+                             {"libc6": ["2.39-0ubuntu9"], "ros-jazzy-ros-base": [INSTALLED["ros-jazzy-ros-base"]]})
+    assert lines == [
+        "libc6=2.39-0ubuntu8.4 is locked but neither the archive nor the class cache has it: "
+        "put the .deb back in the class cache, or move the lock with `roslab lock --update`"
+    ]
+
+
+def test_apt_is_pinned_to_the_locked_versions_by_one_whole_file():
+    group = first_lock().groups[KEY]
+    result = plan(class_lock.locked_versions_pinned, {FileContents: lambda path: None}, group=group)
+    text = result.uploads()[class_lock.PREFERENCES_FILE]
+    assert "Package: libc6\nPin: version 2.39-0ubuntu8.4\nPin-Priority: 1001\n" in text
+    current = text.splitlines()
+    result = plan(class_lock.locked_versions_pinned, {FileContents: lambda path: current}, group=group)
+    assert result.changing() == {} and result.noops == ["apt is pinned to the class lock's 2 versions"]
+
+
+def test_a_broken_lock_beside_the_roster_stops_the_roster_before_any_host(tmp_path):
+    from roslab.roster import RosterError, load_roster
+
+    roster = tmp_path / "classroom.yaml"
+    roster.write_text((ROSTERS / "two_teams.yaml").read_text())
+    load_roster(roster)  # no lock yet: nothing to check
+    (tmp_path / "classroom.lock").write_text(
+        "groups:\n  jazzy/arm64:\n    taken: '2026-11-28T22:00:00Z'\n    taken_from: r1\n"
+        "    packages:\n      libc6: '1.0\\nPackage: *'\n")
+    with pytest.raises(RosterError, match=r"classroom.lock: field 'groups.jazzy/arm64.packages.libc6'"):
+        load_roster(roster)
+
+
+def test_a_hosts_installed_packages_are_read_for_its_architecture_and_checked():
+    from roslab.cli.lock import parse_installed, update_lines
+
+    reading = parse_installed(["arm64", "ii \tlibc6\tarm64\t2.39-0ubuntu8.4", "ii \ttzdata\tall\t2024a-3ubuntu1",
+                               "ii \tlibc6\ti386\t2.39-0ubuntu8.4", "rc \told\tarm64\t1.0",
+                               "ii \tros2-apt-source\tall\t1.1.0~noble",
+                               "ii \tevil\tarm64\t1.0\nPackage: *"])
+    assert reading == {"architecture": "arm64", "packages": {"libc6": "2.39-0ubuntu8.4", "tzdata": "2024a-3ubuntu1"}}
+    lines = update_lines({KEY: [("libc6", "2.39-0ubuntu8.4", "2.39-0ubuntu9")], "humble/arm64": []},
+                         {KEY: ["team1-main", "team2-main"], "humble/arm64": ["old-robot"]})
+    assert lines == ["humble/arm64: the archives offer nothing newer than the lock",
+                     "jazzy/arm64: libc6 2.39-0ubuntu8.4 -> 2.39-0ubuntu9 (team1-main, team2-main)"]
+
+
+def test_ros2_apt_source_is_the_rosters_to_version_never_the_locks():
+    lock, added = class_lock.merged(class_lock.ClassLock(), KEY, {**INSTALLED, "ros2-apt-source": "1.1.0"}, {},
+                                    TAKEN, "r1")
+    assert "ros2-apt-source" not in lock.groups[KEY].packages and "ros2-apt-source" not in added
+    report = Report("classroom.lock")
+    class_lock.parse_lock({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1",
+                                            "packages": {"ros2-apt-source": "1.1.0"}}}}, report)
+    assert "ros_apt_source_version" in str(report.errors[0])
