@@ -21,7 +21,7 @@ from pathlib import Path
 
 from .create3 import recorded_posts
 from .instance import Instance, SandboxHost
-from .system import SandboxError, pid_alive, run, terminate
+from .system import SandboxError, pid_alive, run, stop_recorded
 
 BASE_ADDRESS = "192.168.186.2/24"  # the Create 3's side of usb0 (turtlebot4_setup, the Create 3 docs)
 INTERFACE = "usb0"
@@ -100,13 +100,9 @@ def plug(instance: Instance, host: SandboxHost, firmware: str = DEFAULT_FIRMWARE
 
 def unplug(instance: Instance, host: SandboxHost) -> bool:
     """Unplug the host's Create 3: the stand-in stopped, usb0 gone with its namespace. False: none was."""
-    pid_file, _ = files(instance, host)
-    pid = running_pid(pid_file)
-    if pid is not None:
-        terminate(pid)
-    pid_file.unlink(missing_ok=True)
+    stopped = stop_recorded(files(instance, host)[0], running_pid)
     run("ip", "netns", "delete", netns(instance, host), check=False)  # takes the veth pair, usb0 too
-    return pid is not None
+    return stopped
 
 
 def state(instance: Instance, host: SandboxHost) -> str:
@@ -122,7 +118,4 @@ def state(instance: Instance, host: SandboxHost) -> str:
 def unplug_all(instance: Instance) -> None:
     """Stop every Create 3 stand-in of the sandbox (its `down`; the namespaces go with the network)."""
     for pid_file in sorted((instance.state_dir / "create3").glob("*.pid")):
-        pid = running_pid(pid_file)
-        if pid is not None:
-            terminate(pid)
-        pid_file.unlink(missing_ok=True)
+        stop_recorded(pid_file, running_pid)

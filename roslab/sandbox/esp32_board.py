@@ -29,7 +29,7 @@ from . import upstream
 from roslab.robot_tools.esp32_firmware import BoardValues
 
 from .real_sources import Bundles
-from .system import SandboxError, log, pid_alive, terminate
+from .system import SandboxError, log, pid_alive, stop_recorded
 
 SOURCE = Path(__file__).resolve().parent / "board" / "esp32_board_standin.c"
 # The client the board's firmware uses for Jazzy (micro_ros_platformio builds it at v2.4.3) and
@@ -145,12 +145,7 @@ def start(executable: Path, values: BoardValues, state_dir: Path, timeout: float
 
 def stop(state_dir: Path, team: str) -> bool:
     """Stop team `team`'s board; False: none was running."""
-    pid_file, _ = board_files(state_dir, team)
-    pid = running_pid(pid_file)
-    if pid is not None:
-        terminate(pid)
-    pid_file.unlink(missing_ok=True)
-    return pid is not None
+    return stop_recorded(board_files(state_dir, team)[0], running_pid)
 
 
 def state(state_dir: Path, team: str) -> str:

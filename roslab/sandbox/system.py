@@ -100,6 +100,16 @@ def terminate(pid: int, timeout: float = 2.0) -> None:
         time.sleep(0.01)
 
 
+def stop_recorded(pid_file: Path, running) -> bool:
+    """Stop the process `pid_file` names when `running(pid_file)` says it is still the one started
+    (a sandbox stand-in: a board, a Create 3), and forget the file. False: none was running."""
+    pid = running(pid_file)
+    if pid is not None:
+        terminate(pid)
+    pid_file.unlink(missing_ok=True)
+    return pid is not None
+
+
 @contextlib.contextmanager
 def announced(what: str, every: float = 15.0):
     """Say what the sandbox is doing, again every `every` seconds while it lasts, and how long
