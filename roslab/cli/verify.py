@@ -68,6 +68,11 @@ KILL_AFTER = 5
 LIST_TIMEOUT = 15  # `ros2 topic list`
 LIST_SPIN_TIME = 3  # discovery time `ros2 topic list --no-daemon` waits
 DAEMON_TIMEOUT = 15  # `ros2 daemon status|stop`
+# How long the publishers' node names are read again while one is still unnamed: a
+# participant's node name comes in its ros_discovery_info, which can arrive seconds after its
+# topic; until then ROS names it UNNAMED_PUBLISHER.
+PUBLISHERS_WAIT = 20
+UNNAMED_PUBLISHER = "_CREATED_BY_BARE_DDS_APP_"
 MESSAGE_LIMIT = 4096  # bytes of the message kept
 
 
@@ -79,7 +84,7 @@ def robot_name_from_chatter(text: str) -> str | None:
 
 def check_bound(timeout: int, kill_after: int = KILL_AFTER) -> int:
     """Seconds after which the whole check is killed: every step's bound, plus slack."""
-    steps = [LIST_TIMEOUT, int(timeout)] + [DAEMON_TIMEOUT] * 3
+    steps = [LIST_TIMEOUT, int(timeout), PUBLISHERS_WAIT + LIST_TIMEOUT] + [DAEMON_TIMEOUT] * 3
     return sum(steps) + kill_after * (len(steps) + 1) + 10
 
 
@@ -156,11 +161,24 @@ def check_script(distro: str, environment: dict, workspace_dir: str, topic: str,
             f"{bounded(timeout)} ros2 topic echo --no-daemon --once"
             f"{' --field data' if message_type == CHATTER_TYPE else ''} --full-length"
             f" {shell_word(topic)} {shell_word(message_type)} 2>/dev/null | head -c {MESSAGE_LIMIT}",
-            "echo \"## echo status ${PIPESTATUS[0]}\"",
+            "echo_status=${PIPESTATUS[0]}",
+            "echo \"## echo status $echo_status\"",
             *([
                 "echo '## publishers'",
-                f"{bounded(LIST_TIMEOUT)} ros2 topic info --no-daemon --spin-time {LIST_SPIN_TIME} --verbose"
-                f" {shell_word(topic)} 2>/dev/null | awk '/^Subscription count/ {{exit}} /^Node name: / {{print $3}}'",
+                # Read again, up to PUBLISHERS_WAIT s, while one is still unnamed, or none is
+                # seen although a message came.
+                f"publishers_until=$((SECONDS + {PUBLISHERS_WAIT}))",
+                "while :; do",
+                f"  publishers=$({bounded(LIST_TIMEOUT)} ros2 topic info --no-daemon --spin-time {LIST_SPIN_TIME}"
+                f" --verbose {shell_word(topic)} 2>/dev/null"
+                " | awk '/^Subscription count/ {exit} /^Node name: / {print $3}')",
+                f"  if [ -z \"$publishers\" ] && [ \"$echo_status\" != 0 ]; then break; fi",
+                f"  if [ -n \"$publishers\" ] && ! grep -qx {shell_word(UNNAMED_PUBLISHER)} <<<\"$publishers\"; then"
+                " break; fi",
+                "  if [ $SECONDS -ge $publishers_until ]; then break; fi",
+                "  sleep 1",
+                "done",
+                "[ -n \"$publishers\" ] && printf '%s\\n' \"$publishers\"",
             ] if publisher else []),
             # --no-daemon starts none; should one have been started anyway, stop it.
             f"if [ $daemon_before = 0 ] && {daemon_status}; then",
@@ -342,8 +360,13 @@ class TeamResult:
         if not self.greeting and heard["message"] and self.publisher:
             if self.publisher in heard.get("publishers", []):
                 return f"heard a {self.message_type} on {self.topic} from {self.publisher}"
+            named = [name for name in heard.get("publishers") or [] if name != UNNAMED_PUBLISHER]
+            if not named and heard.get("publishers"):
+                return (f"heard a {self.message_type} on {self.topic}, but its publisher's node name was still "
+                        f"unknown after {PUBLISHERS_WAIT} s (ROS shows {UNNAMED_PUBLISHER}): not shown to be "
+                        f"{self.publisher}; run verify again")
             return (f"heard a {self.message_type} on {self.topic}, but not from {self.publisher} (its publishers: "
-                    f"{', '.join(heard.get('publishers') or []) or 'none seen'}): another team's board, or one "
+                    f"{', '.join(named) or 'none seen'}): another team's board, or one "
                     "flashed for another team (roslab esp32-firmware prints this team's values)")
         if not self.greeting and heard["message"]:
             return f"heard a {self.message_type} on {self.topic}"

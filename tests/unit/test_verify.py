@@ -638,6 +638,47 @@ def test_the_topics_publishers_are_asked_for_only_where_a_profile_names_one(tmp_
     assert "topic info" not in verify.check_script("jazzy", ENV, "~/ros2_ws", "/scan", 2, 1, SCAN)
 
 
+def test_a_publisher_still_unnamed_is_read_again_until_its_node_name_comes(tmp_path):
+    # ROS names a participant _CREATED_BY_BARE_DDS_APP_ until its ros_discovery_info arrives,
+    # which under load can be after its first message: the board's name comes on the third read.
+    home = stand_in_ros(tmp_path, "case \"$1 $2\" in \"topic echo\") printf 'data: 7\\n---\\n' ;;\n"
+                                  "\"topic info\") reads=$(grep -c 'topic info' " + str(tmp_path / "calls") + ")\n"
+                                  "  name=_CREATED_BY_BARE_DDS_APP_; [ $reads -ge 3 ] && name=esp32_board_team2\n"
+                                  "  printf 'Publisher count: 1\\n\\nNode name: %s\\n' $name ;; esac")
+    script = verify.check_script("jazzy", ENV, "~/ros2_ws", "/esp32/potentiometer", 2, 1, INT32,
+                                 "esp32_board_team2")
+    script = script.replace("/opt/ros/jazzy/setup.bash", str(tmp_path / "setup.bash"))
+    output = subprocess.run(["bash", "-c", script], capture_output=True, text=True, env={"HOME": str(home)},
+                            timeout=120).stdout
+    found = verify.parse_check_output(output.splitlines())
+    assert found["publishers"] == ["esp32_board_team2"]
+    assert sum("topic info" in call for call in calls(tmp_path)) == 3
+
+
+def test_a_silent_topic_is_not_read_again_for_its_publishers(tmp_path):
+    home = stand_in_ros(tmp_path, "[ \"$1 $2\" = 'topic echo' ] && sleep 5; exit 0")  # no message: killed at 1 s
+    script = verify.check_script("jazzy", ENV, "~/ros2_ws", "/esp32/potentiometer", 1, 1, INT32,
+                                 "esp32_board_team2")
+    script = script.replace("/opt/ros/jazzy/setup.bash", str(tmp_path / "setup.bash"))
+    subprocess.run(["bash", "-c", script], capture_output=True, text=True, env={"HOME": str(home)}, timeout=120)
+    assert sum("topic info" in call for call in calls(tmp_path)) == 1
+
+
+def test_a_publisher_whose_name_never_came_is_not_called_another_teams_board():
+    found = {**heard(topics=("/esp32/potentiometer",), message="data: 7"),
+             "publishers": [verify.UNNAMED_PUBLISHER]}
+    unnamed = result("team2", heard=found, topic="/esp32/potentiometer", message_type=INT32,
+                     publisher="esp32_board_team2")
+    assert not unnamed.passed
+    assert "another team" not in unnamed.verdict()
+    assert unnamed.verdict().startswith(f"heard a {INT32} on /esp32/potentiometer, but its publisher's node name "
+                                        f"was still unknown after {verify.PUBLISHERS_WAIT} s")
+    beside = {**found, "publishers": [verify.UNNAMED_PUBLISHER, "esp32_board_team1"]}
+    other = result("team2", heard=beside, topic="/esp32/potentiometer", message_type=INT32,
+                   publisher="esp32_board_team2")
+    assert "(its publishers: esp32_board_team1): another team's board" in other.verdict()
+
+
 def test_an_esp32_team_passes_only_on_its_own_boards_node():
     def board(publishers):
         found = {**heard(topics=("/esp32/potentiometer",), message="data: 7"), "publishers": publishers}
