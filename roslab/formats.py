@@ -1031,7 +1031,7 @@ def sha256_pins(value: dict, context: Context | None = None) -> str | None:
     return None
 
 
-# How each plain-function check reads in the README's "allowed" column.
+# How each plain-function check reads in the settings table's "allowed" column.
 for _check, _words in {
     single_line: "one line of text",
     hostname: "a host name",

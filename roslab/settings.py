@@ -1,13 +1,13 @@
 """The settings schema: every roster setting declared once, grouped by concern.
 
 Each `Setting` has its default, its type (with the element type of a list), the
-format check its value must pass, and the doc line the README's table shows. The
+format check its value must pass, and the doc line the settings table shows (docs/roster-and-settings.md). The
 roster loader checks every value set at every level against it before any host is
 touched, and merges the defaults into each host's data once; a deploy reads them typed,
 through `roslab.host_settings.host_settings(host)` (the dataclass `roslab/host_fields.py`
 generated from here), and its `data_defaults` are `defaults(concern)`.
 
-    python -m roslab.settings_doc --write   # regenerate the README's table and host_fields.py
+    python -m roslab.settings_doc --write   # regenerate the docs' tables and host_fields.py
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ class Setting:
     nullable: bool = False  # None is a legal value (the default says what None means)
     levels: tuple[str, ...] = ANY
     required: bool = False
-    allowed: str = ""  # the allowed values in words, for the README
+    allowed: str = ""  # the allowed values in words, for the settings table
 
     def allowed_text(self) -> str:
         if self.allowed:
@@ -265,10 +265,10 @@ SCHEMA: list[Setting] = [
         _enabled("robot_profile", "Apply the robot profile's udev rules and the login user's groups."),
         ("robot_profile", "demo", str,
          "What the team's hosts run: a built-in profile (one file each in roslab/profiles/data; "
-         "README, Robots, lists them) or one of the roster's own `profiles:`. Its settings (e.g. "
+         "docs/robots.md lists them) or one of the roster's own `profiles:`. Its settings (e.g. "
          "turtlebot3_model, lds_model) are set beside it.",
          f.pattern(r"[a-z][a-z0-9_]{0,62}", "a profile name"),
-         {"allowed": "a built-in profile (README, Robots) or a roster's profile"}),
+         {"allowed": "a built-in profile (docs/robots.md) or a roster's profile"}),
         ("board", None, str,
          "The board the host is: pi3b+, pi4, pi5 or pc; None: not said (nothing is checked). "
          "Ubuntu 22.04 has no image for a Pi 5.", f.choice("pi3b+", "pi4", "pi5", "pc"),

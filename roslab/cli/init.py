@@ -35,7 +35,7 @@ globals().update(_classroom_inventory(__file__))
 
 DEPLOY = '''\
 """pyinfra deploy of this classroom folder, written by `roslab init`: the installed roslab's
-classroom deploy (every step, in order; see the README's "What each deploy does")."""
+classroom deploy (every step, in order; see roslab's docs/deploys.md)."""
 
 from roslab.packaged import run_deploy as _run_deploy
 
@@ -61,8 +61,8 @@ ROSTER = '''\
 # The classroom roster (written by `roslab init`). Check it with `roslab check`, preview
 # with `pyinfra inventory.py deploy.py --dry`, provision with `pyinfra -y inventory.py deploy.py`.
 #
-# Any setting (`roslab check` names unknown ones; the README's settings table lists them
-# all with their defaults) may be set at three levels, later wins: under `classroom:`
+# Any setting (`roslab check` names unknown ones; roslab's docs/roster-and-settings.md lists
+# them all with their defaults) may be set at three levels, later wins: under `classroom:`
 # (every host), on a team (its hosts), or on a host.
 
 classroom:

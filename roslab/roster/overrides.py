@@ -123,7 +123,7 @@ def key_problem(key: str) -> str | None:
         return "roslab derives it from the roster"
     close = difflib.get_close_matches(key, [*settings.SETTINGS, *PYINFRA_KEYS], n=1)
     hint = f" (did you mean {close[0]!r}?)" if close else ""
-    return f"unknown key{hint}: a roster setting (README's table) or one of pyinfra's own connection keys"
+    return f"unknown key{hint}: a roster setting (docs/roster-and-settings.md) or one of pyinfra's own connection keys"
 
 
 def text_problem(setting: settings.Setting, text: str, value) -> str | None:

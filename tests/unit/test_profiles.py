@@ -656,7 +656,7 @@ def _files_of(root: Path) -> dict[str, bytes]:
 def test_a_new_robot_is_one_profile_file_and_nothing_else(tmp_path, rosdistro_url):
     """A copy of roslab with one more file in roslab/profiles/data (the TurtleBot 4's profile under a
     new name): the roster takes it, its launch is chosen by its setting, the package check and the
-    sandbox's stand-ins cover it, and the README's table has its row; no other file changed."""
+    sandbox's stand-ins cover it, and the table of docs/robots.md has its row; no other file changed."""
     import json
     import os
     import shutil

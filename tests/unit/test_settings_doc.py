@@ -1,4 +1,5 @@
-"""Every setting is documented once, in the schema, and the README repeats it."""
+"""Every setting is documented once, in the schema, and the docs' generated tables repeat it
+(docs/roster-and-settings.md: settings and releases; docs/robots.md: profiles)."""
 
 from roslab import settings, settings_doc
 
@@ -16,39 +17,51 @@ def test_every_default_passes_its_own_check():
     assert {key: problem for key, problem in bad.items() if problem} == {}
 
 
-def test_readme_table_is_up_to_date():
+def test_settings_table_is_up_to_date():
     expected = settings_doc.markdown_table()
-    readme = settings_doc.README.read_text()
-    assert settings_doc.readme_with_table(readme, expected) == readme, (
-        "README's settings table is stale: run `python -m roslab.settings_doc --write`"
+    page = settings_doc.SETTINGS_PAGE.read_text()
+    assert settings_doc.page_with_settings(page, expected) == page, (
+        "docs/roster-and-settings.md's settings table is stale: run `python -m roslab.settings_doc --write`"
     )
 
 
-def test_readme_releases_table_is_up_to_date_and_has_a_row_per_release_record():
+def test_releases_table_is_up_to_date_and_has_a_row_per_release_record():
     from roslab.ros.distro import PLATFORMS
 
     expected = settings_doc.releases_table()
-    readme = settings_doc.README.read_text()
-    assert settings_doc.readme_with_releases(readme, expected) == readme, (
-        "README's releases table is stale: run `python -m roslab.settings_doc --write`"
+    page = settings_doc.SETTINGS_PAGE.read_text()
+    assert settings_doc.page_with_releases(page, expected) == page, (
+        "docs/roster-and-settings.md's releases table is stale: run `python -m roslab.settings_doc --write`"
     )
     for platform in PLATFORMS:
         assert f"| {platform.release} {platform.codename} | {platform.distro.capitalize()} |" in expected
 
 
-def test_readme_profiles_table_is_up_to_date_and_has_a_row_per_profile_file():
+def test_profiles_table_is_up_to_date_and_has_a_row_per_profile_file():
     from roslab.profiles.library import builtin_files
 
     expected = settings_doc.profiles_table()
-    readme = settings_doc.README.read_text()
-    assert settings_doc.readme_with_profiles(readme, expected) == readme, (
-        "README's profiles table is stale: run `python -m roslab.settings_doc --write`"
+    page = settings_doc.PROFILES_PAGE.read_text()
+    assert settings_doc.page_with_profiles(page, expected) == page, (
+        "docs/robots.md's profiles table is stale: run `python -m roslab.settings_doc --write`"
     )
     for path in builtin_files():
         assert f"| `{path.stem}` |" in expected
 
 
-def test_readme_table_lists_every_setting_with_type_and_allowed_values():
+def test_each_generated_table_has_one_home_in_the_docs():
+    """Each table's markers are in its own page once and in no other markdown file of the repo (the
+    README links to them), so `--write` and the drift tests above see every copy there is."""
+    homes = {settings_doc.BEGIN_MARKER: settings_doc.SETTINGS_PAGE,
+             settings_doc.RELEASES_BEGIN_MARKER: settings_doc.SETTINGS_PAGE,
+             settings_doc.PROFILES_BEGIN_MARKER: settings_doc.PROFILES_PAGE}
+    pages = [settings_doc.REPO / "README.md", *sorted((settings_doc.REPO / "docs").glob("*.md"))]
+    for marker, home in homes.items():
+        holding = {page: page.read_text().count(marker) for page in pages if marker in page.read_text()}
+        assert holding == {home: 1}, marker
+
+
+def test_settings_table_lists_every_setting_with_type_and_allowed_values():
     table = settings_doc.markdown_table()
     for s in settings.SCHEMA:
         row = next(line for line in table.splitlines() if line.startswith(f"| `{s.key}` |"))
