@@ -104,4 +104,9 @@ def hand_made_problems(data: Mapping, merged: Mapping | None = None) -> list[tup
     problems = value_problems(data, formats.Context(Path("/")), controller_paths=False)
     bad = {key for key, _ in problems}
     across = across_problems(data if merged is None else merged, given=set(data))
-    return [*problems, *[(key, message) for key, message in across if key not in bad]]
+    # null means "derived from the team's name" in a roster, which resolves it before a host
+    # sees it; here it would silently export no ROS_DOMAIN_ID. (Left out, it is ROS's own 0.)
+    unresolved = [] if "ros_domain_id" not in data or data["ros_domain_id"] is not None else [
+        ("ros_domain_id", f"must not be null here: give a number ({formats.domain_id.allowed}); null derives "
+                          "one from the team's name in a roster, and a hand-made inventory has no teams")]
+    return [*problems, *[(key, message) for key, message in across if key not in bad], *unresolved]

@@ -106,6 +106,15 @@ def test_a_hand_made_inventorys_bad_value_stops_its_host_before_any_change(key, 
     assert "\n" not in error and "Traceback" not in error
 
 
+def test_a_hand_made_inventorys_null_domain_id_is_refused_not_left_unexported():
+    # A roster derives null from the team's name; a hand-made inventory has no team to.
+    with pytest.raises(HostSettingsError) as raised:
+        settings_of("pi", {"ros_domain_id": None})
+    assert str(raised.value).startswith("host pi: ros_domain_id: must not be null here: give a number "
+                                        "(0 to 101, 215 to 232)")
+    assert settings_of("pi", {}).ros_domain_id is None  # left out: ROS's own default, 0
+
+
 def test_a_hand_made_inventory_with_values_a_roster_takes_passes():
     typed = settings_of("pi", {"ros_domain_id": 5, "ros_environment": {"LAB_ROBOT_NAME": "r1"},
                                "sources_underlay_dir": "~/underlay", "workspace_colcon_args":
