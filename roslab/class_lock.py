@@ -16,9 +16,10 @@
 
 Every value is hostile until checked here: a package name must be one Debian allows
 (policy 5.6.1), a version one Debian allows (policy 5.6.12), a commit 40 hex digits.
-A group's versions are written once, on its first converge, and only ever added to
-(`merged`: a package a profile gained later is locked at its first install); moving a
-locked version is `roslab lock --update`'s job (`updates`), never a run's.
+A group's versions are taken once, by `roslab lock` from a converged host of the group (a
+run does not take them by itself), and only ever added to (`merged`: a package a profile
+gained later is locked at its first install); moving a locked version is
+`roslab lock --update`'s job (`updates`), never a run's.
 """
 
 from __future__ import annotations
