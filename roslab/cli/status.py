@@ -34,6 +34,7 @@ import os
 import re
 import shlex
 import sys
+import textwrap
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -683,14 +684,21 @@ def one_line(text) -> str:
 # The team pictures and the page
 # ------------------------------
 
-BOX_WIDTH, BOX_HEIGHT, BOX_GAP = 250, 86, 18
+BOX_WIDTH, BOX_HEIGHT, BOX_GAP = 250, 105, 18  # room for five lines: the nodes' state may take two
 MAIN_X, ROBOT_X, MARGIN = 16, 480, 16
 LINE = 16  # height of a text line in the picture
 TEXT_LIMIT = 32  # characters of a line in a box
+TOPIC_LIMIT, TOPIC_LINES = 60, 3  # characters and lines of one thing the main host hears
 
 
 def clip(text: str, limit: int = TEXT_LIMIT) -> str:
     return text if len(text) <= limit else text[: limit - 1] + "\u2026"
+
+
+def wrapped(text: str, limit: int = TEXT_LIMIT, lines: int = 2) -> list[str]:
+    """`text` in lines of at most `limit` characters, broken at spaces (or inside a word too
+    long for a line), at most `lines` of them, the last clipped (the box's title holds it all)."""
+    return textwrap.wrap(text, limit, max_lines=lines, placeholder=" \u2026") or [""]
 
 
 def last_run_failed(host: HostStatus) -> bool:
@@ -723,8 +731,9 @@ def host_box(host: HostStatus, x: int, y: int) -> dict:
         {"text": clip(f"{host.role} \u00b7 {host.address}"), "class": "detail"},
         {"text": clip(facts), "class": "detail"},
         # "osr_calibrated is false (it runs when ...)": the setting that starts it fits the box
-        {"text": clip(f"nodes: {host.nodes}" if not host.not_started
-                      else f"not started: {host.not_started[0][1].split(' is ')[0]}"), "class": "detail"},
+        *({"text": line, "class": "detail"} for line in wrapped(
+            f"nodes: {host.nodes}" if not host.not_started
+            else f"not started: {host.not_started[0][1].split(' is ')[0]}")),
     ]
     return {
         "x": x, "y": y, "width": BOX_WIDTH, "height": BOX_HEIGHT, "level": box_level(host),
@@ -759,8 +768,9 @@ def team_picture(team: str, hosts: list[HostStatus], listen: bool, topic: str = 
 
     # What the main host hears, under its box.
     topics_y = main_y + BOX_HEIGHT + 22
-    topic_lines = heard_lines(main, result, listen, nothing_to_hear)
-    texts = [{"x": MAIN_X + 4, "y": topics_y + index * LINE, "text": clip(line, 60)}
+    topic_lines = [part for line in heard_lines(main, result, listen, nothing_to_hear)
+                   for part in wrapped(line, TOPIC_LIMIT, TOPIC_LINES)]
+    texts = [{"x": MAIN_X + 4, "y": topics_y + index * LINE, "text": line}
              for index, line in enumerate(topic_lines)]
     if not robots:
         texts.append({"x": ROBOT_X, "y": main_y + BOX_HEIGHT // 2 + 4, "text": "no robot in this team"})

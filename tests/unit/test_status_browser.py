@@ -11,7 +11,7 @@ from __future__ import annotations
 import re
 
 import pytest
-from fixtures.browser import chromium_missing, distinct_rows, dump_dom, screenshot
+from fixtures.browser import chromium, chromium_missing, distinct_rows, dump_dom, screenshot
 from fixtures.status_hosts import HOSTILE, NOW, hostile_page, never_run_host, reachable_host, unreachable_host
 
 from roslab.cli.status import page_context, render_page
@@ -86,3 +86,46 @@ def test_after_a_failed_run_the_browser_shows_the_host_and_the_chip_red(tmp_path
     assert chips["2 reachable"] == "ok"
     row = re.search(r'<tr data-host="team1-main">(.*?)</tr>', dom, re.S).group(1)
     assert '<td class="bad">failed ' in row
+
+
+def page_width(page, window_width: int) -> tuple[int, int]:
+    """(the page's full width, the host table's) as the browser laid them out in a window
+    `window_width` wide. The page forbids scripts (its CSP): a copy without that line carries
+    the test's own measuring script."""
+    measured = page.with_name("measured.html")
+    html = re.sub(r'<meta http-equiv="Content-Security-Policy"[^>]*>', "", page.read_text())
+    measured.write_text(html.replace("</body>", (
+        "<script>document.body.dataset.page = document.documentElement.scrollWidth;"
+        "document.body.dataset.table = Math.ceil(document.querySelector('table').getBoundingClientRect().right);"
+        "</script></body>")))
+    dom = chromium(measured, f"--window-size={window_width},900", "--dump-dom").stdout
+    body = re.search(r'<body data-page="(\d+)" data-table="(\d+)">', dom)
+    assert body, dom[:500]
+    return int(body[1]), int(body[2])
+
+
+def test_a_four_robot_class_fits_a_1280_pixel_window_with_nothing_cut(tmp_path):
+    # The teacher's day-three class: an ESP32 team whose main runs no nodes service, a rover
+    # team whose robot is unreachable with a long error, a TurtleBot 4 team, a sim team.
+    hosts = [reachable_host(name="knob-main", team="knob", profile="esp32_microros", runs_nodes=False),
+             reachable_host(name="knob-robot", role="robot", team="knob", profile="esp32_microros"),
+             reachable_host(name="rover-main", team="rover", profile="osr"),
+             unreachable_host(name="rover-robot", team="rover"),
+             reachable_host(name="tb4-main", team="tb4", profile="turtlebot4"),
+             reachable_host(name="tb4-robot", role="robot", team="tb4", profile="turtlebot4"),
+             never_run_host(name="sim-main")]
+    hosts[3].error = "Could not connect ([Errno 113] No route to host) while reading the host's facts " * 3
+    page = tmp_path / "status.html"
+    page.write_text(render_page(page_context("robotics-lab", "classroom.yaml", hosts, NOW)))
+
+    full, table = page_width(page, 1280)
+
+    assert full <= 1280 and table <= 1280, (full, table)  # no column, NOTE least of all, past the edge
+    dom = dump_dom(page)
+    knob_main = re.search(r'<g class="host" data-host="knob-main".*?</g>', dom, re.S)[0]
+    box = re.search(r'<rect class="box ok" x="\d+" y="(\d+)" width="\d+" height="(\d+)"', knob_main)
+    lines = [(int(y), text) for y, text in re.findall(r'<text class="[^"]*" x="\d+" y="(\d+)">([^<]*)</text>',
+                                                       knob_main)]
+    assert "nodes: none (esp32_microros main)" in " ".join(text for _, text in lines)  # wrapped, not cut
+    assert "\u2026" not in knob_main
+    assert all(y < int(box[1]) + int(box[2]) for y, _ in lines)  # every line inside its box
