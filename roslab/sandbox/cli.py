@@ -7,6 +7,7 @@ import logging
 import os
 import signal
 import sys
+import tempfile
 from pathlib import Path
 
 from . import lifecycle, seeding
@@ -46,6 +47,10 @@ def register(subparsers) -> argparse.ArgumentParser:
     flash.add_argument("--seed", type=Path, metavar="DIR",
                        help="re-flash one HOST with a NoCloud seed (user-data, meta-data, network-config, "
                             "as `roslab seed` writes): it boots through cloud-init, as a flashed Pi does")
+    flash.add_argument("--card", type=Path, metavar="IMG",
+                       help="re-flash one HOST from a card `roslab flash` or `roslab seed --image` wrote (an "
+                            "image file or the card's device): it boots through cloud-init with the seed on "
+                            "the card's system-boot, which must be this HOST's")
     reset.add_argument("--apt-lock-seconds", type=float, default=None, metavar="S",
                        help="on a boot from a seed, how long the stand-in for first-boot "
                             f"unattended-upgrades holds the dpkg lock (default {seeding.FIRST_BOOT_APT_LOCK_SECONDS}; "
@@ -113,6 +118,18 @@ def board_line(values) -> str:
     return (f"{values.team}: board {values.node_name} (domain {values.domain_id}) publishes /esp32/potentiometer "
             f"(std_msgs/msg/Int32) through the micro-ROS agent on {values.agent_host} at "
             f"{values.agent_address}:{values.agent_port}/udp")
+
+
+def reset_hosts(args: argparse.Namespace) -> float:
+    """`sandbox reset`: with --card, the seed read off the card (checked to be the one HOST's)."""
+    if args.card is None:
+        return lifecycle.reset(args.hosts, unseeded=args.unseeded, seed=args.seed,
+                               apt_lock_seconds=args.apt_lock_seconds)
+    if len(args.hosts) != 1:
+        raise SandboxError("reset --card: a card is one host's: name exactly one HOST")
+    with tempfile.TemporaryDirectory(prefix="roslab-card-seed-") as scratch:
+        seed = seeding.seed_from_card(args.card, args.hosts[0], Path(scratch) / args.hosts[0])
+        return lifecycle.reset(args.hosts, seed=seed, apt_lock_seconds=args.apt_lock_seconds)
 
 
 def run_board(args: argparse.Namespace) -> int:
@@ -192,9 +209,9 @@ def run(args: argparse.Namespace) -> int:
         elif args.sandbox_command == "down":
             lifecycle.down()
         elif args.sandbox_command == "reset":
-            seconds = lifecycle.reset(args.hosts, unseeded=args.unseeded, seed=args.seed,
-                                      apt_lock_seconds=args.apt_lock_seconds)
-            how = ("booted from the seed with cloud-init" if args.seed else
+            seconds = reset_hosts(args)
+            how = ("booted from the card's seed with cloud-init" if args.card else
+                   "booted from the seed with cloud-init" if args.seed else
                    "new random SSH host key, unknown to roslab" if args.unseeded else "fresh image")
             print(f"{', '.join(args.hosts)}: {how}, ssh ready after {seconds:.1f} s")
         elif args.sandbox_command == "save":

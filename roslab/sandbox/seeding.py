@@ -26,6 +26,8 @@ the files it writes):
 from __future__ import annotations
 
 import ipaddress
+import json
+import os
 import re
 from pathlib import Path
 
@@ -248,3 +250,41 @@ def seeded_boot_files(apt_lock_seconds: float) -> dict[str, tuple[str, int]]:
                                 f"HOLD_SECONDS={apt_lock_seconds:g}\n", 0o644),
         })
     return files
+
+
+def seed_from_card(card: Path, host_name: str, into: Path) -> Path:
+    """The NoCloud seed on a flashed card (an image file or a block device), copied into
+    `into`, as a Pi's cloud-init finds it: the files `roslab seed --image` or `roslab flash`
+    wrote into the card's FAT `system-boot`. SandboxError, before any host is touched, when
+    the card has no such partition or seed, or was seeded (or flashed) for another host.
+    """
+    from roslab.seed import documents, flash, targets
+
+    if not (card.is_file() or card.is_block_device()):
+        raise SandboxError(f"--card {card}: not an image file or a block device")
+    try:
+        fat = targets.ImageFat(card, targets.boot_partition(card))
+        files = {name: fat.read(name) for name in (*documents.SEED_FILES, flash.MARKER)}
+    except (targets.TargetError, OSError) as error:
+        raise SandboxError(f"--card {card}: {error}") from None
+    missing = [name for name in documents.SEED_FILES if files[name] is None]
+    if missing:
+        raise SandboxError(f"--card {card}: its system-boot holds no {' or '.join(missing)}: not seeded "
+                           "(`roslab flash` or `roslab seed ROSTER --image FILE` seeds a card)")
+    try:
+        meta = yaml.safe_load(files["meta-data"]) or {}
+        record = json.loads(files[flash.MARKER]) if files[flash.MARKER] else {}
+    except (yaml.YAMLError, ValueError) as error:
+        raise SandboxError(f"--card {card}: its meta-data or flash record does not parse: {error}") from None
+    hostname = meta.get("local-hostname") if isinstance(meta, dict) else None
+    flashed_for = record.get("host") if isinstance(record, dict) else None
+    meant = {str(value) for value in (hostname, flashed_for) if value is not None}
+    if meant != {host_name}:
+        raise SandboxError(f"--card {card}: it was seeded for {' and '.join(sorted(meant)) or 'no host'}, "
+                           f"not {host_name}")
+    into.mkdir(parents=True, exist_ok=True)
+    for name in documents.SEED_FILES:
+        descriptor = os.open(into / name, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)  # user-data: secrets
+        with os.fdopen(descriptor, "wb") as out:
+            out.write(files[name])
+    return into

@@ -1,7 +1,8 @@
 """Re-flashing a Pi, played by a sandbox host: with a seed it keeps its identity, without one it is refused.
 
-- A host re-flashed with a seed from `roslab seed` (`roslab sandbox reset HOST --seed DIR`)
-  boots "as flashed": Debian's cloud-init reads the seed from the boot partition and the
+- A host re-flashed from a card seeded by `roslab seed --image` (`roslab sandbox reset HOST
+  --card IMG`, the card a stand-in Pi image) boots "as flashed": Debian's cloud-init reads
+  the seed the card's system-boot holds from the boot partition and the
   host comes up with the roster's hostname, lab user, authorised key, address and the host
   key stored beside the roster, while a stand-in for Ubuntu's first-boot unattended-upgrades
   holds the dpkg lock. The deploy connects with strict host key checking, waits for the lock,
@@ -30,9 +31,12 @@ from pathlib import Path
 import pytest
 import yaml
 
-from roslab.ssh import identity
-from roslab.sandbox import lifecycle, seeding
-from roslab.sandbox.instance import Instance
+sys.path.insert(0, str(Path(__file__).parent.parent))
+import pi_image  # noqa: E402  (the tests' stand-in image)
+
+from roslab.ssh import identity  # noqa: E402
+from roslab.sandbox import lifecycle, seeding  # noqa: E402
+from roslab.sandbox.instance import Instance  # noqa: E402
 
 pytestmark = pytest.mark.e2e
 
@@ -121,15 +125,15 @@ def deploy(roster: Path, host: str) -> tuple[subprocess.CompletedProcess, dict[s
 
 
 def test_a_host_reflashed_with_its_seed_boots_as_flashed_and_the_deploy_converges(sandbox, classroom_copy):
-    seeds = classroom_copy.parent / "seeds"
-    roslab("seed", str(classroom_copy), "--out", str(seeds), "--limit", SEEDED)
+    # The card: a stand-in for Ubuntu's Pi image (tests/pi_image.py), seeded as a teacher seeds one.
+    card = pi_image.write(classroom_copy.parent / "card.img")
+    roslab("seed", str(classroom_copy), "--image", str(card), "--limit", SEEDED)
     known_hosts = identity.known_hosts_path(classroom_copy)
     stored_key = identity.host_keys(classroom_copy, SEEDED).public_line()
     address = sandbox.host(SEEDED).address
 
-    flashed = roslab("sandbox", "reset", SEEDED, "--seed", str(seeds / SEEDED),
-                     "--apt-lock-seconds", str(APT_LOCK_SECONDS))
-    assert "booted from the seed with cloud-init" in flashed.stdout
+    flashed = roslab("sandbox", "reset", SEEDED, "--card", str(card), "--apt-lock-seconds", str(APT_LOCK_SECONDS))
+    assert "booted from the card's seed with cloud-init" in flashed.stdout
 
     # Reached as the seed's user, with strict checking against the roster's known_hosts only:
     # the host serves the key stored beside the roster.

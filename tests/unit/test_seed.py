@@ -395,3 +395,28 @@ def test_a_problem_every_host_shares_is_one_line(tmp_path, capsys):
     lines = [line for line in capsys.readouterr().err.splitlines() if "teacher_ssh_keys" in line]
     assert len(lines) == 1, lines
     assert "every host (3), field 'teacher_ssh_keys': a seeded Pi allows no password login" in lines[0]
+
+
+def test_the_sandbox_reads_a_cards_seed_only_for_the_host_it_was_seeded_for(tmp_path):
+    """`roslab sandbox reset HOST --card IMG` boots from the seed on the card's system-boot."""
+    from roslab.sandbox.seeding import seed_from_card
+    from roslab.sandbox.system import SandboxError
+
+    roster = write_roster(tmp_path, host=NETWORKS["wifi-static"].format(ssid='"lab"'))
+    card = tmp_path / "card.img"
+    build_pi_image(card)
+    with pytest.raises(SandboxError, match="holds no network-config or meta-data: not seeded"):
+        seed_from_card(card, "team1-main", tmp_path / "unseeded")  # Ubuntu's own user-data only
+    assert seed(roster, "--image", card, "--limit", "team1-main") == 0
+    assert seed(roster, "--out", tmp_path / "seeds") == 0
+
+    seed_dir = seed_from_card(card, "team1-main", tmp_path / "read" / "team1-main")
+
+    for name in ("user-data", "network-config", "meta-data"):
+        assert (seed_dir / name).read_bytes() == (tmp_path / "seeds/team1-main" / name).read_bytes()
+        assert stat.S_IMODE((seed_dir / name).stat().st_mode) == 0o600  # user-data holds a password
+    with pytest.raises(SandboxError, match="it was seeded for team1-main, not team1-robot"):
+        seed_from_card(card, "team1-robot", tmp_path / "other")
+    (tmp_path / "notes.txt").write_text("not a card\n")
+    with pytest.raises(SandboxError, match="notes.txt has no partition table"):
+        seed_from_card(tmp_path / "notes.txt", "team1-main", tmp_path / "none")
