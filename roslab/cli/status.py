@@ -20,6 +20,9 @@ the roster's `nodes_verify_timeout` unless `--listen-timeout` says), a second bo
 Each host is judged by what its roster and robot profile run there (`roslab.cli.host_services`):
 a TurtleBot3's or a sim main runs no nodes service and is green without one; a stopped
 discovery server, Zenoh router or profile service is named in its row and its team's line.
+With a class lock beside the roster (roslab.class_lock), the probe also asks apt about the locked
+packages, and each locked group's date and how far the archives moved past it follow the table
+(roslab.cli.status_lock).
 
 Exit status: 0 when every host answered and none failed its last recorded run; 1 when one
 did not answer, one's last run failed, or the roster has errors. A host

@@ -142,8 +142,8 @@ def host_groups(lock: class_lock.ClassLock, hosts) -> dict[str, list]:
     """Group key -> (host name, its parsed policy) of each host that answered the section."""
     found: dict[str, list] = {}
     for host in hosts:
-        policy = (host.probe or {}).get("apt_policy")
-        if host.reachable and policy and policy["architecture"] and host.expected_distro:
+        policy = (host.probe or {}).get("apt_policy")  # only from a whole answer: none cut short
+        if host.reachable and host.probe["probed"] and policy and policy["architecture"] and host.expected_distro:
             found.setdefault(f"{host.expected_distro}/{policy['architecture']}", []).append((host.name, policy))
     return found
 
