@@ -20,6 +20,9 @@ the roster's `nodes_verify_timeout` unless `--listen-timeout` says), a second bo
 Each host is judged by what its roster and robot profile run there (`roslab.cli.host_services`):
 a TurtleBot3's or a sim main runs no nodes service and is green without one; a stopped
 discovery server, Zenoh router or profile service is named in its row and its team's line.
+With a class lock beside the roster (roslab.class_lock), the probe also asks apt about the locked
+packages, and each locked group's date and how far the archives moved past it follow the table
+(roslab.cli.status_lock).
 
 Exit status: 0 when every host answered and none failed its last recorded run; 1 when one
 did not answer, one's last run failed, or the roster has errors. A host
@@ -45,7 +48,7 @@ from pyinfra.api import FactBase
 from roslab.roster import Classroom, RosterError, display_path, group_names, inventory_groups
 from roslab.profiles.host import RebootRecord, parse_reboot_record, reboot_pending
 from roslab.reporting.runs import RunRecord, now_utc, read_runs, runs_path
-from roslab.cli import launch_journal
+from roslab.cli import launch_journal, status_lock
 from roslab.cli.host_services import host_services, profile_name, runs_nodes, services_not_started
 from roslab.cli.verify import (
     CHATTER_TYPE, SERVICE_RUNNING, TeamResult, check_bound, hear, parse_check_output, service_state,
@@ -86,21 +89,23 @@ class StatusProbe(FactBase):
         return parse_probe([])
 
     def command(self, service: str = NODES_SERVICE, others: tuple[str, ...] = (), launches: tuple[str, ...] = (),
-                underlay: str = "", base_url: str = "") -> str:
-        return probe_script(service, others, launches, underlay, base_url)
+                underlay: str = "", base_url: str = "", lock_packages: tuple[str, ...] | None = None) -> str:
+        return probe_script(service, others, launches, underlay, base_url, lock_packages)
 
     def process(self, output):
         return parse_probe(output)
 
 
 def probe_script(service: str = NODES_SERVICE, others: tuple[str, ...] = (), launches: tuple[str, ...] = (),
-                 underlay: str = "", base_url: str = "") -> str:
+                 underlay: str = "", base_url: str = "", lock_packages: tuple[str, ...] | None = None) -> str:
     """`others`: the host's other services (roslab.cli.host_services: its discovery server or Zenoh
     router, its profile's), each read into a `## unit <name>` section; `launches`: those that
     run `ros2 launch`, whose journal's last lines go into a `## journal <name>` section (which
     of the launch's nodes died, roslab.cli.launch_journal); `underlay`: the shell word naming its
     underlay's origin record (`origin_file`), read into `## underlay`; `base_url`: the robot's
-    base (a TurtleBot 4's Create 3, roslab.profiles.robot_base), whose /api/about goes into `## base`."""
+    base (a TurtleBot 4's Create 3, roslab.profiles.robot_base), whose /api/about goes into `## base`;
+    `lock_packages` (None without a class lock): the locked packages whose `apt-cache policy` goes,
+    after the host's architecture, into `## apt-policy` (roslab.cli.status_lock)."""
     return "; ".join([
         *(("echo '## underlay'", f"head -c 200 {underlay} 2>/dev/null; echo") if underlay else ()),
         "echo '## os-release'",
@@ -117,6 +122,8 @@ def probe_script(service: str = NODES_SERVICE, others: tuple[str, ...] = (), lau
             f"echo {shlex.quote(f'## journal {unit}')}", launch_journal.command(shlex.quote(unit)))),
         *(("echo '## base'", f"curl -fsS -m 3 {shlex.quote(base_url + '/api/about')} 2>/dev/null || "
            "echo '#no-answer'; echo") if base_url else ()),
+        *((f"echo '## {status_lock.SECTION}'", status_lock.policy_command(lock_packages))
+          if lock_packages is not None else ()),
         "echo '## reboot'",
         REBOOT_RECORD_COMMAND,
         "echo '## end'",
@@ -176,6 +183,8 @@ def parse_probe(lines) -> dict:
         "reboot": parse_reboot_record(sections.get("reboot", [])),
         "underlay": parse_origin(sections.get("underlay", [])),
         "base": parse_base(sections["base"]) if "base" in sections else None,
+        "apt_policy": status_lock.parse_policy(sections[status_lock.SECTION])
+        if status_lock.SECTION in sections else None,
     }
 
 
@@ -252,6 +261,8 @@ class HostStatus:
     # The shell word naming its underlay's origin record (origin_file); "" when it builds none.
     underlay: str = ""
     base: dict | None = None  # the robot profile's base (roslab.profiles.robot_base), robot hosts only
+    # The class lock's packages its probe asks apt about (roslab.cli.status_lock); None: no lock.
+    lock_packages: tuple[str, ...] | None = None
 
     @property
     def release(self) -> str | None:
@@ -642,6 +653,7 @@ def _probe_host(state, host, status: HostStatus, listen: bool, listen_timeout: i
                         "launches": tuple(service.unit for service in status.other_services if service.launch),
                         "underlay": status.underlay,
                         "base_url": f"http://{status.base['base_address']}" if status.base else "",
+                        "lock_packages": status.lock_packages,
                         "_sudo": False, "_timeout": min(PROBE_TIMEOUT, bound), "_ignore_errors": True},
                 apply_failed_hosts=False,
             )
@@ -929,6 +941,7 @@ def page_context(classroom_name: str | None, roster: str, hosts: list[HostStatus
                  for host in hosts],
         "warnings": warnings or [],
         "checklists": checklists or [],
+        "lock": [],  # the class lock's lines (roslab.cli.status_lock.lock_lines), set by run
     }
 
 
@@ -1031,11 +1044,13 @@ def run(args: argparse.Namespace) -> int:
         print(problem or f"roslab status: {display_path(path)} has no host", file=sys.stderr)
         return 2
     attach_recorded_runs(classroom, statuses, warnings)
+    lock = attach_lock(classroom, statuses)
 
     probe(groups, statuses, listen=args.listen, listen_timeout=args.listen_timeout, host_bound=args.timeout)
 
     now = now_utc()
     context = status_context(classroom, statuses, now, args, warnings)
+    context["lock"] = status_lock.lock_lines(lock, statuses, now)
     print_status(classroom, statuses, now, context, args.listen, warnings)
 
     page = Path(args.html) if args.html else default_page_path(classroom.path)
@@ -1071,6 +1086,17 @@ def attach_recorded_runs(classroom: Classroom, statuses: list[HostStatus], warni
         status.run = runs.get(status.name)
 
 
+def attach_lock(classroom: Classroom, statuses: list[HostStatus]):
+    """The class lock beside the roster (None without one; a broken one was refused with the
+    roster, naming file and field), and on each host the locked packages its probe asks about."""
+    from roslab.class_lock import lock_beside
+
+    lock = lock_beside(str(classroom.path))
+    for status in statuses if lock is not None else ():
+        status.lock_packages = status_lock.asked_packages(lock, status.expected_distro)
+    return lock
+
+
 def status_context(classroom: Classroom, statuses: list[HostStatus], now: datetime,
                    args: argparse.Namespace, warnings: list[str]) -> dict:
     """The page's data, with each team's topic and message type from its main host's settings."""
@@ -1092,6 +1118,9 @@ def print_status(classroom: Classroom, statuses: list[HostStatus], now: datetime
     title = f"Classroom {classroom.name!r}" if classroom.name else "Classroom"
     print(f"{title} ({display_path(classroom.path)}), {now.astimezone().strftime('%Y-%m-%d %H:%M:%S')}")
     print(format_table(statuses, now))
+    if context.get("lock"):
+        print()
+        print("\n".join(line["text"] for line in context["lock"]))
     if context["checklists"]:
         print()
         print(format_checklists(context["checklists"]))
