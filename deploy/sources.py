@@ -149,7 +149,7 @@ def sources():
     digest = underlay_groups.input_digest(stamp, machine, directory)
     stamps = host.get_fact(ws_ops.WorkspaceStamps, workspace_dir=directory)
     holds = bool(stamps.get("build") == stamp and stamps.get("installed"))
-    builder = underlay_builder(digest, machine, cache_dir, holds)
+    builder = underlay_builder(digest, machine, cache_dir, holds, directory, stamp)
     if builder is None:
         return
     underlay_ops.sources(
@@ -196,10 +196,13 @@ def sources():
         )
 
 
-def underlay_builder(digest: str, machine: str, cache_dir: Path, holds: bool) -> str | None:
+def underlay_builder(digest: str, machine: str, cache_dir: Path, holds: bool, directory: str,
+                     stamp: str) -> str | None:
     """Which host builds this host's underlay: this host when it holds the build already, the
     builder the controller's cache records when it has the build, else the group's builder
-    (roslab.sources.groups.choose_builder). None when there is none: the host is stopped."""
+    (roslab.sources.groups.choose_builder): a host of the group that holds the same build
+    (`stamp` in `directory`) before any that would compile it. None when there is none: the
+    host is stopped."""
     if holds:
         return host.name
     kept = underlay_ship.cached(cache_dir, digest)
@@ -217,7 +220,11 @@ def underlay_builder(digest: str, machine: str, cache_dir: Path, holds: bool) ->
         peer_machine = machine if peer.name == host.name else (peer.get_fact(Arch) or "unknown")
         if peer_machine == machine:
             memory = host.get_fact(MemoryTotal) if peer.name == host.name else peer.get_fact(MemoryTotal)
-            members.append(underlay_groups.Member(peer.name, memory))
+            # a re-imaged builder with the controller's cache gone: a teammate's tree is shipped, not rebuilt
+            peer_stamps = {} if peer.name == host.name else peer.get_fact(ws_ops.WorkspaceStamps,
+                                                                           workspace_dir=directory)
+            peer_holds = bool(peer_stamps.get("build") == stamp and peer_stamps.get("installed"))
+            members.append(underlay_groups.Member(peer.name, memory, holds=peer_holds))
     profile = host_settings(host).roslab_profile
     choice = underlay_groups.choose_builder(members, named, profile.underlay_build_memory_mb if profile else None,
                                             profile.name if profile else "")

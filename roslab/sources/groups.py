@@ -72,10 +72,12 @@ def input_digest(build_stamp: str, machine: str, underlay_dir: str) -> str:
 
 @dataclass(frozen=True)
 class Member:
-    """A host of a group, as the deploy sees it: its name and memory (MiB; None: unknown)."""
+    """A host of a group, as the deploy sees it: its name, memory (MiB; None: unknown) and
+    whether it holds the group's build already (`holds`: the same build stamp, installed)."""
 
     name: str
     memory_mb: int | None = None
+    holds: bool = False
 
 
 @dataclass(frozen=True)
@@ -93,8 +95,13 @@ def may_build(member: Member, min_memory_mb: int | None) -> bool:
 
 def choose_builder(members: list[Member], named: str | None = None, min_memory_mb: int | None = None,
                    profile: str = "") -> Choice:
-    """The builder of a group (`members` in roster order): `named` if it is a member with enough
-    memory, else the first member with enough memory."""
+    """The builder of a group (`members` in roster order): the first member that holds the build
+    already (nothing is compiled: its tree is shipped, whatever its memory, even where another
+    host is `named`), else `named` if it is a member with enough memory, else the first member
+    with enough memory."""
+    holder = next((member for member in members if member.holds), None)
+    if holder is not None:
+        return Choice(holder.name)
     need = f"the {min_memory_mb} MiB" + (f" profile {profile!r}" if profile else " the profile") + \
         " asks for to build the underlay"
     if named:

@@ -86,8 +86,9 @@ def cached(cache_dir: Path, digest: str) -> dict | None:
 
 
 def note_build(state, digest: str, builder: str, op_meta) -> None:
-    """Record that `builder` builds `digest` in this run (its build operation's meta)."""
-    _builds.setdefault(state, {})[digest] = (builder, op_meta)
+    """Record that `builder` builds `digest` in this run (its build operation's meta). Where two
+    hosts hold the build already, the first noted (roster order, as receivers choose) is kept."""
+    _builds.setdefault(state, {}).setdefault(digest, (builder, op_meta))
 
 
 def planned_builder(state, digest: str) -> str | None:

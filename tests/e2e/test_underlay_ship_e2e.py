@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -212,6 +213,22 @@ def test_offline_a_host_that_lost_its_underlay_receives_it_from_the_cache_and_no
             sandbox.ssh("team2-robot", f"ls {UNDERLAY}/install", check=True).stdout.split())
     finally:
         write_roster(sandbox, roster)
+
+
+def test_a_reimaged_builder_without_the_controllers_cache_receives_a_teammates_tree(sandbox, roster, first_run):
+    """team1-robot built the robots' underlay; it is re-imaged and the controller's cache is gone:
+    team2-robot holds the same build, so it is packed there and shipped, and nothing compiles."""
+    before = {host.name: colcon_runs(sandbox, host.name) for host in sandbox.hosts}
+    sandbox.ssh("team1-robot", f"rm -rf {UNDERLAY}/install {UNDERLAY}/install-* {UNDERLAY}/.roslab/build.sha256",
+                check=True)
+    shutil.rmtree(sandbox_cache(roster))
+    run = deploy(sandbox, roster)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert set(run.changes_per_host()) == {"team1-robot"}, run.changed
+    assert {host.name: colcon_runs(sandbox, host.name) for host in sandbox.hosts} == before
+    assert underlay_state(sandbox, "team1-robot")["origin"].startswith("shipped from team2-robot ")
+    assert {"micro_ros_agent", "microxrcedds_agent"} <= set(
+        sandbox.ssh("team1-robot", f"ls {UNDERLAY}/install", check=True).stdout.split())
 
 
 def test_a_changed_pin_rebuilds_once_on_the_named_builder(sandbox, roster, first_run):

@@ -193,3 +193,10 @@ def test_a_profiles_build_memory_is_a_number_of_mib_in_range(value):
     assert profile is None
     (problem,) = [str(p) for p in report.errors]
     assert "field 'profiles.bot.underlay_build_memory_mb'" in problem and "256 to 65536" in problem, problem
+
+
+def test_a_member_holding_the_build_is_its_source_before_any_that_would_compile_it():
+    group = [Member("team1-robot", 3792), Member("pi3", 906, holds=True), Member("teacher", 16000)]
+    assert choose_builder(group, min_memory_mb=1536).builder == "pi3"  # shipped, not built: memory is no matter
+    assert choose_builder(group, named="teacher", min_memory_mb=1536).builder == "pi3"
+    assert choose_builder([Member("a"), Member("b", holds=True), Member("c", holds=True)]).builder == "b"

@@ -94,6 +94,35 @@ def test_another_architecture_is_another_group_with_its_own_build(tmp_path, monk
     assert "call ensure_cached" not in texts(result)
 
 
+def test_a_reimaged_builder_receives_the_tree_a_teammate_holds_instead_of_compiling(tmp_path, monkeypatch):
+    """The controller's cache is gone and team1-robot (the group's first host) was re-imaged;
+    team2-robot holds the same build: it is the source, and nothing is compiled."""
+    import pyinfra.api.host as pyinfra_host
+
+    from roslab.ros.workspace import WorkspaceStamps
+
+    data, facts = class_of(tmp_path)
+    stamps = []
+    monkeypatch.setattr(underlay, "build_stamp", lambda *args, real=underlay.build_stamp: stamps.append(
+        real(*args)) or stamps[-1])
+
+    def deploy():
+        fake = pyinfra_host.get_fact  # the test host's facts (an empty underlay), for every host
+
+        def by_host(state, host, cls, args=None, kwargs=None, **more):
+            if cls is WorkspaceStamps and host.name == "team2-robot":
+                return {"rosdep": None, "build": stamps[-1], "installed": True}
+            return fake(state, host, cls, args, kwargs, **more)
+
+        monkeypatch.setattr(pyinfra_host, "get_fact", by_host)
+        run_sources_deploy()
+
+    result = plan(deploy, facts, data, host_name="team1-robot", hosts_after=(("team2-robot", data),))
+    assert not result.failed, result.errors
+    assert "colcon build" not in texts(result)
+    result.operation("holds the underlay built on team2-robot")
+
+
 def test_a_host_under_the_profiles_memory_never_builds_it_receives(tmp_path):
     data, facts = class_of(tmp_path, memory_mb=906)
     from roslab.profiles.library import builtin_profiles
