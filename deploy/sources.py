@@ -147,6 +147,7 @@ def sources():
     stamp = underlay_ops.build_stamp(digests, distro, colcon_args, cmake_args, build_dependencies)
     machine = host.get_fact(Arch) or "unknown"
     digest = underlay_groups.input_digest(stamp, machine, directory)
+    underlay_ship.note_wanted(host.state, digest)
     stamps = host.get_fact(ws_ops.WorkspaceStamps, workspace_dir=directory)
     holds = bool(stamps.get("build") == stamp and stamps.get("installed"))
     builder = underlay_builder(digest, machine, cache_dir, holds, directory, stamp)
@@ -182,7 +183,8 @@ def sources():
             digest=digest,
             **as_login_user(user),
         )
-        underlay_ship.note_build(host.state, digest, host.name, build)
+        underlay_ship.note_build(host.state, digest, host.name, build,
+                                 underlay_groups.cache_group(digests, distro, machine, directory))
     # after the build in pyinfra's order: the builder has built when its group receives
     if not holds and builder != host.name:
         underlay_ship.received(

@@ -171,3 +171,10 @@ def difference(builder: dict, host: dict) -> str:
                         return f"repository {path!r}: {theirs.get(path) or 'none'} there, {ours.get(path) or 'none'} here"
             return f"{key}: {a.get(key)!r} there, {b.get(key)!r} here"
     return "inputs differ"
+
+
+def cache_group(repositories, distro: str, machine: str, directory: str) -> str:
+    """The controller cache's group of a build: the same repositories (by path, at any pin),
+    distro, architecture and install path. Its newest few builds are kept (ship.pruned)."""
+    text = json.dumps([sorted(repositories), distro, machine, directory])
+    return hashlib.sha256(text.encode()).hexdigest()[:16]

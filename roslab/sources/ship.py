@@ -44,8 +44,13 @@ SLOT = re.compile(r"install-[A-Za-z0-9]{1,64}", re.ASCII)
 DIGEST = re.compile(r"[0-9a-f]{64}", re.ASCII)
 HOST_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9.-]{0,252}", re.ASCII)
 
-# The builds planned in a run: state -> {digest: (builder name, the build's OperationMeta)}.
+# The builds planned in a run: state -> {digest: (builder name, the build's OperationMeta, cache group)}.
 _builds: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+# The digests some host of a run needs: state -> set; never pruned from the cache in that run.
+_wanted: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+# Packed builds kept per cache group (the same repositories, distro, architecture and install
+# path at other pins): the newest few, so a pin moved back is shipped, not rebuilt.
+KEEP_PER_GROUP = 3
 _pull_locks: dict[str, object] = {}
 
 
@@ -85,10 +90,16 @@ def cached(cache_dir: Path, digest: str) -> dict | None:
     return dict(meta)
 
 
-def note_build(state, digest: str, builder: str, op_meta) -> None:
-    """Record that `builder` builds `digest` in this run (its build operation's meta). Where two
-    hosts hold the build already, the first noted (roster order, as receivers choose) is kept."""
-    _builds.setdefault(state, {}).setdefault(digest, (builder, op_meta))
+def note_build(state, digest: str, builder: str, op_meta, group: str = "") -> None:
+    """Record that `builder` builds `digest` in this run (its build operation's meta; `group`:
+    its cache group, roslab.sources.groups.cache_group). Where two hosts hold the build
+    already, the first noted (roster order, as receivers choose) is kept."""
+    _builds.setdefault(state, {}).setdefault(digest, (builder, op_meta, group))
+
+
+def note_wanted(state, digest: str) -> None:
+    """Record that a host of this run needs `digest`: the cache keeps it whatever its age."""
+    _wanted.setdefault(state, set()).add(digest)
 
 
 def planned_builder(state, digest: str) -> str | None:
@@ -142,17 +153,41 @@ def parse_pack(lines: list[str]) -> tuple[str, str, bytes]:
     return slot, sha, body
 
 
-def store(cache_dir: Path, digest: str, builder: str, slot: str, sha: str, body: bytes) -> dict:
+def store(cache_dir: Path, digest: str, builder: str, slot: str, sha: str, body: bytes, group: str = "") -> dict:
     """Keep a packed build in the cache: the tar first, then its record (each renamed into place)."""
     tar, record = cache_paths(cache_dir, digest)
     tar.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
-    meta = {"builder": builder, "slot": slot, "sha256": sha, "bytes": len(body)}
+    meta = {"builder": builder, "slot": slot, "sha256": sha, "bytes": len(body), **({"group": group} if group else {})}
     for path, content in ((tar, body), (record, (json.dumps(meta, indent=2) + "\n").encode())):
         handle, temp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
         with os.fdopen(handle, "wb") as stream:
             stream.write(content)
         os.replace(temp, path)
     return meta
+
+
+def pruned(cache_dir: Path, group: str, in_use=(), keep: int = KEEP_PER_GROUP) -> list[str]:
+    """Remove all but the `keep` newest packed builds of `group` from the cache, never one in
+    `in_use` (a host of the run needs it); the digests removed. Records without a group (kept
+    before groups were recorded) are left alone."""
+    folder = Path(cache_dir).expanduser() / CACHE_FOLDER
+    members = []
+    for record in folder.glob("*.json"):
+        try:
+            meta, stored = json.loads(record.read_text()), record.stat().st_mtime_ns
+        except (OSError, ValueError):
+            continue
+        if isinstance(meta, dict) and meta.get("group") == group and DIGEST.fullmatch(record.stem):
+            members.append((stored, record.stem))
+    removed = []
+    for _, digest in sorted(members, reverse=True)[keep:]:
+        if digest in in_use:
+            continue
+        tar, record = cache_paths(cache_dir, digest)
+        for path in (record, tar, ship_record(cache_dir, digest)):  # the record first: no record, no entry
+            path.unlink(missing_ok=True)
+        removed.append(digest)
+    return removed
 
 
 def _lock_for(digest: str):
@@ -222,7 +257,13 @@ def _pull(state, digest: str, builder: str, cache_dir: Path, underlay_dir: str, 
         slot, sha, body = parse_pack(output.stdout_lines)
     except ShipError as error:
         raise ShipError(f"from {builder}: {error}") from None
-    store(cache_dir, digest, builder, slot, sha, body)
+    group = entry[2]
+    store(cache_dir, digest, builder, slot, sha, body, group)
+    if group:
+        gone = pruned(cache_dir, group, in_use=_wanted.get(state, set()) | {digest})
+        if gone:
+            logger.info("roslab: underlay cache: %d older build(s) of this group removed (the newest %d kept)",
+                        len(gone), KEEP_PER_GROUP)
 
 
 def ship_record(cache_dir: Path, digest: str) -> Path:

@@ -384,3 +384,21 @@ def test_status_shows_where_each_hosts_underlay_came_from():
     assert cell([]) == "none yet"
     assert cell(["shipped from $(reboot) x"]) == "none yet"  # a record roslab did not write
     assert cell([], underlay="") == "-"
+
+
+def test_the_cache_keeps_the_newest_builds_of_a_group_and_any_a_host_of_the_run_needs(tmp_path):
+    digests = [f"{index:x}" * 64 for index in range(1, 6)]  # oldest first
+    for age, digest in enumerate(reversed(digests)):
+        underlay_ship.store(tmp_path, digest, "team1-robot", "install-a", "0" * 64, b"tree", group="osr-jazzy")
+        record = underlay_ship.cache_paths(tmp_path, digest)[1]
+        os.utime(record, ns=(10**18 - age * 10**9, 10**18 - age * 10**9))
+        underlay_ship.ship_record(tmp_path, digest).write_text("slot=install-a\n")
+    other, older = "a" * 64, "b" * 64  # another group's, and one kept before groups were recorded
+    underlay_ship.store(tmp_path, other, "team2-robot", "install-b", "0" * 64, b"tree", group="esp32-jazzy")
+    underlay_ship.store(tmp_path, older, "team2-robot", "install-b", "0" * 64, b"tree")
+
+    removed = underlay_ship.pruned(tmp_path, "osr-jazzy", in_use={digests[0]})
+
+    assert removed == [digests[1]]  # the newest three kept, the oldest kept for a host that needs it
+    left = {path.name.split(".")[0] for path in (tmp_path / underlay_ship.CACHE_FOLDER).iterdir()}
+    assert left == {digests[0], *digests[2:], other, older}
