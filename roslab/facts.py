@@ -22,6 +22,16 @@ CLOUD_INIT_RUNS = "/run/cloud-init/enabled"
 CLOUD_INIT_DONE = "/run/cloud-init/result.json"
 
 
+
+def apt_lock_options(lock_timeout: int) -> str:
+    """apt-get options that wait (bounded) for the dpkg lock instead of failing at once.
+
+    The one place roslab spells the lock wait: every apt-get command line (roslab.operations
+    imports it from here), the AptProblem fact and
+    `apt.packages(extra_install_args=apt_install_options(...))` use it.
+    """
+    return f"-o DPkg::Lock::Timeout={int(lock_timeout)}"
+
 class AptProblem(FactBase):
     """
     Waits (bounded) until apt can take the dpkg lock, then reports whether apt is usable.
@@ -52,8 +62,6 @@ class AptProblem(FactBase):
 
     @override
     def command(self, lock_timeout: int) -> StringCommand:
-        from roslab.operations import apt_lock_options  # operations imports this module
-
         wait_for_cloud_init = (
             f"if [ -e {CLOUD_INIT_RUNS} ] && [ ! -e {CLOUD_INIT_DONE} ] && command -v cloud-init >/dev/null 2>&1; then "
             "started=$(date +%s); "

@@ -22,7 +22,7 @@ from pyinfra.facts.files import File, FileContents, Link
 from pyinfra.facts.server import Locales, Which
 from pyinfra.operations.util.files import generate_color_diff
 
-from roslab.facts import FileAge
+from roslab.facts import FileAge, apt_lock_options
 from roslab.probe import read
 from roslab.quoting import apt_arguments, deb822_value, sources_list_word
 from roslab.remote_files import OwnedFileUpload
@@ -44,15 +44,6 @@ APT_UPDATE_FAIL_ON_ANY_ERROR = "-o APT::Update::Error-Mode=any"
 def as_user(user: str) -> dict:
     """pyinfra arguments that run an operation or fact as `user` (rosdep and colcon refuse root)."""
     return {"_sudo": True, "_sudo_user": user}
-
-
-def apt_lock_options(lock_timeout: int) -> str:
-    """apt-get options that wait (bounded) for the dpkg lock instead of failing at once.
-
-    The one place roslab spells the lock wait: every apt-get command line, the AptProblem
-    fact and `apt.packages(extra_install_args=apt_install_options(...))` use it.
-    """
-    return f"-o DPkg::Lock::Timeout={int(lock_timeout)}"
 
 
 def apt_install_options(lock_timeout: int) -> str:

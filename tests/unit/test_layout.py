@@ -77,6 +77,11 @@ def test_no_import_cycle_runs_through_a_folder():
     assert through_folders == []
 
 
+def test_no_import_cycle_at_all_not_even_between_two_loose_modules():
+    # facts <-> operations was the last one (issue 42): the lock-wait option now lives in facts
+    assert cycles(import_edges()) == []
+
+
 def test_the_cycle_finder_finds_a_cycle():
     assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 
