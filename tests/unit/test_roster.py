@@ -16,6 +16,7 @@ import yaml
 from roslab import roster
 from roslab import settings as schema
 from roslab.ros.discovery import assign_domain_ids, preferred_domain_id
+from roslab.ros.distro import PLATFORMS
 from roslab.roster import RosterError, inventory_groups, load_roster
 
 REPO = Path(__file__).resolve().parents[2]
@@ -472,7 +473,7 @@ def test_jazzy_on_ubuntu_22_04_fails_before_any_host_is_touched(tmp_path):
 def test_unknown_ubuntu_release(tmp_path):
     assert one_error(one_team(tmp_path, 'ubuntu_release: "23.10"\n')) == (
         "lab.yaml:10: team 'team1', host 'team1-main', field 'ubuntu_release': "
-        "Ubuntu 23.10 is not supported (supported: 22.04, 24.04, 26.04)")
+        f"Ubuntu 23.10 is not supported (supported: {', '.join(p.release for p in PLATFORMS)})")
 
 
 def test_unquoted_ubuntu_release_says_to_quote_it(tmp_path):
