@@ -138,11 +138,11 @@ def _set_key(requirements: list[str], index_url: str) -> str:
     return hashlib.sha256("\n".join([index_url, *sorted(requirements)]).encode()).hexdigest()[:16]
 
 
-def set_dir(cache_dir: Path, target: Target, requirements: list[str], index_url: str) -> Path:
+def set_dir(cache_dir: str | Path, target: Target, requirements: list[str], index_url: str) -> Path:
     return Path(cache_dir).expanduser() / target.name / _set_key(requirements, index_url)
 
 
-def kept_for_any_target(requirements: list[str], index_url: str, cache_dir: Path) -> list[Wheelhouse]:
+def kept_for_any_target(requirements: list[str], index_url: str, cache_dir: str | Path) -> list[Wheelhouse]:
     """The complete wheelhouses of `requirements` kept for any target (their manifests only)."""
     found: list[Wheelhouse] = []
     if not cache_dir or not index_url:
@@ -319,7 +319,7 @@ _lock = threading.Lock()
 _this_run: dict[tuple, Wheelhouse | WheelhouseError] = {}
 
 
-def wheelhouse(requirements: list[str], target: Target, index_url: str, cache_dir: Path,
+def wheelhouse(requirements: list[str], target: Target, index_url: str, cache_dir: str | Path,
                offline: bool = False) -> Wheelhouse:
     """The complete wheelhouse for `requirements` on `target`: kept, else downloaded once.
 
