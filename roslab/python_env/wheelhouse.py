@@ -248,8 +248,9 @@ def build_requires(sdist: Path) -> list[str]:
             with tarfile.open(sdist, "r:gz") as archive:
                 members = [m for m in archive.getmembers()
                            if m.isfile() and m.name.count("/") == 1 and m.name.endswith("/pyproject.toml")]
-                if members:
-                    text = archive.extractfile(members[0]).read().decode()
+                member = archive.extractfile(members[0]) if members else None  # None: not a file
+                if member is not None:
+                    text = member.read().decode()
     except (OSError, tarfile.TarError, zipfile.BadZipFile, UnicodeDecodeError, KeyError):
         raise WheelhouseError(f"{sdist.name} is not a readable sdist") from None
     if text is None:
@@ -266,9 +267,9 @@ def build_requires(sdist: Path) -> list[str]:
 
 def _build_system(text: str, name: str):
     """pyproject.toml's [build-system] table (tomllib; Python 3.10's pip's own tomli)."""
-    try:
+    if sys.version_info >= (3, 11):
         import tomllib as toml
-    except ImportError:  # Python 3.10
+    else:  # Python 3.10
         from pip._vendor import tomli as toml
     try:
         return toml.loads(text).get("build-system")
