@@ -3,7 +3,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 PYTHON ?= python3
 
-.PHONY: setup demo demo-down test unit e2e bench clean
+.PHONY: setup demo demo-down test typecheck unit e2e bench clean
 
 # bash, so that a pipe fails when its first command does (pip's output is filtered below).
 SHELL := /bin/bash
@@ -39,10 +39,16 @@ demo-down: setup
 	@echo "make demo-down: taking the sandbox classroom down (roslab sandbox down)"
 	$(BIN)/roslab sandbox down
 
-# Unit tests first (seconds), then end-to-end tests on sandbox hosts, in one pytest run;
+# The type check of roslab/ and deploy/ ([tool.mypy] in pyproject.toml, docs/testing.md):
+# any error fails it, and with it `make test`. Its cache is .mypy_cache (about 1 s warm).
+typecheck: $(VENV)/.installed
+	@echo "make typecheck: mypy on roslab/ and deploy/"
+	$(BIN)/mypy
+
+# The type check first, then unit tests (seconds), then end-to-end tests on sandbox hosts, in one pytest run;
 # every module's seconds and the 25 slowest tests are printed at the end and kept in
 # test-durations.md (tests/durations.py), so a test that grew slow shows and stays readable.
-test: setup
+test: setup typecheck
 	ROSLAB_TEST_DURATIONS=$(CURDIR)/test-durations.md $(BIN)/pytest tests/unit tests/e2e
 
 unit: $(VENV)/.installed
@@ -55,4 +61,4 @@ bench: setup
 	$(BIN)/python bench/noop_rerun.py
 
 clean:
-	rm -rf $(VENV) .pytest_cache
+	rm -rf $(VENV) .pytest_cache .mypy_cache

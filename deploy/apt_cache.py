@@ -30,7 +30,7 @@ from pyinfra.facts.files import File
 from pyinfra.facts.server import Command
 from pyinfra.operations import apt, files, systemd
 
-from deploy.common import host_codename, should_run, stop_host, where
+from deploy.common import ubuntu_codename, should_run, stop_host, where
 from roslab import probe, settings
 from roslab.ros.distro import DistroError, codename_for
 from roslab.operations import (
@@ -99,7 +99,7 @@ def apt_cache_server():
             return
         ubuntu_apt_sources(
             name="Ensure the Ubuntu apt sources enable universe (the apt cache's package is there)",
-            codename=host_codename(),
+            codename=ubuntu_codename(),
             components=["universe"],
             suites=list(typed.apt_extra_suites),
         )
@@ -289,7 +289,7 @@ def apt_cache_filled():
     """
     if not fills_the_class_cache():
         return
-    codename = host_codename()
+    codename = ubuntu_codename()
     packages = sorted({name for peer in release_peers()
                        for name in planned_packages(_settings_of(peer), codename)})
     if not packages:

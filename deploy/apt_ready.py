@@ -4,12 +4,14 @@ source by deploy.ros_apt_source too), the lists fresh with one `apt-get update` 
 
 from __future__ import annotations
 
+from typing import Any
+
 from pyinfra import host, logger
 from pyinfra.api import deploy
 
 from deploy.common import (
     apt_sources_written,
-    host_codename,
+    ubuntu_codename,
     host_is_active,
     should_run,
     stop_host,
@@ -96,7 +98,7 @@ def apt_ready():
 
     sources = [ubuntu_apt_sources(
         name="Ensure the Ubuntu apt sources enable universe and the -updates/-backports suites",
-        codename=host_codename(),
+        codename=ubuntu_codename(),
         components=["universe"] if typed.apt_enable_universe else [],
         suites=list(typed.apt_extra_suites),
     )]
@@ -126,7 +128,7 @@ def apt_lists():
     ready = typed.apt_ready_enabled
     if not host_is_active() or not (ready or typed.ros_apt_source_enabled):
         return
-    arguments = dict(
+    arguments: dict[str, Any] = dict(
         lock_timeout=typed.apt_lock_timeout,
         max_age=typed.apt_cache_max_age if ready else None,
         sources=apt_sources_written(),

@@ -109,9 +109,18 @@ def host_codename() -> str | None:
     return host.data.roslab_codename
 
 
+def ubuntu_codename() -> str:
+    """The codename of a host the deploy runs on: supported_host() let only Ubuntu through."""
+    codename = host_codename()
+    if codename is None:
+        raise RuntimeError(f"{where()}: a deploy step ran on a host that is not Ubuntu "
+                           "(supported_host() stops those before any step)")
+    return codename
+
+
 def host_distro() -> str:
     """The ROS 2 distro for this host: `ros_distro` if set, else its Ubuntu release's default."""
-    codename = host_codename()
+    codename = ubuntu_codename()
     return host_settings(host).ros_distro or default_distro(codename)
 
 

@@ -98,16 +98,16 @@ def profile_services_in_place():
     roslab.ros.environment.host_environment reads.
     """
     typed = host_settings(host)
-    services = profile_services()
-    if not services or not should_run("profile_services_enabled"):
-        return
+    services, resolved = profile_services(), typed.roslab_profile
+    if not services or resolved is None or not should_run("profile_services_enabled"):
+        return  # no services without a profile (profile_services)
     home = existing_login_home()
     if home is None:
         stop_host(f"{where()}: profile services: the login user {login_user()!r} does not exist; "
                   "nothing was changed by this step")
         return
     user, distro = login_user(), host_distro()
-    name = typed.roslab_profile.name
+    name = resolved.name
     workspace_dir = ws_ops.workspace_path(home, typed.workspace_dir)
     try:  # before any change: a value a unit cannot carry stops this host only
         units = {service.name: unit_text(

@@ -89,14 +89,15 @@ def profile_switch_cleaned():
     current_groups = host.get_fact(UserGroups, user=user) if home is not None else None
     record = wanted_record(previous, current_groups)
     removed = []
+    current_profile = profile()
     if should_run("profile_services_enabled"):
-        named = {service.name for service in (profile().services if profile() else [])}
+        named = {service.name for service in (current_profile.services if current_profile else [])}
         stale = [unit for unit in seen["units"] if unit not in named]
         if stale:
             profile_units_gone(name=f"Ensure {', '.join(f'{unit}.service' for unit in stale)} of an earlier robot "
                                     "profile is stopped, disabled and removed", units=stale)
             removed += [f"{unit}.service" for unit in stale]
-    leave = sorted(group for group in set(previous.get("groups_added") or []) - set(profile().groups if profile() else [])
+    leave = sorted(group for group in set(previous.get("groups_added") or []) - set(current_profile.groups if current_profile else [])
                    if current_groups is not None and group in current_groups)
     if leave:
         user_left_groups(name=f"Ensure {user} is no longer in {', '.join(leave)} (added for robot profile "

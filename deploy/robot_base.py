@@ -17,6 +17,7 @@ from io import StringIO
 
 from pyinfra import host
 from pyinfra.api import FactBase, deploy, operation
+from pyinfra.api.exceptions import OperationValueError
 from pyinfra.operations import apt, files, server, systemd
 
 from deploy.common import host_distro, should_run
@@ -56,7 +57,8 @@ class BaseAnswer(FactBase):
                 f"|| echo '#no-answer'; echo; echo '#posted'; cat {shell_word(record)} 2>/dev/null || true")
 
     def process(self, output):
-        part, parts = None, {"about": [], "posted": []}
+        part: str | None = None
+        parts: dict[str, list[str]] = {"about": [], "posted": []}
         for line in output:
             if line.strip() in ("#about", "#posted"):
                 part = line.strip()[1:]
@@ -84,6 +86,8 @@ def base_settings_kept(base: dict, distro: str, wanted: dict, record: str = POST
     + record: the Pi's record of the last post
     """
     link = RobotBase.from_data(base)
+    if link is None:
+        raise OperationValueError("base_settings_kept needs the profile's checked base: mapping")
     url = f"http://{link.base_address}"
     answer = host.get_fact(BaseAnswer, url=url, record=record)
     if answer["about"] is None:

@@ -19,7 +19,7 @@ from pyinfra import host
 from pyinfra.api import deploy
 from pyinfra.operations import apt, files
 
-from deploy.common import apt_sources_written, host_codename, should_run, stop_host, where
+from deploy.common import apt_sources_written, ubuntu_codename, should_run, stop_host, where
 from roslab import downloads, probe, settings
 from roslab.operations import apt_install_options, files_moved_aside, files_moved_aside_reads
 from roslab.quoting import deb822_value
@@ -117,11 +117,11 @@ def _mirror_mode(codename: str) -> list | None:
     typed = host_settings(host)
     mirror_url = typed.ros_apt_mirror_url
     key_file = typed.ros_apt_mirror_key_file
-    for field, value in (("ros_apt_mirror_url", mirror_url), ("ros_apt_mirror_key_file", key_file)):
-        if not value:
-            stop_host(f"{where()}: ros_apt_source_mode is 'mirror' but {field} is not set; "
-                      "nothing was changed on it")
-            return None
+    if not mirror_url or not key_file:
+        field = "ros_apt_mirror_url" if not mirror_url else "ros_apt_mirror_key_file"
+        stop_host(f"{where()}: ros_apt_source_mode is 'mirror' but {field} is not set; "
+                  "nothing was changed on it")
+        return None
     try:
         key = dearmored(Path(key_file).read_bytes())
     except (OSError, ValueError) as error:
@@ -168,7 +168,7 @@ def ros_apt_source():
     """
     if not should_run("ros_apt_source_enabled"):
         return
-    codename = host_codename()
+    codename = ubuntu_codename()
 
     # First, as apt refuses to work beside them (the package mode's apt-get reads the
     # sources); apt_ready, when it runs, did it already.
@@ -195,7 +195,7 @@ def ros_apt_source_reads() -> list:
     reads = files_moved_aside_reads(OLD_METHOD_FILES)
     if typed.ros_apt_source_mode == "mirror":
         return [*reads, *probe.packages_reads(), *probe.put_reads(KEYRING), *probe.put_reads(SOURCES)]
-    codename = host_codename()
+    codename = ubuntu_codename()
     host_deb = f"{HOST_DEB_DIR}/{deb_name(typed.ros_apt_source_version, codename)}"
     return [*reads, *files_moved_aside_reads([SOURCES]), *probe.put_reads(host_deb),
             *probe.deb_reads(host_deb)]

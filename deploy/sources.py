@@ -56,7 +56,7 @@ def say_once(note: str) -> None:
 def class_pins() -> frozenset:
     """Every (url, version) the roster's hosts build, this run's --limit or not: a changed set
     is what makes the controller check the class's tags against upstream again."""
-    pins = set()
+    pins: set[tuple[str, str]] = set()
     for each in host.state.inventory:
         typed = peer_settings(each)
         if typed is not None and typed.sources_enabled:
@@ -211,8 +211,8 @@ def underlay_builder(digest: str, machine: str, cache_dir: Path, holds: bool, di
     if kept is not None:
         return kept["builder"]
     mine = underlay_groups.roster_inputs(host_settings(host).data)
-    typed_peers = [(peer, peer_settings(peer)) for peer in host.state.inventory if peer in host.state.active_hosts]
-    typed_peers = [(peer, typed) for peer, typed in typed_peers
+    candidates = [(peer, peer_settings(peer)) for peer in host.state.inventory if peer in host.state.active_hosts]
+    typed_peers = [(peer, typed) for peer, typed in candidates
                    if typed is not None and underlay_groups.roster_inputs(typed.data) == mine]
     peers = [peer for peer, _ in typed_peers]
     named = next((typed.underlay_builder for _, typed in typed_peers if typed.underlay_builder), None)

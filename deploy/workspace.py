@@ -141,7 +141,7 @@ def role_launch() -> str | None:
     launch = typed.nodes_launch or getattr(typed, f"nodes_launch_{role}", None)
     if launch is None and typed.roslab_profile is None:
         # A hand-made inventory (no roster, so no resolved profile): the default profile's launch.
-        side = builtin_profiles()[DEFAULT_PROFILE].sides.get(role)
+        side = builtin_profiles()[DEFAULT_PROFILE].sides.get(role) if role else None
         launch = side.launch if side else None
     return launch
 
@@ -196,7 +196,7 @@ def workspace():
     underlay = underlay_setup(home)
     try:  # before any change: a value the unit cannot carry stops this host only
         unit_file = unit_text(
-            role=role, user=user, home=home, workspace_dir=workspace_dir, distro=distro,
+            role=str(role), user=user, home=home, workspace_dir=workspace_dir, distro=distro,
             launch=launch, environment=host_environment(typed.data, distro),
             discovery_files=discovery_files(distro), underlay_setup=underlay,
             venv_dir=filled_venv(home), launch_arguments=role_launch_arguments(launch),

@@ -217,7 +217,7 @@ def _kept(url: str, cache_dir: Path, offline: bool, max_age: float | None) -> Ke
         copy = path.read_bytes()
         age = time.time() - path.stat().st_mtime
     except OSError:
-        copy, age = None, None
+        copy, age = None, 0.0  # no copy: its age is never said
     if offline:
         if copy is None:
             raise DownloadError(f"offline, and {url} is not in the controller's cache ({path}): "
@@ -231,7 +231,9 @@ def _kept(url: str, cache_dir: Path, offline: bool, max_age: float | None) -> Ke
         return Kept(copy, stale=f"{error}; using the controller's copy from {_age_text(age)} ago ({path})")
     with _lock:
         try:
-            if data is None:  # 304: the kept copy is current
+            if data is None:  # 304: the kept copy is current (asked with its validators only)
+                if copy is None:
+                    raise DownloadError(f"{url} answered 304 Not Modified to a request for the whole file")
                 os.utime(path)
                 return Kept(copy)
             if copy != data:

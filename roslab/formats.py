@@ -18,6 +18,7 @@ import socket
 import tempfile
 import unicodedata
 from collections.abc import Callable
+from typing import Any, Protocol, TypeVar
 from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import unquote, urlsplit
@@ -25,7 +26,22 @@ from urllib.parse import unquote, urlsplit
 from roslab.ros import distro as distros
 from roslab.controller_files import MAX_SMALL_FILE_BYTES, UnreadableFile, read_regular_file
 
-Check = Callable[[object, "Context"], "str | None"]
+C = TypeVar("C")
+
+
+class Check(Protocol):
+    """A format check: the value (of its setting's declared type) and a Context in; the problem,
+    or None when it passes. Some carry what the docs say they allow (`describe`)."""
+
+    def __call__(self, value: Any, context: Context | None = None, /) -> str | None: ...
+
+
+def describe(check: C, **attributes: object) -> C:
+    """`check` with `attributes` set on it, read with getattr where present (roslab.settings):
+    `allowed` (what the settings table says a value may be), `choices`, `whole`."""
+    for name, value in attributes.items():
+        setattr(check, name, value)
+    return check
 
 
 # The classroom's own state beside the roster (roslab.ssh.identity, roslab.network.state).
@@ -96,7 +112,7 @@ def pattern(regex: str, description: str) -> Check:
         return None
 
     check.__doc__ = f"The whole value is {description}."
-    check.allowed = description
+    describe(check, allowed=description)
     return check
 
 
@@ -126,7 +142,7 @@ def country_code(value: str, context: Context | None = None) -> str | None:
     return None
 
 
-country_code.allowed = "a two-letter country code in capitals (ISO 3166-1), like DE; 00: the world"
+describe(country_code, allowed="a two-letter country code in capitals (ISO 3166-1), like DE; 00: the world")
 
 
 def choice(*choices) -> Check:
@@ -135,7 +151,7 @@ def choice(*choices) -> Check:
             return f"{value!r} is not one of: {', '.join(map(str, choices))}"
         return None
 
-    check.choices = choices
+    describe(check, choices=choices)
     return check
 
 
@@ -145,7 +161,7 @@ def int_range(low: int, high: int, unit: str = "") -> Check:
             return f"{value}{unit} is outside {low} to {high}{unit}"
         return None
 
-    check.allowed = f"{low} to {high}{unit}"
+    describe(check, allowed=f"{low} to {high}{unit}")
     return check
 
 
@@ -345,13 +361,13 @@ def ip_address(value: str, context: Context | None = None) -> str | None:
 def address(value: str, context: Context | None = None) -> str | None:
     """Where SSH reaches a host: an IP address (one a host can have: loopback is fine, the
     unspecified, multicast, broadcast or reserved addresses are not) or a host name."""
-    if ip_address(value) is None:
+    problem = ip_address(value)
+    if problem is None:
         ip = ipaddress.ip_address(value)
         if ip.is_unspecified or ip.is_multicast or ip.is_reserved or (
                 ip.version == 4 and ip == ipaddress.IPv4Address("255.255.255.255")):
             return f"{value!r} is not an address a host can have (unspecified, multicast, broadcast or reserved)"
         return None
-    problem = ip_address(value)
     if "written" in problem or "resolver" in problem or "clothes" in problem:  # 0x7f.0.0.11, 127.11, FD00::1: an address, in a form not compared
         return problem
     if hostname(value) is None:
@@ -398,7 +414,8 @@ def domain_id(value: int, context: Context | None = None) -> str | None:
     return None
 
 
-domain_id.allowed = "0 to 101, 215 to 232"
+DOMAIN_IDS = "0 to 101, 215 to 232"
+describe(domain_id, allowed=DOMAIN_IDS)
 
 
 # --- names from a database: locales and time zones ---------------------------------------
@@ -479,8 +496,8 @@ def timezone(value: str, context: Context | None = None) -> str | None:
     return None
 
 
-utf8_locale.allowed = "a UTF-8 locale glibc supports, like en_US.UTF-8"
-timezone.allowed = "a tz database zone, like Europe/Berlin"
+describe(utf8_locale, allowed="a UTF-8 locale glibc supports, like en_US.UTF-8")
+describe(timezone, allowed="a tz database zone, like Europe/Berlin")
 
 
 # --- URLs and paths ---------------------------------------------------------------------
@@ -516,10 +533,10 @@ def url(schemes: tuple[str, ...], placeholders: tuple[str, ...] = (), file_suffi
             return _file_url_problem(value, parts, context or Context(), file_suffix)
         return None
 
-    check.allowed = " or ".join(f"{scheme}://" for scheme in schemes) + " URL"
+    allowed = " or ".join(f"{scheme}://" for scheme in schemes) + " URL"
     if "file" in schemes:
-        check.allowed += f" (file:// a {file_suffix or ''} file in the roster's folder)".replace("a  ", "a ")
-    return check
+        allowed += f" (file:// a {file_suffix or ''} file in the roster's folder)".replace("a  ", "a ")
+    return describe(check, allowed=allowed)
 
 
 def _file_url_problem(value: str, parts, context: Context, file_suffix: str | None) -> str | None:
@@ -596,7 +613,7 @@ def within(path: Path, folder: Path, strictly: bool = True) -> bool:
 def _controller(check, allowed: str):
     """Mark `check` as a controller-path check: the loader makes its value absolute."""
     check.controller_path = True
-    check.allowed = allowed
+    describe(check, allowed=allowed)
     return check
 
 
@@ -624,11 +641,12 @@ def controller_path(kind: str = "any") -> Check:
                                "dir": "an existing directory on this machine"}[kind])
 
 
-def _read_controller_file(value: str, path: Path, limit: int = MAX_SMALL_FILE_BYTES) -> tuple[bytes | None, str | None]:
+def _read_controller_file(value: str, path: Path, limit: int = MAX_SMALL_FILE_BYTES) -> bytes | str:
+    """The file's bytes, or (a str) the problem reading it."""
     try:
-        return read_regular_file(path, limit), None
+        return read_regular_file(path, limit)
     except UnreadableFile as exc:
-        return None, f"{value!r} ({path}) {exc}" if str(exc).startswith("is ") else f"{value!r} ({path}): {exc}"
+        return f"{value!r} ({path}) {exc}" if str(exc).startswith("is ") else f"{value!r} ({path}): {exc}"
 
 
 def secrets_file(value: str, context: Context | None = None) -> str | None:
@@ -676,9 +694,9 @@ def known_hosts_file(value: str, context: Context | None = None) -> str | None:
                 "(like .roslab-state/known_hosts or ~/.ssh/known_hosts), or be /dev/null")
     if not os.path.lexists(path):
         return None  # pyinfra (or roslab trust) creates it
-    data, problem = _read_controller_file(value, path, MAX_KNOWN_HOSTS_BYTES)
-    if problem:
-        return problem
+    data = _read_controller_file(value, path, MAX_KNOWN_HOSTS_BYTES)
+    if isinstance(data, str):
+        return data  # the problem reading it
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError:
@@ -700,9 +718,9 @@ def private_key_file(value: str, context: Context | None = None) -> str | None:
     if problem:
         return problem
     path = context.controller_path(value)
-    data, problem = _read_controller_file(value, path)
-    if problem:
-        return problem
+    data = _read_controller_file(value, path)
+    if isinstance(data, str):
+        return data  # the problem reading it
     if not _PRIVATE_KEY_HEADER.fullmatch(data.lstrip().split(b"\n", 1)[0].strip()):
         return f"{value!r} ({path}) is not an SSH private key (no -----BEGIN ... PRIVATE KEY----- line)"
     return None
@@ -719,9 +737,9 @@ def openpgp_key_file(value: str, context: Context | None = None) -> str | None:
     if problem:
         return problem
     path = context.controller_path(value)
-    data, problem = _read_controller_file(value, path, MAX_SIGNING_KEY_BYTES)
-    if problem:
-        return problem
+    data = _read_controller_file(value, path, MAX_SIGNING_KEY_BYTES)
+    if isinstance(data, str):
+        return data  # the problem reading it
     # Binary: the first packet is a public key (tag 6), old (0x98-0x9b) or new (0xc6) format.
     if not (data.lstrip().startswith(_ARMORED_KEY) or (data[:1] and (data[0] in range(0x98, 0x9c) or data[0] == 0xC6))):
         return (f"{value!r} ({path}) is not an OpenPGP public key (neither "
@@ -934,9 +952,9 @@ def teacher_key(value: str, context: Context | None = None) -> str | None:
     path = (context or Context()).controller_path(value)
     if path.suffix != ".pub":
         return f"{value!r} is neither a public key line nor a readable .pub file (its name ends in .pub)"
-    data, problem = _read_controller_file(value, path)
-    if problem:
-        return problem
+    data = _read_controller_file(value, path)
+    if isinstance(data, str):
+        return data  # the problem reading it
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError:
@@ -1044,7 +1062,7 @@ for _check, _words in {
     wifi_ssid: "1 to 32 bytes, one line",
     package_template: "Debian package names",
 }.items():
-    _check.allowed = _words
+    describe(_check, allowed=_words)
 
 
-colcon_argument.whole = colcon_arguments
+describe(colcon_argument, whole=colcon_arguments)

@@ -82,7 +82,8 @@ def port_problems(data: Mapping, given=None) -> list[tuple[str, str]]:
     if data.get("apt_cache_enabled") and data.get("apt_cache_host") and \
             data.get("apt_cache_host") == data.get("roslab_hostname"):
         ports.append(("apt_cache_port", data.get("apt_cache_port")))
-    problems, seen = [], {}
+    problems: list[tuple[str, str]] = []
+    seen: dict[int | None, str] = {}
     for key, port in ports:
         if port in seen:
             blamed, other, _, _ = _blamed(key, seen[port], given)
@@ -107,6 +108,6 @@ def hand_made_problems(data: Mapping, merged: Mapping | None = None) -> list[tup
     # null means "derived from the team's name" in a roster, which resolves it before a host
     # sees it; here it would silently export no ROS_DOMAIN_ID. (Left out, it is ROS's own 0.)
     unresolved = [] if "ros_domain_id" not in data or data["ros_domain_id"] is not None else [
-        ("ros_domain_id", f"must not be null here: give a number ({formats.domain_id.allowed}); null derives "
+        ("ros_domain_id", f"must not be null here: give a number ({formats.DOMAIN_IDS}); null derives "
                           "one from the team's name in a roster, and a hand-made inventory has no teams")]
     return [*problems, *[(key, message) for key, message in across if key not in bad], *unresolved]

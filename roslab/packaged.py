@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import sys
 from pathlib import Path
+from types import CodeType
 
 DATA = Path(__file__).resolve().parent / "data"
 FOLDER_ROSTER = "classroom.yaml"
@@ -27,7 +28,7 @@ def deploy_file() -> Path:
     return (DATA / "deploy.py").resolve()
 
 
-_compiled: dict[str, object] = {}
+_compiled: dict[str, CodeType] = {}
 
 
 def run_deploy() -> None:

@@ -80,7 +80,7 @@ def own_copy(value: Any) -> Any:
         return set(value)  # hashable items: nothing in them to change
     if kind is tuple:
         return tuple(own_copy(item) for item in value)
-    if _is_frozen_dataclass(kind) and all(
+    if _is_frozen_dataclass(kind) and all(  # type: ignore[arg-type]  # a class is hashable; mypy checks its unbound __hash__
             type(getattr(value, name)) in _UNCHANGEABLE for name in kind.__dataclass_fields__):
         return value  # a workspace entry, say: nothing in it can change
     return copy.deepcopy(value)
@@ -88,7 +88,7 @@ def own_copy(value: Any) -> Any:
 
 @functools.cache
 def _is_frozen_dataclass(kind: type) -> bool:
-    return dataclasses.is_dataclass(kind) and kind.__dataclass_params__.frozen
+    return dataclasses.is_dataclass(kind) and getattr(kind, "__dataclass_params__").frozen  # not in typeshed
 
 
 @functools.cache
@@ -159,7 +159,7 @@ def read(fact: type[FactBase], **arguments) -> Read:
 
     A fact whose command reads the host is not read ahead: the probe builds each read's
     command once per run, for every host alike."""
-    if asks_the_host(fact):
+    if asks_the_host(fact):  # type: ignore[arg-type]  # a class is hashable; mypy checks its unbound __hash__
         raise TypeError(f"{fact.__name__}'s command reads the host: it cannot be read ahead")
     normalized = _normalized(fact, arguments)
     if normalized is None:

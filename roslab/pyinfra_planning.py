@@ -54,6 +54,7 @@ import os
 import sys
 from functools import cache
 from importlib.metadata import PackageNotFoundError, version
+from types import FrameType
 
 import pyinfra
 from pyinfra.api import arguments as pyinfra_arguments
@@ -106,7 +107,7 @@ def get_operation_order_from_stack(state) -> list[int]:
     the same place (that function's own frame is one of pyinfra's, which it leaves out).
     """
     locations = []
-    frame = sys._getframe(1)
+    frame: FrameType | None = sys._getframe(1)
     while frame is not None:
         locations.append(frame_location(frame))
         frame = frame.f_back
@@ -238,12 +239,12 @@ def install() -> bool:
     """
     ours = (installed_pyinfra() == CHECKED_PYINFRA
             and os.environ.get(SWITCH, "").strip() != USE_PYINFRA)
-    pyinfra_operation.get_operation_order_from_stack = (
+    pyinfra_operation.get_operation_order_from_stack = (  # type: ignore[attr-defined]  # pyinfra imports it privately; roslab patches it here
         get_operation_order_from_stack if ours else pyinfra_get_operation_order_from_stack)
-    pyinfra_operation.signature = operation_signature if ours else inspect.signature
+    pyinfra_operation.signature = operation_signature if ours else inspect.signature  # type: ignore[attr-defined]  # pyinfra imports it privately; roslab patches it here
     for module in (pyinfra_arguments, pyinfra_facts):
-        module.all_global_arguments = all_global_arguments if ours else pyinfra_all_global_arguments
+        module.all_global_arguments = all_global_arguments if ours else pyinfra_all_global_arguments  # type: ignore[attr-defined]  # pyinfra imports it privately; roslab patches it here
     for name in POP_GLOBAL_ARGUMENTS_CALLERS:
-        importlib.import_module(name).pop_global_arguments = (
+        importlib.import_module(name).pop_global_arguments = (  # type: ignore[attr-defined]  # pyinfra imports it privately; roslab patches it here
             pop_global_arguments if ours else pyinfra_pop_global_arguments)
     return ours

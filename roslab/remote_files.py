@@ -197,4 +197,4 @@ def install() -> None:
     """Make pyinfra's SSH connector upload with `put_file` above. Idempotent."""
     from pyinfra.connectors.ssh import SSHConnector
 
-    SSHConnector.put_file = put_file
+    SSHConnector.put_file = put_file  # type: ignore[method-assign]  # roslab patches pyinfra here on purpose

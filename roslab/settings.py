@@ -91,9 +91,9 @@ def _source_pins(value, context=None):
     return pins_problem(value, context)
 
 
-_repos_file.allowed = "a .repos file, relative to the roster"
-_source_pins.allowed = "repository path: commit (40 hex) or tag"
-_url_rewrites.allowed = "URL prefix: replacement prefix (http, https, file:// in the roster's folder)"
+f.describe(_repos_file, allowed="a .repos file, relative to the roster")
+f.describe(_source_pins, allowed="repository path: commit (40 hex) or tag")
+f.describe(_url_rewrites, allowed="URL prefix: replacement prefix (http, https, file:// in the roster's folder)")
 
 SECONDS_PER_DAY = 24 * 3600
 SCHEMA: list[Setting] = [
@@ -589,6 +589,7 @@ def annotation(setting: Setting) -> str:
     it may be None whatever its declaration says."""
     names = {str: "str", int: "int", bool: "bool"}
     if setting.kind is list:
+        assert setting.item is not None, f"{setting.key}: a list setting declares its item type"
         text = f"list[{names[setting.item]}]"
     elif setting.kind is dict:
         text = "dict[str, str]"  # every mapping setting maps names to text (their checks say so)

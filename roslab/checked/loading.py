@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import yaml
 
@@ -198,7 +199,13 @@ def _construct_mapping(loader: StrictLoader, node: yaml.MappingNode):
 StrictLoader.add_constructor("tag:yaml.org,2002:map", _construct_mapping)
 
 
-class FastStrictLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
+if TYPE_CHECKING:
+    _FastBase = yaml.CSafeLoader
+else:  # PyYAML without libyaml has no CSafeLoader
+    _FastBase = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
+class FastStrictLoader(_FastBase):
     """StrictLoader's constructors and resolvers on libyaml's parser and composer (PyYAML's
     CSafeLoader; several times faster on a 10,000-host roster). Used only for a text without
     `!` (no explicit tag, whose refusal is StrictLoader's composer's) and without characters

@@ -55,7 +55,8 @@ def team_wide(problems: list[Problem], team_hosts: dict[str, set[str]]) -> list[
     for problem in problems:
         team_problem = replace(problem, host=None)
         hosts = hosts_of.get(team_problem, set()) if problem.host is not None else set()
-        if len(hosts) > 1 and hosts >= team_hosts.get(problem.team, {None}):
+        every = team_hosts.get(problem.team) if problem.team is not None else None
+        if len(hosts) > 1 and every is not None and hosts >= every:
             if team_problem not in said:
                 said.add(team_problem)
                 shown.append(team_problem)

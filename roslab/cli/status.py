@@ -433,6 +433,8 @@ def base_note(host: HostStatus) -> str:
     from roslab.profiles.robot_base import RobotBase, firmware_problem
 
     base, seen = RobotBase.from_data(host.base), host.probe["base"]
+    if base is None:  # probed only for a profile with a base
+        return ""
     if not seen["answered"]:
         return f"{base.kind} at {base.base_address}: no answer"
     if not seen["firmware"]:
@@ -635,7 +637,9 @@ def _probe_host(state, host, status: HostStatus, listen: bool, listen_timeout: i
     from pyinfra.api.facts import get_fact
     from pyinfra.context import ctx_host
 
-    with ctx_host.use(host), gevent.Timeout(bound, False):
+    # gevent's Timeout(seconds, False) ends the block silently (documented); its stubs take
+    # only an exception there.
+    with ctx_host.use(host), gevent.Timeout(bound, False):  # type: ignore[arg-type]
         try:
             host.connect(show_errors=False, raise_exceptions=True)
         except ConnectError as error:
@@ -856,7 +860,7 @@ def heard_lines(main: HostStatus | None, result: TeamResult, listen: bool, nothi
     """The lines under the main host's box: the topics it hears, or why none are shown."""
     heard = (main.heard if main is not None else None) or parse_check_output([])
     if nothing_to_hear:
-        return [f"topics heard: not checked ({main.profile}: no topic)"]
+        return [f"topics heard: not checked ({main.profile if main is not None else 'no main host'}: no topic)"]
     if not listen:
         return ["topics heard: not checked (roslab status --listen)"]
     if main is None or main.heard is None:
@@ -1023,8 +1027,8 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         classroom = load_classroom(args.roster, "status")
-    except RosterProblem as problem:
-        print(problem, file=sys.stderr)
+    except RosterProblem as roster_problem:
+        print(roster_problem, file=sys.stderr)
         return 1
     path = classroom.path
     bad_timeout = timeout_problem(args)

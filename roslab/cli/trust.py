@@ -69,8 +69,8 @@ def limited_classroom(args: argparse.Namespace, command: str) -> tuple[Path, lis
     exit status after saying on stderr what is wrong (1: the roster or its state; 2: --limit)."""
     try:
         classroom = load_classroom(args.roster, command)
-    except RosterProblem as problem:
-        print(problem, file=sys.stderr)
+    except RosterProblem as error:
+        print(error, file=sys.stderr)
         return 1
     hosts, problem = limited_hosts(classroom, args.limit, f"roslab {command}")
     if problem:

@@ -36,6 +36,7 @@ import re
 import shlex
 import sys
 from dataclasses import dataclass, field
+from typing import Any
 
 from pyinfra.api import FactBase, State
 from pyinfra.api.connect import disconnect_all
@@ -191,7 +192,7 @@ def check_script(distro: str, environment: dict, workspace_dir: str, topic: str,
 
 
 def parse_check_output(lines) -> dict:
-    result = {"ros": True, "topics": [], "message": None, "robot": None, "echo_status": None,
+    result: dict[str, Any] = {"ros": True, "topics": [], "message": None, "robot": None, "echo_status": None,
               "daemon_stopped": False, "finished": False, "publishers": []}
     section = None
     message: list[str] = []
@@ -595,8 +596,8 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         classroom, groups = load_classroom_groups(args.roster, "verify")
-    except RosterProblem as problem:
-        print(problem, file=sys.stderr)
+    except RosterProblem as error:
+        print(error, file=sys.stderr)
         return 1
     problem = limit_problem(names_of(groups), args.limit, "roslab verify")
     if problem:

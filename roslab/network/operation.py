@@ -286,6 +286,7 @@ def _settle_unchanged(wanted, layout, unfinished: dict | None, recovered: dict |
         # Same content, wrong owner or mode: fix in place, nothing to apply.
         yield StringCommand("chown", "root:root", path, "&&", "chmod", "0600", path)
     if awaiting:  # confirmed by this run: the host keeps the change the killed run made
+        assert unfinished is not None, "awaiting a confirmation needs the unfinished run's record"
         yield FunctionCommand(confirm_pending_change, (), {"token": unfinished["token"],
                                                             "new_address": unfinished["to"],
                                                             "roster_path": roster_path})
@@ -327,7 +328,9 @@ def _launch_change(settings: NetworkSettings, layout, wanted, current_address: s
     # validates and launches: 0600 root's from their first byte, and removed whatever fails.
     # A validation failure shows the validator's message and stops here, nothing changed.
     yield StringCommand("python3", SCRIPT_PATH, "start", PLAN_PATH,
-                        _stdin=SecretStdin(json.dumps(wanted.files)))
+                        # pyinfra reads any _stdin with readlines() (connectors.util.write_stdin); its
+                        # annotation names only text and lists of it.
+                        _stdin=SecretStdin(json.dumps(wanted.files)))  # type: ignore[arg-type]
     # Validated and launched (a refused change ends above): pending until confirmed or undone.
     yield FunctionCommand(
         change_started, (),

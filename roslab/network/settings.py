@@ -335,7 +335,7 @@ def check_classroom_network(
     """
     problems: list[NetworkProblem] = []
     owners: dict[IPv4Address, str] = {}
-    parsed: list[tuple[str | None, str, NetworkSettings]] = []
+    parsed: list[tuple[str | None, str, IPv4Address]] = []  # the hosts given an address
     ssh_addresses: dict[str, str] = {}
 
     for team, name, data in hosts:
@@ -351,8 +351,8 @@ def check_classroom_network(
             continue
         if settings is None or settings.address is None:
             continue
-        parsed.append((team, name, settings))
         ip = settings.address.ip
+        parsed.append((team, name, ip))
         if ip in owners and check_duplicates:
             problems.append(
                 NetworkProblem(
@@ -367,15 +367,15 @@ def check_classroom_network(
     reached_at: dict[str, list[str]] = {}
     for other, other_address in ssh_addresses.items():
         reached_at.setdefault(other_address, []).append(other)
-    for team, name, settings in parsed:
-        for other in reached_at.get(str(settings.address.ip), ()):
+    for team, name, ip in parsed:
+        for other in reached_at.get(str(ip), ()):
             if other != name:
                 problems.append(
                     NetworkProblem(
                         team,
                         name,
                         "network_address",
-                        f"{settings.address.ip} is the address {other} is reached at now",
+                        f"{ip} is the address {other} is reached at now",
                     )
                 )
     return problems

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import posixpath
 import secrets
+from typing import Any
 
 from pyinfra import host
 from pyinfra.api import FactBase, OperationError, operation
@@ -161,7 +162,7 @@ class SwapFile(FactBase):
                 f"if [ -e {shell_word(partial_swap_path(path))} ]; then echo 'partial yes'; fi")
 
     def process(self, output):
-        result = {"size": None, "active": False, "partial": False}
+        result: dict[str, Any] = {"size": None, "active": False, "partial": False}
         for line in output:
             key, _, value = line.strip().partition(" ")
             if key == "size" and value.isdigit():
@@ -360,7 +361,7 @@ class RebootRecord(FactBase):
 
 def parse_reboot_record(lines) -> dict:
     """RebootRecord's output (also `roslab status`'s): the current boot and the record."""
-    result = {"current_boot": None, "boot_id": None, "reasons": [], "exists": False}
+    result: dict[str, Any] = {"current_boot": None, "boot_id": None, "reasons": [], "exists": False}
     for line in lines:
         key, sep, value = line.strip().partition("=")
         if line.strip() == "#record":

@@ -28,6 +28,7 @@ _parsed: dict[tuple, set[str] | str] = {}
 _ROS_DEB = re.compile(r"ros-(\{distro\}|[a-z]+)-([a-z0-9][a-z0-9-]*)")
 # Metapackages every host gets (the variants) are checked like any other name.
 
+_Loader: type[yaml.CSafeLoader] | type[yaml.SafeLoader]
 try:
     _Loader = yaml.CSafeLoader
 except AttributeError:  # PyYAML without libyaml
@@ -89,8 +90,9 @@ def named_packages(data: dict, distro: str) -> list[tuple[str, str, str]]:
         if match and match.group(1) == distro:
             named.append((match.group(0), match.group(2).replace("-", "_"), "ros_extra_packages"))
     middleware = discovery.middleware_ros_package(discovery.middleware_of(data))
-    if middleware:
-        named.append((discovery.middleware_package(middleware, distro), middleware, "ros_middleware"))
+    package = discovery.middleware_package(middleware, distro) if middleware else None
+    if middleware and package:  # both or neither: Fast DDS comes with ros-base
+        named.append((package, middleware, "ros_middleware"))
     profile = data.get("roslab_profile") or {}
     for ros_name in profile.get("ros_packages") or []:
         named.append((f"ros-{distro}-{ros_name.replace('_', '-')}", ros_name, "robot_profile"))

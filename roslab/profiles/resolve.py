@@ -186,8 +186,9 @@ def fill(text: str, values: dict) -> str:
     return PLACEHOLDER.sub(lambda match: str(values.get(match.group(1), "")), text)
 
 
-def resolve(profile: Profile, given: dict, *, distro: str, role: str, board: str | None = None) -> dict:
-    """`host.data.roslab_profile` for a host of `role` on `distro`; ResolveError list via `problems`.
+def resolve(profile: Profile, given: dict, *, distro: str, role: str, board: str | None = None) -> dict | None:
+    """`host.data.roslab_profile` for a host of `role` on `distro` (None: a distro roslab has no
+    release record for); ResolveError list via `problems`.
 
     Raises ExceptionGroup-free: returns (data, problems) through `resolve_host`.
     """
@@ -287,7 +288,7 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
     side = profile.sides.get(role)
     values, value_problems = setting_values(profile, given, side)
     problems += value_problems
-    if problems or distro not in DISTRO_RELEASES:
+    if problems or side is None or distro not in DISTRO_RELEASES:  # no side: a placement problem
         return None, problems
     parts = side_parts(side, values, distro, board)
     merged = merged_parts(parts)

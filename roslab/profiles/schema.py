@@ -650,8 +650,8 @@ class ProfileReader:
         problem = formats.ascii_text(command) if isinstance(command, str) and command.strip() else \
             "must be a command line (one line of text)"
         problem = problem or (formats.single_line(command) if isinstance(command, str) else None)
-        if problem:
-            self.error(problem, spec, "command", f"{here}.command")
+        if problem or not isinstance(command, str):  # a command that is not text has its problem
+            self.error(problem or "must be a command line (one line of text)", spec, "command", f"{here}.command")
         else:
             self.check_text(command, known | set(COMMAND_PLACEHOLDERS), spec, "command", f"{here}.command")
         description = spec.get("description") or ""
@@ -1041,15 +1041,16 @@ def _read_build_memory(reader: ProfileReader, mapping, base: Profile | None) -> 
 
 def _read_sides(reader: ProfileReader, mapping, base: Profile | None, known: set[str]) -> dict[str, Side]:
     """`main:` and `robot:`, each extending the base profile's side of its name."""
-    sides = {}
+    sides: dict[str, Side] = {}
     for side_name in SIDES:
         own = reader.read_side(mapping, side_name, known)
         inherited = base.sides.get(side_name) if base else None
         if own and inherited:
             own = merged_side(inherited, own)
-        if own or inherited:
-            sides[side_name] = own or inherited
-            tweaks = sides[side_name].os_tweaks
+        side = own or inherited
+        if side:
+            sides[side_name] = side
+            tweaks = side.os_tweaks
             if "swap_if_memory_mb_at_most" in tweaks and "swap_mb" not in tweaks:
                 reader.error("names a memory limit for a swap file but no swap_mb",
                              mapping.get(side_name) or mapping, "os_tweaks", f"{side_name}.os_tweaks")

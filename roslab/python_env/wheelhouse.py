@@ -138,11 +138,11 @@ def _set_key(requirements: list[str], index_url: str) -> str:
     return hashlib.sha256("\n".join([index_url, *sorted(requirements)]).encode()).hexdigest()[:16]
 
 
-def set_dir(cache_dir: Path, target: Target, requirements: list[str], index_url: str) -> Path:
+def set_dir(cache_dir: str | Path, target: Target, requirements: list[str], index_url: str) -> Path:
     return Path(cache_dir).expanduser() / target.name / _set_key(requirements, index_url)
 
 
-def kept_for_any_target(requirements: list[str], index_url: str, cache_dir: Path) -> list[Wheelhouse]:
+def kept_for_any_target(requirements: list[str], index_url: str, cache_dir: str | Path) -> list[Wheelhouse]:
     """The complete wheelhouses of `requirements` kept for any target (their manifests only)."""
     found: list[Wheelhouse] = []
     if not cache_dir or not index_url:
@@ -248,8 +248,9 @@ def build_requires(sdist: Path) -> list[str]:
             with tarfile.open(sdist, "r:gz") as archive:
                 members = [m for m in archive.getmembers()
                            if m.isfile() and m.name.count("/") == 1 and m.name.endswith("/pyproject.toml")]
-                if members:
-                    text = archive.extractfile(members[0]).read().decode()
+                member = archive.extractfile(members[0]) if members else None  # None: not a file
+                if member is not None:
+                    text = member.read().decode()
     except (OSError, tarfile.TarError, zipfile.BadZipFile, UnicodeDecodeError, KeyError):
         raise WheelhouseError(f"{sdist.name} is not a readable sdist") from None
     if text is None:
@@ -266,9 +267,9 @@ def build_requires(sdist: Path) -> list[str]:
 
 def _build_system(text: str, name: str):
     """pyproject.toml's [build-system] table (tomllib; Python 3.10's pip's own tomli)."""
-    try:
+    if sys.version_info >= (3, 11):
         import tomllib as toml
-    except ImportError:  # Python 3.10
+    else:  # Python 3.10
         from pip._vendor import tomli as toml
     try:
         return toml.loads(text).get("build-system")
@@ -319,7 +320,7 @@ _lock = threading.Lock()
 _this_run: dict[tuple, Wheelhouse | WheelhouseError] = {}
 
 
-def wheelhouse(requirements: list[str], target: Target, index_url: str, cache_dir: Path,
+def wheelhouse(requirements: list[str], target: Target, index_url: str, cache_dir: str | Path,
                offline: bool = False) -> Wheelhouse:
     """The complete wheelhouse for `requirements` on `target`: kept, else downloaded once.
 

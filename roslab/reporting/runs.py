@@ -139,7 +139,7 @@ def record_runs(roster_path: str | os.PathLike, runs: Iterable[HostRun], when: d
         except (ValueError, yaml.YAMLError):
             entries = {}  # a broken file is replaced by this run's record rather than kept broken
         for run in runs:
-            entry = {"last_run": stamp, "result": run.result}
+            entry: dict[str, str | None] = {"last_run": stamp, "result": run.result}
             if run.step:
                 entry["step"] = _text(run.step)
             if run.reason:
@@ -147,8 +147,8 @@ def record_runs(roster_path: str | os.PathLike, runs: Iterable[HostRun], when: d
             previous = entries.get(run.host) or {}
             if run.result in SUCCESS_RESULTS:
                 entry["last_success"] = stamp
-            elif parse_time(previous.get("last_success")) is not None:
-                entry["last_success"] = format_time(parse_time(previous["last_success"]))
+            elif (last_success := parse_time(previous.get("last_success"))) is not None:
+                entry["last_success"] = format_time(last_success)
             entries[run.host] = entry
         fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{RUNS_FILE}-")
         try:

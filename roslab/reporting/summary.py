@@ -49,7 +49,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Iterable, TextIO
+from typing import Any, Callable, Iterable, TextIO
 
 import gevent
 import pyinfra
@@ -242,11 +242,13 @@ class RunSummary(BaseStateCallback):
 
     # pyinfra callbacks (pyinfra calls them as handler.<name>(state, ...))
 
-    def host_connect_error(self, state: State, host, error) -> None:
+    # pyinfra declares its callbacks static and calls them on the handler: a method's self is
+    # bound by then, so these take the same arguments (mypy sees a different signature).
+    def host_connect_error(self, state: State, host, error) -> None:  # type: ignore[override]
         text = error.args[0] if getattr(error, "args", None) else error
         self.host(host.name).connect_error = one_line(text)
 
-    def operation_host_error(self, state: State, host, op_hash, retry_count: int = 0,
+    def operation_host_error(self, state: State, host, op_hash, retry_count: int = 0,  # type: ignore[override]
                              max_retries: int = 0) -> None:
         events = self.host(host.name)
         events.error_ops.append(op_hash)
@@ -385,27 +387,26 @@ class RunSummary(BaseStateCallback):
             return op_name(state, op_hash, host), reason
         if events.connect_error or host not in state.activated_hosts:
             # A refused host key: roslab.ssh.identity's line says what to run.
-            reason = identity.refusal(host.name) or events.connect_error or most_useful_line(
+            why = identity.refusal(host.name) or events.connect_error or most_useful_line(
                 line.text for line in events.log if line.level >= logging.ERROR
-            )
-            reason = reason or "pyinfra could not connect to it (its message is above)"
+            ) or "pyinfra could not connect to it (its message is above)"
             pending = pending_network_change(host)
             if pending and not identity.refusal(host.name):
                 tried = (getattr(host, "data", None) or {}).get("ssh_hostname") or host.name
-                reason = f"tried {tried}: {reason}; {pending}"
-            return "connect", reason
+                why = f"tried {tried}: {why}; {pending}"
+            return "connect", why
         # Planning failures no callback carries: a fact that could not load, stop_host's
         # own log line (most_useful_line prefers it).
         errors = [line for line in events.log if line.level >= logging.ERROR]
-        reason = most_useful_line(line.text for line in errors)
-        if reason and self.host_lost(host):  # "could not load fact: ..." of a host that went away
-            reason = LOST_CONNECTION
-        if reason:
-            step = next((line.step for line in reversed(errors) if line.step), None)
-            if step is None:
-                step = next((op_name(state, line.op_hash, host) for line in reversed(errors)
-                             if line.op_hash in state.op_meta), "planning")
-            return step, reason
+        logged = most_useful_line(line.text for line in errors)
+        if logged and self.host_lost(host):  # "could not load fact: ..." of a host that went away
+            logged = LOST_CONNECTION
+        if logged:
+            failed_step = next((line.step for line in reversed(errors) if line.step), None)
+            if failed_step is None:
+                failed_step = next((op_name(state, line.op_hash, host) for line in reversed(errors)
+                                    if line.op_hash in state.op_meta), "planning")
+            return failed_step, logged
         return "unknown", "pyinfra marked it failed without saying why (see its output above)"
 
     def host_lost(self, host) -> bool:
@@ -749,7 +750,7 @@ def mask(text: str, secrets: list[str]) -> str:
 
 # --- wiring: one summary per run ----------------------------------------------------------
 
-_current: tuple[RunSummary, State] | None = None
+_current: tuple[RunSummary, State | None] | None = None
 _atexit_registered = False
 
 
@@ -1015,7 +1016,7 @@ class CompactOutput(logging.Filter):
         self.logger = logger
         self.long_step = long_step
         self.every = every
-        self.hosts = hosts or (lambda: [])  # the names of the hosts the run executes on
+        self.hosts: Callable[[], list[str]] = hosts or (lambda: [])  # the names of the hosts the run executes on
         self.pending: logging.LogRecord | None = None
         self.step: logging.LogRecord | None = None  # the step running now
         self.done: set[str] = set()  # hosts that finished it
@@ -1098,6 +1099,9 @@ class CompactOutput(logging.Filter):
         self.pending = None
 
     def _later(self, record: logging.LogRecord) -> None:
+        long_step = self.long_step
+        if long_step is None:  # no "still running" lines (handle() calls this only with one)
+            return
         try:
             import gevent
         except ImportError:  # pragma: no cover - pyinfra's CLI runs on gevent
@@ -1121,7 +1125,7 @@ class CompactOutput(logging.Filter):
                                      extra={"roslab_shown": True})
             gevent.spawn_later(self.every, still_running, False)
 
-        gevent.spawn_later(self.long_step, still_running, True)
+        gevent.spawn_later(long_step, still_running, True)
 
 
 # pyinfra's tables (pyinfra_cli.prints: print_meta, print_results), after their header line: in

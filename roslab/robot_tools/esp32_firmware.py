@@ -90,8 +90,8 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         classroom = load_classroom(args.roster, "esp32-firmware")
-    except RosterProblem as problem:
-        print(problem, file=sys.stderr)
+    except RosterProblem as error:
+        print(error, file=sys.stderr)
         return 1
     hosts, problem = limited_hosts(classroom, args.limit, "roslab esp32-firmware")
     if problem:  # a pattern that selects no host: bad usage, as for every command

@@ -103,8 +103,9 @@ class FlasherArchitecture(FactBase):
     """What the flasher needs from the host: `uname -m`, whether dpkg has the armhf architecture
     and whether libc6:armhf is installed -> {"machine": str, "armhf": bool, "libc6_armhf": bool}."""
 
-    command = ("uname -m; dpkg --print-foreign-architectures 2>/dev/null | tr '\\n' ' '; echo; "
-               "dpkg-query -W -f '${Status}' libc6:armhf 2>/dev/null; echo")
+    def command(self) -> str:
+        return ("uname -m; dpkg --print-foreign-architectures 2>/dev/null | tr '\\n' ' '; echo; "
+                "dpkg-query -W -f '${Status}' libc6:armhf 2>/dev/null; echo")
 
     def process(self, output):
         lines = [*output, "", "", ""]
@@ -175,8 +176,8 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         classroom, groups = load_classroom_groups(args.roster, "opencr-update")
-    except RosterProblem as problem:
-        print(problem, file=sys.stderr)
+    except RosterProblem as error:
+        print(error, file=sys.stderr)
         return 1
     hosts, problem = limited_hosts(classroom, args.limit, "roslab opencr-update")
     if problem:
@@ -245,7 +246,10 @@ def ensure_armhf_flasher(host, target) -> bool:
 def flash(host, target, args: argparse.Namespace, archive: bytes) -> bool:
     """Check the robot's port and the flasher's architecture, then run ROBOTIS's update.sh there
     with the model's firmware; one line says how it went, judged from the flasher's output."""
-    firmware = firmware_name(turtlebot3_model(host))
+    model = turtlebot3_model(host)
+    if model is None:  # the robots flashed are the TurtleBot3 ones (turtlebot3_model set)
+        raise ValueError(f"{host.name} is not a TurtleBot3 robot")
+    firmware = firmware_name(model)
     usb_id = target.get_fact(UsbSerialPort, port=args.port)
     problem = port_problem(host.name, args.port, usb_id, args.allow_unidentified_port)
     if problem:

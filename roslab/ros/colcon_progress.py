@@ -107,7 +107,7 @@ def install() -> None:
         return original(tapped(stdout_buffer, print_prefix), stderr_buffer, timeout=timeout,
                         print_output=print_output, print_prefix=print_prefix)
 
-    read_output_buffers.roslab_progress = True
+    read_output_buffers.roslab_progress = True  # type: ignore[attr-defined]  # the patch's marker (getattr above)
     pyinfra_util.read_output_buffers = read_output_buffers
     if getattr(pyinfra_ssh, "read_output_buffers", None) is original:
         pyinfra_ssh.read_output_buffers = read_output_buffers

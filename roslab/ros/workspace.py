@@ -387,7 +387,7 @@ def _log_sync_diff(plan: SyncPlan, local_files, remote, remote_path) -> None:
         host.log(f"Will {verb} {remote_path(relative)}", logger.info)
         try:
             desired = Path(local_files[relative].path).read_text().splitlines(keepends=True)
-            current = []
+            current: list[str] = []
             if exists:
                 current = (host.get_fact(FileContents, path=remote_path(relative)) or [])
                 current = [line + "\n" for line in current]
@@ -462,7 +462,7 @@ def owned(workspace_dir: str, user: str):
     reported = getattr(state, "roslab_reported", None)
     if reported is None:
         reported = set()
-        state.roslab_reported = reported
+        setattr(state, "roslab_reported", reported)  # roslab's own note on pyinfra's State
     said = (host.name, getattr(host, "current_op_hash", None))
     if said not in reported:
         reported.add(said)

@@ -49,7 +49,7 @@ def load_roster(path: Path | str, validators: list[Validator] | None = None,
     # A team's or the classroom's value is read for each host: its problem is said once per team.
     team_hosts = {team.name: {host.name for host in team.hosts} for team in classroom.teams} if classroom else {}
     errors = team_wide(reader.report.errors, team_hosts)
-    if errors:
+    if errors or classroom is None:  # no classroom: the reader said why
         raise RosterError(errors)
     classroom.warnings = team_wide(reader.report.warnings, team_hosts)
     return classroom

@@ -228,7 +228,7 @@ def check_discovery(classroom: Classroom, report: Report) -> None:
             if needs_main and main is None:
                 report.error(f"{what} runs on the team's main host, and this team has none: "
                              "give it a host with role: main", field="ros_discovery_mode", line=mode_line, **where)
-            elif needs_main and main is not host and discovery.mode_of(main.data) == "localhost":
+            elif needs_main and main is not None and main is not host and discovery.mode_of(main.data) == "localhost":
                 report.error(f"{what} runs on the team's main host, and {main.name!r} keeps its discovery on "
                              "itself (ros_discovery_mode localhost): this host would find nobody",
                              field="ros_discovery_mode",

@@ -14,6 +14,7 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from roslab.ros import distro as distros
 from roslab import formats, secrets, settings
@@ -45,7 +46,7 @@ CONNECTION_KEYS = tuple(s.key for s in settings.SCHEMA if s.concern == "connecti
 
 @dataclass
 class Value:
-    value: object
+    value: Any  # a roster value, checked against its setting where it is read
     line: int | None
 
 
@@ -167,14 +168,16 @@ class RosterReader:
             self._secrets_read = True
         if self._secrets is None:
             return (f"names secret {name!r}, but the secrets file "
-                    f"{display_path(self.secrets_file)} is missing or unusable")
+                    f"{display_path(self.secrets_file or DEFAULT_SECRETS_FILE)} is missing or unusable")
         if name not in self._secrets:
-            return f"names secret {name!r}, which {display_path(self.secrets_file)} does not define"
+            return f"names secret {name!r}, which {display_path(self.secrets_file or DEFAULT_SECRETS_FILE)} does not define"
         return None
 
     def read_secrets(self) -> dict | None:
         """The secrets file's entries, or None (with the reasons reported)."""
         path = self.secrets_file
+        if path is None:  # read_level names it before any secret is looked up
+            return None
         shown = display_path(path)
         where = {"field": "secrets_file", "line": self.secrets_line}
         if self.secrets_refused:
@@ -234,8 +237,8 @@ class RosterReader:
         for key, line, first in getattr(roster, "duplicates", []):
             self.report.error(f"{key!r} appears twice (also at line {first})", line=line)
         for key in roster:
-            if name_problem(key, "key"):
-                self.report.error(name_problem(key, "key"), line=line_of(roster, key))
+            if key_problem := name_problem(key, "key"):
+                self.report.error(key_problem, line=line_of(roster, key))
             elif key not in TOP_LEVEL_KEYS:
                 close = difflib.get_close_matches(str(key), TOP_LEVEL_KEYS, n=1)
                 hint = f" (did you mean {close[0]!r}?)" if close else ""
@@ -404,8 +407,9 @@ class RosterReader:
             if value is None and key in CONNECTION_KEYS:
                 continue  # pyinfra's own default
             data[key] = value
-            if secrets.is_secret_reference(key) and value in (self._secrets or {}):
-                data[secrets.resolved_key(key)] = secrets.wrap(key, self._secrets[value])
+            known = self._secrets or {}
+            if secrets.is_secret_reference(key) and value in known:
+                data[secrets.resolved_key(key)] = secrets.wrap(key, known[value])
         if "ros_apt_source_sha256" in resolved and \
                 data["ros_apt_source_version"] == self.defaults["ros_apt_source_version"]:
             # A pin the roster adds (e.g. resolute's) keeps roslab's known ones for the other releases.
@@ -541,7 +545,8 @@ class RosterReader:
             definition = self.profiles.get(profile["name"])
             side = definition.sides.get(data["roslab_role"]) if definition else None
         # the side's own .repos files and those of its when blocks that hold for this host
-        parts = side_parts(side, profile["settings"], profile["distro"], data.get("board")) if side else []
+        parts = side_parts(side, profile["settings"], profile["distro"], data.get("board")) \
+            if side and profile is not None else []
         profile_sources = list(dict.fromkeys(item for part in parts for item in part.sources))
         own, every, problems = sources.host_sources(data, profile_sources, self.path.parent, self._repos_files)
         for field, problem in problems:

@@ -69,8 +69,8 @@ def binary(bundles: Bundles) -> Path:
     def build(out: Path) -> None:
         log.warning(f"building the sandbox's ESP32 board stand-in from {CLIENT[0]} {CLIENT[1]} and "
                     f"{CDR[0]} {CDR[1]} (once)...")
-        with tempfile.TemporaryDirectory(prefix="roslab-esp32-") as work:
-            work = Path(work)
+        with tempfile.TemporaryDirectory(prefix="roslab-esp32-") as work_dir:
+            work = Path(work_dir)
             prefix = work / "prefix"
             cdr = bundles.tree(CDR[0], CDR[1], work / "cdr")
             _cmake(cdr, work / "cdr-build", prefix, "-DUCDR_ISOLATED_INSTALL=OFF")

@@ -21,6 +21,7 @@ import socket
 import subprocess
 import time
 import uuid
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -52,7 +53,7 @@ def host_cgroups(instance: Instance, host_name: str) -> list[Path]:
 
 def _pids_in(tree: Path) -> set[int]:
     """Every pid in a cgroup tree (the host's systemd adds and removes cgroups meanwhile)."""
-    pids = set()
+    pids: set[int] = set()
     for directory, _, files in os.walk(tree):  # os.walk skips directories that vanish
         if "cgroup.procs" in files:
             try:
@@ -192,7 +193,7 @@ def _host_paths(instance: Instance, host: SandboxHost) -> dict[str, Path]:
     return {name: base / name for name in ("upper", "work", "merged")}
 
 
-def mount_fresh(instance: Instance, host: SandboxHost, rootfs: Path, layers: list[Path] = ()) -> Path:
+def mount_fresh(instance: Instance, host: SandboxHost, rootfs: Path, layers: Sequence[Path] = ()) -> Path:
     """Mount a fresh overlay for the host (any earlier changes are wiped); return the merged dir.
 
     `layers`: saved disk states (`lifecycle.save`), topmost first, laid read-only over the
@@ -259,7 +260,7 @@ def write_host_files(instance: Instance, host: SandboxHost, root: Path, ubuntu_k
     write_file(root / emulation.UBUNTU_KEYRING.lstrip("/"), ubuntu_keyring)
     write_file(root / "etc/apt/trusted.gpg.d/ubuntu-keyring-2018-archive.gpg", ubuntu_keyring)
     if boot.seed:
-        _prepare_seeded_boot(root, boot)
+        _prepare_seeded_boot(root, boot, boot.seed)
         return
     # A Pi's boot partition (stand-ins of Ubuntu's files); a seeded host has its seed there instead.
     for path, (content, mode) in pi_boot.boot_files(host.board, host.release).items():
@@ -280,7 +281,7 @@ def write_host_files(instance: Instance, host: SandboxHost, root: Path, ubuntu_k
                mode=0o600, owner=(uid, uid))
 
 
-def _prepare_seeded_boot(root: Path, boot: Boot) -> None:
+def _prepare_seeded_boot(root: Path, boot: Boot, seed: Path) -> None:
     """A freshly flashed card: cloud-init enabled, the seed where NoCloud finds it, no host key yet."""
     (root / seeding.CLOUD_INIT_DISABLED.lstrip("/")).unlink(missing_ok=True)
     for key in (root / "etc/ssh").glob("ssh_host_*"):
@@ -300,8 +301,8 @@ def _prepare_seeded_boot(root: Path, boot: Boot) -> None:
     if boot.apt_lock_seconds:
         run("systemctl", f"--root={root}", "enable", "--quiet", seeding.FIRST_BOOT_UNIT)
     locale_gen = root / "etc/locale.gen"
-    if locale_gen.exists() and (boot.seed / "user-data").is_file():
-        enabled = seeding.seed_locale_enabled(locale_gen.read_text(), (boot.seed / "user-data").read_text())
+    if locale_gen.exists() and (seed / "user-data").is_file():
+        enabled = seeding.seed_locale_enabled(locale_gen.read_text(), (seed / "user-data").read_text())
         write_file(locale_gen, enabled)
 
 

@@ -163,8 +163,8 @@ def _customise(rootfs: Path) -> None:
     for path in (rootfs / "var/lib/cloud").glob("*"):
         shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
     write_file(rootfs / seeding.CLOUD_INIT_DISABLED.lstrip("/"), seeding.CLOUD_INIT_DISABLED_TEXT)
-    for path, content in seeding.cloud_init_image_files().items():
-        write_file(rootfs / path.lstrip("/"), content)
+    for name, content in seeding.cloud_init_image_files().items():
+        write_file(rootfs / name.lstrip("/"), content)
     # A host's own periodic apt runs would race the tests' apt runs for the dpkg lock.
     _chroot(rootfs, "systemctl", "mask", "apt-daily.timer", "apt-daily-upgrade.timer")
     # Nothing to resolve: hosts reach only the sandbox upstream by address, and an

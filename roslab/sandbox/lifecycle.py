@@ -16,6 +16,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from ipaddress import IPv4Network
 from pathlib import Path
+from typing import Any
 
 import yaml
 
@@ -220,7 +221,7 @@ def _up_locked(instance: Instance, planned: list[SandboxHost], class_roster: Pat
     hosts.ensure_bridge(instance)
     with announced("building the stand-in upstream (Ubuntu-layout archive, stand-in ROS packages, rosdep data)"):
         published = upstream.build(instance.state_dir / "upstream", instance.upstream_url, rootfs)
-    _record_ros(instance, published.ros, published.real_repositories)
+    _record_ros(instance, published.ros or {}, published.real_repositories)
     _update_state(instance, ros_apt_source_sha256=published.ros_apt_source_sha256)  # for _resync's roster
     upstream.start_server(instance.state_dir / "upstream", instance.bridge_address, UPSTREAM_PORT,
                           instance.state_dir / "upstream.pid", instance.state_dir / "upstream.log")
@@ -247,7 +248,9 @@ def _boot_new(instance: Instance, planned: list[SandboxHost], rootfs: Path, keyr
 
     _on_all(planned, boot)
     for host in planned:  # one writer: known_hosts is rewritten whole each time
-        identity.trust(instance.roster_path, host.name, [host.address], boots[host.name].host_key[1])
+        host_key = boots[host.name].host_key
+        assert host_key is not None, f"{host.name}: a host booted with a key here"
+        identity.trust(instance.roster_path, host.name, [host.address], host_key[1])
 
 
 def _members_state(planned: list[SandboxHost]) -> list[dict]:
@@ -273,6 +276,8 @@ def _resync(running: Classroom, desktop: list[str] | None) -> Classroom:
     if "ros_apt_source_sha256" not in state:
         raise SandboxError(f"sandbox {instance.name!r} was brought up by an older roslab: "
                            "run `roslab sandbox down` first")
+    if class_roster is None:  # up --roster is what resyncs
+        raise SandboxError(f"sandbox {instance.name!r} was not brought up from a class roster")
     members = _class_members(class_roster)
     desktop_names = set(desktop) if desktop else {host.name for host in running.hosts if host.flavour == "desktop"}
     old = {host.name: host for host in running.hosts}
@@ -485,7 +490,7 @@ def _down_locked(instance: Instance) -> None:
 def status(instance: Instance | None = None) -> dict:
     """What is running: per host its address, release and whether it runs and offers SSH."""
     classroom = load(instance)
-    report = {"name": classroom.instance.name, "subnet": str(classroom.instance.subnet),
+    report: dict[str, Any] = {"name": classroom.instance.name, "subnet": str(classroom.instance.subnet),
               "upstream": classroom.instance.upstream_url, "roster": str(classroom.instance.roster_path),
               "ros": ros_served(classroom.instance), "hosts": []}
     for host in classroom.hosts:

@@ -127,6 +127,8 @@ class Bundles:
     def serve(self, bare: Path, url: str) -> None:
         """Serve the bundle of `url` as the bare repository `bare` (git's dumb HTTP)."""
         bundle = self.bundle_for(url)
+        if bundle is None:  # callers serve only what bundle_for found
+            raise SandboxError(f"no bundle of {url} in {self.folder}")
         shutil.rmtree(bare, ignore_errors=True)
         bare.parent.mkdir(parents=True, exist_ok=True)
         _git("clone", "--quiet", "--bare", bundle, bare)
@@ -198,8 +200,8 @@ def build_released_deb(bundles: Bundles, key: str, distro: str, tree: Path, vers
 def _build_released_deb(bundles: Bundles, key: str, distro: str, tree: Path, version: str,
                         out_dir: Path, package: str) -> Path:
     name, ref = RELEASED_FROM_SOURCE[key]
-    with tempfile.TemporaryDirectory(prefix=f"roslab-{key}-") as work:
-        work = Path(work)
+    with tempfile.TemporaryDirectory(prefix=f"roslab-{key}-") as work_dir:
+        work = Path(work_dir)
         source = bundles.tree(name, ref, work / "src")
         stage = work / "stage"
         script = "\n".join([

@@ -20,9 +20,10 @@ class SandboxError(RuntimeError):
     """Something the sandbox needs is missing or broken; the message says what."""
 
 
-def run(*argv: str | os.PathLike, check: bool = True, capture: bool = True, **kwargs) -> subprocess.CompletedProcess:
+def run(*command: str | os.PathLike[str], check: bool = True, capture: bool = True,
+        **kwargs) -> subprocess.CompletedProcess:
     """Run a command; on failure raise SandboxError carrying its stderr."""
-    argv = [os.fspath(arg) for arg in argv]
+    argv = [os.fspath(arg) for arg in command]
     log.debug("$ %s", " ".join(argv))
     result = subprocess.run(argv, text=True, capture_output=capture, **kwargs)
     if check and result.returncode != 0:

@@ -37,8 +37,10 @@ import sys
 import tempfile
 import time
 import xml.etree.ElementTree as ElementTree
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import yaml
 
@@ -391,7 +393,7 @@ def _write_release(dist_dir: Path, key: SigningKey, **fields: str) -> None:
 
 
 def _build_deb(workdir: Path, package: str, version: str, description: str,
-               files: dict[str, str | bytes] | None = None, depends: list[str] | None = None,
+               files: Mapping[str, str | bytes] | None = None, depends: list[str] | None = None,
                links: dict[str, str] | None = None, out_dir: Path | None = None,
                conflicts: list[str] | None = None) -> Path:
     """Build an Architecture: all .deb of plain files with dpkg-deb."""
@@ -582,8 +584,8 @@ def ros_archive(extra_keys: set[str], runtime: ros_runtime.Runtime | None = None
         common = out / "pool/main/common"
         _build_deb(work, "ros-dev-tools", "1.0.1", f"{STANDIN_NOTE}: ROS development tools (real Debian "
                    "rosdep, colcon and vcstool)", depends=list(ROS_DEV_TOOLS_DEPENDS), out_dir=common)
-        for simulator, (version, title, conflicts) in simulator_standins().items():
-            _build_deb(work, simulator, version, f"{STANDIN_NOTE}: {title} (no simulator; conflicts with "
+        for simulator_package, (version, title, conflicts) in simulator_standins().items():
+            _build_deb(work, simulator_package, version, f"{STANDIN_NOTE}: {title} (no simulator; conflicts with "
                        f"{', '.join(conflicts)} as the real packages do)", conflicts=conflicts, out_dir=common)
         for codename, distro in ROS_DISTROS.items():
             pool = out / "pool/main" / codename
@@ -747,7 +749,7 @@ def rosdep_files(url: str, system_keys: dict[str, str]) -> dict[str, str]:
 
 def rosdistro_files(url: str, ros_keys: list[str]) -> dict[str, str]:
     header = f"%YAML 1.1\n# {STANDIN_NOTE} for the rosdistro index\n---\n"
-    index = {"type": "index", "version": 4, "distributions": {}}
+    index: dict[str, Any] = {"type": "index", "version": 4, "distributions": {}}
     files = {}
     for codename, distro in sorted(ROS_DISTROS.items()):
         index["distributions"][distro] = {
@@ -871,8 +873,8 @@ def build(serve_dir: Path, url: str, rootfs: Path, nodes_dir: Path | None = None
     if opencr is not None:
         write_file(serve_dir / real_sources.OPENCR_SERVED, opencr)
     pypi.build_index(serve_dir)  # the stand-in Python index, for the profiles' python_packages
-    ros = {distro: "stand-in" for distro in ROS_DISTROS.values()} | runtime.describe()
-    return Upstream(url=url, ros_apt_source_sha256=sums, ros=ros, real_repositories=tuple(real))
+    served = {distro: "stand-in" for distro in ROS_DISTROS.values()} | runtime.describe()
+    return Upstream(url=url, ros_apt_source_sha256=sums, ros=served, real_repositories=tuple(real))
 
 
 # -- the HTTP server ------------------------------------------------------------------------

@@ -78,8 +78,8 @@ def _selected(args: argparse.Namespace, command: str) -> tuple:
     """The roster and the hosts `--limit` selects, in roster order."""
     try:
         classroom = load_classroom(args.roster, command)
-    except RosterProblem as problem:
-        raise _Stop(1, str(problem)) from None
+    except RosterProblem as error:
+        raise _Stop(1, str(error)) from None
     hosts, problem = limited_hosts(classroom, args.limit, f"roslab {command}")
     if problem:
         raise _Stop(2, problem)
@@ -171,7 +171,7 @@ def _write_and_record(args: argparse.Namespace, hosts: list, seeds: dict, path: 
     return recorded_in
 
 
-def _record_key(host, path: Path, moved: dict | None = None) -> tuple[str | None, object]:
+def _record_key(host, path: Path, moved: dict | None = None) -> tuple[str | None, identity.KnownHost | None]:
     """Record the host's seeded key in the known_hosts file the run checks it against
     (ssh_known_hosts_file, or the classroom's own): (that file's name, the key recorded before),
     (None, None) where the roster checks no keys (/dev/null)."""

@@ -151,7 +151,8 @@ def check_console_password(host: Host) -> tuple[str, str]:
     import shutil
 
     secret = host.data.get("console_password")
-    password = str(secret.unmask() if hasattr(secret, "unmask") else secret)
+    unmask = getattr(secret, "unmask", None)  # a Secret from the secrets file, else plain text
+    password = str(unmask() if unmask is not None else secret)
     if secret is None or not password or any(char in password for char in "\n\r\0"):
         raise SeedError(host.name, "console_password_secret", "the console password must be one non-empty line")
     openssl = shutil.which("openssl")

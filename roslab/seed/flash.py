@@ -40,6 +40,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from roslab.reach import add_roster_argument
+from roslab.roster.model import Host
 from roslab.seed import cards, targets
 from roslab.seed.command import _checked_seeds, _record_key, _refuse_what_the_roster_cannot_say, _selected, _Stop
 from roslab.seed.documents import SEED_FILES
@@ -52,7 +53,7 @@ PROGRESS_EVERY = 5.0  # seconds between progress lines
 
 @dataclass
 class Job:
-    host: object  # the roster's Host
+    host: Host  # the roster's
     card: cards.Card
     written: int = 0
     result: str = "waiting"  # writing, verified, skipped, FAILED
@@ -96,7 +97,7 @@ def _writer(job: Job, chunks: queue.Queue) -> None:
 def write_all(image: cards.Image, jobs: list[Job], say=print) -> None:
     """Read the image once and write it to every job's card at once (its digest was taken with
     the image: `cards.raw_image`)."""
-    queues = [queue.Queue(maxsize=4) for _ in jobs]
+    queues: list[queue.Queue] = [queue.Queue(maxsize=4) for _ in jobs]
     writers = [threading.Thread(target=_writer, args=(job, chunks), daemon=True) for job, chunks in zip(jobs, queues)]
     for job, writer in zip(jobs, writers):
         job.result = "writing"

@@ -189,6 +189,7 @@ def read_lock(cache_dir: Path) -> dict:
         return {}
     except (UnreadableFile, UnicodeDecodeError) as error:
         raise SourceError(f"the lock file {path} cannot be read ({error}): restore it from a backup") from None
+    reason: str | None
     try:
         data = json.loads(text)
     except ValueError as error:
@@ -385,7 +386,8 @@ def _fetch(repo: dict, cache_dir: Path, fetch_url: str, offline: bool, timeout: 
     url, version = repo["url"], repo["version"]
     mirror = mirror_path(cache_dir, url)
     lock = read_lock(cache_dir).get(url, {})
-    tag, notes = None, []
+    tag: str | None = None
+    notes: list[str] = []
     expected = version if COMMIT.fullmatch(version) else (lock.get("tags") or {}).get(version)
     if not fresh_mirror:
         _refuse_damaged_mirror(mirror, expected, lock, timeout)
@@ -435,13 +437,13 @@ def _tag_commit(mirror: Path, cache_dir: Path, fetch_url: str, url: str, tag: st
     """The commit a tag names, in the mirror: the lock's when offline or already checked with this
     set of pins, else upstream's, refused if it moved from what the class recorded."""
     recorded = (lock.get("tags") or {}).get(tag)
-    held = bool(recorded) and _has_commit(mirror, recorded, timeout)
+    held = bool(recorded and _has_commit(mirror, recorded, timeout))
     if offline:
-        if not held:
+        if not held or not recorded:  # held: recorded is a commit
             raise SourceError(f"offline, and the controller's cache has no commit for tag {tag!r} "
                               f"({Path(cache_dir) / LOCK_NAME}): run once with the network")
         return recorded
-    if held and not fresh_mirror and _tag_checked(cache_dir, digest, url, tag):
+    if held and recorded and not fresh_mirror and _tag_checked(cache_dir, digest, url, tag):
         return recorded  # checked with this set of pins: upstream is not asked again
     commit = _upstream_tag_commit(fetch_url, url, tag, recorded, held, timeout, notes)
     if recorded and recorded != commit:

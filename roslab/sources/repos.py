@@ -30,7 +30,7 @@ from urllib.parse import urlsplit
 
 from roslab.ros import distro as distros
 from roslab.controller_files import kind_of
-from roslab.formats import Context, file_url_problem, within
+from roslab.formats import Context, describe, file_url_problem, within
 from roslab.checked.loading import line_of, load_yaml
 from roslab.checked.problems import Problem, Report, display_path
 
@@ -208,6 +208,7 @@ def _repository_spec_ok(spec: dict, repos_dir: Path, report: Report, line, field
     problem = url_problem(spec.get("url"), repos_dir) if "url" in spec else "is missing: the repository's URL"
     if problem:
         report.error(problem, line=line_of(spec, "url") or line, field=f"{field}.url")
+    vproblem: str | None
     if "version" not in spec:
         vproblem = "is missing: pin the commit (40 hex digits) or the tag the class builds"
     else:
@@ -273,11 +274,11 @@ def merged(groups: list[tuple[str, list[dict]]]) -> tuple[list[dict], list[str]]
 
 def rewritten(url: str, rewrites: dict[str, str] | None) -> str:
     """`url` with the longest matching prefix replaced, as git's `url.<base>.insteadOf` does."""
-    best = ""
-    for prefix in (rewrites or {}):
+    best, table = "", rewrites or {}
+    for prefix in table:
         if url.startswith(prefix) and len(prefix) > len(best):
             best = prefix
-    return (rewrites[best] + url[len(best):]) if best else url
+    return (table[best] + url[len(best):]) if best else url
 
 
 def rewrites_problem(value, context=None) -> str | None:
@@ -304,7 +305,7 @@ def rewrites_problem(value, context=None) -> str | None:
     return None
 
 
-rewrites_problem.allowed = "URL prefix: replacement prefix (http, https, file)"
+describe(rewrites_problem, allowed="URL prefix: replacement prefix (http, https, file)")
 
 
 def repos_file_problem(value, context=None) -> str | None:
@@ -313,7 +314,7 @@ def repos_file_problem(value, context=None) -> str | None:
     return name_problem(value, Path(context.roster_dir))
 
 
-repos_file_problem.allowed = "a .repos file, relative to the roster"
+describe(repos_file_problem, allowed="a .repos file, relative to the roster")
 
 
 def pins_problem(value, _context=None) -> str | None:

@@ -236,7 +236,7 @@ def _write_known_hosts(roster_path, entries: list[KnownHost], known_hosts: Path 
     a private folder; a file the roster names (ssh_known_hosts_file) keeps its mode and
     folder, and gets no header: roslab only edits its own lines and names in it."""
     own = known_hosts is None or Path(known_hosts) == known_hosts_path(roster_path)
-    path = known_hosts_path(roster_path) if own else Path(known_hosts)
+    path = known_hosts_path(roster_path) if own or known_hosts is None else Path(known_hosts)
     if str(path) == os.devnull:
         raise IdentityError("ssh_known_hosts_file is /dev/null: no host key can be recorded there")
     if own:
@@ -334,7 +334,7 @@ def trust(roster_path: str | os.PathLike, host_name: str, addresses: Iterable[st
 def _sorted(entries: list[KnownHost]) -> list[KnownHost]:
     """Foreign lines first as they were, then roslab's lines by host (a stable file)."""
     foreign = [entry for entry in entries if not entry.owner]
-    own = sorted((entry for entry in entries if entry.owner), key=lambda entry: entry.owner)
+    own = sorted((entry for entry in entries if entry.owner), key=lambda entry: entry.owner or "")
     return foreign + own
 
 

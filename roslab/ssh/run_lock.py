@@ -182,5 +182,5 @@ def install() -> None:
                 raise ConnectError(f"roslab stops this host: {problem}")
         return result
 
-    connect_locked.roslab_run_lock = True
-    SSHConnector.connect = connect_locked
+    connect_locked.roslab_run_lock = True  # type: ignore[attr-defined]  # the patch's marker (getattr above)
+    SSHConnector.connect = connect_locked  # type: ignore[method-assign]  # roslab patches pyinfra here on purpose

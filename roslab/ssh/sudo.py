@@ -171,7 +171,7 @@ def install() -> None:
     for name, module in list(sys.modules.items()):
         if (name.startswith("pyinfra.connectors.") and module is not None
                 and getattr(module, "make_unix_command_for_host", None) is pyinfra_make_unix_command_for_host):
-            module.make_unix_command_for_host = make_unix_command_for_host
+            setattr(module, "make_unix_command_for_host", make_unix_command_for_host)
 
 
 # sudo's own words when the password it was given is wrong (or it got none).
@@ -192,7 +192,7 @@ def sudo_refusal(host, lines: Iterable[str]) -> str | None:
         return None
     data = getattr(host, "data", None)
     secret = data.get("sudo_password_secret") if data is not None else None
-    if secret and data.get("_sudo_password"):
+    if secret and data is not None and data.get("_sudo_password"):
         return (f"sudo refused the password from the roster's sudo_password_secret: the secret it names "
                 f"does not hold this host's sudo password (sudo: {said.removeprefix('sudo: ')})")
     return (f"sudo asks for a password and the roster sets no sudo_password_secret for this host "

@@ -145,3 +145,32 @@ def test_ros2_apt_source_is_the_rosters_to_version_never_the_locks():
     class_lock.parse_lock({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1",
                                             "packages": {"ros2-apt-source": "1.1.0"}}}}, report)
     assert "ros_apt_source_version" in str(report.errors[0])
+
+
+def test_lock_update_asks_each_group_for_its_candidates_as_pyinfra_takes_fact_arguments(monkeypatch):
+    """`roslab lock --update` reads the candidates with pyinfra's get_fact, whose fact arguments
+    go in `kwargs=` (pyinfra 3.10): a keyword of the fact's own was a TypeError (found by mypy)."""
+    import inspect
+    from types import SimpleNamespace
+
+    import pyinfra.api.facts
+    from roslab.cli import lock as lock_cli
+
+    real = inspect.signature(pyinfra.api.facts.get_fact)
+    asked = []
+
+    def get_fact(*args, **kwargs):
+        bound = real.bind(*args, **kwargs)  # a TypeError, as pyinfra's own, for a wrong call
+        asked.append((bound.arguments["cls"], bound.arguments.get("kwargs")))
+        if bound.arguments["cls"] is class_lock.AptVersions:
+            return {"ros-jazzy-ros-base": ["0.11.0-1noble.20260101.000000"]}
+        return {"architecture": "arm64", "packages": INSTALLED}
+
+    pi = SimpleNamespace(name="robot1-1")
+    state = SimpleNamespace(inventory=[pi], active_hosts=[pi])
+    monkeypatch.setattr(pyinfra.api.facts, "get_fact", get_fact)
+    monkeypatch.setattr(lock_cli, "connected_state", lambda groups, limit: state)
+    classroom = SimpleNamespace(hosts=[SimpleNamespace(name="robot1-1", distro="jazzy")])
+    found = lock_cli.read_hosts(SimpleNamespace(limit=None), classroom, {}, first_lock())
+    assert found[KEY]["candidates"] == {"ros-jazzy-ros-base": "0.11.0-1noble.20260101.000000"}
+    assert asked[-1] == (class_lock.AptVersions, {"packages": sorted(INSTALLED)})
