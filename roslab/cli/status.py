@@ -1096,7 +1096,9 @@ def attach_lock(classroom: Classroom, statuses: list[HostStatus]):
     from roslab.class_lock import lock_beside
 
     lock = lock_beside(str(classroom.path))
-    for status in statuses if lock is not None else ():
+    if lock is None:
+        return None
+    for status in statuses:
         status.lock_packages = status_lock.asked_packages(lock, status.expected_distro)
     return lock
 

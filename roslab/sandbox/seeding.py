@@ -267,13 +267,15 @@ def seed_from_card(card: Path, host_name: str, into: Path) -> Path:
         files = {name: fat.read(name) for name in (*documents.SEED_FILES, flash.MARKER)}
     except (targets.TargetError, OSError) as error:
         raise SandboxError(f"--card {card}: {error}") from None
-    missing = [name for name in documents.SEED_FILES if files[name] is None]
+    seed = {name: files[name] for name in documents.SEED_FILES}
+    missing = [name for name, content in seed.items() if content is None]
     if missing:
         raise SandboxError(f"--card {card}: its system-boot holds no {' or '.join(missing)}: not seeded "
                            "(`roslab flash` or `roslab seed ROSTER --image FILE` seeds a card)")
+    marker = files[flash.MARKER]
     try:
-        meta = yaml.safe_load(files["meta-data"]) or {}
-        record = json.loads(files[flash.MARKER]) if files[flash.MARKER] else {}
+        meta = yaml.safe_load(seed["meta-data"] or b"") or {}
+        record = json.loads(marker) if marker else {}
     except (yaml.YAMLError, ValueError) as error:
         raise SandboxError(f"--card {card}: its meta-data or flash record does not parse: {error}") from None
     hostname = meta.get("local-hostname") if isinstance(meta, dict) else None
@@ -283,8 +285,8 @@ def seed_from_card(card: Path, host_name: str, into: Path) -> Path:
         raise SandboxError(f"--card {card}: it was seeded for {' and '.join(sorted(meant)) or 'no host'}, "
                            f"not {host_name}")
     into.mkdir(parents=True, exist_ok=True)
-    for name in documents.SEED_FILES:
+    for name, content in seed.items():
         descriptor = os.open(into / name, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)  # user-data: secrets
         with os.fdopen(descriptor, "wb") as out:
-            out.write(files[name])
+            out.write(content or b"")
     return into
