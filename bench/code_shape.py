@@ -1,5 +1,7 @@
-"""The shape of roslab/'s code, as issue reviews measure it: size, the largest modules, functions
-over 60 lines, pyinfra facts and operations per module, and import cycles through folders.
+"""The shape of roslab's code, as issue reviews measure it: size, the largest modules, functions
+over 40 and over 60 lines, pyinfra facts and operations per module, and import cycles through
+folders. It walks roslab/, deploy/ and deploy.py (TREES): the deploys are held to the same rule
+(tests/unit/test_layout.py fails on a function over 60 lines in any of them).
 
     python bench/code_shape.py [ROOT]     # ROOT: a checkout (default: this one)
 
@@ -15,6 +17,9 @@ from collections import Counter
 from pathlib import Path
 
 LONG = 60
+MEDIUM = 40
+# What is measured: the package, the deploys and the file pyinfra runs (a folder or a file).
+TREES = ("roslab", "deploy", "deploy.py")
 
 
 def _is_operation(node: ast.AST) -> bool:
@@ -27,10 +32,24 @@ def _is_fact(node: ast.AST) -> bool:
         getattr(base, "id", getattr(base, "attr", "")) in ("FactBase", "ShortFactBase") for base in node.bases)
 
 
+def source_files(root: Path) -> list[Path]:
+    """Every Python file of TREES under `root`, tree by tree (a tree the checkout lacks: none)."""
+    found = []
+    for tree in TREES:
+        path = root / tree
+        found += sorted(path.rglob("*.py")) if path.is_dir() else [path] if path.is_file() else []
+    return found
+
+
+def tree_of(name: str) -> str:
+    """The tree of TREES a module (a path relative to the root) belongs to."""
+    return name.split("/")[0]
+
+
 def shape(root: Path) -> dict:
     package = root / "roslab"
-    modules, long_functions, facts, operations = {}, [], Counter(), Counter()
-    for path in sorted(package.rglob("*.py")):
+    modules, long_functions, medium, facts, operations = {}, [], Counter(), Counter(), Counter()
+    for path in source_files(root):
         name = str(path.relative_to(root))
         text = path.read_text()
         modules[name] = len(text.splitlines())
@@ -39,14 +58,21 @@ def shape(root: Path) -> dict:
                 length = node.end_lineno - node.lineno + 1
                 if length > LONG:
                     long_functions.append((length, f"{name}:{node.lineno} {node.name}"))
+                if length > MEDIUM:
+                    medium[tree_of(name)] += 1
                 if _is_operation(node):
                     operations[name] += 1
             if _is_fact(node):
                 facts[name] += 1
     loose = sorted(p.name for p in package.glob("*.py") if p.name != "__init__.py")
     folders = sorted(p.parent.name for p in package.glob("*/__init__.py"))
+    trees = {tree: {"lines": sum(lines for name, lines in modules.items() if tree_of(name) == tree),
+                    "modules": sum(tree_of(name) == tree for name in modules),
+                    "over_medium": medium[tree],
+                    "over_long": sum(tree_of(where) == tree for _, where in long_functions)}
+             for tree in TREES}
     return {"lines": sum(modules.values()), "modules": modules, "long": sorted(long_functions, reverse=True),
-            "facts": facts, "operations": operations, "loose": loose, "folders": folders}
+            "trees": trees, "facts": facts, "operations": operations, "loose": loose, "folders": folders}
 
 
 def folder_cycles(root: Path) -> list[list[str]]:
@@ -64,9 +90,12 @@ def folder_cycles(root: Path) -> list[list[str]]:
 def main(argv: list[str]) -> int:
     root = Path(argv[1]).resolve() if len(argv) > 1 else Path(__file__).resolve().parent.parent
     found = shape(root)
-    print(f"## roslab/ at {root}\n")
-    print(f"- {found['lines']} lines in {len(found['modules'])} modules; {len(found['loose'])} loose modules "
-          f"at the top, {len(found['folders'])} folders ({', '.join(found['folders'])})")
+    print(f"## {', '.join(TREES)} at {root}\n")
+    print(f"- {found['lines']} lines in {len(found['modules'])} modules; roslab/: {len(found['loose'])} loose "
+          f"modules at the top, {len(found['folders'])} folders ({', '.join(found['folders'])})")
+    for tree, figures in found["trees"].items():
+        print(f"- {tree}: {figures['lines']} lines in {figures['modules']} modules; functions over {MEDIUM} lines: "
+              f"{figures['over_medium']}, over {LONG}: {figures['over_long']}")
     print(f"- functions over {LONG} lines: {len(found['long'])}")
     print(f"- facts: {sum(found['facts'].values())} in {len(found['facts'])} modules; operations: "
           f"{sum(found['operations'].values())} in {len(found['operations'])} modules")

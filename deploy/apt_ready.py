@@ -52,49 +52,8 @@ def apt_ready():
     typed = host_settings(host)
     if not should_run("apt_ready_enabled"):
         return
-    lock_timeout = typed.apt_lock_timeout
-
-    problem = host.get_fact(AptProblem, lock_timeout=lock_timeout)
-    cloud_init = (problem or {}).get("cloud_init")
-    if cloud_init:
-        problem = {key: value for key, value in problem.items() if key != "cloud_init"}
-        if not problem.get("message") and not problem.get("interrupted") and not problem.get("waited"):
-            problem = None
-        said = f": {cloud_init['output']}" if cloud_init["output"] else ""
-        if cloud_init["status"] == 124:
-            stop_host(f"{where()}: cloud-init's first boot is still running after {lock_timeout} s "
-                      f"(apt_lock_timeout){said}; run again once it is done (cloud-init status)")
-            return
-        if cloud_init["status"] == 0 and cloud_init["seconds"] > 0:
-            logger.warning(f"{host.print_prefix}roslab: {where()}: waited {cloud_init['seconds']} s for "
-                           f"cloud-init to finish its first boot (cloud-init status --wait){said}")
-        elif cloud_init["status"] not in (0, 124):
-            # Its own errors are the seed's business; apt can still be used.
-            logger.warning(f"{host.print_prefix}roslab: {where()}: cloud-init finished its first boot "
-                           f"with errors (exit status {cloud_init['status']}, see cloud-init status "
-                           f"--long){said}; carrying on")
-    if problem and problem.get("waited"):
-        # Not silent: a first-boot unattended-upgrades can hold the lock for minutes.
-        logger.warning(f"{host.print_prefix}roslab: {where()}: waited for the dpkg lock "
-                       f"(up to {lock_timeout} s, apt_lock_timeout): {problem['waited'][:200]}")
-        problem = None
-    if problem and not problem["interrupted"]:
-        stop_host(
-            f"{where()}: apt is not usable after waiting up to {lock_timeout} s "
-            f"(apt_lock_timeout): {problem['message']}"
-        )
+    if not dpkg_usable(typed.apt_lock_timeout):  # this host was stopped, saying why
         return
-    if problem:
-        # A Pi unplugged (or dpkg killed) mid-install: apt refuses everything until
-        # dpkg finishes, so this run does it instead of stopping the host every time.
-        logger.warning(
-            f"{host.print_prefix}roslab: {where()}: {problem['message']}; "
-            "finishing it with dpkg --configure -a and apt-get -f install"
-        )
-        dpkg_interrupted_install_finished(
-            name="Ensure the install dpkg was interrupted in is finished (dpkg --configure -a)",
-            lock_timeout=lock_timeout,
-        )
 
     sources = [ubuntu_apt_sources(
         name="Ensure the Ubuntu apt sources enable universe and the -updates/-backports suites",
@@ -107,6 +66,63 @@ def apt_ready():
         # Signed-By): gone before the update in apt_lists, not after it.
         sources.append(old_method_moved_aside())
     apt_sources_written(*sources)
+
+
+def dpkg_usable(lock_timeout: int) -> bool:
+    """cloud-init's first boot done, the dpkg lock free (waited for up to `lock_timeout` s) and
+    an install dpkg was interrupted in finished; False, with this host stopped, when apt
+    cannot be used. Waits and repairs are said in one line for the host."""
+    problem = host.get_fact(AptProblem, lock_timeout=lock_timeout)
+    cloud_init = (problem or {}).get("cloud_init")
+    if cloud_init:
+        problem = {key: value for key, value in problem.items() if key != "cloud_init"}
+        if not problem.get("message") and not problem.get("interrupted") and not problem.get("waited"):
+            problem = None
+        if not cloud_init_finished(cloud_init, lock_timeout):
+            return False
+    if problem and problem.get("waited"):
+        # Not silent: a first-boot unattended-upgrades can hold the lock for minutes.
+        logger.warning(f"{host.print_prefix}roslab: {where()}: waited for the dpkg lock "
+                       f"(up to {lock_timeout} s, apt_lock_timeout): {problem['waited'][:200]}")
+        problem = None
+    if problem and not problem["interrupted"]:
+        stop_host(
+            f"{where()}: apt is not usable after waiting up to {lock_timeout} s "
+            f"(apt_lock_timeout): {problem['message']}"
+        )
+        return False
+    if problem:
+        # A Pi unplugged (or dpkg killed) mid-install: apt refuses everything until
+        # dpkg finishes, so this run does it instead of stopping the host every time.
+        logger.warning(
+            f"{host.print_prefix}roslab: {where()}: {problem['message']}; "
+            "finishing it with dpkg --configure -a and apt-get -f install"
+        )
+        dpkg_interrupted_install_finished(
+            name="Ensure the install dpkg was interrupted in is finished (dpkg --configure -a)",
+            lock_timeout=lock_timeout,
+        )
+    return True
+
+
+def cloud_init_finished(cloud_init: dict, lock_timeout: int) -> bool:
+    """cloud-init's first boot is over (AptProblem's `cloud_init`: status, seconds, output);
+    a wait for it or its own errors are said; False, with this host stopped, while it still
+    runs after `lock_timeout` s."""
+    said = f": {cloud_init['output']}" if cloud_init["output"] else ""
+    if cloud_init["status"] == 124:
+        stop_host(f"{where()}: cloud-init's first boot is still running after {lock_timeout} s "
+                  f"(apt_lock_timeout){said}; run again once it is done (cloud-init status)")
+        return False
+    if cloud_init["status"] == 0 and cloud_init["seconds"] > 0:
+        logger.warning(f"{host.print_prefix}roslab: {where()}: waited {cloud_init['seconds']} s for "
+                       f"cloud-init to finish its first boot (cloud-init status --wait){said}")
+    elif cloud_init["status"] not in (0, 124):
+        # Its own errors are the seed's business; apt can still be used.
+        logger.warning(f"{host.print_prefix}roslab: {where()}: cloud-init finished its first boot "
+                       f"with errors (exit status {cloud_init['status']}, see cloud-init status "
+                       f"--long){said}; carrying on")
+    return True
 
 
 @deploy(

@@ -119,6 +119,17 @@ def python_env():
         venv_requirements_installed(name=f"Ensure the venv {venv} exists", venv=venv, python=target.python,
                                     **as_login_user(user))
         return
+    wheelhouse_on_host(house)
+    venv_requirements_installed(
+        name=f"Ensure {', '.join(python.requirements)} are installed in {venv}",
+        venv=venv, python=target.python, wheelhouse=WHEELHOUSE, requirements_file=REQUIREMENTS,
+        stamp=house.digest, **as_login_user(user),
+    )
+
+
+def wheelhouse_on_host(house: wheelhouse.Wheelhouse) -> None:
+    """The class's wheelhouse `house` and its pinned requirements are on the host, in WHEELHOUSE
+    and REQUIREMENTS; the files of an earlier requirement set are removed once one changed."""
     pushed = [
         files.put(name=f"Ensure {item.name} (from the class's wheelhouse) is on the host",
                   src=str(house.path / item.name), dest=f"{WHEELHOUSE}/{item.name}", mode="644")
@@ -131,11 +142,6 @@ def python_env():
         name=f"Ensure {WHEELHOUSE} holds only this wheelhouse's files",
         commands=[remove_others_command(WHEELHOUSE, keep)],
         _if=any_changed(*pushed),
-    )
-    venv_requirements_installed(
-        name=f"Ensure {', '.join(python.requirements)} are installed in {venv}",
-        venv=venv, python=target.python, wheelhouse=WHEELHOUSE, requirements_file=REQUIREMENTS,
-        stamp=house.digest, **as_login_user(user),
     )
 
 

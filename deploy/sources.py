@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import posixpath
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 
 from pyinfra import host, logger
@@ -37,7 +38,7 @@ from roslab.sources import ship as underlay_ship
 from roslab.sources import underlay as underlay_ops
 from roslab.ros import workspace as ws_ops
 from roslab.profiles.host import MemoryTotal
-from roslab.host_settings import host_settings, peer_settings
+from roslab.host_settings import HostSettings, host_settings, peer_settings
 
 DEFAULTS = settings.defaults("sources")
 # The controller's warnings about the class's sources, each said once per run (not per host).
@@ -89,6 +90,22 @@ def underlay_identity() -> str:
     return "\n".join(f"{repo['path']} {repo['url']} {repo['version']}" for repo in repositories())
 
 
+@dataclass(frozen=True)
+class UnderlayInputs:
+    """What this host's underlay is built from and where, read before any change."""
+
+    directory: str
+    distro: str
+    digests: dict[str, str]  # {repository path: its archive's sha256}
+    colcon_args: list[str]
+    cmake_args: dict[str, list[str]]  # the profile's, per package
+    build_dependencies: dict[str, list[str]]  # the profile's build-order edges, per package
+    stamp: str  # the build stamp (roslab.sources.underlay.build_stamp)
+    digest: str  # the group's input digest (roslab.sources.groups.input_digest)
+    machine: str  # the host's architecture
+    holds: bool  # the host holds this build already
+
+
 @deploy("The host's source repositories are built in the login user's underlay workspace",
         data_defaults=DEFAULTS)
 def sources():
@@ -103,27 +120,57 @@ def sources():
     skip_packages, underlay_build_memory_mb, name), underlay_builder, login_user, ssh_user,
     ros_distro; of every host in the run with the same underlay inputs: the same, and its
     architecture and memory (facts) when this host needs a build.
+
+    One step per concern, in this order: the repositories fetched by the controller
+    (`fetched_sources`), the underlay's inputs (`underlay_inputs`) and builder
+    (`underlay_builder`), the archives and dependencies on the host (`underlay_filled`), then
+    the build (`underlay_built`) or the builder's install tree (`underlay_received`).
     """
     if not should_run("sources_enabled"):
         return
     wanted = repositories()
     home = existing_login_home()
     if not wanted:
-        # Repositories roslab put there before are removed (a host whose profile lost its sources).
-        if home is not None and host.get_fact(underlay_ops.UnderlaySources,
-                                              underlay_dir=underlay_dir(home))["recorded"]:
-            underlay_ops.sources(name="Ensure the underlay holds no repositories (none in the .repos files)",
-                                 underlay_dir=underlay_dir(home), repositories=[], user=login_user())
+        underlay_emptied(home)
         return
     user = login_user()
     home = login_home()
     if home is None:  # the login user does not exist: login_home() stopped this host
         return
     typed = host_settings(host)
-    profile = typed.roslab_profile
     cache_dir = Path(typed.sources_cache_dir).expanduser()
+    fetched = fetched_sources(wanted, typed, cache_dir)
+    if fetched is None:  # this host was stopped, saying why
+        return
+    underlay = underlay_inputs(typed, home, fetched)
+    underlay_ship.note_wanted(host.state, underlay.digest)
+    builder = underlay_builder(underlay.digest, underlay.machine, cache_dir, underlay.holds, underlay.directory,
+                               underlay.stamp)
+    if builder is None:
+        return
+    underlay_filled(underlay, fetched, user=user, home=home)
+    if underlay.holds or builder == host.name:
+        underlay_built(underlay, user=user)
+    # after the build in pyinfra's order: the builder has built when its group receives
+    if not underlay.holds and builder != host.name:
+        underlay_received(underlay, user=user, cache_dir=cache_dir, builder=builder)
+
+
+def underlay_emptied(home: str | None) -> None:
+    """Repositories roslab put there before are removed (a host whose profile lost its sources);
+    no-op where none were recorded or the login user does not exist."""
+    if home is not None and host.get_fact(underlay_ops.UnderlaySources,
+                                          underlay_dir=underlay_dir(home))["recorded"]:
+        underlay_ops.sources(name="Ensure the underlay holds no repositories (none in the .repos files)",
+                             underlay_dir=underlay_dir(home), repositories=[], user=login_user())
+
+
+def fetched_sources(wanted: list[dict], typed: HostSettings, cache_dir: Path) -> list[source_fetch.Fetched] | None:
+    """The `wanted` repositories fetched by the controller into `cache_dir` (pinned, once per
+    class) and packed for this host: None, with this host stopped, when one cannot be."""
+    profile = typed.roslab_profile
     timeout = typed.sources_fetch_timeout
-    fetched = []
+    fetched: list[source_fetch.Fetched] = []
     pins = class_pins()
     for repo in wanted:
         try:
@@ -133,9 +180,16 @@ def sources():
             fetched.append(source_fetch.for_host(item, cache_dir, profile.skip_packages if profile else (), timeout))
         except source_fetch.SourceError as error:
             stop_host(f"{where()}: sources: {error}; nothing was changed on it")
-            return
+            return None
         for note in fetched[-1].notes:
             say_once(note)
+    return fetched
+
+
+def underlay_inputs(typed: HostSettings, home: str, fetched: list[source_fetch.Fetched]) -> UnderlayInputs:
+    """The underlay's directory, build stamp and group digest for the `fetched` archives, and
+    whether the host holds that build already (its architecture and stamps are read)."""
+    profile = typed.roslab_profile
     distro = host_distro()
     directory = underlay_dir(home)
     digests = {item.path: item.sha256 for item in fetched}
@@ -147,55 +201,69 @@ def sources():
     stamp = underlay_ops.build_stamp(digests, distro, colcon_args, cmake_args, build_dependencies)
     machine = host.get_fact(Arch) or "unknown"
     digest = underlay_groups.input_digest(stamp, machine, directory)
-    underlay_ship.note_wanted(host.state, digest)
     stamps = host.get_fact(ws_ops.WorkspaceStamps, workspace_dir=directory)
     holds = bool(stamps.get("build") == stamp and stamps.get("installed"))
-    builder = underlay_builder(digest, machine, cache_dir, holds, directory, stamp)
-    if builder is None:
-        return
+    return UnderlayInputs(directory=directory, distro=distro, digests=digests, colcon_args=colcon_args,
+                          cmake_args=cmake_args, build_dependencies=build_dependencies, stamp=stamp,
+                          digest=digest, machine=machine, holds=holds)
+
+
+def underlay_filled(underlay: UnderlayInputs, fetched: list[source_fetch.Fetched], *, user: str,
+                    home: str) -> None:
+    """The underlay's src/ holds the pinned repositories, and (sources_rosdep_install) their
+    system dependencies are installed: on a host that receives its build too, the run
+    dependencies the shipped tree needs."""
+    directory = underlay.directory
     underlay_ops.sources(
-        name=f"Ensure {directory}/src holds the pinned repositories ({', '.join(sorted(digests))})",
+        name=f"Ensure {directory}/src holds the pinned repositories ({', '.join(sorted(underlay.digests))})",
         underlay_dir=directory,
         repositories=[{"path": item.path, "sha256": item.sha256, "archive": item.archive} for item in fetched],
         user=user,
     )
     if host_settings(host).sources_rosdep_install:
-        # on a host that receives its build too: the run dependencies the shipped tree needs
         ws_ops.dependencies(
             name="Ensure the underlay's system dependencies are installed (rosdep)",
             workspace_dir=directory,
-            packages=sorted(digests),
-            distro=distro,
-            packages_hash=stamp,
+            packages=sorted(underlay.digests),
+            distro=underlay.distro,
+            packages_hash=underlay.stamp,
             user=user,
             ros_home=posixpath.join(home, ".ros"),
         )
-    if holds or builder == host.name:
-        build = underlay_ops.built(
-            name=f"Ensure {directory} is built from these sources (colcon)",
-            underlay_dir=directory,
-            distro=distro,
-            colcon_args=colcon_args,
-            stamp=stamp,
-            cmake_args=cmake_args,
-            build_dependencies=build_dependencies,
-            slot=underlay_ops.slot_name(digest),
-            digest=digest,
-            **as_login_user(user),
-        )
-        underlay_ship.note_build(host.state, digest, host.name, build,
-                                 underlay_groups.cache_group(digests, distro, machine, directory))
-    # after the build in pyinfra's order: the builder has built when its group receives
-    if not holds and builder != host.name:
-        underlay_ship.received(
-            name=f"Ensure {directory} holds the underlay built on {builder} ({underlay_groups.short(digest)})",
-            underlay_dir=directory,
-            digest=digest,
-            stamp=stamp,
-            user=user,
-            cache_dir=str(cache_dir),
-            builder=builder,
-        )
+
+
+def underlay_built(underlay: UnderlayInputs, *, user: str) -> None:
+    """The underlay is built here from its sources (colcon, as the login user); the build is
+    noted for the hosts of its group that receive it (roslab/sources/ship.py)."""
+    build = underlay_ops.built(
+        name=f"Ensure {underlay.directory} is built from these sources (colcon)",
+        underlay_dir=underlay.directory,
+        distro=underlay.distro,
+        colcon_args=underlay.colcon_args,
+        stamp=underlay.stamp,
+        cmake_args=underlay.cmake_args,
+        build_dependencies=underlay.build_dependencies,
+        slot=underlay_ops.slot_name(underlay.digest),
+        digest=underlay.digest,
+        **as_login_user(user),
+    )
+    underlay_ship.note_build(host.state, underlay.digest, host.name, build,
+                             underlay_groups.cache_group(underlay.digests, underlay.distro, underlay.machine,
+                                                         underlay.directory))
+
+
+def underlay_received(underlay: UnderlayInputs, *, user: str, cache_dir: Path, builder: str) -> None:
+    """The underlay holds the install tree `builder` built, shipped through the controller's `cache_dir`."""
+    underlay_ship.received(
+        name=f"Ensure {underlay.directory} holds the underlay built on {builder} "
+             f"({underlay_groups.short(underlay.digest)})",
+        underlay_dir=underlay.directory,
+        digest=underlay.digest,
+        stamp=underlay.stamp,
+        user=user,
+        cache_dir=str(cache_dir),
+        builder=builder,
+    )
 
 
 def underlay_builder(digest: str, machine: str, cache_dir: Path, holds: bool, directory: str,

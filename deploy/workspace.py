@@ -18,11 +18,13 @@ from __future__ import annotations
 
 import hashlib
 import posixpath
+from dataclasses import dataclass
 from io import StringIO
 from pathlib import Path
 
 from pyinfra import host, logger
 from pyinfra.api import OperationError, deploy
+from pyinfra.api.operation import OperationMeta
 from pyinfra.facts.files import File
 from pyinfra.operations import files, server, systemd
 
@@ -48,7 +50,7 @@ from roslab.ros.discovery import host_discovery
 from roslab.ros.environment import host_environment
 from roslab.templating import render
 from roslab.ros.workspace import NODES_SERVICE, NODES_UNIT_PATH
-from roslab.host_settings import host_settings
+from roslab.host_settings import HostSettings, host_settings
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -160,6 +162,22 @@ def profile_name() -> str:
     return profile.name if profile is not None else "demo"
 
 
+@dataclass(frozen=True)
+class NodesWorkspace:
+    """What the workspace's steps act on, read before any of them changes the host."""
+
+    user: str
+    home: str
+    distro: str
+    role: str | None
+    workspace_dir: str
+    src_dir: str
+    source_dir: str
+    packages: dict[str, dict[str, ws_ops.LocalFile]]  # nodes/'s packages (ws_ops.local_packages)
+    underlay: str | None  # the underlay's setup.bash (deploy/sources.py), or None
+    unit_file: str | None  # the nodes unit's text, or None where the host runs no nodes
+
+
 @deploy("The demo nodes are built in the login user's workspace and run as the role's service",
         data_defaults=DEFAULTS)
 def workspace():
@@ -173,14 +191,35 @@ def workspace():
     roslab_hostname, roslab_role, roslab_profile (its environment and name), ros_environment,
     roslab_sources and sources_underlay_dir (the underlay it overlays, deploy/sources.py),
     python_env_enabled and roslab_profile's python venv (first on the nodes' PYTHONPATH).
+
+    One step per concern, in this order: the tree given back to the login user
+    (`workspace_owned`), nodes/ copied and its dependencies installed (`workspace_synced`),
+    the build (`workspace_built`), the role's service (`nodes_service_running`, or
+    `nodes_service_stopped` where the host runs no nodes).
     """
     typed = host_settings(host)
     if not should_run("workspace_enabled"):
         return
+    nodes = nodes_workspace(typed)
+    if nodes is None:  # this host was stopped, saying why
+        return
+    workspace_owned(nodes)
+    workspace_synced(nodes, rosdep_install=typed.workspace_rosdep_install)
+    build = workspace_built(nodes, colcon_args=typed.workspace_colcon_args)
+    if nodes.unit_file is None:
+        nodes_service_stopped(nodes)
+        return
+    nodes_service_running(nodes, build)
+
+
+def nodes_workspace(typed: HostSettings) -> NodesWorkspace | None:
+    """The workspace's paths, nodes/'s packages and the nodes unit, read before any change:
+    None, with this host stopped, when the login user is missing, nodes/ cannot be read or
+    a value cannot go into the unit (a home directory whose name holds a newline, say)."""
     user = login_user()
     home = login_home()
     if home is None:  # the login user does not exist: login_home() stopped this host
-        return
+        return None
     distro = host_distro()
     role = typed.roslab_role
     workspace_dir = ws_ops.workspace_path(home, typed.workspace_dir)
@@ -190,7 +229,7 @@ def workspace():
         packages = ws_ops.local_packages(source_dir)
     except OperationError as error:
         stop_host(f"{where()}: workspace: {error}; nothing was changed by this step")
-        return
+        return None
 
     launch = role_launch()
     underlay = underlay_setup(home)
@@ -203,10 +242,19 @@ def workspace():
         ) if launch else None
     except ValueError as error:  # e.g. a home directory whose name holds a newline
         stop_host(f"{where()}: workspace: {error}; nothing was changed by this step")
-        return
+        return None
+    return NodesWorkspace(user=user, home=home, distro=distro, role=role, workspace_dir=workspace_dir,
+                          src_dir=src_dir, source_dir=source_dir, packages=packages, underlay=underlay,
+                          unit_file=unit_file)
 
-    # Before anything runs as the user: a tree a student gave to root would fail the build.
-    # (First: a repair is said once, and the folders below then need nothing.)
+
+def workspace_owned(nodes: NodesWorkspace) -> None:
+    """The workspace and its src/ exist and everything in them belongs to the login user.
+
+    Before anything runs as the user: a tree a student gave to root would fail the build.
+    (First: a repair is said once, and the folders below then need nothing.)
+    """
+    user, workspace_dir = nodes.user, nodes.workspace_dir
     ws_ops.owned(
         name=f"Ensure everything in {workspace_dir} belongs to {user}",
         workspace_dir=workspace_dir,
@@ -216,52 +264,68 @@ def workspace():
     # own): a folder left in root's group would be "given back" by the next run, a warning
     # about nothing a student did.
     group = host.get_fact(ws_ops.WorkspaceForeign, workspace_dir=workspace_dir, user=user).get("group")
-    for path in (workspace_dir, src_dir):
+    for path in (workspace_dir, nodes.src_dir):
         files.directory(
             name=f"Ensure {path} exists, owned by {user}", path=path, user=user, group=group,
         )
+
+
+def workspace_synced(nodes: NodesWorkspace, *, rosdep_install: bool) -> None:
+    """src/ holds nodes/'s packages, and (`rosdep_install`) their system dependencies are installed."""
     ws_ops.packages(
-        name=f"Ensure {src_dir} holds the packages of {source_dir}",
-        nodes_dir=source_dir,
-        src_dir=src_dir,
-        user=user,
+        name=f"Ensure {nodes.src_dir} holds the packages of {nodes.source_dir}",
+        nodes_dir=nodes.source_dir,
+        src_dir=nodes.src_dir,
+        user=nodes.user,
     )
-    if typed.workspace_rosdep_install:
+    if rosdep_install:
         ws_ops.dependencies(
             name="Ensure the packages' system dependencies are installed (rosdep)",
-            workspace_dir=workspace_dir,
-            packages=sorted(packages),
-            distro=distro,
-            packages_hash=ws_ops.tree_hash(packages, only="package.xml"),
-            user=user,
-            ros_home=posixpath.join(home, ".ros"),
+            workspace_dir=nodes.workspace_dir,
+            packages=sorted(nodes.packages),
+            distro=nodes.distro,
+            packages_hash=ws_ops.tree_hash(nodes.packages, only="package.xml"),
+            user=nodes.user,
+            ros_home=posixpath.join(nodes.home, ".ros"),
         )
-    managed = [f"src/{name}" for name in sorted(packages)]
-    build = ws_ops.built(
-        name=f"Ensure {workspace_dir} is built from these sources (colcon)",
-        workspace_dir=workspace_dir,
-        distro=distro,
+
+
+def workspace_built(nodes: NodesWorkspace, *, colcon_args: list[str]) -> OperationMeta:
+    """The workspace is built from these sources (colcon, as the login user, with `colcon_args`
+    first); the build operation, whose change restarts the nodes."""
+    managed = [f"src/{name}" for name in sorted(nodes.packages)]
+    underlay = nodes.underlay
+    return ws_ops.built(
+        name=f"Ensure {nodes.workspace_dir} is built from these sources (colcon)",
+        workspace_dir=nodes.workspace_dir,
+        distro=nodes.distro,
         # Only roslab's packages: a student's broken package in src/ must not fail the
         # classroom's deploy. (`--paths` is colcon-core's; `--packages-up-to` needs an
         # extension that not every colcon install has.)
-        colcon_args=[*typed.workspace_colcon_args, "--paths", *managed],
+        colcon_args=[*colcon_args, "--paths", *managed],
         # a changed underlay (a new pin) rebuilds the overlay too
-        sources_hash=ws_ops.tree_hash(packages) + (f"\n{underlay_identity()}" if underlay else ""),
+        sources_hash=ws_ops.tree_hash(nodes.packages) + (f"\n{underlay_identity()}" if underlay else ""),
         python_paths=managed,
         underlays=[underlay] if underlay else [],
-        **as_login_user(user),
+        **as_login_user(nodes.user),
     )
 
-    if unit_file is None:
-        if host.get_fact(File, path=NODES_UNIT_PATH):
-            why = "nodes_service_enabled is off" if not typed.nodes_service_enabled else \
-                f"robot profile {profile_name()!r} runs nothing on a {role}"
-            systemd.service(
-                name=f"Ensure {NODES_SERVICE} is stopped and disabled ({why})",
-                service=NODES_SERVICE, running=False, enabled=False,
-            )
-        return
 
+def nodes_service_stopped(nodes: NodesWorkspace) -> None:
+    """The nodes service is stopped and disabled where the host runs no nodes; no-op when no
+    unit was ever written (nothing to stop)."""
+    if host.get_fact(File, path=NODES_UNIT_PATH):
+        why = "nodes_service_enabled is off" if not host_settings(host).nodes_service_enabled else \
+            f"robot profile {profile_name()!r} runs nothing on a {nodes.role}"
+        systemd.service(
+            name=f"Ensure {NODES_SERVICE} is stopped and disabled ({why})",
+            service=NODES_SERVICE, running=False, enabled=False,
+        )
+
+
+def nodes_service_running(nodes: NodesWorkspace, build: OperationMeta) -> None:
+    """The role's launch runs as the login user from the unit, restarted when the `build`, the
+    unit changed or the unit was found failed or stopped (a healthy re-run reports nothing)."""
     unit_state = host.get_fact(ws_ops.NodesUnitState, service=NODES_SERVICE)
     if unit_state.get("LoadState") == "masked":
         # Someone on the host masked it (`systemctl mask`: a link to /dev/null, which no
@@ -274,8 +338,8 @@ def workspace():
             commands=[f"systemctl unmask -- {NODES_SERVICE}"],
         )
     unit = files.put(
-        name=f"Ensure {NODES_SERVICE} runs the {role}'s launch as {user}",
-        src=StringIO(unit_file),
+        name=f"Ensure {NODES_SERVICE} runs the {nodes.role}'s launch as {nodes.user}",
+        src=StringIO(nodes.unit_file),
         dest=NODES_UNIT_PATH,
         user="root",
         group="root",
