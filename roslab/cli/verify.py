@@ -325,6 +325,20 @@ class TeamResult:
         """PASS, NOT CHECKED or FAIL: the table's word for the team."""
         return "PASS" if self.passed else "NOT CHECKED" if self.unchecked else "FAIL"
 
+    def publisher_verdict(self, publishers: list[str]) -> str:
+        """A message came: from the team's own board (`publisher`), another's, or one whose
+        node name had not arrived (ROS's UNNAMED_PUBLISHER, never called another team's)."""
+        if self.publisher in publishers:
+            return f"heard a {self.message_type} on {self.topic} from {self.publisher}"
+        named = [name for name in publishers if name != UNNAMED_PUBLISHER]
+        if not named and publishers:
+            return (f"heard a {self.message_type} on {self.topic}, but its publisher's node name was still "
+                    f"unknown after {PUBLISHERS_WAIT} s (ROS shows {UNNAMED_PUBLISHER}): not shown to be "
+                    f"{self.publisher}; run verify again")
+        return (f"heard a {self.message_type} on {self.topic}, but not from {self.publisher} (its publishers: "
+                f"{', '.join(named) or 'none seen'}): another team's board, or one "
+                "flashed for another team (roslab esp32-firmware prints this team's values)")
+
     def verdict(self) -> str:
         if self.error:
             return self.error
@@ -359,16 +373,7 @@ class TeamResult:
         if down:
             return "; ".join(f"{NODES_SERVICE} on {host} is {state}" for host, state in down)
         if not self.greeting and heard["message"] and self.publisher:
-            if self.publisher in heard.get("publishers", []):
-                return f"heard a {self.message_type} on {self.topic} from {self.publisher}"
-            named = [name for name in heard.get("publishers") or [] if name != UNNAMED_PUBLISHER]
-            if not named and heard.get("publishers"):
-                return (f"heard a {self.message_type} on {self.topic}, but its publisher's node name was still "
-                        f"unknown after {PUBLISHERS_WAIT} s (ROS shows {UNNAMED_PUBLISHER}): not shown to be "
-                        f"{self.publisher}; run verify again")
-            return (f"heard a {self.message_type} on {self.topic}, but not from {self.publisher} (its publishers: "
-                    f"{', '.join(named) or 'none seen'}): another team's board, or one "
-                    "flashed for another team (roslab esp32-firmware prints this team's values)")
+            return self.publisher_verdict(heard.get("publishers") or [])
         if not self.greeting and heard["message"]:
             return f"heard a {self.message_type} on {self.topic}"
         if heard["robot"] is not None:

@@ -317,10 +317,7 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         "launch": next((part.launch for part in reversed(parts) if part.launch), None),
         "launch_arguments": arguments,
         "variant": side.variant,
-        "verify_topic": profile.verify_topic if _matches(profile.verify_if, values) else None,
-        "verify_type": profile.verify_type,
-        "verify_source": fill(profile.verify_source, values),
-        "verify_publisher": fill(profile.verify_publisher, {**values, "team": "${team}"}),
+        **verify_fields(profile, values),
         "discovery": profile.discovery,
         "checklist": [fill(item, {**values, "host": host or "HOST"}) for item in merged.checklist],
         "os_tweaks": dict(side.os_tweaks),
@@ -340,6 +337,17 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         "services": [resolved_service(service, values, distro, profile.name) for service in merged.services],
         "base": profile.base if role == "robot" else None,
     }, []
+
+
+def verify_fields(profile: Profile, values: dict) -> dict:
+    """What `roslab verify` listens for on a host of `profile` with these setting values: the
+    topic (None where its `verify_if` does not match), type, source and publisher."""
+    return {
+        "verify_topic": profile.verify_topic if _matches(profile.verify_if, values) else None,
+        "verify_type": profile.verify_type,
+        "verify_source": fill(profile.verify_source, values),
+        "verify_publisher": fill(profile.verify_publisher, {**values, "team": "${team}"}),
+    }
 
 
 _RUNS_PACKAGE = re.compile(r"\bros2 (?:run|launch) ([a-z][a-z0-9_]*)", re.ASCII)

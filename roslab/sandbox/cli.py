@@ -34,27 +34,7 @@ def register(subparsers) -> argparse.ArgumentParser:
                          "settings, hosts added or removed, the others kept) and says what changed")
     commands.add_parser("status", help="list the hosts and whether they answer")
     commands.add_parser("down", help="stop the hosts and remove everything the sandbox made")
-    reset = commands.add_parser(
-        "reset", help="re-flash hosts: a fresh image, booted (a seeded host keeps its SSH host key)",
-        description="Give hosts a fresh image and boot them, as re-flashing a Pi's card would. A host made "
-                    "by `up` or re-flashed with --seed counts as seeded and keeps its SSH host key; any "
-                    "other host makes a new random one.")
-    reset.add_argument("hosts", nargs="+", metavar="HOST")
-    flash = reset.add_mutually_exclusive_group()
-    flash.add_argument("--unseeded", action="store_true",
-                       help="re-flash without a seed: a new random host key roslab does not know "
-                            "(the host no longer counts as seeded)")
-    flash.add_argument("--seed", type=Path, metavar="DIR",
-                       help="re-flash one HOST with a NoCloud seed (user-data, meta-data, network-config, "
-                            "as `roslab seed` writes): it boots through cloud-init, as a flashed Pi does")
-    flash.add_argument("--card", type=Path, metavar="IMG",
-                       help="re-flash one HOST from a card `roslab flash` or `roslab seed --image` wrote (an "
-                            "image file or the card's device): it boots through cloud-init with the seed on "
-                            "the card's system-boot, which must be this HOST's")
-    reset.add_argument("--apt-lock-seconds", type=float, default=None, metavar="S",
-                       help="on a boot from a seed, how long the stand-in for first-boot "
-                            f"unattended-upgrades holds the dpkg lock (default {seeding.FIRST_BOOT_APT_LOCK_SECONDS}; "
-                            "0: not at all)")
+    _register_reset(commands)
     _register_saved_states(commands)
     reboot = commands.add_parser("reboot", help="reboot a host")
     reboot.add_argument("host")
@@ -83,6 +63,31 @@ def register(subparsers) -> argparse.ArgumentParser:
                          help="the firmware it reports (default I.0.0.FastDDS, a Jazzy generation; H.x for Humble)")
     parser.set_defaults(run=run)  # the `roslab` command calls args.run(args)
     return parser
+
+
+def _register_reset(commands) -> None:
+    """`sandbox reset HOST... [--unseeded | --seed DIR | --card IMG]`."""
+    reset = commands.add_parser(
+        "reset", help="re-flash hosts: a fresh image, booted (a seeded host keeps its SSH host key)",
+        description="Give hosts a fresh image and boot them, as re-flashing a Pi's card would. A host made "
+                    "by `up` or re-flashed with --seed counts as seeded and keeps its SSH host key; any "
+                    "other host makes a new random one.")
+    reset.add_argument("hosts", nargs="+", metavar="HOST")
+    flash = reset.add_mutually_exclusive_group()
+    flash.add_argument("--unseeded", action="store_true",
+                       help="re-flash without a seed: a new random host key roslab does not know "
+                            "(the host no longer counts as seeded)")
+    flash.add_argument("--seed", type=Path, metavar="DIR",
+                       help="re-flash one HOST with a NoCloud seed (user-data, meta-data, network-config, "
+                            "as `roslab seed` writes): it boots through cloud-init, as a flashed Pi does")
+    flash.add_argument("--card", type=Path, metavar="IMG",
+                       help="re-flash one HOST from a card `roslab flash` or `roslab seed --image` wrote (an "
+                            "image file or the card's device): it boots through cloud-init with the seed on "
+                            "the card's system-boot, which must be this HOST's")
+    reset.add_argument("--apt-lock-seconds", type=float, default=None, metavar="S",
+                       help="on a boot from a seed, how long the stand-in for first-boot "
+                            f"unattended-upgrades holds the dpkg lock (default {seeding.FIRST_BOOT_APT_LOCK_SECONDS}; "
+                            "0: not at all)")
 
 
 def _register_saved_states(commands) -> None:
