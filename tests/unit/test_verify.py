@@ -622,16 +622,21 @@ def test_the_launch_deaths_fact_reads_the_last_minute_of_the_unit():
 INT32 = "std_msgs/msg/Int32"
 
 
+def board_check(tmp_path, home, timeout: int = 2) -> str:
+    """The output of verify's check for team2's ESP32 board, run against the stand-in ros2."""
+    script = verify.check_script("jazzy", ENV, "~/ros2_ws", "/esp32/potentiometer", timeout, 1, INT32,
+                                 "esp32_board_team2")
+    script = script.replace("/opt/ros/jazzy/setup.bash", str(tmp_path / "setup.bash"))
+    return subprocess.run(["bash", "-c", script], capture_output=True, text=True, env={"HOME": str(home)},
+                          timeout=120).stdout
+
+
 def test_the_topics_publishers_are_asked_for_only_where_a_profile_names_one(tmp_path):
     home = stand_in_ros(tmp_path, "case \"$1 $2\" in \"topic echo\") printf 'data: 7\\n---\\n' ;;\n"
                                   "\"topic info\") printf 'Type: std_msgs/msg/Int32\\n\\nPublisher count: 1\\n\\n"
                                   "Node name: esp32_board_team2\\nNode namespace: /\\n\\nSubscription count: 1\\n\\n"
                                   "Node name: servo_follower\\n' ;; esac")
-    script = verify.check_script("jazzy", ENV, "~/ros2_ws", "/esp32/potentiometer", 2, 1, INT32,
-                                 "esp32_board_team2")
-    script = script.replace("/opt/ros/jazzy/setup.bash", str(tmp_path / "setup.bash"))
-    output = subprocess.run(["bash", "-c", script], capture_output=True, text=True, env={"HOME": str(home)},
-                            timeout=120).stdout
+    output = board_check(tmp_path, home)
     assert "topic info --no-daemon --spin-time 3 --verbose /esp32/potentiometer" in calls(tmp_path)
     found = verify.parse_check_output(output.splitlines())
     assert found["publishers"] == ["esp32_board_team2"] and found["message"] == "data: 7"  # not the subscriber
@@ -645,11 +650,7 @@ def test_a_publisher_still_unnamed_is_read_again_until_its_node_name_comes(tmp_p
                                   "\"topic info\") reads=$(grep -c 'topic info' " + str(tmp_path / "calls") + ")\n"
                                   "  name=_CREATED_BY_BARE_DDS_APP_; [ $reads -ge 3 ] && name=esp32_board_team2\n"
                                   "  printf 'Publisher count: 1\\n\\nNode name: %s\\n' $name ;; esac")
-    script = verify.check_script("jazzy", ENV, "~/ros2_ws", "/esp32/potentiometer", 2, 1, INT32,
-                                 "esp32_board_team2")
-    script = script.replace("/opt/ros/jazzy/setup.bash", str(tmp_path / "setup.bash"))
-    output = subprocess.run(["bash", "-c", script], capture_output=True, text=True, env={"HOME": str(home)},
-                            timeout=120).stdout
+    output = board_check(tmp_path, home)
     found = verify.parse_check_output(output.splitlines())
     assert found["publishers"] == ["esp32_board_team2"]
     assert sum("topic info" in call for call in calls(tmp_path)) == 3
@@ -657,10 +658,7 @@ def test_a_publisher_still_unnamed_is_read_again_until_its_node_name_comes(tmp_p
 
 def test_a_silent_topic_is_not_read_again_for_its_publishers(tmp_path):
     home = stand_in_ros(tmp_path, "[ \"$1 $2\" = 'topic echo' ] && sleep 5; exit 0")  # no message: killed at 1 s
-    script = verify.check_script("jazzy", ENV, "~/ros2_ws", "/esp32/potentiometer", 1, 1, INT32,
-                                 "esp32_board_team2")
-    script = script.replace("/opt/ros/jazzy/setup.bash", str(tmp_path / "setup.bash"))
-    subprocess.run(["bash", "-c", script], capture_output=True, text=True, env={"HOME": str(home)}, timeout=120)
+    board_check(tmp_path, home, timeout=1)
     assert sum("topic info" in call for call in calls(tmp_path)) == 1
 
 
