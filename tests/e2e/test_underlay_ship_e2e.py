@@ -197,20 +197,30 @@ def test_a_rerun_builds_nothing_and_changes_nothing_in_a_few_commands_per_host(s
     assert runs == {"team1-robot": 1, "team2-robot": 0, "team1-main": 1, "team2-main": 0}, runs
 
 
+def underlay_lost(sandbox, host: str) -> dict[str, int]:
+    """`host` re-imaged, as far as its underlay goes; every host's colcon runs before."""
+    before = {each.name: colcon_runs(sandbox, each.name) for each in sandbox.hosts}
+    sandbox.ssh(host, f"rm -rf {UNDERLAY}/install {UNDERLAY}/install-* {UNDERLAY}/.roslab/build.sha256",
+                check=True)
+    return before
+
+
+def received_and_nothing_built(sandbox, run, host: str, source: str, before: dict[str, int]) -> None:
+    """The run changed only `host`, which holds the agent shipped from `source`; no colcon ran."""
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert set(run.changes_per_host()) == {host}, run.changed
+    assert {each.name: colcon_runs(sandbox, each.name) for each in sandbox.hosts} == before
+    assert underlay_state(sandbox, host)["origin"].startswith(f"shipped from {source} ")
+    assert {"micro_ros_agent", "microxrcedds_agent"} <= set(
+        sandbox.ssh(host, f"ls {UNDERLAY}/install", check=True).stdout.split())
+
+
 def test_offline_a_host_that_lost_its_underlay_receives_it_from_the_cache_and_nothing_builds(
         sandbox, roster, first_run):
-    before = {host.name: colcon_runs(sandbox, host.name) for host in sandbox.hosts}
-    # a re-imaged Pi, as far as its underlay goes
-    sandbox.ssh("team2-robot", f"rm -rf {UNDERLAY}/install {UNDERLAY}/install-* {UNDERLAY}/.roslab/build.sha256",
-                check=True)
+    before = underlay_lost(sandbox, "team2-robot")
     run = deploy(sandbox, write_roster(sandbox, roster, offline=True))
     try:
-        assert run.returncode == 0, run.stderr[-3000:]
-        assert set(run.changes_per_host()) == {"team2-robot"}, run.changed
-        assert {host.name: colcon_runs(sandbox, host.name) for host in sandbox.hosts} == before
-        assert underlay_state(sandbox, "team2-robot")["origin"].startswith("shipped from team1-robot ")
-        assert {"micro_ros_agent", "microxrcedds_agent"} <= set(
-            sandbox.ssh("team2-robot", f"ls {UNDERLAY}/install", check=True).stdout.split())
+        received_and_nothing_built(sandbox, run, "team2-robot", "team1-robot", before)
     finally:
         write_roster(sandbox, roster)
 
@@ -218,17 +228,10 @@ def test_offline_a_host_that_lost_its_underlay_receives_it_from_the_cache_and_no
 def test_a_reimaged_builder_without_the_controllers_cache_receives_a_teammates_tree(sandbox, roster, first_run):
     """team1-robot built the robots' underlay; it is re-imaged and the controller's cache is gone:
     team2-robot holds the same build, so it is packed there and shipped, and nothing compiles."""
-    before = {host.name: colcon_runs(sandbox, host.name) for host in sandbox.hosts}
-    sandbox.ssh("team1-robot", f"rm -rf {UNDERLAY}/install {UNDERLAY}/install-* {UNDERLAY}/.roslab/build.sha256",
-                check=True)
+    before = underlay_lost(sandbox, "team1-robot")
     shutil.rmtree(sandbox_cache(roster))
     run = deploy(sandbox, roster)
-    assert run.returncode == 0, run.stderr[-3000:]
-    assert set(run.changes_per_host()) == {"team1-robot"}, run.changed
-    assert {host.name: colcon_runs(sandbox, host.name) for host in sandbox.hosts} == before
-    assert underlay_state(sandbox, "team1-robot")["origin"].startswith("shipped from team2-robot ")
-    assert {"micro_ros_agent", "microxrcedds_agent"} <= set(
-        sandbox.ssh("team1-robot", f"ls {UNDERLAY}/install", check=True).stdout.split())
+    received_and_nothing_built(sandbox, run, "team1-robot", "team2-robot", before)
 
 
 def test_a_changed_pin_rebuilds_once_on_the_named_builder(sandbox, roster, first_run):
