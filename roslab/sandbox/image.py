@@ -19,7 +19,7 @@ from . import seeding
 from .system import SandboxError, announced, file_lock, log, run, write_file
 
 # Bump when the way the image is built or customised changes: it is part of the cache key.
-BUILDER_VERSION = 5
+BUILDER_VERSION = 6
 
 # What a Pi's server image brings, minus the kernel: the deploys find these installed.
 # cloud-init (Debian's) stays disabled unless a host boots from a seed (seeding.py);
@@ -165,6 +165,13 @@ def _customise(rootfs: Path) -> None:
     write_file(rootfs / seeding.CLOUD_INIT_DISABLED.lstrip("/"), seeding.CLOUD_INIT_DISABLED_TEXT)
     for name, content in seeding.cloud_init_image_files().items():
         write_file(rootfs / name.lstrip("/"), content)
+    # dpkg skips its fsync()s here, as Docker's Ubuntu and Debian images do (docker-apt-speedup):
+    # a sandbox host's disk is a folder on this machine, so a host's power cut (its container
+    # killed) loses nothing the machine's page cache holds, and installing ROS takes a third
+    # less time (bench: 38 s -> 23 s for two hosts). A Pi's dpkg keeps its fsync()s.
+    write_file(rootfs / "etc/dpkg/dpkg.cfg.d/roslab-sandbox-unsafe-io",
+               "# roslab sandbox (not on a Pi): no fsync per unpacked file; the host's disk is a folder\n"
+               "force-unsafe-io\n")
     # A host's own periodic apt runs would race the tests' apt runs for the dpkg lock.
     _chroot(rootfs, "systemctl", "mask", "apt-daily.timer", "apt-daily-upgrade.timer")
     # Nothing to resolve: hosts reach only the sandbox upstream by address, and an
