@@ -262,12 +262,26 @@ class SavedClass:
     started: datetime  # when that run started (UTC, whole seconds, as roslab's run records)
 
 
+# One host of the default class starts as a tutorial from before 2025 left it: the old-style
+# ROS apt source (`ros2.list`, an expired `ros-archive-keyring.gpg`) that breaks apt today.
+LEGACY_HOST = "team2-robot"
+LEGACY_LIST = "/etc/apt/sources.list.d/ros2.list"
+LEGACY_KEY = "/usr/share/keyrings/ros-archive-keyring.gpg"
+
+
 @pytest.fixture(scope="session")
 def default_class_saved(e2e_sandbox) -> SavedClass:
     """The default class converged ONCE per session from freshly imaged hosts (the sandbox's
-    roster, deploy.py, no --data), every host changed and none failed, then saved as
-    DEFAULT_CLASS: what each module that starts from "a converged default class" restores."""
+    roster, deploy.py, no --data; LEGACY_HOST with the old-style ROS source), every host changed
+    and none failed, then saved as DEFAULT_CLASS: what each module that starts from "a converged
+    default class" restores. test_classroom_e2e checks this run as a classroom's first run."""
     e2e_sandbox.reset()
+    e2e_sandbox.sudo(
+        LEGACY_HOST,
+        f"echo 'deb [arch=amd64 signed-by={LEGACY_KEY}] http://packages.ros.org/ros2/ubuntu "
+        f"jammy main' > {LEGACY_LIST} && echo 'expired key' > {LEGACY_KEY}",
+        check=True,
+    )
     started = datetime.now(timezone.utc).replace(microsecond=0)
     run = e2e_sandbox.pyinfra()
     assert run.returncode == 0 and not run.failed_hosts, run.stderr[-6000:]

@@ -17,8 +17,9 @@ untouched: a workspace chowned to root, a node with a syntax error (that host fa
 file and line; the fixed file converges), a nodes unit that gave up or was stopped.
 
 Runs on the session's sandbox instance (tests/e2e/conftest.py; ROSLAB_E2E_INSTANCE and
-ROSLAB_E2E_SUBNET choose it), with a copy of nodes/ given as `workspace_nodes_dir` (a
-setting any roster may use) so the tests can edit a node.
+ROSLAB_E2E_SUBNET choose it), starting from its converged default class (the first run is the
+session's converge from fresh hosts, restored here), then with a copy of nodes/ given as
+`workspace_nodes_dir` (a setting any roster may use) so the tests can edit a node.
 """
 
 from __future__ import annotations
@@ -73,11 +74,9 @@ def install_stand_in(sandbox, host: str, text: str) -> None:
 
 
 @pytest.fixture(scope="module")
-def sandbox(e2e_sandbox):
-    """The session's classroom, freshly imaged for this module (and again after it)."""
-    e2e_sandbox.reset()
-    yield e2e_sandbox
-    e2e_sandbox.reset()
+def sandbox(default_class):
+    """The session's converged default class, restored for this module (fresh hosts after it)."""
+    return default_class
 
 
 @pytest.fixture(scope="module")
@@ -154,17 +153,17 @@ def fingerprint(sandbox, host: str) -> str:
 
 
 @pytest.fixture(scope="module")
-def first_run(sandbox, nodes_copy):
-    run = deploy(sandbox, nodes_copy)
-    # The stand-in ROS package's ros2 is installed now; this module's takes its place.
+def first_run(sandbox, default_class_saved):
+    """The class's first run: the session's converge of the default class from fresh hosts
+    (conftest; restored here, as building the same workspaces again would take minutes).
+    ROS's ros2 is installed now; this module's takes its place on every host."""
     for host in sandbox.hosts:
         install_stand_in(sandbox, host.name, STAND_IN_ROS2)
-    return run
+    return default_class_saved.run
 
 
 def test_first_run_builds_and_starts_every_host(classroom, sandbox, first_run):
     everyone = names(classroom)
-    print(f"first run, {len(everyone)} hosts: {first_run.seconds:.1f} s")
     assert changed(first_run, SYNC_OP) == everyone
     assert changed(first_run, BUILD_OP) == everyone
     assert changed(first_run, RESTART_OP) == everyone
@@ -223,6 +222,8 @@ def test_units_run_the_roles_launch_with_the_teams_environment(classroom, sandbo
 
 
 def test_second_run_neither_rebuilds_nor_restarts(classroom, sandbox, first_run, nodes_copy):
+    """The re-run reads the nodes from a copy of nodes/ (`workspace_nodes_dir`): the same
+    packages in another folder are the same workspace, nothing to sync, build or restart."""
     before = {host: fingerprint(sandbox, host) for host in names(classroom)}
     second = deploy(sandbox, nodes_copy)
     print(f"no-op re-run, {len(before)} hosts: {second.seconds:.1f} s")
