@@ -70,40 +70,48 @@ def ros_install():
     # The title names the first two packages and counts the rest: a robot's list (ten packages
     # for a TurtleBot3) would make a 290-character step name; the no-op line lists them all.
     shown = ", ".join(packages[:2]) + (f" and {len(packages) - 2} more" if len(packages) > 2 else "")
-    if not locked_versions_met(typed.roslab_roster_path, distro, packages, typed.apt_lock_timeout):
+    specs = locked_versions_met(typed.roslab_roster_path, distro, packages, typed.apt_lock_timeout)
+    if specs is None:
         return
     packages_installed(
         name=f"Ensure ROS 2 {distro} is installed ({shown})",
-        packages=packages,
+        packages=specs,
         lock_timeout=typed.apt_lock_timeout,
     )
 
 
-def locked_versions_met(roster_path: str | None, distro: str, packages: list[str], lock_timeout: int) -> bool:
+def locked_versions_met(roster_path: str | None, distro: str, packages: list[str],
+                        lock_timeout: int) -> list[str] | None:
     """Pin apt to the class lock's versions of this host's group (classroom.lock beside the
     roster), and stop the host before anything is installed if a package it lacks is locked at
-    a version no source of the host offers; True when the install may go on.
+    a version its apt sources list without it. The packages to install (a locked one as
+    `name=version`, so that apt itself refuses a version no source has), or None: stopped.
 
     Without a lock, or without this group in it, nothing is pinned (the group's first converge).
     """
     if class_lock.lock_beside(roster_path) is None:  # no lock: no architecture read either
-        return True
+        return packages
     group = class_lock.host_group(roster_path, distro, host.get_fact(Arch))
     if group is None:
-        return True
+        return packages
     installed = host.get_fact(DebPackages) or {}
     # what this run would install or move: each must be at its locked version in some source
     needed = [name for name in packages if name in group.packages and name not in installed]
     needed += [name for name in class_lock.off_lock(group, installed) if name not in needed]
-    problems = class_lock.unmet(group, needed, host.get_fact(class_lock.AptVersions, packages=needed)) if needed else []
+    # read from fresh lists (apt-get update first): after `roslab lock --update` the host's own
+    # lists may predate the versions it is to move to; read only when there is something to do.
+    # A package the lists do not know (a fresh host: its ROS source comes with this run) is
+    # judged by apt at install time, asked for at its locked version.
+    available = (host.get_fact(class_lock.AptVersionsNow, packages=needed) or {}) if needed else {}
+    problems = class_lock.unmet(group, [name for name in needed if available.get(name)], available)
     if problems:
         stop_host(f"{where()}: {problems[0]}" + (f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""))
-        return False
+        return None
     class_lock.locked_versions_pinned(
         name=f"Ensure apt installs the class lock's versions ({len(group.packages)} packages)", group=group)
     class_lock.packages_at_locked_versions(
         name="Ensure the installed packages are at the class lock's versions", group=group, lock_timeout=lock_timeout)
-    return True
+    return [f"{name}={group.packages[name]}" if name in group.packages else name for name in packages]
 
 
 @probe.reader

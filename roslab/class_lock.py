@@ -270,8 +270,8 @@ def host_group(roster_path: str | None, distro: str, machine: str | None) -> Loc
 
 
 class AptVersions(FactBase):
-    """package -> the versions apt can install from the host's sources (`apt-cache madison`);
-    read only when a locked host has packages to install, never on a no-op."""
+    """package -> the versions apt can install from the host's sources (`apt-cache madison`),
+    as the host's lists have them (AptVersionsNow refreshes them first)."""
 
     def command(self, packages: list[str]) -> str:
         names = [name for name in packages if PACKAGE_NAME.fullmatch(name)]  # checked: never an option
@@ -284,6 +284,16 @@ class AptVersions(FactBase):
             if len(parts) >= 3 and parts[1] not in versions.get(parts[0], []):
                 versions.setdefault(parts[0], []).append(parts[1])
         return versions
+
+
+class AptVersionsNow(AptVersions):
+    """AptVersions after `apt-get update` (as root): what the archives offer now, not at the
+    host's last update. Read by `roslab lock --update` (once per group) and by a run whose
+    locked host has packages to install or move (never on a no-op)."""
+
+    def command(self, packages: list[str]) -> str:
+        return ("DEBIAN_FRONTEND=noninteractive apt-get -q -o DPkg::Lock::Timeout=120 update >/dev/null 2>&1; "
+                + super().command(packages))
 
 
 def preferences_lines(group: LockedGroup) -> list[str]:

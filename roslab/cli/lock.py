@@ -76,7 +76,8 @@ def read_hosts(args, classroom, groups, with_candidates: class_lock.ClassLock | 
         entry["hosts"].append(host.name)
         if with_candidates is not None and "candidates" not in entry and key in with_candidates.groups:
             locked = sorted(with_candidates.groups[key].packages)
-            versions = get_fact(state, host, class_lock.AptVersions, kwargs={"packages": locked}) if locked else {}
+            # what the archives offer now: the host's lists may be days old (apt_cache_max_age)
+            versions = get_fact(state, host, class_lock.AptVersionsNow, kwargs={"packages": locked}) if locked else {}
             entry["candidates"] = {name: found_versions[0] for name, found_versions in versions.items()}
     return found
 

@@ -162,7 +162,7 @@ def test_lock_update_asks_each_group_for_its_candidates_as_pyinfra_takes_fact_ar
     def get_fact(*args, **kwargs):
         bound = real.bind(*args, **kwargs)  # a TypeError, as pyinfra's own, for a wrong call
         asked.append((bound.arguments["cls"], bound.arguments.get("kwargs")))
-        if bound.arguments["cls"] is class_lock.AptVersions:
+        if bound.arguments["cls"] is class_lock.AptVersionsNow:
             return {"ros-jazzy-ros-base": ["0.11.0-1noble.20260101.000000"]}
         return {"architecture": "arm64", "packages": INSTALLED}
 
@@ -173,4 +173,8 @@ def test_lock_update_asks_each_group_for_its_candidates_as_pyinfra_takes_fact_ar
     classroom = SimpleNamespace(hosts=[SimpleNamespace(name="robot1-1", distro="jazzy")])
     found = lock_cli.read_hosts(SimpleNamespace(limit=None), classroom, {}, first_lock())
     assert found[KEY]["candidates"] == {"ros-jazzy-ros-base": "0.11.0-1noble.20260101.000000"}
-    assert asked[-1] == (class_lock.AptVersions, {"packages": sorted(INSTALLED)})
+    # after `apt-get update` (as root, as every roster host's facts run): what the archives offer now
+    assert asked[-1] == (class_lock.AptVersionsNow, {"packages": sorted(INSTALLED)})
+    command = class_lock.AptVersionsNow().command(["ros-jazzy-ros-base", "-oAPT::x=1"])
+    assert command.startswith("DEBIAN_FRONTEND=noninteractive apt-get -q -o DPkg::Lock::Timeout=120 update ")
+    assert command.endswith("apt-cache madison -- ros-jazzy-ros-base || true")

@@ -13,7 +13,7 @@ from fixtures.fake_ubuntu import FakeUbuntu
 from deploy.ros_install import DEFAULTS, ros_install, ros_packages
 from deploy.rosdep import rosdep
 from roslab import settings as schema
-from roslab.class_lock import AptVersions
+from roslab.class_lock import AptVersionsNow
 from roslab.operations import reporting_a_signal
 
 
@@ -150,7 +150,7 @@ LOCK = """groups:
 def locked(tmp_path, host: FakeUbuntu, available: dict | None = None):
     (tmp_path / "classroom.lock").write_text(LOCK)
     data = host_data(tmp_path, roslab_roster_path=str(tmp_path / "classroom.yaml"))
-    facts = {**host.facts(), AptVersions: lambda packages: {name: available.get(name, []) for name in packages}}
+    facts = {**host.facts(), AptVersionsNow: lambda packages: {name: available.get(name, []) for name in packages}}
     return plan(ros_install, facts, data)
 
 
@@ -160,7 +160,17 @@ def test_a_locked_host_is_pinned_and_installs_the_locked_versions(tmp_path):
     pins = result.uploads()["/etc/apt/preferences.d/roslab-lock"]
     assert "Package: ros-jazzy-desktop\nPin: version 0.11.0-1noble.20250101.000000\nPin-Priority: 1001" in pins
     (command,) = result.operation("Ensure ROS 2 jazzy is installed").text()
-    assert " install -- ros-jazzy-desktop ros-dev-tools;" in command
+    assert " install -- ros-jazzy-desktop=0.11.0-1noble.20250101.000000 ros-dev-tools=1.0.1;" in command
+
+
+def test_a_fresh_host_whose_lists_do_not_know_the_locked_packages_asks_apt_for_the_locked_versions(tmp_path):
+    """A re-imaged Pi has no ROS source while the run is planned (it comes with the run): its
+    lists know no ros-* package. It is not stopped for that; the install names the locked
+    versions, so apt installs them or refuses, naming package and version (found end to end)."""
+    result = locked(tmp_path, FakeUbuntu(), {})
+    assert not result.failed
+    (command,) = result.operation("Ensure ROS 2 jazzy is installed").text()
+    assert " install -- ros-jazzy-desktop=0.11.0-1noble.20250101.000000 ros-dev-tools=1.0.1;" in command
 
 
 def test_a_host_on_other_versions_is_moved_to_the_lock_and_a_host_on_them_is_a_noop(tmp_path):
