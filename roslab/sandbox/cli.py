@@ -10,7 +10,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from . import lifecycle, seeding
+from . import lifecycle, publish, seeding
 from .system import SandboxError
 
 
@@ -61,8 +61,23 @@ def register(subparsers) -> argparse.ArgumentParser:
     create3.add_argument("action", choices=("start", "stop", "status"))
     create3.add_argument("--firmware", default=None, metavar="VERSION",
                          help="the firmware it reports (default I.0.0.FastDDS, a Jazzy generation; H.x for Humble)")
+    _register_publish(commands)
     parser.set_defaults(run=run)  # the `roslab` command calls args.run(args)
     return parser
+
+
+def _register_publish(commands) -> None:
+    """`sandbox publish PACKAGE --bump` and `sandbox publish --revert`."""
+    published = commands.add_parser(
+        "publish", help="serve a newer version of a package, as the archive would after a sync (or --revert)",
+        description="Move the sandbox's upstream on purpose (to rehearse `roslab lock --update`): PACKAGE's "
+                    "newest .deb is served again as <version>+roslab<N>. A ROS package's index then lists only "
+                    "the newer version, as packages.ros.org does; a Debian package's goes to every release's "
+                    "-updates suite, the release keeping the older. Only this sandbox's archives change.")
+    published.add_argument("package", nargs="?", metavar="PACKAGE")
+    what = published.add_mutually_exclusive_group(required=True)
+    what.add_argument("--bump", action="store_true", help="publish PACKAGE under a higher version")
+    what.add_argument("--revert", action="store_true", help="serve the archives as `up` served them again")
 
 
 def _register_reset(commands) -> None:
@@ -191,6 +206,21 @@ def run_create3(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_publish(args: argparse.Namespace) -> int:
+    served = lifecycle.load().instance.state_dir / "upstream"
+    if args.revert:
+        if args.package:
+            raise SandboxError("publish --revert takes no PACKAGE: it serves every archive as `up` did")
+        reverted = publish.revert(served)
+        print("served as `up` served them: " + (", ".join(reverted) if reverted else "nothing was published"))
+        return 0
+    if not args.package:
+        raise SandboxError("publish --bump needs the PACKAGE to publish under a higher version")
+    for done in publish.bump(served, args.package):
+        print(f"published {done.line()}")
+    return 0
+
+
 def _interrupt(signum, frame):
     raise KeyboardInterrupt(f"signal {signum}")
 
@@ -231,6 +261,8 @@ def run(args: argparse.Namespace) -> int:
             return run_board(args)
         elif args.sandbox_command == "create3":
             return run_create3(args)
+        elif args.sandbox_command == "publish":
+            return run_publish(args)
     except SandboxError as exc:
         print(f"roslab sandbox: {exc}", file=sys.stderr)
         return 1

@@ -371,8 +371,9 @@ def ros_key() -> SigningKey:
 
 # -- apt archive plumbing -------------------------------------------------------------
 
-def _write_indexes(archive: Path, dist_dir: Path, component: str, pool: str | None) -> None:
-    """Write Packages(.gz) for one component from the debs under `pool` (None: empty)."""
+def write_indexes(archive: Path, dist_dir: Path, component: str, pool: str | None) -> None:
+    """Write Packages(.gz) for one component from the debs under `pool` (relative to `archive`;
+    None: empty)."""
     binary = dist_dir / component / "binary-amd64"
     binary.mkdir(parents=True, exist_ok=True)
     packages = ""
@@ -504,14 +505,26 @@ def ubuntu_archive(rootfs: Path, system_keys: dict[str, str], runtime_packages=(
                 dist_dir = out / "dists" / suite
                 for component in UBUNTU_COMPONENTS:
                     has_debs = component == "universe" and pocket == ""
-                    _write_indexes(out, dist_dir, component, "pool/universe" if has_debs else None)
-                _write_release(dist_dir, key, Origin="Ubuntu", Label="Ubuntu (roslab sandbox stand-in)",
-                               Suite=suite, Codename=codename, Version=version, Architectures="amd64",
-                               Components=" ".join(UBUNTU_COMPONENTS),
-                               Description=f"{STANDIN_NOTE} for Ubuntu {version}: real Debian packages")
+                    write_indexes(out, dist_dir, component, "pool/universe" if has_debs else None)
+                write_ubuntu_release(dist_dir, suite, codename, version)
 
     return _cached_build("ubuntu-archive", _cache_key(ARCHIVE_VERSION, rootfs.parent.name, packages,
                                                       key.fingerprint), build)
+
+
+def write_ubuntu_release(dist_dir: Path, suite: str, codename: str, version: str) -> None:
+    """The signed Release of one suite of the Ubuntu-layout archive (of the Packages under it)."""
+    _write_release(dist_dir, ubuntu_key(), Origin="Ubuntu", Label="Ubuntu (roslab sandbox stand-in)",
+                   Suite=suite, Codename=codename, Version=version, Architectures="amd64",
+                   Components=" ".join(UBUNTU_COMPONENTS),
+                   Description=f"{STANDIN_NOTE} for Ubuntu {version}: real Debian packages")
+
+
+def write_ros_release(dist_dir: Path, codename: str, distro: str) -> None:
+    """The signed Release of one codename of the ROS archive (of the Packages under it)."""
+    _write_release(dist_dir, ros_key(), Origin="ROS", Label="ROS 2 (roslab sandbox stand-in)",
+                   Suite=codename, Codename=codename, Architectures="amd64", Components="main",
+                   Description=f"{STANDIN_NOTE} for packages.ros.org/ros2: ROS 2 {distro}")
 
 
 # -- the ROS archive of stand-ins ---------------------------------------------------------
@@ -613,10 +626,8 @@ def ros_archive(extra_keys: set[str], runtime: ros_runtime.Runtime | None = None
                            "(no code)", files=files, depends=depends, out_dir=pool)
             dist_dir = out / "dists" / codename
             shutil.copytree(common, pool, dirs_exist_ok=True)
-            _write_indexes(out, dist_dir, "main", f"pool/main/{codename}")
-            _write_release(dist_dir, signer, Origin="ROS", Label="ROS 2 (roslab sandbox stand-in)",
-                           Suite=codename, Codename=codename, Architectures="amd64", Components="main",
-                           Description=f"{STANDIN_NOTE} for packages.ros.org/ros2: ROS 2 {distro}")
+            write_indexes(out, dist_dir, "main", f"pool/main/{codename}")
+            write_ros_release(dist_dir, codename, distro)
         shutil.rmtree(work)
         shutil.rmtree(common)
 
