@@ -2,12 +2,14 @@
 
 Three cards are written at once from a `.img.xz` (a stand-in for Ubuntu's Pi image,
 tests/pi_image.py); each card holds the image's bytes and its own host's seed; a re-run skips
-them; a byte changed on a card behind the writer's back is caught by the read-back; a mounted
+them; a byte changed on a card behind the writer's back is caught by the read-back; a card
+pulled out mid-write fails alone while the others finish, and the re-run writes only it; a mounted
 card, a card named twice and an image of another release are refused without a byte written.
 """
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import lzma
@@ -139,6 +141,33 @@ def test_a_card_changed_behind_the_writers_back_fails_its_read_back_and_the_othe
     assert card_seed(devices[1], flash.MARKER) is None  # never marked done: a re-run writes it again
     # The re-run (as after an interruption) writes only the card that is not done.
     monkeypatch.setattr(flash, "write_all", real_write_all)
+    assert flash_cli(roster, raw, devices) == 0
+    rows = {line.split()[0]: line for line in capsys.readouterr().out.splitlines() if line[:4] == "team"}
+    assert rows["team1-robot"].endswith("  verified"), rows
+    assert "skipped" in rows["team1-main"] and "skipped" in rows["team2-main"], rows
+
+
+def test_a_card_pulled_out_mid_write_fails_alone_the_others_finish_and_the_rerun_writes_only_it(
+        roster, image_xz, loop_cards, capsys, monkeypatch):
+    """A card pulled from its reader mid-write: the kernel fails the writes on the gone device
+    with ENODEV (a loop device cannot be pulled: `losetup -d` waits for the last close, so the
+    writes on team1-robot's card fail here as the kernel's would, after its first 4 MB)."""
+    raw, _ = image_xz
+    devices, _ = loop_cards
+    real_write = os.write
+
+    def write(fd, data):
+        if os.readlink(f"/proc/self/fd/{fd}") == devices[1] and os.lseek(fd, 0, os.SEEK_CUR) >= flash.CHUNK:
+            raise OSError(errno.ENODEV, os.strerror(errno.ENODEV))
+        return real_write(fd, data)
+
+    monkeypatch.setattr(flash.os, "write", write)
+    assert flash_cli(roster, raw, devices) == 1
+    out = capsys.readouterr().out
+    rows = {line.split()[0]: line for line in out.splitlines() if line[:4] == "team"}
+    assert "FAILED: the write stopped after 4 MB: No such device" in rows["team1-robot"], out
+    assert rows["team1-main"].endswith("  verified") and rows["team2-main"].endswith("  verified"), out
+    monkeypatch.setattr(flash.os, "write", real_write)  # the card is back in its reader
     assert flash_cli(roster, raw, devices) == 0
     rows = {line.split()[0]: line for line in capsys.readouterr().out.splitlines() if line[:4] == "team"}
     assert rows["team1-robot"].endswith("  verified"), rows
