@@ -132,16 +132,15 @@ def bump(served: Path, package: str) -> list[Published]:
 
 
 def _bump_ros(served: Path, package: str, found: dict[str, list[Path]]) -> list[Published]:
-    """The newer version replaces every older one in its codename's pool and index."""
+    """The newer version replaces every older one in its codename's pool and index (`found`:
+    codename -> the package's .debs in its pool; the same paths in the instance's own copy)."""
     archive = own_copy(served, "ros2/ubuntu")
     done = []
-    for codename in sorted(found):
-        pool = archive / "pool/main" / codename
-        debs = sorted(pool.glob(f"{package}_*.deb"))
+    for codename, debs in sorted(found.items()):
         newest = _newest(debs)
         old = _deb_version(newest)
         new = bumped_version(old)
-        _rebuilt(newest, new, pool)
+        _rebuilt(newest, new, newest.parent)
         superseded = archive / "pool/superseded" / codename
         superseded.mkdir(parents=True, exist_ok=True)
         for deb in debs:  # out of the indexed pool: the index lists the newer version only
@@ -156,13 +155,13 @@ def _bump_ros(served: Path, package: str, found: dict[str, list[Path]]) -> list[
 def _bump_ubuntu(served: Path, package: str, debs: list[Path]) -> list[Published]:
     """The newer version in every release's -updates suite; the release pockets keep the older."""
     archive = own_copy(served, "ubuntu")
-    newest = _newest([archive / deb.relative_to(served / "ubuntu") for deb in debs])
+    newest = _newest(debs)  # the same paths, now in the instance's own copy
     old = _deb_version(newest)
     new = bumped_version(old)
-    updates = archive / UPDATES_POOL
-    for stale in updates.glob(f"{package}_*.deb"):  # -updates holds one version, the newest
-        stale.unlink()
-    _rebuilt(newest, new, updates)
+    published = _rebuilt(newest, new, archive / UPDATES_POOL)
+    for stale in published.parent.glob(f"{package}_*.deb"):  # -updates holds one version, the newest
+        if stale != published:
+            stale.unlink()
     done = []
     for platform in PLATFORMS:
         suite = f"{platform.codename}-updates"

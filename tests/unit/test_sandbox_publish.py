@@ -51,3 +51,47 @@ def test_publish_needs_bump_or_revert():
         parser.parse_args(["sandbox", "publish", "ros-jazzy-desktop"])
     args = parser.parse_args(["sandbox", "publish", "ros-jazzy-desktop", "--bump"])
     assert (args.package, args.bump, args.revert) == ("ros-jazzy-desktop", True, False)
+
+
+def tiny_deb(folder, package: str, version: str):
+    """A one-file Architecture: all .deb (dpkg-deb, milliseconds)."""
+    root = folder / f"{package}-{version}"
+    (root / "DEBIAN").mkdir(parents=True)
+    (root / "DEBIAN/control").write_text(f"Package: {package}\nVersion: {version}\nArchitecture: all\n"
+                                         "Maintainer: roslab tests <t@invalid>\nDescription: a test package\n")
+    (root / "usr/share/doc").mkdir(parents=True)
+    (root / "usr/share/doc/x").write_text("x\n")
+    out = folder / f"{package}_{version}_all.deb"
+    subprocess.run(["dpkg-deb", "--root-owner-group", "--build", str(root), str(out)], check=True,
+                   capture_output=True)
+    return out
+
+
+def test_a_debian_package_bumped_twice_leaves_one_newest_version_in_updates_and_the_cache_untouched(
+        tmp_path, monkeypatch):
+    """The Ubuntu-layout archive is a link into the machine's cache: the first publish copies it
+    (the cached .deb hard-linked, never written), and -updates holds only the newest bump."""
+    cached = tmp_path / "cache/ubuntu-archive"
+    (cached / "dists/noble-updates").mkdir(parents=True)
+    (cached / "pool/universe").mkdir(parents=True)
+    original = tiny_deb(cached / "pool/universe", "python3-colcon-core", "0.12.1-1")
+    served = tmp_path / "served"
+    served.mkdir()
+    (served / "ubuntu").symlink_to(cached)
+    signed = []
+    monkeypatch.setattr(publish.upstream, "write_ubuntu_release", lambda dist_dir, *args: signed.append(dist_dir))
+
+    first = publish.bump(served, "python3-colcon-core")
+    second = publish.bump(served, "python3-colcon-core")
+
+    assert {done.new for done in first} == {"0.12.1-1+roslab1"}
+    assert {(done.old, done.new) for done in second} == {("0.12.1-1+roslab1", "0.12.1-1+roslab2")}
+    assert [deb.name for deb in (served / "ubuntu/pool/updates").iterdir()] == [
+        "python3-colcon-core_0.12.1-1+roslab2_all.deb"]
+    packages = (served / "ubuntu/dists/noble-updates/universe/binary-amd64/Packages").read_text()
+    assert "Version: 0.12.1-1+roslab2\n" in packages and "+roslab1" not in packages
+    assert not (served / "ubuntu").is_symlink() and sorted(p.name for p in cached.rglob("*.deb")) == [original.name]
+    assert not (cached / "pool/updates").exists() and signed
+
+    assert publish.revert(served) == ["ubuntu"]
+    assert (served / "ubuntu").resolve() == cached.resolve()
