@@ -30,7 +30,6 @@ from roslab.ros.distro import DEFAULT_DISTRO, PLATFORMS
 from . import upstream
 from .system import SandboxError, run, write_file
 
-ARCHIVES = ("ros2/ubuntu", "ubuntu")  # below the instance's served folder
 RECORD = "published.json"  # beside them: the cached archives the instance served before
 PACKAGE = re.compile(r"[a-z0-9][a-z0-9+.-]+")  # Debian policy 5.6.1
 BUMPED = re.compile(r"(?P<base>.+)\+roslab(?P<n>[0-9]+)")
@@ -62,14 +61,15 @@ def _deb_version(deb: Path) -> str:
     return run("dpkg-deb", "--field", deb, "Version").stdout.strip()
 
 
-def _newest(debs: list[Path]) -> Path:
-    """The .deb of the highest version among `debs` (Debian's ordering, dpkg's own compare)."""
-    newest = debs[0]
+def _newest(debs: list[Path]) -> tuple[Path, str]:
+    """The .deb of the highest version among `debs` and that version (Debian's ordering,
+    dpkg's own compare); each .deb's version is read once."""
+    newest, highest = debs[0], _deb_version(debs[0])
     for deb in debs[1:]:
-        if run("dpkg", "--compare-versions", _deb_version(deb), "gt", _deb_version(newest),
-               check=False).returncode == 0:
-            newest = deb
-    return newest
+        version = _deb_version(deb)
+        if run("dpkg", "--compare-versions", version, "gt", highest, check=False).returncode == 0:
+            newest, highest = deb, version
+    return newest, highest
 
 
 def _rebuilt(deb: Path, version: str, out_dir: Path) -> Path:
@@ -78,11 +78,13 @@ def _rebuilt(deb: Path, version: str, out_dir: Path) -> Path:
         root = Path(work) / "root"
         run("dpkg-deb", "--raw-extract", deb, root)
         control = root / "DEBIAN/control"
-        text = re.sub(r"^Version: .*$", f"Version: {version}", control.read_text(), count=1, flags=re.M)
-        control.write_text(text)
+        text = control.read_text()
+        control.write_text(re.sub(r"^Version: .*$", f"Version: {version}", text, count=1, flags=re.M))
         package = deb.name.split("_", 1)[0]
-        architecture = run("dpkg-deb", "--field", deb, "Architecture").stdout.strip()
-        out = out_dir / f"{package}_{version.replace(':', '%3a')}_{architecture}.deb"
+        architecture = re.search(r"^Architecture: *(\S+)", text, flags=re.M)
+        if architecture is None:
+            raise SandboxError(f"{deb}: its control file has no Architecture field")
+        out = out_dir / f"{package}_{version.replace(':', '%3a')}_{architecture[1]}.deb"
         out_dir.mkdir(parents=True, exist_ok=True)
         run("dpkg-deb", "-Zgzip", "--build", root, out)
     return out
@@ -137,8 +139,7 @@ def _bump_ros(served: Path, package: str, found: dict[str, list[Path]]) -> list[
     archive = own_copy(served, "ros2/ubuntu")
     done = []
     for codename, debs in sorted(found.items()):
-        newest = _newest(debs)
-        old = _deb_version(newest)
+        newest, old = _newest(debs)
         new = bumped_version(old)
         _rebuilt(newest, new, newest.parent)
         superseded = archive / "pool/superseded" / codename
@@ -155,8 +156,7 @@ def _bump_ros(served: Path, package: str, found: dict[str, list[Path]]) -> list[
 def _bump_ubuntu(served: Path, package: str, debs: list[Path]) -> list[Published]:
     """The newer version in every release's -updates suite; the release pockets keep the older."""
     archive = own_copy(served, "ubuntu")
-    newest = _newest(debs)  # the same paths, now in the instance's own copy
-    old = _deb_version(newest)
+    newest, old = _newest(debs)  # the same paths, now in the instance's own copy
     new = bumped_version(old)
     published = _rebuilt(newest, new, archive / UPDATES_POOL)
     for stale in published.parent.glob(f"{package}_*.deb"):  # -updates holds one version, the newest
