@@ -89,7 +89,7 @@ def shell_env():
             distro=distro,
             workspace_dir=typed.workspace_dir,
             rosdistro_index_url=typed.rosdistro_index_url,
-            variables=host_environment(typed.data, distro, shell=True),
+            variables=host_environment(typed, distro, shell=True),
             underlay_dir=typed.sources_underlay_dir if repositories() else None,
             venv_dir=filled_venv("~"),
         )
