@@ -180,7 +180,7 @@ def test_a_host_without_a_domain_id_exports_none_rather_than_the_word_none():
 def test_the_middleware_package_is_installed_beside_the_variant(middleware, package):
     from deploy.ros_install import ros_packages
 
-    packages = ros_packages("humble", "robot", data_of("robot", "multicast", middleware))
+    packages = ros_packages("humble", "robot", typed_of("robot", "multicast", middleware))
     assert packages[0] == "ros-humble-ros-base"
     extra = [name for name in packages if "rmw" in name]
     assert extra == ([package] if package else [])
