@@ -159,6 +159,7 @@ class HostSettings:
     roslab_verify_publisher: str | None
     roslab_profile: ResolvedProfile | None
     ssh_hostname: str | None
+    wifi_password: object | None
     # The host data these were built from, a plain mapping (roslab_profile too), for the helpers that read a
     # roster host's data alike (ros/environment.py, network/settings.py).
     data: dict[str, Any] = field(repr=False, compare=False)
