@@ -954,9 +954,9 @@ def checklists(classroom: Classroom, names: set[str] | None = None) -> list[dict
     """Per host, the robot profile's steps that need the hardware attached (done by hand)."""
     result = []
     for host in classroom.hosts:
-        profile = host.data.get("roslab_profile") or {}
-        if profile.get("checklist") and (names is None or host.name in names):
-            result.append({"host": host.name, "profile": profile.get("name"), "items": list(profile["checklist"])})
+        profile = host.settings.roslab_profile
+        if profile is not None and profile.checklist and (names is None or host.name in names):
+            result.append({"host": host.name, "profile": profile.name, "items": list(profile.checklist)})
     return result
 
 
