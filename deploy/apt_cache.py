@@ -209,9 +209,10 @@ def report_cache_down(cache_host: str, address: str, port: int, offline: bool) -
                        "hosts download from upstream directly this run")
 
 
-def planned_packages(data, codename: str) -> list[str]:
-    """The packages roslab's steps install on a host with these settings (a host.data mapping)
-    and Ubuntu codename: what the class cache is filled with before anyone installs.
+def planned_packages(typed: HostSettings, codename: str, python_sdist: bool = False) -> list[str]:
+    """The packages roslab's steps install on a host with these typed settings and Ubuntu
+    codename (`python_sdist`: this run noted an sdist in its wheelhouse): what the class cache
+    is filled with before anyone installs.
 
     Each step declares its packages once, beside itself (`@probe.installs`); this asks them
     all. Every deploy module is imported first, so the list does not depend on which of them
@@ -224,14 +225,18 @@ def planned_packages(data, codename: str) -> list[str]:
 
     for module in pkgutil.iter_modules(deploy_package.__path__):
         importlib.import_module(f"deploy.{module.name}")
-    return probe.declared_packages(data, codename)
+    return probe.declared_packages(typed, codename, python_sdist)
 
 
-def _settings_of(some_host) -> dict:
-    """A host's settings with every deploy's default under them (a hand-made inventory may
-    set only some; a roster's hosts have them all), as a mapping read now, not host_settings'
-    snapshot: the packages a step declares depend on this run's notes too (_roslab_python_sdist)."""
-    return {**settings.defaults(), **some_host.data.dict()}
+def _planned_for(some_host, codename: str) -> list[str]:
+    """The packages a host of this run will install: from its typed settings (every deploy's
+    default under what its data sets), and this run's note read now, not host_settings'
+    snapshot (python_env notes `_roslab_python_sdist` on its data as it plans). A host whose
+    data is wrong installs nothing: it stops itself (deploy.common.supported_host)."""
+    typed = peer_settings(some_host)
+    if typed is None:
+        return []
+    return planned_packages(typed, codename, bool(some_host.data.get("_roslab_python_sdist")))
 
 
 def _codename_of(typed: HostSettings) -> str | None:
@@ -291,14 +296,14 @@ def apt_cache_filled():
         return
     codename = ubuntu_codename()
     packages = sorted({name for peer in release_peers()
-                       for name in planned_packages(_settings_of(peer), codename)})
+                       for name in _planned_for(peer, codename)})
     if not packages:
         return
     packages_downloaded(
         name=f"Ensure the classroom's apt cache holds the packages of every Ubuntu {codename} host "
              f"({len(packages)} packages and their dependencies, downloaded here once)",
         packages=packages,
-        installed_here=planned_packages(_settings_of(host), codename),
+        installed_here=_planned_for(host, codename),
         lock_timeout=host_settings(host).apt_lock_timeout,
         _serial=True,
     )

@@ -60,7 +60,7 @@ def service_unit_text(service: discovery.Service, *, distro: str, user: str, hom
 
 
 def host_setup() -> discovery.HostDiscovery:
-    return discovery.host_discovery(host_settings(host).data, host_distro())
+    return discovery.host_discovery(host_settings(host), host_distro())
 
 
 @deploy("The team's discovery: the middleware's files, the discovery server or Zenoh router on its main",

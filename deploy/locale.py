@@ -13,7 +13,7 @@ from roslab import probe, settings
 from roslab.operations import apt_install_options, locale_generated, locale_generated_reads
 from roslab.quoting import shell_word
 from roslab.templating import render
-from roslab.host_settings import host_settings
+from roslab.host_settings import HostSettings, host_settings
 
 DEFAULTS = settings.defaults("locale")
 
@@ -21,9 +21,9 @@ DEFAULT_LOCALE = "/etc/default/locale"
 
 
 @probe.installs
-def locale_packages(data, codename) -> list[str]:
+def locale_packages(settings: HostSettings, codename: str | None, python_sdist: bool = False) -> list[str]:
     """What this step installs (roslab.probe.installs): the locales package."""
-    return ["locales"] if data.get("locale_enabled") else []
+    return ["locales"] if settings.locale_enabled else []
 
 
 @deploy("A UTF-8 locale is generated and set system-wide", data_defaults=DEFAULTS)
@@ -40,7 +40,7 @@ def system_locale():
 
     apt.packages(
         name="Ensure the locales package is installed",
-        packages=locale_packages(typed.data, None),
+        packages=locale_packages(typed, None),
         extra_install_args=apt_install_options(typed.apt_lock_timeout),
     )
     locale_generated(name=f"Ensure the locale {locale} is generated", locale=locale)

@@ -42,7 +42,7 @@ def network():
     if not should_run("network_enabled"):
         return
     try:
-        settings = network_settings(typed.data)
+        settings = network_settings(typed)
     except NetworkSettingError as error:
         stop_host(f"{where()}: field {error.field!r}: {error.message}; the network was not changed")
         return
@@ -64,7 +64,7 @@ def network_reads() -> list:
     if not should_run("network_enabled"):
         return []
     try:
-        settings = network_settings(host_settings(host).data)
+        settings = network_settings(host_settings(host))
     except NetworkSettingError:
         return []  # the step stops this host, reading nothing
     return network_in_effect_reads(settings) if settings is not None else []

@@ -112,7 +112,7 @@ def profile_services_in_place():
     try:  # before any change: a value a unit cannot carry stops this host only
         units = {service.name: unit_text(
             service=service, profile=name, user=user, home=home, workspace_dir=workspace_dir, distro=distro,
-            environment=host_environment(typed.data, distro),
+            environment=host_environment(typed, distro),
             venv_dir=filled_venv(home)) for service in services}
     except ValueError as error:
         stop_host(f"{where()}: profile services: {error}; nothing was changed by this step")

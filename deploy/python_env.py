@@ -29,7 +29,7 @@ from roslab.python_env.venv import (
     venv_requirements_installed_reads,
 )
 from roslab.quoting import shell_word
-from roslab.host_settings import host_settings
+from roslab.host_settings import HostSettings, host_settings
 from roslab.profiles.resolve import PythonEnv
 
 DEFAULTS = settings.defaults("python_env")
@@ -38,16 +38,15 @@ WHEELHOUSE = "/var/cache/roslab/wheelhouse"  # on the host: root's, readable by 
 REQUIREMENTS = f"{WHEELHOUSE}/requirements.txt"
 
 
-def python_of(data) -> dict:
-    """The profile's {"venv", "requirements"} (roslab/profiles/resolve.py), or an empty one."""
-    profile = data.get("roslab_profile") or {}
-    return profile.get("python") or {"venv": None, "requirements": []}
+def python_of(settings: HostSettings) -> PythonEnv:
+    """A host's profile's Python environment (no venv, no requirements without a profile)."""
+    profile = settings.roslab_profile
+    return profile.python if profile is not None else PythonEnv(venv=None, requirements=[])
 
 
 def profile_python() -> PythonEnv:
     """This host's profile's Python environment (no venv, no requirements without a profile)."""
-    profile = host_settings(host).roslab_profile
-    return profile.python if profile is not None else PythonEnv(venv=None, requirements=[])
+    return python_of(host_settings(host))
 
 
 def filled_venv(home: str) -> str | None:
@@ -58,20 +57,20 @@ def filled_venv(home: str) -> str | None:
 
 
 @probe.installs
-def python_env_packages(data, codename) -> list[str]:
+def python_env_packages(settings: HostSettings, codename: str | None, python_sdist: bool = False) -> list[str]:
     """What this step installs (roslab.probe.installs): python3-venv where the profile has a venv,
     and python_sdist_build_packages where the host's wheelhouse holds an sdist (known once the
     controller has it: kept from an earlier run, or noted by this run's plan in
-    `_roslab_python_sdist`; the class's apt cache is filled before this step plans, so on a
+    `_roslab_python_sdist`, given as `python_sdist`; the class's apt cache is filled before this step plans, so on a
     class's very first run those packages reach the hosts through the cache as a proxy)."""
-    python = python_of(data)
-    if not data.get("python_env_enabled") or not python["venv"]:
+    python = python_of(settings)
+    if not settings.python_env_enabled or not python.venv:
         return []
     packages = ["python3-venv"]
-    if python["requirements"] and (data.get("_roslab_python_sdist") or any(
+    if python.requirements and (python_sdist or any(
             kept.has_sdist for kept in wheelhouse.kept_for_any_target(
-                python["requirements"], data.get("python_index_url"), data.get("python_wheelhouse_dir")))):
-        packages += [name for name in data.get("python_sdist_build_packages") or [] if name not in packages]
+                python.requirements, settings.python_index_url, settings.python_wheelhouse_dir))):
+        packages += [name for name in settings.python_sdist_build_packages or [] if name not in packages]
     return packages
 
 
@@ -110,8 +109,7 @@ def python_env():
         name="Ensure Python's venv module is installed"
              + (" (and what building an sdist needs)" if house and house.has_sdist else ""),
         # this run's own note, made just above: the snapshot host_settings holds predates it
-        packages=python_env_packages({**typed.data, "_roslab_python_sdist": bool(house and house.has_sdist)},
-                                     None),
+        packages=python_env_packages(typed, None, python_sdist=bool(house and house.has_sdist)),
         extra_install_args=apt_install_options(typed.apt_lock_timeout),
     )
     venv = posixpath.join(home, python.venv)

@@ -127,7 +127,7 @@ def robot_base():
         return
     link_addressed(base)
     time_served(base)
-    base_settings_posted(base, host_distro(), host_environment(typed.data, host_distro()))
+    base_settings_posted(base, host_distro(), host_environment(typed, host_distro()))
 
 
 def link_addressed(base: RobotBase) -> None:

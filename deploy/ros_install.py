@@ -9,18 +9,18 @@ from pyinfra.facts.server import Arch
 
 from deploy.common import host_codename, host_distro, should_run, stop_host, where
 from roslab import class_lock, probe, settings
-from roslab.ros.discovery import middleware_of, middleware_package
+from roslab.ros.discovery import middleware_package
 from roslab.ros.distro import default_distro
 from roslab.operations import packages_installed
 from roslab.quoting import apt_arguments
-from roslab.host_settings import host_settings
+from roslab.host_settings import HostSettings, host_settings
 
 DEFAULTS = settings.defaults("ros_install")
 
 
-def ros_packages(distro: str, role: str | None, data) -> list[str]:
-    """The apt packages a host of this role gets, from its settings (`data`: a mapping): what this
-    step declares it installs (the class cache, deploy/apt_cache.py, fills itself from it).
+def ros_packages(distro: str, role: str | None, settings: HostSettings) -> list[str]:
+    """The apt packages a host of this role gets, from its typed settings: what this step
+    declares it installs (the class cache, deploy/apt_cache.py, fills itself from it).
 
     The class's middleware (ros_middleware) and the robot profile's packages for the host's side
     (roslab_profile, resolved from the roster) come after the variant, the dev tools and
@@ -31,26 +31,26 @@ def ros_packages(distro: str, role: str | None, data) -> list[str]:
     """
     # The roster loader resolved ros_variant (host's, deprecated role key, profile side); a
     # hand-made inventory without it gets the role's default.
-    variant = data["ros_variant"] or data[f"ros_variant_{'robot' if role == 'robot' else 'main'}"]
+    variant = settings.ros_variant or (settings.ros_variant_robot if role == "robot" else settings.ros_variant_main)
     packages = [f"ros-{distro}-{variant}"]
-    if data["ros_dev_tools"]:
+    if settings.ros_dev_tools:
         packages.append("ros-dev-tools")
-    packages += [name.replace("{distro}", distro) for name in data["ros_extra_packages"] or []]
-    middleware = middleware_package(middleware_of(data), distro)  # Fast DDS comes with every variant
+    packages += [name.replace("{distro}", distro) for name in settings.ros_extra_packages or []]
+    middleware = middleware_package(settings.ros_middleware, distro)  # Fast DDS comes with every variant
     if middleware and middleware not in packages:
         packages.append(middleware)
-    profile = data.get("roslab_profile") or {}
-    if profile.get("distro") == distro:  # resolved for the distro the roster expects, which this host runs
-        packages += [name for name in profile.get("packages") or [] if name not in packages]
+    profile = settings.roslab_profile
+    if profile is not None and profile.distro == distro:  # resolved for the distro the roster expects, which this host runs
+        packages += [name for name in profile.packages or [] if name not in packages]
     return apt_arguments(packages)
 
 
 @probe.installs
-def ros_install_packages(data, codename: str) -> list[str]:
+def ros_install_packages(settings: HostSettings, codename: str | None, python_sdist: bool = False) -> list[str]:
     """What this step installs on a host of this codename (roslab.probe.installs)."""
-    if not data.get("ros_install_enabled"):
+    if not settings.ros_install_enabled:
         return []
-    return ros_packages(data.get("ros_distro") or default_distro(codename), data.get("roslab_role"), data)
+    return ros_packages(settings.ros_distro or default_distro(codename), settings.roslab_role, settings)
 
 
 @deploy("ROS 2 is installed for the host's distro and role", data_defaults=DEFAULTS)
@@ -66,7 +66,7 @@ def ros_install():
     if not should_run("ros_install_enabled"):
         return
     distro = host_distro()
-    packages = ros_install_packages(typed.data, host_codename())  # as declared for the class cache
+    packages = ros_install_packages(typed, host_codename())  # as declared for the class cache
     # The title names the first two packages and counts the rest: a robot's list (ten packages
     # for a TurtleBot3) would make a 290-character step name; the no-op line lists them all.
     shown = ", ".join(packages[:2]) + (f" and {len(packages) - 2} more" if len(packages) > 2 else "")

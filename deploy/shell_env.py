@@ -44,7 +44,7 @@ def render_ros_environment(
 ) -> str:
     """The text of the ~/.bashrc block for these (schema-checked) settings.
 
-    `variables`: every variable, as `roslab.ros.environment.host_environment(data, distro, shell=True)` gives
+    `variables`: every variable, as `roslab.ros.environment.host_environment(settings, distro, shell=True)` gives
     them (domain, middleware, discovery mode, the profile's and the roster's extras).
     `underlay_dir`: the underlay workspace (deploy/sources.py) sourced before the workspace, or None.
     `venv_dir`: the robot profile's venv (`~/...`), whose site-packages go first on PYTHONPATH, or None.
@@ -89,7 +89,7 @@ def shell_env():
             distro=distro,
             workspace_dir=typed.workspace_dir,
             rosdistro_index_url=typed.rosdistro_index_url,
-            variables=host_environment(typed.data, distro, shell=True),
+            variables=host_environment(typed, distro, shell=True),
             underlay_dir=typed.sources_underlay_dir if repositories() else None,
             venv_dir=filled_venv("~"),
         )

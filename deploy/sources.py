@@ -278,10 +278,10 @@ def underlay_builder(digest: str, machine: str, cache_dir: Path, holds: bool, di
     kept = underlay_ship.cached(cache_dir, digest)
     if kept is not None:
         return kept["builder"]
-    mine = underlay_groups.roster_inputs(host_settings(host).data)
+    mine = underlay_groups.roster_inputs(host_settings(host))
     candidates = [(peer, peer_settings(peer)) for peer in host.state.inventory if peer in host.state.active_hosts]
     typed_peers = [(peer, typed) for peer, typed in candidates
-                   if typed is not None and underlay_groups.roster_inputs(typed.data) == mine]
+                   if typed is not None and underlay_groups.roster_inputs(typed) == mine]
     peers = [peer for peer, _ in typed_peers]
     named = next((typed.underlay_builder for _, typed in typed_peers if typed.underlay_builder), None)
     members = []

@@ -28,7 +28,7 @@ def ssh_hardening():
     typed = host_settings(host)
     if not should_run("ssh_hardening_enabled"):
         return
-    login = KeyLogin.from_host_data(typed.data, host.name)
+    login = KeyLogin.of(typed, host.name)
     permit_root_login = typed.ssh_permit_root_login
     if login.user == "root" and permit_root_login == "no":
         stop_host(

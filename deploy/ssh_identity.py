@@ -12,7 +12,7 @@ from pyinfra.operations import apt, server, systemd
 from deploy.common import existing_login_home, login_home, login_user, should_run
 from roslab import probe, settings
 from roslab.operations import apt_install_options, managed_block, managed_block_reads
-from roslab.host_settings import host_settings
+from roslab.host_settings import HostSettings, host_settings
 
 DEFAULTS = settings.defaults("ssh_identity")
 
@@ -40,9 +40,9 @@ def etc_hosts_lines(classroom_hosts) -> list[str]:
 
 
 @probe.installs
-def ssh_identity_packages(data, codename) -> list[str]:
+def ssh_identity_packages(settings: HostSettings, codename: str | None, python_sdist: bool = False) -> list[str]:
     """What this step installs (roslab.probe.installs): openssh-server."""
-    return ["openssh-server"] if data.get("ssh_identity_enabled") else []
+    return ["openssh-server"] if settings.ssh_identity_enabled else []
 
 
 @deploy(
@@ -61,7 +61,7 @@ def ssh_identity():
         return
     apt.packages(
         name="Ensure openssh-server is installed",
-        packages=ssh_identity_packages(typed.data, None),
+        packages=ssh_identity_packages(typed, None),
         extra_install_args=apt_install_options(typed.apt_lock_timeout),
     )
     unit = sshd_unit()

@@ -129,7 +129,7 @@ def discovery_files(distro: str) -> dict[str, str]:
     typed = host_settings(host)
     if not typed.discovery_enabled:
         return {}
-    return host_discovery(typed.data, distro).files
+    return host_discovery(typed, distro).files
 
 
 def role_launch() -> str | None:
@@ -236,7 +236,7 @@ def nodes_workspace(typed: HostSettings) -> NodesWorkspace | None:
     try:  # before any change: a value the unit cannot carry stops this host only
         unit_file = unit_text(
             role=str(role), user=user, home=home, workspace_dir=workspace_dir, distro=distro,
-            launch=launch, environment=host_environment(typed.data, distro),
+            launch=launch, environment=host_environment(typed, distro),
             discovery_files=discovery_files(distro), underlay_setup=underlay,
             venv_dir=filled_venv(home), launch_arguments=role_launch_arguments(launch),
         ) if launch else None

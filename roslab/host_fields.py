@@ -8,7 +8,7 @@ roslab/settings.py; tests/unit/test_settings_doc.py fails when this file is stal
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from roslab.profiles.resolve import ResolvedProfile
@@ -159,6 +159,4 @@ class HostSettings:
     roslab_verify_publisher: str | None
     roslab_profile: ResolvedProfile | None
     ssh_hostname: str | None
-    # The host data these were built from, a plain mapping (roslab_profile too), for the helpers that read a
-    # roster host's data alike (ros/environment.py, network/settings.py).
-    data: dict[str, Any] = field(repr=False, compare=False)
+    wifi_password: object | None

@@ -106,4 +106,4 @@ def settings_of(name: str, data: Mapping[str, Any]) -> HostSettings:
                         if not any(shown.startswith(f"{key} ") for shown in problems))
     if problems:
         raise HostSettingsError(f"host {name}: {'; '.join(problems)} (in its inventory data or pyinfra's --data)")
-    return HostSettings(**values, data=merged)
+    return HostSettings(**values)

@@ -33,7 +33,7 @@ import secrets
 import zlib
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 from pyinfra import host as current_host
 from pyinfra.api import FactBase, StringCommand
@@ -396,21 +396,26 @@ def reader(function: Callable[[], Iterable[Read]]):
 
 # What each step installs, declared once beside the step (`@installs`): the step installs exactly
 # that list, and the class apt cache (deploy/apt_cache.py planned_packages) fills itself from it.
-INSTALLERS: list[Callable[[Any, str], list[str]]] = []
+# An installer is `(settings, codename, python_sdist) -> apt package names`: `settings` is the
+# host's roslab.host_settings.HostSettings (Any here: roslab.profiles, which HostSettings holds,
+# builds on this module), `python_sdist` this run's note that the host's wheelhouse holds an sdist.
+Installer = Callable[[Any, "str | None", bool], list[str]]
+INSTALLERS: list[Installer] = []
+_Installer = TypeVar("_Installer", bound=Installer)
 
 
-def installs(function: Callable[[Any, str], list[str]]):
-    """Register what a step installs: `function(data, codename)` -> apt package names, for a
-    host with these settings (a host.data mapping) on this Ubuntu codename."""
+def installs(function: _Installer) -> _Installer:
+    """Register what a step installs: `function(settings, codename, python_sdist)` -> apt package
+    names, for a host with these typed settings on this Ubuntu codename."""
     INSTALLERS.append(function)
     return function
 
 
-def declared_packages(data, codename: str) -> list[str]:
-    """Every registered step's packages for one host, in registration order, each once."""
+def declared_packages(settings: Any, codename: str | None, python_sdist: bool = False) -> list[str]:
+    """Every registered step's packages for one host (its HostSettings), in registration order, each once."""
     packages: list[str] = []
     for function in INSTALLERS:
-        packages += [name for name in function(data, codename) if name not in packages]
+        packages += [name for name in function(settings, codename, python_sdist) if name not in packages]
     return packages
 
 

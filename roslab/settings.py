@@ -579,6 +579,9 @@ HOST_KEYS: list[HostKey] = [
             "host data carries it as a plain mapping, this field as the dataclass."),
     HostKey("ssh_hostname", "str", str, "Where pyinfra connects to the host (its roster address or the "
             "last confirmed one)."),
+    HostKey("wifi_password", "object", object, "The WiFi password wifi_password_secret names, read from the "
+            "secrets file by the roster loader (a roslab.secrets.Secret, masked in every output; checked as a "
+            "WPA password by roslab.network.settings)."),
 ]
 
 

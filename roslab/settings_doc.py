@@ -148,7 +148,7 @@ def host_fields_module() -> str:
         "",
         "from __future__ import annotations",
         "",
-        "from dataclasses import dataclass, field",
+        "from dataclasses import dataclass",
         "from typing import Any",
         "",
         "from roslab.profiles.resolve import ResolvedProfile",
@@ -166,9 +166,6 @@ def host_fields_module() -> str:
     lines.append("    # --- derived by the roster loader (None in a hand-made inventory that lacks it) ---")
     for key in settings.HOST_KEYS:
         lines.append(f"    {key.key}: {key.annotation} | None")
-    lines += _comment("The host data these were built from, a plain mapping (roslab_profile too), for the "
-                      "helpers that read a roster host's data alike (ros/environment.py, network/settings.py).")
-    lines.append("    data: dict[str, Any] = field(repr=False, compare=False)")
     return "\n".join(lines) + "\n"
 
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from roslab import settings
+from roslab.host_settings import settings_of
 from roslab.ros import discovery
 from roslab.ros.workspace import NODES_SERVICE
 
@@ -75,7 +76,8 @@ def host_services(data) -> list[HostService]:
         distro = data.get("ros_distro") or data.get("roslab_expected_distro") or "jazzy"
         given = data.dict() if hasattr(data, "dict") else dict(data)  # pyinfra's HostData, or a dict
         merged = {**settings.defaults("discovery"), **{k: v for k, v in given.items() if v is not None}}
-        service = discovery.host_discovery(merged, distro).service
+        typed = settings_of(str(merged.get("roslab_hostname") or ""), merged)  # the boundary: a mapping to typed
+        service = discovery.host_discovery(typed, distro).service
         if service is not None:
             what = ("the team's Zenoh router" if service.name == discovery.ZENOH_ROUTER_SERVICE
                     else "the team's Fast DDS discovery server")

@@ -87,7 +87,7 @@ def run_check(args: argparse.Namespace) -> int:
     for warning in classroom.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     title = f"Classroom {classroom.name!r}" if classroom.name else "Classroom"
-    middleware = classroom.hosts[0].data.get("ros_middleware") if classroom.hosts else None
+    middleware = classroom.hosts[0].settings.ros_middleware if classroom.hosts else None
     print(f"{title} ({display_path(path)}): {len(classroom.teams)} teams, {len(classroom.hosts)} hosts"
           + (f", middleware {middleware}" if middleware else ""))
     print(classroom_table(classroom))

@@ -45,6 +45,7 @@ from pathlib import Path
 import yaml
 from pyinfra.api import FactBase
 
+from roslab.host_settings import HostSettings
 from roslab.roster import Classroom, RosterError, display_path, group_names, inventory_groups
 from roslab.profiles.host import RebootRecord, parse_reboot_record, reboot_pending
 from roslab.reporting.runs import RunRecord, now_utc, read_runs, runs_path
@@ -210,16 +211,16 @@ def parse_origin(lines) -> dict | None:
     return None
 
 
-def origin_file(data: dict) -> str:
+def origin_file(settings: HostSettings) -> str:
     """The shell word naming the host's underlay origin record (roslab.sources.underlay.ORIGIN), read
     as the SSH user: `~user/...` for a folder in the login user's home; "" without an underlay."""
     from roslab.sources.underlay import ORIGIN
     from roslab.sources.groups import roster_inputs
 
-    if roster_inputs(data) is None:
+    if roster_inputs(settings) is None:
         return ""
-    user = data.get("login_user") or data.get("ssh_user") or ""
-    folder = str(data.get("sources_underlay_dir") or "~/roslab_underlay")
+    user = settings.login_user or settings.ssh_user or ""
+    folder = str(settings.sources_underlay_dir or "~/roslab_underlay")
     if not re.fullmatch(r"[a-z_][a-z0-9_-]{0,31}", user):
         return ""
     inside = f"{folder[2:]}/{ORIGIN}" if folder.startswith("~/") else None
@@ -581,8 +582,8 @@ def host_statuses(classroom: Classroom, groups: dict, limit: list[str] | None = 
             listens=bool(host.data.get("nodes_verify_topic")),
             not_started=services_not_started(host.data),
             listen_timeout=int(host.data.get("nodes_verify_timeout") or LISTEN_TIMEOUT),
-            underlay=origin_file(host.data),
-            base=(host.data.get("roslab_profile") or {}).get("base"),
+            underlay=origin_file(host.settings),
+            base=host.settings.roslab_profile.base if host.settings.roslab_profile is not None else None,
         ))
     return statuses
 
@@ -953,9 +954,9 @@ def checklists(classroom: Classroom, names: set[str] | None = None) -> list[dict
     """Per host, the robot profile's steps that need the hardware attached (done by hand)."""
     result = []
     for host in classroom.hosts:
-        profile = host.data.get("roslab_profile") or {}
-        if profile.get("checklist") and (names is None or host.name in names):
-            result.append({"host": host.name, "profile": profile.get("name"), "items": list(profile["checklist"])})
+        profile = host.settings.roslab_profile
+        if profile is not None and profile.checklist and (names is None or host.name in names):
+            result.append({"host": host.name, "profile": profile.name, "items": list(profile.checklist)})
     return result
 
 

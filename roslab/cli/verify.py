@@ -50,6 +50,7 @@ from roslab.cli.host_services import (host_services, profile_name, runs_a_launch
 from roslab.cli import launch_journal
 from roslab.operations import as_user
 from roslab.quoting import shell_home_path, shell_word
+from roslab.host_settings import host_settings
 from roslab.ros.environment import host_environment
 from roslab.ros.workspace import NODES_SERVICE, NodesUnitState
 
@@ -485,7 +486,7 @@ def hear(host, distro: str | None = None, timeout: int | None = None) -> dict:
     return host.get_fact(
         NodesHeard,
         distro=distro,
-        environment=host_environment(host.data, distro, shell=True),
+        environment=host_environment(host_settings(host), distro, shell=True),
         workspace_dir=host.data.workspace_dir,
         topic=host.data.nodes_verify_topic,
         timeout=timeout,

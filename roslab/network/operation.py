@@ -209,7 +209,7 @@ def network_in_effect(
 
         network_in_effect(
             name="Ensure the host has its static address from the roster",
-            settings=network_settings(host.data),
+            settings=network_settings(host_settings(host)),
             current_address="192.168.50.200",
         )
     """

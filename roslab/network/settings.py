@@ -3,8 +3,8 @@
 Used twice, like the distro mapping: the roster loader runs `validate_roster`
 before any host is touched (address inside its subnet, gateway inside it, no
 address used twice, a WiFi password from the secrets file), and the network
-deploy parses each host's data again with `network_settings` so a host's data can
-never reach a template unchecked.
+deploy parses each host's typed settings (roslab.host_settings.HostSettings) again
+with `network_settings` so a host's data can never reach a template unchecked.
 
 Every value is hostile until checked here. What the network files cannot hold is
 refused, naming the field: control characters and line breaks in the SSID, the
@@ -20,9 +20,10 @@ import re
 import unicodedata
 from dataclasses import dataclass, field
 from ipaddress import IPv4Address, IPv4Interface, ip_address
-from typing import Any, Iterable, Mapping
+from collections.abc import Mapping
+from typing import Any, Iterable
 
-from roslab import settings as schema
+from roslab.host_settings import HostSettings
 from roslab.network.apply import INTERFACE_NAME
 
 KINDS = ("ethernet", "wifi")
@@ -82,16 +83,15 @@ def _unmask(secret: Any) -> Any:
     return unmask() if callable(unmask) else secret
 
 
-def _choice(data: Mapping, key: str, choices: tuple[str, ...]) -> str:
-    value = data.get(key)
+def _choice(key: str, value: object, choices: tuple[str, ...]) -> str:
     if not isinstance(value, str) or value not in choices:
         raise NetworkSettingError(key, f"{value!r} is not one of {', '.join(choices)}")
     return value
 
 
-def _address(data: Mapping) -> IPv4Interface:
-    raw = str(data.get("network_address")).strip()
-    prefix = data.get("network_prefix")
+def _address(settings: HostSettings) -> IPv4Interface:
+    raw = str(settings.network_address).strip()
+    prefix: object = settings.network_prefix
     if isinstance(prefix, bool) or not isinstance(prefix, (int, str, type(None))):
         raise NetworkSettingError("network_prefix", f"{prefix!r} is not a prefix length")
     try:
@@ -142,8 +142,7 @@ def _not_a_unicast_address(ip) -> str | None:
     return None
 
 
-def _gateway(data: Mapping, address: IPv4Interface | None) -> IPv4Address | None:
-    raw = data.get("network_gateway")
+def _gateway(raw: object, address: IPv4Interface | None) -> IPv4Address | None:
     if raw in (None, ""):
         return None
     try:
@@ -170,8 +169,7 @@ def _gateway(data: Mapping, address: IPv4Interface | None) -> IPv4Address | None
     return gateway
 
 
-def _nameservers(data: Mapping) -> tuple[str, ...]:
-    raw = data.get("network_nameservers")
+def _nameservers(raw: object) -> tuple[str, ...]:
     if raw is None:
         raw = []
     elif isinstance(raw, str):
@@ -197,8 +195,7 @@ def _nameservers(data: Mapping) -> tuple[str, ...]:
     return tuple(servers)
 
 
-def _interface(data: Mapping, kind: str) -> str:
-    interface = data.get("network_interface")
+def _interface(interface: object, kind: str) -> str:
     if interface is None:
         return DEFAULT_INTERFACES[kind]
     if not isinstance(interface, str) or not INTERFACE_NAME.fullmatch(interface):
@@ -210,8 +207,7 @@ def _interface(data: Mapping, kind: str) -> str:
     return interface
 
 
-def _ssid(data: Mapping) -> str:
-    ssid = data.get("wifi_ssid")
+def _ssid(ssid: object) -> str:
     if ssid is None or ssid == "":
         raise NetworkSettingError("wifi_ssid", "a wifi host needs wifi_ssid")
     if not isinstance(ssid, str):
@@ -229,14 +225,14 @@ def _ssid(data: Mapping) -> str:
     return ssid
 
 
-def _wifi_password(data: Mapping) -> Any:
-    name = data.get("wifi_password_secret")
+def _wifi_password(settings: HostSettings) -> Any:
+    name = settings.wifi_password_secret
     if not name:
         raise NetworkSettingError(
             "wifi_password_secret",
             "a wifi host needs wifi_password_secret naming the WiFi password in the secrets file",
         )
-    password = data.get("wifi_password")
+    password = settings.wifi_password
     if password is None:
         raise NetworkSettingError(
             "wifi_password_secret", f"secret {name!r} was not found in the secrets file"
@@ -256,45 +252,45 @@ def _wifi_password(data: Mapping) -> Any:
     return password
 
 
-def manages_network(data: Mapping) -> bool:
+def manages_network(settings: HostSettings) -> bool:
     """Whether the network deploy touches this host at all."""
-    if not data.get("network_enabled", True):
+    if not settings.network_enabled:
         return False
-    return bool(data.get("network_address")) or data.get("network_method") == "dhcp"
+    return bool(settings.network_address) or settings.network_method == "dhcp"
 
 
-def network_settings(data: Mapping) -> NetworkSettings | None:
+def network_settings(settings: HostSettings) -> NetworkSettings | None:
     """Parse and check one host's network settings; None if the host's network is left alone.
 
     Raises NetworkSettingError naming the field for any bad value (and nothing else,
-    whatever the types in `data`).
+    whatever the types in `settings`: HostSettings checked them, and this does again).
     """
-    if not manages_network(data):
+    if not manages_network(settings):
         return None
-    kind = _choice(data, "network_kind", KINDS)
-    method = _choice(data, "network_method", METHODS)
-    backend = _choice(data, "network_backend", BACKENDS)
-    ipv6 = _choice(data, "network_ipv6", IPV6_MODES)
-    interface = _interface(data, kind)
+    kind = _choice("network_kind", settings.network_kind, KINDS)
+    method = _choice("network_method", settings.network_method, METHODS)
+    backend = _choice("network_backend", settings.network_backend, BACKENDS)
+    ipv6 = _choice("network_ipv6", settings.network_ipv6, IPV6_MODES)
+    interface = _interface(settings.network_interface, kind)
 
-    address = _address(data) if method == "static" else None
-    gateway = _gateway(data, address)
-    nameservers = _nameservers(data)
+    address = _address(settings) if method == "static" else None
+    gateway = _gateway(settings.network_gateway, address)
+    nameservers = _nameservers(settings.network_nameservers)
 
-    ssid, password = (_ssid(data), _wifi_password(data)) if kind == "wifi" else (None, None)
+    ssid, password = (_ssid(settings.wifi_ssid), _wifi_password(settings)) if kind == "wifi" else (None, None)
 
-    timeout = data.get("network_confirm_timeout")
+    timeout: object = settings.network_confirm_timeout
     if isinstance(timeout, bool) or not isinstance(timeout, int) or not 10 <= timeout <= 3600:
         raise NetworkSettingError(
             "network_confirm_timeout", f"{timeout!r} is not a number of seconds from 10 to 3600"
         )
-    disable_cloud_init = data.get("network_disable_cloud_init", True)
+    disable_cloud_init: object = settings.network_disable_cloud_init
     if not isinstance(disable_cloud_init, bool):
         raise NetworkSettingError(
             "network_disable_cloud_init", f"{disable_cloud_init!r} is not true or false"
         )
 
-    backups_keep = data.get("network_backups_keep")
+    backups_keep: object = settings.network_backups_keep
     if isinstance(backups_keep, bool) or not isinstance(backups_keep, int) or not 1 <= backups_keep <= 100:
         raise NetworkSettingError("network_backups_keep", f"{backups_keep!r} is not a number from 1 to 100")
 
@@ -326,23 +322,24 @@ class NetworkProblem:
 
 
 def check_classroom_network(
-    hosts: Iterable[tuple[str | None, str, Mapping]], check_duplicates: bool = True
+    hosts: Iterable[tuple[str | None, str, str | None, HostSettings | None]], check_duplicates: bool = True
 ) -> list[NetworkProblem]:
     """Check every host's network settings, and that no two hosts share an address.
 
-    `hosts` yields (team, host name, merged settings incl. `address`, the address SSH uses now).
-    `check_duplicates=False` leaves duplicate network_address values to the caller.
+    `hosts` yields (team, host name, the address SSH uses now, its typed settings, or None for a
+    host the roster gives no network to manage). `check_duplicates=False` leaves duplicate
+    network_address values to the caller.
     """
     problems: list[NetworkProblem] = []
     owners: dict[IPv4Address, str] = {}
     parsed: list[tuple[str | None, str, IPv4Address]] = []  # the hosts given an address
     ssh_addresses: dict[str, str] = {}
 
-    for team, name, data in hosts:
-        if data.get("address"):
-            ssh_addresses[name] = str(data.get("address"))
+    for team, name, ssh_address, typed in hosts:
+        if ssh_address:
+            ssh_addresses[name] = str(ssh_address)
         try:
-            settings = network_settings(data)
+            settings = network_settings(typed) if typed is not None else None
         except NetworkSettingError as exc:
             problems.append(NetworkProblem(team, name, exc.field, exc.message))
             continue
@@ -381,6 +378,14 @@ def check_classroom_network(
     return problems
 
 
+def _given_a_network(data: Mapping[str, Any]) -> bool:
+    """Whether a roster host's data asks the network deploy for anything: `manages_network`, read
+    from the roster's mapping before the host's settings are built (network_enabled true and an
+    address or DHCP)."""
+    return bool(data.get("network_enabled", True)) and (
+        bool(data.get("network_address")) or data.get("network_method") == "dhcp")
+
+
 def validate_roster(classroom, report) -> None:
     """Roster validator (run by roslab.roster.load_roster): every host's network settings.
 
@@ -388,11 +393,10 @@ def validate_roster(classroom, report) -> None:
     loader already reports two hosts with one network_address.
     """
     try:
-        defaults = schema.defaults("network")  # what the roster leaves out (the loader merges them too)
-        hosts = [
-            (host.team, host.name, {**defaults, **host.data, "address": host.address})
-            for host in classroom.hosts
-        ]
+        # Only a host the roster gives a network has its settings built (roslab.roster.Host.settings):
+        # `roslab check` of 10,000 hosts without one builds none.
+        hosts = [(host.team, host.name, host.address, host.settings if _given_a_network(host.data) else None)
+                 for host in classroom.hosts]
         lines = {host.name: host.lines for host in classroom.hosts}
         problems = check_classroom_network(hosts, check_duplicates=False)
     except Exception as exc:  # never raise: the loader reports every problem at once

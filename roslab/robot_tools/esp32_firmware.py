@@ -64,10 +64,11 @@ class BoardValues:
         return f"{assignments} pio run -e {self.transport}_{self.distro} -t upload"
 
 
-def profile_settings(host) -> dict | None:
-    """The host's esp32_microros settings, or None (another profile, or none)."""
-    profile = host.data.get("roslab_profile") or {}
-    return profile.get("settings") or {} if profile.get("name") == PROFILE else None
+def profile_settings(host) -> dict[str, str] | None:
+    """The host's esp32_microros settings (a roster Host's resolved profile's), or None (another
+    profile, or none)."""
+    profile = host.settings.roslab_profile
+    return profile.settings if profile is not None and profile.name == PROFILE else None
 
 
 def board_values(classroom, team: str) -> BoardValues | None:

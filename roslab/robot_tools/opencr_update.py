@@ -212,8 +212,8 @@ def run(args: argparse.Namespace) -> int:
 
 def turtlebot3_model(host) -> str | None:
     """The robot's `turtlebot3_model`, or None where the host is not a TurtleBot3 robot."""
-    profile = host.data.get("roslab_profile") or {}
-    return (profile.get("settings") or {}).get("turtlebot3_model") if host.role == "robot" else None
+    profile = host.settings.roslab_profile
+    return (profile.settings if profile is not None else {}).get("turtlebot3_model") if host.role == "robot" else None
 
 
 def checked_archive(args: argparse.Namespace, data: dict) -> bytes | None:

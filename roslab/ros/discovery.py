@@ -26,14 +26,17 @@ With Zenoh (`rmw_zenoh_cpp`) discovery goes through a router: the team's main ru
 hosts connect to it; `multicast` and `static` mean the same there, a `localhost` host runs its own
 router on the loopback, and a discovery server is refused.
 
-Everything here is plain data from a host's data (pyinfra's host.data or a roster host's dict);
+Everything here is plain data from a host's typed settings (`DiscoverySettings`: what
+roslab.host_settings.HostSettings is, built from pyinfra's host.data or a roster host's dict);
 the values were checked by the settings schema before, and each destination escapes them.
 """
 
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any, Protocol
 from xml.sax.saxutils import escape, quoteattr
 
 from roslab.ros import distro as distros
@@ -101,22 +104,50 @@ def middleware_ros_package(middleware: str) -> str | None:
     return None if middleware == FASTDDS else middleware
 
 
-def _get(data, key, default):
+class DiscoverySettings(Protocol):
+    """What discovery reads of a host's settings: roslab.host_settings.HostSettings has these fields
+    (named here, not imported: roslab.profiles, which HostSettings holds, builds on roslab.ros)."""
+
+    @property
+    def ros_domain_id(self) -> int | None: ...
+    @property
+    def ros_middleware(self) -> str: ...
+    @property
+    def ros_discovery_mode(self) -> str: ...
+    @property
+    def ros_automatic_discovery_range(self) -> str: ...
+    @property
+    def ros_static_peers(self) -> list[str]: ...
+    @property
+    def ros_discovery_server_port(self) -> int: ...
+    @property
+    def ros_zenoh_router_port(self) -> int: ...
+    @property
+    def roslab_team_hosts(self) -> list[dict[str, str | None]] | None: ...
+    @property
+    def roslab_hostname(self) -> str | None: ...
+    @property
+    def roslab_role(self) -> str | None: ...
+
+
+def _get(data: Mapping[str, Any], key: str, default: str) -> str:
     value = data.get(key)
     return default if value is None else value
 
 
-def mode_of(data) -> str:
+def mode_of(data: Mapping[str, Any]) -> str:
+    """The discovery mode of a roster host's data (the roster's checks across hosts read it)."""
     return _get(data, "ros_discovery_mode", DEFAULT_MODE)
 
 
-def middleware_of(data) -> str:
+def middleware_of(data: Mapping[str, Any]) -> str:
+    """The middleware of a roster host's data (the roster's checks across hosts read it)."""
     return _get(data, "ros_middleware", DEFAULT_MIDDLEWARE)
 
 
-def team_main(data) -> dict | None:
+def team_main(data: DiscoverySettings) -> dict | None:
     """The host's team's main host ({"name", "address", "role"}), or None."""
-    for member in data.get("roslab_team_hosts") or ():
+    for member in data.roslab_team_hosts or ():
         if member.get("role") == "main":
             return member
     return None
@@ -127,19 +158,19 @@ def reach(member: dict) -> str:
     return member.get("address") or member["name"]
 
 
-def team_peers(data) -> list[str]:
+def team_peers(data: DiscoverySettings) -> list[str]:
     """The host's team mates (not itself), as other hosts reach them, then the roster's ros_static_peers."""
-    me = data.get("roslab_hostname")
-    peers = [reach(member) for member in data.get("roslab_team_hosts") or () if member.get("name") != me]
-    peers += [peer for peer in data.get("ros_static_peers") or () if peer not in peers]
+    me = data.roslab_hostname
+    peers = [reach(member) for member in data.roslab_team_hosts or () if member.get("name") != me]
+    peers += [peer for peer in data.ros_static_peers or () if peer not in peers]
     return peers
 
 
-def is_main(data) -> bool:
-    return data.get("roslab_role") == "main"
+def is_main(data: DiscoverySettings) -> bool:
+    return data.roslab_role == "main"
 
 
-def server_address(data) -> str:
+def server_address(data: DiscoverySettings) -> str:
     """The discovery server or router this host talks to: its own loopback on the main."""
     main = team_main(data)
     if is_main(data) or main is None:
@@ -147,11 +178,11 @@ def server_address(data) -> str:
     return reach(main)
 
 
-def host_discovery(data, distro: str) -> HostDiscovery:
+def host_discovery(data: DiscoverySettings, distro: str) -> HostDiscovery:
     """Everything `data`'s host gets for discovery on `distro` (see the module's docstring)."""
-    mode, middleware = mode_of(data), middleware_of(data)
+    mode, middleware = data.ros_discovery_mode, data.ros_middleware
     found = HostDiscovery(mode, middleware, {}, {}, {}, None)
-    domain = data.get("ros_domain_id")
+    domain = data.ros_domain_id
     if domain is not None:
         found.variables["ROS_DOMAIN_ID"] = str(domain)
     found.variables["RMW_IMPLEMENTATION"] = middleware
@@ -160,8 +191,7 @@ def host_discovery(data, distro: str) -> HostDiscovery:
     elif mode == "localhost":
         _range(found, distro, "LOCALHOST", ())
     elif mode == "multicast":
-        _range(found, distro, str(_get(data, "ros_automatic_discovery_range", "SUBNET")),
-               list(data.get("ros_static_peers") or ()))
+        _range(found, distro, str(data.ros_automatic_discovery_range), list(data.ros_static_peers or ()))
     elif mode == "static":
         _static_peers(found, data, distro)
     elif mode == "discovery_server":  # Fast DDS only (refused otherwise before connecting)
@@ -180,7 +210,7 @@ def _range(found: HostDiscovery, distro: str, discovery_range: str, peers) -> No
         found.variables["ROS_LOCALHOST_ONLY"] = "1"
 
 
-def _static_peers(found: HostDiscovery, data, distro: str) -> None:
+def _static_peers(found: HostDiscovery, data: DiscoverySettings, distro: str) -> None:
     """Unicast to the team's hosts only: ROS_STATIC_PEERS where the distro has it, else the
     middleware's own peers file."""
     peers = team_peers(data)
@@ -194,10 +224,10 @@ def _static_peers(found: HostDiscovery, data, distro: str) -> None:
         found.files[FASTDDS_PEERS_XML] = fastdds_peers_xml(peers)
 
 
-def _discovery_server(found: HostDiscovery, data, distro: str) -> None:
+def _discovery_server(found: HostDiscovery, data: DiscoverySettings, distro: str) -> None:
     """Fast DDS's discovery server on the team's main; the shell's tools see the whole graph as
     super clients (ROS_SUPER_CLIENT, or Fast DDS 2.6's XML profile)."""
-    port = _get(data, "ros_discovery_server_port", DEFAULT_SERVER_PORT)
+    port = data.ros_discovery_server_port
     found.variables["ROS_DISCOVERY_SERVER"] = f"{server_address(data)}:{port}"
     if not distros.record(distro).fastdds_super_client_variable:
         found.shell_variables[profiles_variable(distro)] = FASTDDS_SUPER_CLIENT_XML
@@ -208,10 +238,10 @@ def _discovery_server(found: HostDiscovery, data, distro: str) -> None:
         found.service = discovery_server(port)
 
 
-def _zenoh(found: HostDiscovery, data) -> None:
+def _zenoh(found: HostDiscovery, data: DiscoverySettings) -> None:
     """Zenoh: a router on the team's main (or on each host, for localhost); every host's session
     connects to it."""
-    port = _get(data, "ros_zenoh_router_port", DEFAULT_ROUTER_PORT)
+    port = data.ros_zenoh_router_port
     if found.mode == "localhost":
         found.service = zenoh_router(port, listen="127.0.0.1")
         found.variables["ZENOH_CONFIG_OVERRIDE"] = zenoh_override(connect=f"tcp/127.0.0.1:{port}")

@@ -186,15 +186,14 @@ def codename_for(release: str) -> str:
         raise DistroError(f"Ubuntu {release} is not supported (supported: {known})") from None
 
 
-def default_distro(codename: str) -> str:
-    """Return the distro a host on this Ubuntu codename gets unless overridden."""
-    try:
-        return DEFAULT_DISTRO[codename]
-    except KeyError:
+def default_distro(codename: str | None) -> str:
+    """Return the distro a host on this Ubuntu codename gets unless overridden (None: not Ubuntu,
+    refused as an unknown codename is)."""
+    distro = DEFAULT_DISTRO.get(codename) if codename is not None else None
+    if distro is None:
         known = ", ".join(sorted(DEFAULT_DISTRO))
-        raise DistroError(
-            f"Ubuntu {codename!r} has no ROS 2 packages roslab knows of (supported: {known})"
-        ) from None
+        raise DistroError(f"Ubuntu {codename!r} has no ROS 2 packages roslab knows of (supported: {known})")
+    return distro
 
 
 def check_distro(distro: str, codename: str) -> None:

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 from roslab.checked.problems import Problem
+from roslab.host_settings import HostSettings, settings_of
 
 ROLES = ("main", "robot")
 
@@ -26,6 +28,12 @@ class Host:
     line: int | None = None
     # Roster line where each resolved field was set, for checks' messages.
     lines: dict = field(default_factory=dict, repr=False)
+
+    @cached_property
+    def settings(self) -> HostSettings:
+        """The host's typed settings, what every helper reads (built from `data` on first use, so
+        a check of 10,000 hosts builds only those a check asks for; the loader checked `data`)."""
+        return settings_of(self.name, self.data)
 
     @property
     def ros_domain_id(self) -> int | None:

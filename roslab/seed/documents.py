@@ -186,14 +186,14 @@ def network_config(host: Host) -> tuple[str, bool]:
     as Ubuntu's own image does. `renderer: networkd` always: without it a static address
     on a Pi image silently falls back to DHCP."""
     try:
-        settings = network_settings(host.data)
+        settings = network_settings(host.settings)
     except NetworkSettingError as error:
         raise SeedError(host.name, error.field, error.message) from None
     if settings is None:
         return HEADER.format(host=host.name, what="DHCP on eth0") + dump({"network": {
             "version": 2, "renderer": "networkd",
             "ethernets": {"eth0": {"dhcp4": True, "optional": True}}}}), False
-    return (render_netplan(settings, "networkd", host.data.get("wifi_regulatory_domain")),
+    return (render_netplan(settings, "networkd", host.settings.wifi_regulatory_domain),
             settings.password is not None)
 
 

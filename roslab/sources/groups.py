@@ -27,6 +27,7 @@ import difflib
 import hashlib
 import json
 from dataclasses import dataclass
+from typing import Any, Protocol
 
 from roslab.checked.problems import Report
 
@@ -41,25 +42,60 @@ def short(digest: str | None) -> str:
     return (digest or "")[:SHORT]
 
 
-def roster_inputs(data: dict) -> str | None:
+class UnderlayProfile(Protocol):
+    """What a group reads of a host's resolved robot profile (roslab.profiles.resolve.ResolvedProfile)."""
+
+    @property
+    def cmake_args(self) -> dict[str, list[str]]: ...
+    @property
+    def build_dependencies(self) -> dict[str, list[str]]: ...
+    @property
+    def skip_packages(self) -> list[str]: ...
+
+
+class UnderlaySettings(Protocol):
+    """What a group reads of a host's typed settings: roslab.host_settings.HostSettings has these
+    fields (named here, not imported: roslab.profiles, which HostSettings holds, builds on sources/)."""
+
+    @property
+    def sources_enabled(self) -> bool: ...
+    @property
+    def roslab_sources(self) -> list[dict[str, Any]] | None: ...
+    @property
+    def ros_distro(self) -> str | None: ...
+    @property
+    def roslab_expected_distro(self) -> str | None: ...
+    @property
+    def workspace_colcon_args(self) -> list[str]: ...
+    @property
+    def login_user(self) -> str | None: ...
+    @property
+    def ssh_user(self) -> str | None: ...
+    @property
+    def sources_underlay_dir(self) -> str: ...
+    @property
+    def roslab_profile(self) -> UnderlayProfile | None: ...
+
+
+def roster_inputs(settings: UnderlaySettings) -> str | None:
     """What the roster says a host's underlay is built from (one canonical text), or None when
     the host builds no underlay. Hosts with the same text form a group, as far as the roster
     can tell (the architecture and the archives' digests are known only when the deploy runs)."""
-    if not data.get("sources_enabled", True):
+    if not settings.sources_enabled:
         return None
-    repositories = data.get("roslab_sources") or []
+    repositories = settings.roslab_sources or []
     if not repositories:
         return None
-    profile = data.get("roslab_profile") or {}
+    profile = settings.roslab_profile
     return json.dumps({
-        "distro": data.get("ros_distro") or data.get("roslab_expected_distro"),
+        "distro": settings.ros_distro or settings.roslab_expected_distro,
         "repositories": sorted([repo["path"], repo["url"], repo["version"]] for repo in repositories),
-        "colcon_args": list(data.get("workspace_colcon_args") or []),
-        "cmake_args": profile.get("cmake_args") or {},
-        "build_dependencies": profile.get("build_dependencies") or {},
-        "skip_packages": sorted(profile.get("skip_packages") or []),
-        "user": data.get("login_user") or data.get("ssh_user"),
-        "underlay_dir": data.get("sources_underlay_dir"),
+        "colcon_args": list(settings.workspace_colcon_args or []),
+        "cmake_args": (profile.cmake_args if profile else None) or {},
+        "build_dependencies": (profile.build_dependencies if profile else None) or {},
+        "skip_packages": sorted((profile.skip_packages if profile else None) or []),
+        "user": settings.login_user or settings.ssh_user,
+        "underlay_dir": settings.sources_underlay_dir,
     }, sort_keys=True)
 
 
@@ -127,13 +163,22 @@ def check_underlay_builders(classroom, report: Report) -> None:
 
     `underlay_builder` names a host of the roster that needs the same underlay as the host it
     is set on; the hosts of one group name the same builder. One error per host, naming the
-    roster line, team, host and field."""
+    roster line, team, host and field.
+
+    A host's inputs come from its typed settings (`host.settings`, roslab.roster.Host's), read
+    only for the hosts a named builder concerns: a check of 10,000 hosts builds no others."""
     by_name = {host.name: host for host in classroom.hosts}
-    inputs = {host.name: roster_inputs(host.data) for host in classroom.hosts}
+    inputs: dict[str, str | None] = {}
+
+    def inputs_of(name: str) -> str | None:
+        if name not in inputs:
+            inputs[name] = roster_inputs(by_name[name].settings)
+        return inputs[name]
+
     named_by_group: dict[str, tuple[str, str]] = {}
     for host in classroom.hosts:
-        named = host.data.get(FIELD)
-        own = inputs[host.name]
+        named = host.data.get(FIELD)  # the roster's value, read before any host's settings are built
+        own = inputs_of(host.name) if named else None
         if not named or own is None:
             continue  # a host without an underlay builds nothing: a classroom-wide value is fine
         where = {"team": host.team, "host": host.name, "field": FIELD, "line": host.lines.get(FIELD)}
@@ -143,12 +188,13 @@ def check_underlay_builders(classroom, report: Report) -> None:
             hint = f" (did you mean {close[0]!r}?)" if close else ""
             report.error(f"{named!r} is not a host of this roster{hint}", **where)
             continue
-        if inputs[named] is None:
+        if inputs_of(named) is None:
             report.error(f"{named!r} builds no underlay (no sources, or sources_enabled false), so it cannot "
                          f"build {host.name!r}'s", **where)
             continue
         if inputs[named] != own:
-            report.error(f"{named!r} needs another underlay than {host.name!r} ({difference(builder.data, host.data)}): "
+            report.error(f"{named!r} needs another underlay than {host.name!r} "
+                         f"({difference(builder.settings, host.settings)}): "
                          "a builder must be a host of the same group (same distro, sources and build settings)",
                          **where)
             continue
@@ -158,7 +204,7 @@ def check_underlay_builders(classroom, report: Report) -> None:
                          "a group has one builder", **where)
 
 
-def difference(builder: dict, host: dict) -> str:
+def difference(builder: UnderlaySettings, host: UnderlaySettings) -> str:
     """What differs between two hosts' underlay inputs, in words (the first difference)."""
     a, b = json.loads(roster_inputs(builder) or "{}"), json.loads(roster_inputs(host) or "{}")
     for key in ("distro", "repositories", "user", "underlay_dir", "colcon_args", "cmake_args",

@@ -31,6 +31,7 @@ from pyinfra.api.command import FileUploadCommand
 from pyinfra.facts.files import FileContents
 from pyinfra.operations.util.files import generate_color_diff
 
+from roslab.host_fields import HostSettings
 from roslab.templating import render
 
 # Its name sorts before Ubuntu's drop-ins (50-cloud-init.conf, 60-cloudimg-settings.conf):
@@ -131,7 +132,7 @@ class SshdLoginSettings(FactBase):
 class KeyLogin:
     """How the controller logs in to check that key login works: as roslab connects."""
 
-    user: str
+    user: str | None  # None: the controller's own user, as pyinfra connects without ssh_user
     address: str
     port: int = 22
     key: str | None = None  # private key file; None: the agent and ~/.ssh's default keys
@@ -139,14 +140,15 @@ class KeyLogin:
     strict_host_key_checking: str | None = None
 
     @classmethod
-    def from_host_data(cls, data, host_name: str) -> "KeyLogin":
+    def of(cls, settings: HostSettings, host_name: str) -> KeyLogin:
+        """How roslab connects to the host of these typed settings (pyinfra's name `host_name`)."""
         return cls(
-            user=data.get("ssh_user"),
-            address=str(data.get("ssh_hostname") or host_name),
-            port=int(data.get("ssh_port") or 22),
-            key=data.get("ssh_key"),
-            known_hosts=data.get("ssh_known_hosts_file"),
-            strict_host_key_checking=data.get("ssh_strict_host_key_checking"),
+            user=settings.ssh_user,
+            address=str(settings.ssh_hostname or host_name),
+            port=int(settings.ssh_port or 22),
+            key=settings.ssh_key,
+            known_hosts=settings.ssh_known_hosts_file,
+            strict_host_key_checking=settings.ssh_strict_host_key_checking,
         )
 
     def argv(self) -> list[str]:
@@ -172,7 +174,7 @@ class KeyLogin:
             argv += ["-o", f"{option}={value}"]
         if self.key:
             argv += ["-i", self.key]
-        return [*argv, "-p", str(self.port), "-l", self.user, "--", self.address, "true"]
+        return [*argv, "-p", str(self.port), *(["-l", self.user] if self.user else []), "--", self.address, "true"]
 
 
 def confirm_key_login(state, host, login: KeyLogin) -> bool:
@@ -222,7 +224,7 @@ def sshd_key_only(login: KeyLogin, password_login: bool = False, permit_root_log
 
         hardened = sshd_key_only(
             name="Ensure sshd allows key login only",
-            login=KeyLogin.from_host_data(host.data, host.name),
+            login=KeyLogin.of(host_settings(host), host.name),
         )
         server.shell(name="Reload sshd", commands=["systemctl reload ssh"], _if=hardened.did_change)
     """

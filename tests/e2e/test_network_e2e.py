@@ -39,7 +39,6 @@ import paramiko
 import pytest
 import yaml
 
-from deploy.network import DEFAULTS as NETWORK_DEFAULTS
 from roslab.network import state as network_state
 from roslab.network.apply import NM_KEYFILE, Plan, staged_path
 from roslab.network.operation import APPLY_SCRIPT, NetworkRenderer
@@ -261,7 +260,7 @@ def awkward_wifi_host(classroom, index: int, ssid: str = AWKWARD_SSID):
         secrets={"e2e_wifi": AWKWARD_PASSWORD},
     )
     [loaded] = [h for h in load_roster(roster).hosts if h.name == host.name]
-    settings = network_settings({**NETWORK_DEFAULTS, **loaded.data})
+    settings = network_settings(loaded.settings)
     assert (settings.wifi_ssid, settings.password) == (ssid, AWKWARD_PASSWORD)
     return host, settings, network_state.last_known_address(roster, host.name) or host.address
 

@@ -6,7 +6,7 @@ import signal
 import subprocess
 
 import pytest
-from fixtures.classroom import host_data
+from fixtures.classroom import host_data, typed
 from fixtures.fake_host import plan
 from fixtures.fake_ubuntu import FakeUbuntu
 
@@ -18,7 +18,7 @@ from roslab.operations import reporting_a_signal
 
 
 def settings(**changes):
-    return {**DEFAULTS, **changes}
+    return typed({**DEFAULTS, **changes})
 
 
 def test_main_hosts_get_desktop_and_robots_ros_base():

@@ -11,6 +11,7 @@ from fixtures.fake_ubuntu import FakeUbuntu
 from deploy.shell_env import render_ros_environment as render_block, shell_env
 from roslab import settings
 from roslab.ros.environment import host_environment
+from fixtures.classroom import typed
 
 
 def ros_variables(distro: str, domain_id: int, discovery_range: str = "SUBNET", static_peers=()) -> dict:
@@ -18,7 +19,7 @@ def ros_variables(distro: str, domain_id: int, discovery_range: str = "SUBNET", 
     peers are the roster's own), as the deploy computes them."""
     data = {"ros_domain_id": domain_id, "ros_discovery_mode": "multicast",
             "ros_automatic_discovery_range": discovery_range, "ros_static_peers": list(static_peers)}
-    return {name: value for name, value in host_environment(data, distro, shell=True).items()
+    return {name: value for name, value in host_environment(typed(data), distro, shell=True).items()
             if name != "RMW_IMPLEMENTATION"}
 
 

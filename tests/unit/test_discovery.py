@@ -18,6 +18,7 @@ from roslab import settings
 from roslab.ros import discovery
 from roslab.ros import workspace
 from roslab.roster import RosterError, load_roster
+from roslab.host_settings import HostSettings, settings_of
 from roslab.ros.environment import host_environment
 
 MAIN_IP, ROBOT_IP = "10.0.0.11", "10.0.0.12"
@@ -33,6 +34,15 @@ def data_of(role: str, mode: str, middleware: str = "rmw_fastrtps_cpp", **more) 
     name = f"team1-{role}"
     return {**settings.defaults(), "ros_domain_id": 11, "roslab_role": role, "roslab_hostname": name,
             "roslab_team_hosts": TEAM, "ros_discovery_mode": mode, "ros_middleware": middleware, **more}
+
+
+def typed(data: dict) -> HostSettings:
+    """The helpers read a host's typed settings, built from its data as the deploys build them."""
+    return settings_of(data.get("roslab_hostname") or "team1-host", data)
+
+
+def typed_of(role: str, mode: str, middleware: str = "rmw_fastrtps_cpp", **more) -> HostSettings:
+    return typed(data_of(role, mode, middleware, **more))
 
 
 # distro, mode, role -> (variables, shell-only variables, files, service)
@@ -70,7 +80,7 @@ FAST_DDS_CASES = {
 def test_fast_dds_each_mode_and_distro_gives_exactly_these_variables_files_and_service(case):
     distro, mode, role = case
     variables, shell, files, service = FAST_DDS_CASES[case]
-    setup = discovery.host_discovery(data_of(role, mode), distro)
+    setup = discovery.host_discovery(typed_of(role, mode), distro)
     assert setup.variables == variables
     assert setup.shell_variables == shell
     assert set(setup.files) == files
@@ -88,7 +98,7 @@ def parsed(text: str) -> ET.Element:
 
 
 def test_humble_static_fast_dds_profile_turns_multicast_off_and_lists_the_team():
-    text = discovery.host_discovery(data_of("robot", "static", ros_static_peers=["teacher-pc"]), "humble").files[
+    text = discovery.host_discovery(typed_of("robot", "static", ros_static_peers=["teacher-pc"]), "humble").files[
         PEERS_XML]
     root = parsed(text)
     ns = {"p": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
@@ -102,7 +112,7 @@ def test_humble_static_fast_dds_profile_turns_multicast_off_and_lists_the_team()
 
 
 def test_humble_super_client_profile_names_the_teams_server():
-    text = discovery.host_discovery(data_of("robot", "discovery_server", ros_discovery_server_port=11900),
+    text = discovery.host_discovery(typed_of("robot", "discovery_server", ros_discovery_server_port=11900),
                                     "humble").files[SUPER_XML]
     root = parsed(text)
     ns = {"p": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
@@ -115,7 +125,7 @@ def test_humble_super_client_profile_names_the_teams_server():
 
 
 def test_humble_static_cyclone_dds_configuration_lists_the_team_without_multicast():
-    setup = discovery.host_discovery(data_of("main", "static", "rmw_cyclonedds_cpp"), "humble")
+    setup = discovery.host_discovery(typed_of("main", "static", "rmw_cyclonedds_cpp"), "humble")
     assert setup.variables == {"ROS_DOMAIN_ID": "11", "RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp",
                                "CYCLONEDDS_URI": f"file://{CYCLONE_XML}"}
     root = parsed(setup.files[CYCLONE_XML])
@@ -126,7 +136,7 @@ def test_humble_static_cyclone_dds_configuration_lists_the_team_without_multicas
 
 
 def test_jazzy_static_cyclone_dds_uses_ros_static_peers_like_fast_dds():
-    setup = discovery.host_discovery(data_of("robot", "static", "rmw_cyclonedds_cpp"), "jazzy")
+    setup = discovery.host_discovery(typed_of("robot", "static", "rmw_cyclonedds_cpp"), "jazzy")
     assert setup.variables == {"ROS_DOMAIN_ID": "11", "RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp",
                                "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_STATIC_PEERS": MAIN_IP}
     assert setup.files == {} and setup.service is None
@@ -134,8 +144,8 @@ def test_jazzy_static_cyclone_dds_uses_ros_static_peers_like_fast_dds():
 
 @pytest.mark.parametrize("distro", ["humble", "jazzy", "lyrical"])
 def test_zenoh_the_main_runs_the_router_and_the_robot_connects_to_it(distro):
-    main = discovery.host_discovery(data_of("main", "static", "rmw_zenoh_cpp"), distro)
-    robot = discovery.host_discovery(data_of("robot", "static", "rmw_zenoh_cpp"), distro)
+    main = discovery.host_discovery(typed_of("main", "static", "rmw_zenoh_cpp"), distro)
+    robot = discovery.host_discovery(typed_of("robot", "static", "rmw_zenoh_cpp"), distro)
     zenoh = {"ROS_DOMAIN_ID": "11", "RMW_IMPLEMENTATION": "rmw_zenoh_cpp"}
     assert main.variables == {**zenoh, "ZENOH_CONFIG_OVERRIDE": 'connect/endpoints=["tcp/127.0.0.1:7447"]'}
     assert robot.variables == {**zenoh, "ZENOH_CONFIG_OVERRIDE": f'connect/endpoints=["tcp/{MAIN_IP}:7447"]'}
@@ -148,19 +158,20 @@ def test_zenoh_the_main_runs_the_router_and_the_robot_connects_to_it(distro):
 
 
 def test_zenoh_localhost_host_runs_its_own_router_on_the_loopback():
-    setup = discovery.host_discovery(data_of("robot", "localhost", "rmw_zenoh_cpp"), "jazzy")
+    setup = discovery.host_discovery(typed_of("robot", "localhost", "rmw_zenoh_cpp"), "jazzy")
     assert setup.service.environment["ZENOH_CONFIG_OVERRIDE"].startswith('listen/endpoints=["tcp/127.0.0.1:7447"]')
     assert setup.variables["ZENOH_CONFIG_OVERRIDE"] == 'connect/endpoints=["tcp/127.0.0.1:7447"]'
 
 
 def test_the_discovery_server_listens_on_every_interface_of_the_main_at_the_port():
-    setup = discovery.host_discovery(data_of("main", "discovery_server", ros_discovery_server_port=12000), "jazzy")
+    setup = discovery.host_discovery(typed_of("main", "discovery_server", ros_discovery_server_port=12000), "jazzy")
     assert setup.service.command == ("fast-discovery-server", "-i", "0", "-l", "0.0.0.0", "-p", "12000")
 
 
 def test_a_host_without_a_domain_id_exports_none_rather_than_the_word_none():
-    assert "ROS_DOMAIN_ID" not in discovery.host_discovery(data_of("main", "multicast", ros_domain_id=None),
-                                                          "jazzy").variables
+    # a roster host (a hand-made inventory must set one: host_rules refuses a null domain there)
+    unset = typed_of("main", "multicast", ros_domain_id=None, roslab_roster_path="/classroom.yaml")
+    assert "ROS_DOMAIN_ID" not in discovery.host_discovery(unset, "jazzy").variables
 
 
 @pytest.mark.parametrize("middleware, package", [
@@ -169,7 +180,7 @@ def test_a_host_without_a_domain_id_exports_none_rather_than_the_word_none():
 def test_the_middleware_package_is_installed_beside_the_variant(middleware, package):
     from deploy.ros_install import ros_packages
 
-    packages = ros_packages("humble", "robot", data_of("robot", "multicast", middleware))
+    packages = ros_packages("humble", "robot", typed_of("robot", "multicast", middleware))
     assert packages[0] == "ros-humble-ros-base"
     extra = [name for name in packages if "rmw" in name]
     assert extra == ([package] if package else [])
@@ -196,16 +207,16 @@ def nodes_unit(data: dict, distro: str) -> str:
     return deploy_ws.unit_text(role=data["roslab_role"], user="student", home="/home/student",
                                workspace_dir="/home/student/ros2_ws", distro=distro,
                                launch="roslab_bringup robot.launch.py",
-                               environment=host_environment(data, distro),
-                               discovery_files=discovery.host_discovery(data, distro).files)
+                               environment=host_environment(typed(data), distro),
+                               discovery_files=discovery.host_discovery(typed(data), distro).files)
 
 
 @pytest.mark.parametrize("distro", ["humble", "jazzy"])
 @pytest.mark.parametrize("mode", discovery.MODES)
 def test_the_shell_and_the_unit_share_the_variables_the_shell_adds_the_super_client(distro, mode):
     data = data_of("robot", mode)
-    block = render_ros_environment(distro, host_environment(data, distro, shell=True))
-    setup = discovery.host_discovery(data, distro)
+    block = render_ros_environment(distro, host_environment(typed(data), distro, shell=True))
+    setup = discovery.host_discovery(typed(data), distro)
     assert exported(block) == {**setup.variables, **setup.shell_variables}
     assert unit_environment(nodes_unit(data, distro)) == setup.variables
 
@@ -266,11 +277,11 @@ def test_one_line_for_the_class_a_team_overrides_it_a_sim_team_stays_on_its_host
     assert modes == {"alpha-main": "static", "alpha-robot": "static", "bravo-main": "discovery_server",
                      "bravo-robot": "discovery_server", "charlie-main": "multicast", "delta-main": "localhost"}
     robot = next(host for host in classroom.hosts if host.name == "bravo-robot")
-    assert host_environment(robot.data, "jazzy")["ROS_DISCOVERY_SERVER"] == "10.0.2.1:11811"
+    assert host_environment(typed(robot.data), "jazzy")["ROS_DISCOVERY_SERVER"] == "10.0.2.1:11811"
     alpha = next(host for host in classroom.hosts if host.name == "alpha-robot")
-    assert host_environment(alpha.data, "humble")["FASTRTPS_DEFAULT_PROFILES_FILE"] == PEERS_XML
-    assert "10.0.1.1" in discovery.host_discovery(alpha.data, "humble").files[PEERS_XML]
-    assert "10.0.2" not in discovery.host_discovery(alpha.data, "humble").files[PEERS_XML]
+    assert host_environment(typed(alpha.data), "humble")["FASTRTPS_DEFAULT_PROFILES_FILE"] == PEERS_XML
+    assert "10.0.1.1" in discovery.host_discovery(typed(alpha.data), "humble").files[PEERS_XML]
+    assert "10.0.2" not in discovery.host_discovery(typed(alpha.data), "humble").files[PEERS_XML]
 
 
 def test_a_discovery_server_with_cyclone_dds_is_refused_naming_file_line_team_and_field(tmp_path):

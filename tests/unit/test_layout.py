@@ -162,3 +162,53 @@ teams:
         load_roster(path)
     assert any("lab.yaml:6: field 'profiles.mine.tools'" in str(problem) for problem in raised.value.problems), \
         raised.value.problems
+
+
+# Issue 42: a host's settings are read typed, down to every helper. pyinfra's `host.data` is
+# the one mapping a deploy may read (the run's own notes, the boundary host_settings builds
+# from); nothing reads a mapping out of a host's typed settings.
+PYINFRA_HOSTS = {"host", "some_host"}  # the names deploy/ gives pyinfra's Host
+TYPED_BUILDERS = {"host_settings", "peer_settings", "settings_of"}
+
+
+def mapping_reads(tree: ast.AST) -> list[tuple[int, str]]:
+    """(line, expression) of each `.data` read off a host's typed settings: `<builder>(...).data`,
+    `typed.data`, `<x>.settings.data`."""
+    found = []
+    for node in ast.walk(tree):
+        if not (isinstance(node, ast.Attribute) and node.attr == "data"):
+            continue
+        value = node.value
+        built = isinstance(value, ast.Call) and getattr(value.func, "id", getattr(value.func, "attr", None)) \
+            in TYPED_BUILDERS
+        named = isinstance(value, ast.Name) and value.id in {"typed", "settings"}
+        attribute = isinstance(value, ast.Attribute) and value.attr == "settings"
+        if built or named or attribute:
+            found.append((node.lineno, ast.unparse(node)))
+    return found
+
+
+def deploy_data_reads(tree: ast.AST) -> list[tuple[int, str]]:
+    """(line, expression) of each `.data` a deploy reads off anything but pyinfra's Host."""
+    return [(node.lineno, ast.unparse(node)) for node in ast.walk(tree)
+            if isinstance(node, ast.Attribute) and node.attr == "data"
+            and not (isinstance(node.value, ast.Name) and node.value.id in PYINFRA_HOSTS)]
+
+
+def test_no_helper_is_handed_a_mapping_out_of_a_hosts_typed_settings():
+    trees = {path: ast.parse(path.read_text()) for path in [
+        *ROOT.rglob("*.py"), *(CHECKOUT / "deploy").glob("*.py"), CHECKOUT / "deploy.py"]}
+    assert {str(path.relative_to(CHECKOUT)): found for path, tree in trees.items()
+            if (found := mapping_reads(tree))} == {}
+    deploys = {path: tree for path, tree in trees.items() if path.parent.name == "deploy" or path.name == "deploy.py"}
+    assert {str(path.relative_to(CHECKOUT)): found for path, tree in deploys.items()
+            if (found := deploy_data_reads(tree))} == {}
+
+
+def test_the_typed_settings_rule_sees_each_way_back_to_a_mapping():
+    source = ("a(typed.data)\nb(host_settings(host).data)\nc(peer_settings(x).data)\n"
+              "d(classroom.hosts[0].settings.data)\ne(host.data)\nf(some_host.data.get('k'))\n")
+    assert [line for line, _ in mapping_reads(ast.parse(source))] == [1, 2, 3, 4]
+    assert [line for line, _ in deploy_data_reads(ast.parse(source))] == [1, 2, 3, 4]
+    from roslab.host_fields import HostSettings
+    assert "data" not in HostSettings.__dataclass_fields__  # no embedded mapping to hand on

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 from ipaddress import IPv4Address, IPv4Interface
 
 import pytest
+from fixtures.classroom import typed
 from pyinfra.api import HiddenValue
 
 from deploy.network import DEFAULTS as NETWORK_DEFAULTS
@@ -26,7 +28,9 @@ BASE = {
 
 
 def settings(**changes):
-    return {**BASE, **changes}
+    """A host's typed settings with these values, set as they are (`replace` checks no type): a
+    wrong-typed value reaches the parser as if HostSettings had let it through."""
+    return replace(typed(BASE), **changes)
 
 
 def wifi(**changes):
@@ -135,8 +139,8 @@ def test_64_hex_digits_are_a_valid_key():
 def test_classroom_duplicate_address_is_reported_on_the_second_host():
     problems = check_classroom_network(
         [
-            ("team1", "team1-main", settings(address="10.0.0.5")),
-            ("team1", "team1-robot", settings(address="10.0.0.6")),
+            ("team1", "team1-main", "10.0.0.5", settings()),
+            ("team1", "team1-robot", "10.0.0.6", settings()),
         ]
     )
     assert [(p.team, p.host, p.field) for p in problems] == [("team1", "team1-robot", "network_address")]
@@ -146,8 +150,8 @@ def test_classroom_duplicate_address_is_reported_on_the_second_host():
 def test_classroom_address_taken_by_another_hosts_current_address():
     problems = check_classroom_network(
         [
-            ("team1", "team1-main", settings(network_address="192.168.50.12/24", address="10.0.0.5")),
-            ("team1", "team1-robot", settings(network_address="192.168.50.13/24", address="192.168.50.12")),
+            ("team1", "team1-main", "10.0.0.5", settings(network_address="192.168.50.12/24")),
+            ("team1", "team1-robot", "192.168.50.12", settings(network_address="192.168.50.13/24")),
         ]
     )
     assert [(p.host, p.field) for p in problems] == [("team1-main", "network_address")]
@@ -157,10 +161,11 @@ def test_classroom_address_taken_by_another_hosts_current_address():
 def test_classroom_reports_each_bad_host_and_passes_good_ones():
     problems = check_classroom_network(
         [
-            ("t1", "a", settings(network_address="192.168.50.21/24")),
-            ("t1", "b", settings(network_address="192.168.50.22/24", network_gateway="10.0.0.1")),
-            ("t2", "c", wifi(network_address="192.168.50.23/24", wifi_password=None)),
-            ("t2", "d", settings(network_address=None)),
+            ("t1", "a", None, settings(network_address="192.168.50.21/24")),
+            ("t1", "b", None, settings(network_address="192.168.50.22/24", network_gateway="10.0.0.1")),
+            ("t2", "c", None, wifi(network_address="192.168.50.23/24", wifi_password=None)),
+            ("t2", "d", None, settings(network_address=None)),
+            ("t2", "e", None, None),  # the roster gives it no network
         ]
     )
     assert [(p.team, p.host, p.field) for p in problems] == [
@@ -320,7 +325,7 @@ def test_any_value_of_any_key_is_a_setting_error_or_accepted_never_a_crash(key):
     for base in (settings(), wifi(), settings(network_method="dhcp", network_address=None)):
         for value in WEIRD_VALUES:
             try:
-                network_settings({**base, key: value})
+                network_settings(replace(base, **{key: value}))
             except NetworkSettingError:
                 pass
 
@@ -340,9 +345,11 @@ def test_validate_roster_reports_and_never_raises(monkeypatch):
 
     hosts = [
         SimpleNamespace(team="t1", name="a", address="10.0.0.5", lines={"wifi_ssid": 7},
-                        data={**wifi(wifi_ssid="bad\nssid")}),
+                        data=BASE, settings=wifi(wifi_ssid="bad\nssid")),
         SimpleNamespace(team="t1", name="b", address="10.0.0.6", lines={},
-                        data={**settings(network_interface=["eth0"], network_address="192.168.50.12/24")}),
+                        data=BASE, settings=settings(network_interface=["eth0"], network_address="192.168.50.12/24")),
+        SimpleNamespace(team="t1", name="c", address="10.0.0.7", lines={},  # no network: its settings unread
+                        data={**BASE, "network_address": None}, settings=None),
     ]
     report = Report()
     network_settings_module.validate_roster(SimpleNamespace(hosts=hosts), report)

@@ -7,6 +7,7 @@ import configparser
 import jinja2
 import pytest
 import yaml
+from fixtures.classroom import typed
 from pyinfra.api import HiddenValue
 
 from deploy.network import DEFAULTS as NETWORK_DEFAULTS
@@ -48,7 +49,7 @@ def host_settings(kind, method, **changes):
         data.update(wifi_ssid="Robo Lab", wifi_password_secret="lab", wifi_password=HiddenValue(PASSWORD))
     if method == "dhcp":
         data.update(network_address=None, network_gateway=None)
-    return network_settings(data)
+    return network_settings(typed(data))
 
 
 def keyfile(text):
@@ -251,7 +252,7 @@ AWKWARD_PASSWORDS = [
 def wifi_settings(ssid="Robo Lab", password=PASSWORD, method="static"):
     data = {**BASE, "network_kind": "wifi", "network_method": method, "wifi_ssid": ssid,
             "wifi_password_secret": "lab", "wifi_password": HiddenValue(password)}
-    return network_settings(data)
+    return network_settings(typed(data))
 
 
 # A reader of GKeyFile values as glib's g_key_file_get_string(_list) reads them, and of an

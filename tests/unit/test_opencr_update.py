@@ -288,8 +288,9 @@ def flash_args(**overrides) -> argparse.Namespace:
 
 
 def waffle_pi():
-    return argparse.Namespace(name="blue-robot", role="robot",
-                              data={"roslab_profile": {"settings": {"turtlebot3_model": "waffle_pi"}}})
+    # a roster Host as flash reads it: its typed settings' resolved profile (only its settings here)
+    profile = argparse.Namespace(settings={"turtlebot3_model": "waffle_pi"})
+    return argparse.Namespace(name="blue-robot", role="robot", settings=argparse.Namespace(roslab_profile=profile))
 
 
 @pytest.mark.parametrize("machine, armhf, before", [

@@ -140,6 +140,7 @@ def fake_release():
 def test_a_new_release_record_reaches_every_consumer(tmp_path, fake_release):
     from roslab.ros import discovery
     from roslab.sources import repos as sources
+    from fixtures.classroom import typed
     from roslab.ros.environment import host_environment
 
     # The roster schema and checks: the release loads, with its distro and its ros2-apt-source pin.
@@ -161,8 +162,9 @@ def test_a_new_release_record_reaches_every_consumer(tmp_path, fake_release):
     assert settings.SETTINGS["ros_distro"].check("tortuga") is None
 
     # Discovery: the new distro's variables follow its record, not a list of names.
-    assert "ROS_AUTOMATIC_DISCOVERY_RANGE" in host_environment(main.data, "tortuga", shell=True)
-    old_env = host_environment({**robot.data, "ros_automatic_discovery_range": "LOCALHOST"}, "oldtimer", shell=True)
+    assert "ROS_AUTOMATIC_DISCOVERY_RANGE" in host_environment(typed(main.data), "tortuga", shell=True)
+    old_env = host_environment(typed({**robot.data, "ros_automatic_discovery_range": "LOCALHOST"}),
+                               "oldtimer", shell=True)
     assert old_env.get("ROS_LOCALHOST_ONLY") == "1" and "ROS_AUTOMATIC_DISCOVERY_RANGE" not in old_env
     assert discovery.profiles_variable("tortuga") == "FASTDDS_DEFAULT_PROFILES_FILE"
     assert discovery.profiles_variable("oldtimer") == "FASTRTPS_DEFAULT_PROFILES_FILE"

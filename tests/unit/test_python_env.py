@@ -11,6 +11,7 @@ import textwrap
 from pathlib import Path
 
 import pytest
+from fixtures.classroom import typed
 from fixtures.fake_host import plan
 from pyinfra.facts.deb import DebPackages
 from pyinfra.facts.files import Directory, File, Sha1File
@@ -393,8 +394,8 @@ def test_a_venv_that_would_hold_the_workspace_is_refused(tmp_path):
 def test_the_class_cache_learns_the_build_packages_from_a_kept_wheelhouse(tmp_path, monkeypatch):
     monkeypatch.setattr(wheelhouse, "_run_pip", FakePip())
     data = host_data(tmp_path)
-    assert deploy_python.python_env_packages(data, "noble") == ["python3-venv"]  # nothing known yet
+    assert deploy_python.python_env_packages(typed(data), "noble") == ["python3-venv"]  # nothing known yet
     wheelhouse.wheelhouse(data["roslab_profile"]["python"]["requirements"], PI, data["python_index_url"],
                           data["python_wheelhouse_dir"])
-    assert deploy_python.python_env_packages(data, "noble") == ["python3-venv", "python3-dev", "gcc"]
-    assert deploy_python.python_env_packages({**data, "python_env_enabled": False}, "noble") == []
+    assert deploy_python.python_env_packages(typed(data), "noble") == ["python3-venv", "python3-dev", "gcc"]
+    assert deploy_python.python_env_packages(typed({**data, "python_env_enabled": False}), "noble") == []

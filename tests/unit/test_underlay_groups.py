@@ -11,6 +11,7 @@ import pytest
 from roslab.sources import underlay
 from roslab.profiles import library
 from roslab.roster import RosterError, load_roster
+from fixtures.classroom import typed
 from roslab.sources.groups import Member, choose_builder, input_digest, roster_inputs
 
 
@@ -73,7 +74,7 @@ def errors_of(path: Path) -> list[str]:
 
 def test_the_esp32_robots_of_one_distro_form_one_group_and_the_mains_build_nothing(tmp_path):
     hosts = hosts_of(roster(tmp_path))
-    inputs = {name: roster_inputs(host.data) for name, host in hosts.items()}
+    inputs = {name: roster_inputs(host.settings) for name, host in hosts.items()}
     assert inputs["team1-robot"] is not None
     assert inputs["team1-robot"] == inputs["team2-robot"]
     # another distro pins other agent branches: another group
@@ -92,10 +93,10 @@ def test_a_changed_pin_or_build_setting_makes_another_group(tmp_path):
     base = hosts_of(roster(tmp_path))["team1-robot"].data
     pin = {**base, "source_pins": {}, "roslab_sources": [
         {**repo, "version": "v9"} if i == 0 else repo for i, repo in enumerate(base["roslab_sources"])]}
-    assert roster_inputs(pin) != roster_inputs(base)
-    assert roster_inputs({**base, "workspace_colcon_args": ["--parallel-workers", "1"]}) != roster_inputs(base)
-    assert roster_inputs({**base, "sources_underlay_dir": "~/other"}) != roster_inputs(base)
-    assert roster_inputs({**base, "sources_enabled": False}) is None
+    assert roster_inputs(typed(pin)) != roster_inputs(typed(base))
+    assert roster_inputs(typed({**base, "workspace_colcon_args": ["--parallel-workers", "1"]})) != roster_inputs(typed(base))
+    assert roster_inputs(typed({**base, "sources_underlay_dir": "~/other"})) != roster_inputs(typed(base))
+    assert roster_inputs(typed({**base, "sources_enabled": False})) is None
 
 
 def test_the_input_digest_changes_with_every_input_and_only_with_them():

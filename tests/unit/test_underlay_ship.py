@@ -364,14 +364,15 @@ def test_a_build_goes_into_the_groups_install_path_records_built_here_and_remove
 
 
 def test_status_shows_where_each_hosts_underlay_came_from():
+    from fixtures.classroom import typed
     from roslab.cli import status
 
     digest = "56" * 32
-    script = status.probe_script(underlay=status.origin_file(
+    script = status.probe_script(underlay=status.origin_file(typed(
         {"ssh_user": "ubuntu", "login_user": "student", "sources_underlay_dir": "~/roslab_underlay",
-         "roslab_sources": [{"path": "a", "url": "https://x.org/a.git", "version": "v1"}]}))
+         "roslab_sources": [{"path": "a", "url": "https://x.org/a.git", "version": "v1"}]})))
     assert "head -c 200 ~student/roslab_underlay/.roslab/underlay-origin" in script
-    assert status.origin_file({"ssh_user": "ubuntu", "roslab_sources": []}) == ""
+    assert status.origin_file(typed({"ssh_user": "ubuntu", "roslab_sources": []})) == ""
 
     def cell(lines, underlay="~student/x"):
         probe = status.parse_probe(["## underlay", *lines, "## end"])

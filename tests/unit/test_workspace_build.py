@@ -26,6 +26,7 @@ from deploy import workspace as deploy_ws
 from roslab import settings
 from roslab.ros import workspace
 from roslab.ros.environment import host_environment
+from fixtures.classroom import typed
 from test_workspace_sync import USER, LocalDirHost, run_operation
 
 WS = "/home/ubuntu/ros2_ws"
@@ -530,13 +531,13 @@ def test_service_environment_is_what_the_bashrc_block_exports(distro, values):
     from deploy.shell_env import render_ros_environment
 
     data = {"ros_discovery_mode": "multicast", **values}
-    block = render_ros_environment(distro, host_environment(data, distro, shell=True))
+    block = render_ros_environment(distro, host_environment(typed(data), distro, shell=True))
     exported = {}
     for line in block.splitlines():
         if line.startswith("export ") and not line.startswith("export ROSDISTRO_INDEX_URL"):
             name, _, value = line[len("export "):].partition("=")
             exported[name] = shlex.split(value)[0]
-    environment = host_environment(data, distro)
+    environment = host_environment(typed(data), distro)
     unit = render_unit(distro=distro, environment=environment)
     in_unit = dict(shlex.split(line.removeprefix("Environment="))[0].split("=", 1)
                    for line in unit.splitlines() if line.startswith("Environment="))
@@ -604,7 +605,7 @@ class WorkspaceHost(FakeUbuntu):
             unit_text = deploy_ws.unit_text(
                 role="robot", user="student", home="/home/student", workspace_dir=STUDENT_WS,
                 distro="jazzy", launch="roslab_bringup robot.launch.py",
-                environment=host_environment(host_data(), "jazzy"))
+                environment=host_environment(typed(host_data()), "jazzy"))
             self.files[workspace.NODES_UNIT_PATH] = unit_text.splitlines()
             self.raw[workspace.NODES_UNIT_PATH] = unit_text
         self.workspace_facts.update(facts or {})
