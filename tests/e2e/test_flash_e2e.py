@@ -4,7 +4,8 @@ Three cards are written at once from a `.img.xz` (a stand-in for Ubuntu's Pi ima
 tests/pi_image.py); each card holds the image's bytes and its own host's seed; a re-run skips
 them; a byte changed on a card behind the writer's back is caught by the read-back; a card
 pulled out mid-write fails alone while the others finish, and the re-run writes only it; a mounted
-card, a card named twice and an image of another release are refused without a byte written.
+card, a card named twice and an image of another release are refused without a byte written;
+with --interactive, each host gets the card put in when its card is asked for.
 """
 
 from __future__ import annotations

@@ -6,12 +6,14 @@ the slots' order."""
 
 from __future__ import annotations
 
+import argparse
 import copy
 from types import SimpleNamespace
 
 import pytest
 
-from roslab.seed import cards, matching
+from roslab.seed import cards, flash, matching
+from roslab.seed.command import _Stop
 
 GB = 10**9
 IMAGE = 4 * GB
@@ -168,3 +170,36 @@ def test_the_by_path_listing_is_read_from_the_folder(tmp_path):
     assert matching.by_path_links(tmp_path) == {"pci-usb-0:2:1.0-scsi-0:0:0:0": str(tmp_path / "sdb"),
                                                 "sdb": str(tmp_path / "sdb")}
     assert matching.by_path_links(tmp_path / "missing") == {}
+
+
+def args(**given):
+    return argparse.Namespace(**{"device": None, "interactive": False, "by_slot": False, "allow_large": False,
+                                 **given})
+
+
+IMAGE_OF = SimpleNamespace(size=IMAGE)
+
+
+def test_flash_needs_one_way_to_match_the_cards_and_says_the_three():
+    with pytest.raises(_Stop) as stop:
+        flash._matched(args(), HOSTS, IMAGE_OF)
+    assert stop.value.status == 2 and "0 --device cards" in str(stop.value) and "--by-slot" in str(stop.value)
+    with pytest.raises(_Stop, match="no --device with it"):
+        flash._matched(args(by_slot=True, device=["/dev/sdb"]), HOSTS, IMAGE_OF)
+
+
+def test_flash_by_slot_names_each_hosts_slot_and_refuses_too_few(monkeypatch):
+    monkeypatch.setattr(matching, "by_path_links", lambda: LINKS)
+    monkeypatch.setattr(cards, "lsblk", lambda paths=None, empty=False: SLOTS_TREE if empty else [])
+    matched = flash._matched(args(by_slot=True), HOSTS, IMAGE_OF)
+    assert [(host.name, device) for host, _, device in matched] == [
+        ("team1-main", "/dev/sdb"), ("team1-robot", "/dev/sdc"), ("team2-main", "/dev/sdd")]
+    with pytest.raises(cards.CardError, match="4 hosts but 3 card reader slots"):
+        flash._matched(args(by_slot=True), HOSTS + [SimpleNamespace(name="team3-main")], IMAGE_OF)
+
+
+def test_flash_interactive_with_no_card_for_any_host_writes_nothing(monkeypatch):
+    monkeypatch.setattr(cards, "lsblk", lambda paths=None, empty=False: copy.deepcopy(EMPTY))
+    monkeypatch.setattr("builtins.input", lambda prompt: "s")
+    with pytest.raises(_Stop, match="no card was put in for any host: nothing was written"):
+        flash._matched(args(interactive=True), HOSTS, IMAGE_OF)
