@@ -227,7 +227,10 @@ def _matched(args: argparse.Namespace, hosts: list[Host], image: cards.Image) ->
     if args.interactive:
         prompter = matching.Prompter(image.size, args.allow_large, set(args.device or []),
                                      ask=input, say=lambda line: print(line, flush=True))
-        matched = matching.interactive(hosts, prompter)
+        try:
+            matched = matching.interactive(hosts, prompter)
+        except KeyboardInterrupt:
+            raise _Stop(1, "\nroslab flash: stopped while asking for the cards: nothing was written") from None
         if not matched:
             raise _Stop(1, "roslab flash: no card was put in for any host: nothing was written")
         return [(host, "", device) for host, device in matched]

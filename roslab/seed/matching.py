@@ -82,6 +82,9 @@ class Prompter:
             answer = self.ask(PROMPT.format(host=host.name)).strip().lower()
             if answer == "s":
                 raise Skipped(host.name)
+            if answer:
+                self.say(f"  {answer!r}: press ENTER once the card is in, or type s to skip {host.name}")
+                continue
             tree = self.lsblk()
             path, why = new_card(before, tree, self.allowed, self.image_size, self.allow_large)
             owner = taken.get(path or "")

@@ -90,6 +90,12 @@ def test_a_new_card_that_is_not_a_card_to_write_is_said_why_and_asked_again():
     assert said[1].startswith("  /dev/sdc is 1000 GB, larger than 256 GB")
 
 
+def test_an_answer_that_is_neither_enter_nor_s_is_asked_again_without_looking_for_a_card():
+    matched, said, asked = run([EMPTY, ONE], ["y", ""], hosts=HOSTS[:1])
+    assert matched == [("team1-main", "/dev/sdb")] and len(asked) == 2
+    assert said[0] == "  'y': press ENTER once the card is in, or type s to skip team1-main"
+
+
 def test_a_skipped_host_gets_no_card_and_the_next_one_is_asked():
     matched, said, _ = run([EMPTY, ONE], ["s", "", "S"])
     assert matched == [("team1-robot", "/dev/sdb")]
@@ -202,4 +208,15 @@ def test_flash_interactive_with_no_card_for_any_host_writes_nothing(monkeypatch)
     monkeypatch.setattr(cards, "lsblk", lambda paths=None, empty=False: copy.deepcopy(EMPTY))
     monkeypatch.setattr("builtins.input", lambda prompt: "s")
     with pytest.raises(_Stop, match="no card was put in for any host: nothing was written"):
+        flash._matched(args(interactive=True), HOSTS, IMAGE_OF)
+
+
+def test_flash_interactive_stopped_with_ctrl_c_writes_nothing(monkeypatch):
+    monkeypatch.setattr(cards, "lsblk", lambda paths=None, empty=False: copy.deepcopy(EMPTY))
+
+    def interrupted(prompt):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("builtins.input", interrupted)
+    with pytest.raises(_Stop, match="stopped while asking for the cards: nothing was written"):
         flash._matched(args(interactive=True), HOSTS, IMAGE_OF)
