@@ -226,7 +226,7 @@ def _matched(args: argparse.Namespace, hosts: list[Host], image: cards.Image) ->
         return matching.by_slot(hosts, slots)
     if args.interactive:
         prompter = matching.Prompter(image.size, args.allow_large, set(args.device or []),
-                                     ask=input, say=lambda line: print(line, flush=True))
+                                     ask=input, say=lambda line: print(line, flush=True), lsblk=cards.lsblk)
         try:
             matched = matching.interactive(hosts, prompter)
         except KeyboardInterrupt:

@@ -220,3 +220,13 @@ def test_flash_interactive_stopped_with_ctrl_c_writes_nothing(monkeypatch):
     monkeypatch.setattr("builtins.input", interrupted)
     with pytest.raises(_Stop, match="stopped while asking for the cards: nothing was written"):
         flash._matched(args(interactive=True), HOSTS, IMAGE_OF)
+
+
+def test_flash_interactive_asks_on_the_terminal_and_takes_the_card_put_in(monkeypatch, capsys):
+    trees = iter([EMPTY, ONE])
+    monkeypatch.setattr(cards, "lsblk", lambda paths=None, empty=False: copy.deepcopy(next(trees)))
+    monkeypatch.setattr("builtins.input", lambda prompt: print(prompt) or "")
+    matched = flash._matched(args(interactive=True), HOSTS[:1], IMAGE_OF)
+    assert [(host.name, slot, device) for host, slot, device in matched] == [("team1-main", "", "/dev/sdb")]
+    assert capsys.readouterr().out == ("insert the card for team1-main (ENTER when it is in, s to skip) \n"
+                                       "  team1-main: /dev/sdb\n")
