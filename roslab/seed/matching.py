@@ -9,7 +9,8 @@ follow each of the three ways (issue 38).
 - `--by-slot`: the card readers' ports (their /dev/disk/by-path names, which name the USB port
   and the reader's slot and stay the same from one run to the next) in natural order get the
   hosts in roster order: the first host is always in the first slot, whatever device name the
-  kernel gives its card.
+  kernel gives its card. (lsblk cannot say it: Debian 12's util-linux 2.38 has no by-path
+  column, and its HCTL's SCSI host number follows the order the readers were plugged in.)
 
 Every device picked here is then checked as a `--device` is (roslab.seed.cards.card_of).
 """
