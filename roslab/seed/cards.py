@@ -57,9 +57,11 @@ class Card:
         return " ".join(part for part in (self.model, self.serial) if part) or self.path
 
 
-def lsblk(paths: list[str] | None = None) -> list[dict]:
-    """lsblk's tree (`--json --bytes`) of `paths`, or of every block device."""
-    done = subprocess.run(["lsblk", "--json", "--bytes", "-o", LSBLK_COLUMNS, *(paths or [])],
+def lsblk(paths: list[str] | None = None, empty: bool = False) -> list[dict]:
+    """lsblk's tree (`--json --bytes`) of `paths`, or of every block device (an empty card
+    reader only with `empty`: lsblk skips a device of size 0 unless `--all`)."""
+    done = subprocess.run(["lsblk", "--json", "--bytes", *(["--all"] if empty else []), "-o", LSBLK_COLUMNS,
+                           *(paths or [])],
                           capture_output=True, text=True)
     if done.returncode:
         raise CardError(f"lsblk {' '.join(paths or [])}: {done.stderr.strip() or 'failed'}")

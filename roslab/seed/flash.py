@@ -5,7 +5,9 @@ each with its own host's seed, each verified by reading it back.
         --limit team1 --device /dev/sdb --device /dev/sdc
 
 The hosts `--limit` selects (in roster order) are matched to the `--device` cards in the order
-given: the first host's card is the first device. Before any byte is written, the whole run is
+given: the first host's card is the first device; or, with `--interactive`, to the card put in
+when asked ("insert the card for team3-robot"); or, with `--by-slot`, to the card readers' slots
+in order (roslab.seed.matching). Before any byte is written, the whole run is
 checked: the roster and every host's seed (as `roslab seed` checks them), every card
 (roslab.seed.cards: whole removable USB/MMC devices, or loop devices named explicitly; never
 `/`'s disk, never mounted, never over 256 GB without --allow-large), and the image (a Pi
@@ -41,7 +43,7 @@ from pathlib import Path
 
 from roslab.reach import add_roster_argument
 from roslab.roster.model import Host
-from roslab.seed import cards, targets
+from roslab.seed import cards, matching, targets
 from roslab.seed.command import _checked_seeds, _record_key, _refuse_what_the_roster_cannot_say, _selected, _Stop
 from roslab.seed.documents import SEED_FILES
 
@@ -55,6 +57,7 @@ PROGRESS_EVERY = 5.0  # seconds between progress lines
 class Job:
     host: Host  # the roster's
     card: cards.Card
+    slot: str = ""  # the reader's /dev/disk/by-path name, with --by-slot
     written: int = 0
     result: str = "waiting"  # writing, verified, skipped, FAILED
     reason: str = ""
@@ -197,9 +200,6 @@ def seed_card(job: Job, files: dict, image_sha256: str) -> None:
 def _plan(args: argparse.Namespace, image: cards.Image) -> tuple[list[Job], dict, Path]:
     """The jobs (host -> card), their seeds and the roster's path, all checked; _Stop otherwise."""
     classroom, hosts = _selected(args, "flash")
-    if len(args.device) != len(hosts):
-        raise _Stop(2, f"roslab flash: {len(hosts)} hosts ({', '.join(h.name for h in hosts)}) and "
-                       f"{len(args.device)} --device cards: give one card per host, in the hosts' order")
     wrong = [f"{host.name} is on Ubuntu {host.ubuntu_release}" for host in hosts
              if host.ubuntu_release and host.ubuntu_release != image.release]
     if wrong:
@@ -207,19 +207,46 @@ def _plan(args: argparse.Namespace, image: cards.Image) -> tuple[list[Job], dict
                        f"{'; '.join(wrong)}: nothing was written")
     if image.architecture not in ("arm64", "armhf"):
         raise _Stop(1, f"roslab flash: the image is for {image.architecture}, not a Raspberry Pi: nothing was written")
-    found, problems = cards.cards(args.device, image.size, args.allow_large)
+    _refuse_what_the_roster_cannot_say(hosts, classroom.path)
+    seeds = _checked_seeds(hosts, classroom.path)  # before a teacher is asked for any card
+    matched = _matched(args, hosts, image)
+    found, problems = cards.cards([device for _, _, device in matched], image.size, args.allow_large)
     if problems:
         raise _Stop(1, *(f"roslab flash: {problem}" for problem in problems), "roslab flash: nothing was written")
-    _refuse_what_the_roster_cannot_say(hosts, classroom.path)
-    seeds = _checked_seeds(hosts, classroom.path)
-    return [Job(host, card) for host, card in zip(hosts, found)], seeds, classroom.path
+    return [Job(host, card, slot=slot) for (host, slot, _), card in zip(matched, found)], seeds, classroom.path
+
+
+def _matched(args: argparse.Namespace, hosts: list[Host], image: cards.Image) -> list[tuple[Host, str, str]]:
+    """(host, reader slot or "", device) for each host to flash, as --device, --interactive or
+    --by-slot match them (roslab.seed.matching); _Stop when they do not."""
+    if args.by_slot:
+        if args.device:
+            raise _Stop(2, "roslab flash: --by-slot takes the cards from the reader slots: no --device with it")
+        slots = matching.reader_slots(matching.by_path_links(), cards.lsblk(empty=True))
+        return matching.by_slot(hosts, slots)
+    if args.interactive:
+        prompter = matching.Prompter(image.size, args.allow_large, set(args.device or []),
+                                     ask=input, say=lambda line: print(line, flush=True), lsblk=cards.lsblk)
+        try:
+            matched = matching.interactive(hosts, prompter)
+        except KeyboardInterrupt:
+            raise _Stop(1, "\nroslab flash: stopped while asking for the cards: nothing was written") from None
+        if not matched:
+            raise _Stop(1, "roslab flash: no card was put in for any host: nothing was written")
+        return [(host, "", device) for host, device in matched]
+    if len(args.device or []) != len(hosts):
+        raise _Stop(2, f"roslab flash: {len(hosts)} hosts ({', '.join(h.name for h in hosts)}) and "
+                       f"{len(args.device or [])} --device cards: give one card per host, in the hosts' order "
+                       "(or --interactive, or --by-slot)")
+    return [(host, "", device) for host, device in zip(hosts, args.device)]
 
 
 def _confirmed(jobs: list[Job], image: cards.Image, args: argparse.Namespace) -> bool:
     print(f"roslab flash: Ubuntu {image.release} {image.architecture} ({image.size / 1e6:,.0f} MB) to "
           f"{len(jobs)} cards; everything on them is lost:")
     for job in jobs:
-        print(f"  {job.host.name:<20} {job.card.path:<14} {job.card.label} ({job.card.size / 1e6:,.0f} MB)")
+        slot = f"  slot {job.slot}" if job.slot else ""
+        print(f"  {job.host.name:<20} {job.card.path:<14} {job.card.label} ({job.card.size / 1e6:,.0f} MB){slot}")
     if args.yes:
         return True
     return input("Write these cards? [y/N] ").strip().lower() in ("y", "yes")
@@ -290,9 +317,16 @@ def register(commands) -> None:
     flash.add_argument("--image", required=True, metavar="IMG",
                        help="the Raspberry Pi preinstalled Ubuntu image (.img or .img.xz)")
     flash.add_argument("--image-sha256", metavar="HEX", help="the image file's sha256 (Ubuntu's SHA256SUMS)")
-    flash.add_argument("--device", action="append", required=True, metavar="DEV",
+    flash.add_argument("--device", action="append", metavar="DEV",
                        help="a card: the whole device of a USB or MMC card reader (/dev/sdb), or a loop device; "
-                            "repeat it, one per host, in the hosts' order")
+                            "repeat it, one per host, in the hosts' order (with --interactive: the only devices "
+                            "a card may be found on)")
+    how = flash.add_mutually_exclusive_group()
+    how.add_argument("--interactive", action="store_true",
+                     help="ask for each host's card in turn (\"insert the card for HOST\"): the one card put in "
+                          "since the previous one is that host's")
+    how.add_argument("--by-slot", action="store_true",
+                     help="the card readers' slots (/dev/disk/by-path, in order) get the hosts in roster order")
     flash.add_argument("--allow-large", action="store_true",
                        help=f"write a device larger than {cards.MAX_CARD_BYTES / 1e9:.0f} GB")
     flash.add_argument("--force", action="store_true", help="write cards already flashed for their host")

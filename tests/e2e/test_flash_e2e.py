@@ -4,7 +4,8 @@ Three cards are written at once from a `.img.xz` (a stand-in for Ubuntu's Pi ima
 tests/pi_image.py); each card holds the image's bytes and its own host's seed; a re-run skips
 them; a byte changed on a card behind the writer's back is caught by the read-back; a card
 pulled out mid-write fails alone while the others finish, and the re-run writes only it; a mounted
-card, a card named twice and an image of another release are refused without a byte written.
+card, a card named twice and an image of another release are refused without a byte written;
+with --interactive, each host gets the card put in when its card is asked for.
 """
 
 from __future__ import annotations
@@ -202,3 +203,55 @@ def test_refused_before_a_byte_is_written(roster, tmp_path, image_xz, loop_cards
 def test_a_card_that_was_swapped_for_another_is_not_read_as_the_same():
     card = cards.Card("/dev/loop99999", 1 << 26, "loop", "", "", "7:99999")
     assert "is gone" in cards.still_the_same(card)
+
+
+class CardTray:
+    """The teacher at the keyboard, as `roslab flash --interactive` reads them (sys.stdin): each
+    answer first does what the teacher did at the tray (put card N in: its loop device is
+    attached; None: nothing), then types the answer."""
+
+    def __init__(self, devices, files, steps):
+        self.devices, self.files, self.steps, self.asked = devices, files, list(steps), 0
+
+    def readline(self):
+        if not self.steps:
+            return ""
+        card, answer = self.steps.pop(0)
+        self.asked += 1
+        if card is not None:
+            subprocess.run(["losetup", self.devices[card], str(self.files[card])], check=True)
+        return answer
+
+
+def unused_loop_devices(count):
+    """Loop device names nothing is attached to, far above those `losetup --find` hands out."""
+    free = [f"/dev/loop{n}" for n in range(200, 1000) if not Path(f"/sys/block/loop{n}/loop").exists()]
+    return free[:count]
+
+
+def test_interactive_each_host_gets_the_card_put_in_when_asked(roster, image_xz, tmp_path, capsys, monkeypatch):
+    """--interactive: no card is in when the command starts; the card put in when a host's card
+    is asked for is that host's (loop devices, named with --device: the only ones it may pick)."""
+    raw, _ = image_xz
+    devices = unused_loop_devices(2)
+    files = []
+    for index in range(2):
+        files.append(tmp_path / f"card{index}.bin")
+        with open(files[-1], "wb") as card:
+            card.truncate(64 << 20)
+    tray = CardTray(devices, files, [(None, "\n"), (0, "\n"), (None, "s\n"), (1, "\n")])
+    monkeypatch.setattr(sys, "stdin", tray)
+    try:
+        assert flash_cli(roster, raw, devices, "--interactive") == 0, capsys.readouterr()
+        out = capsys.readouterr().out
+        assert tray.asked == 4, out
+        assert "insert the card for team1-main (ENTER when it is in, s to skip)   no new card appeared; try again" \
+            in out, out
+        assert "team1-robot: skipped" in out, out
+        rows = {line.split()[0]: line.split() for line in out.splitlines() if line.endswith("  verified")}
+        assert {host: row[1] for host, row in rows.items()} == {"team1-main": devices[0], "team2-main": devices[1]}
+        for host, device in zip(["team1-main", "team2-main"], devices):
+            assert f"local-hostname: {host}" in card_seed(device, "meta-data").decode()
+    finally:
+        for device in devices:
+            subprocess.run(["losetup", "--detach", device], capture_output=True)
