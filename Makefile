@@ -45,11 +45,18 @@ typecheck: $(VENV)/.installed
 	@echo "make typecheck: mypy on roslab/ and deploy/"
 	$(BIN)/mypy
 
-# The type check first, then unit tests (seconds), then end-to-end tests on sandbox hosts, in one pytest run;
+# Test modules run two at a time (pytest-xdist; tests/conftest.py keeps each module, and every
+# module on the session's sandbox, on one worker and sends the longest first): an end-to-end
+# module waits on boots and SSH much of its time, and the other uses the cores meanwhile.
+# TEST_WORKERS=1 runs them one at a time, in the order collected.
+TEST_WORKERS ?= 2
+PARALLEL = $(if $(filter 1,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadgroup --no-loadscope-reorder)
+
+# The type check first, then unit and end-to-end tests on sandbox hosts, in one pytest run;
 # every module's seconds and the 25 slowest tests are printed at the end and kept in
 # test-durations.md (tests/durations.py), so a test that grew slow shows and stays readable.
 test: setup typecheck
-	ROSLAB_TEST_DURATIONS=$(CURDIR)/test-durations.md $(BIN)/pytest tests/unit tests/e2e
+	ROSLAB_TEST_DURATIONS=$(CURDIR)/test-durations.md $(BIN)/pytest $(PARALLEL) tests/unit tests/e2e
 
 unit: $(VENV)/.installed
 	$(BIN)/pytest tests/unit

@@ -61,3 +61,18 @@ class Durations:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(self.render())
         return path
+
+
+def module_seconds(text: str) -> dict[str, float]:
+    """Module path -> seconds, read from a rendering's "Per module" table (a kept record such as
+    bench/results/suite_durations.md); rows that are not a module's are skipped."""
+    seconds: dict[str, float] = {}
+    for line in text.splitlines():
+        cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+        if len(cells) == 3 and cells[2].endswith(".py"):
+            try:
+                seconds[cells[2]] = float(cells[0])
+            except ValueError:
+                continue
+    return seconds
+

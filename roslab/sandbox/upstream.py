@@ -327,11 +327,18 @@ class SigningKey:
         return (self.home / "fingerprint").read_text().strip()
 
     def gpg(self, *args: str | os.PathLike) -> None:
-        try:
-            run("gpg", "--homedir", self.home, "--batch", "--yes", "--quiet", *args)
-        finally:
-            # gpg starts an agent per home; it is ours to stop.
-            run("gpgconf", "--homedir", self.home, "--kill", "gpg-agent", check=False)
+        # gpg's agent listens on a socket in the home, and a socket's path has at most 107 bytes:
+        # a cache folder deep enough (ROSLAB_CACHE_DIR, a test's temporary folder) fails with "No
+        # agent running" where no /run/user/<uid> takes the socket. A short link to the home is
+        # the home gpg is given.
+        with tempfile.TemporaryDirectory(prefix="roslab-gpg-") as short:
+            home = Path(short) / "h"
+            home.symlink_to(self.home.resolve())
+            try:
+                run("gpg", "--homedir", home, "--batch", "--yes", "--quiet", *args)
+            finally:
+                # gpg starts an agent per home; it is ours to stop.
+                run("gpgconf", "--homedir", home, "--kill", "gpg-agent", check=False)
 
     def sign_release(self, release: Path) -> None:
         self.gpg("--clearsign", "--output", release.with_name("InRelease"), release)

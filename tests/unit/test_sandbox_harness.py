@@ -535,3 +535,17 @@ def test_a_class_on_a_real_runtime_runs_cyclone_dds_which_both_runtimes_have():
     assert real.roster_settings()["ros_middleware"] == "rmw_cyclonedds_cpp"
     stand_ins = upstream.Upstream(url=URL, ros_apt_source_sha256={}, ros={"jazzy": "stand-in"})
     assert "ros_middleware" not in stand_ins.roster_settings()  # roslab's default, Fast DDS
+
+
+def test_a_signing_key_is_made_and_signs_in_a_cache_folder_too_deep_for_gpgs_agent_socket(tmp_path, monkeypatch):
+    """gpg's agent socket lives in its home, and a socket path has at most 107 bytes: a deep
+    ROSLAB_CACHE_DIR (a test worker's temporary folder) must still get its key and signatures."""
+    deep = tmp_path / ("a-folder-deep-enough-for-the-socket-path-limit-" * 3) / "cache"
+    assert len(str(deep / "keys" / "ros" / "S.gpg-agent")) > 107
+    monkeypatch.setenv("ROSLAB_CACHE_DIR", str(deep))
+    key = upstream.ros_key()
+    release = tmp_path / "Release"
+    release.write_text("Origin: stand-in\n")
+    key.sign_release(release)
+    assert key.keyring.stat().st_size > 0 and len(key.fingerprint) == 40
+    assert "BEGIN PGP SIGNED MESSAGE" in (tmp_path / "InRelease").read_text()

@@ -218,6 +218,45 @@ def repo_entry(tmp_path: Path, bare: Path, version: str, path="lidar") -> dict:
             "file": "robot.repos", "line": 3}
 
 
+def test_a_second_run_sharing_the_cache_waits_for_the_mirror_another_run_is_fetching(tmp_path):
+    """Two runs on one controller (two classes, a second terminal) share sources_cache_dir: a
+    repository's mirror is fetched by one at a time (a lock file under the cache's locks/)."""
+    import fcntl
+    import threading
+    bare, made = upstream_repo(tmp_path)
+    cache = tmp_path / "cache"
+    mirror = source_fetch.mirror_path(cache, f"file://{bare}")
+    lock = cache / "locks" / f"{mirror.name}.lock"
+    lock.parent.mkdir(parents=True)
+    got: list = []
+    with open(lock, "a") as other_run:  # another open file: flock() conflicts as another process's would
+        fcntl.flock(other_run, fcntl.LOCK_EX)
+        fetching = threading.Thread(target=lambda: got.append(source_fetch.fetched(repo_entry(tmp_path, bare, "v1"),
+                                                                                 cache)))
+        fetching.start()
+        fetching.join(1.0)
+        assert fetching.is_alive() and not mirror.exists()  # waits; the other run's fetch is untouched
+        fcntl.flock(other_run, fcntl.LOCK_UN)
+    fetching.join(60)
+    assert got and got[0].commit == made
+    assert [path.name for path in (cache / "git").iterdir()] == [mirror.name]  # no lock file among the mirrors
+
+
+def test_repositories_recorded_at_once_all_land_in_the_lock_file(tmp_path):
+    """The lock file of pins is read, added to and written under the cache's lock: threads (and
+    another run) adding different repositories at once lose none of them."""
+    import threading
+    cache = tmp_path / "cache"
+    urls = [f"https://example.org/repo{index}.git" for index in range(24)]
+    threads = [threading.Thread(target=source_fetch._record, args=(cache, url, "v1", f"{index:040x}", "0" * 64))
+               for index, url in enumerate(urls)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(30)
+    assert sorted(json.loads((cache / source_fetch.LOCK_NAME).read_text())) == sorted(urls)
+
+
 def test_a_tag_is_resolved_once_recorded_with_its_digest_and_later_served_from_the_cache(tmp_path):
     bare, made = upstream_repo(tmp_path)
     cache = tmp_path / "cache"
