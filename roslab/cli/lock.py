@@ -12,40 +12,12 @@ only `--update` moves its versions, and never those of the lock's `hold:` list.
 from __future__ import annotations
 
 import argparse
-import shlex
 import time
 from pathlib import Path
 
-from pyinfra.api import FactBase
-
 from roslab import class_lock
+from roslab.class_lock import InstalledVersions, parse_installed  # noqa: F401 - `roslab lock` reads them
 from roslab.reach import RosterProblem, add_roster_argument, connected_state, fail, load_classroom_groups
-
-
-class InstalledVersions(FactBase):
-    """The host's Debian architecture, then `package<TAB>version` of every installed package."""
-
-    def command(self) -> str:
-        return ("dpkg --print-architecture && dpkg-query -W "
-                + shlex.quote("-f=${db:Status-Abbrev}\t${Package}\t${Architecture}\t${Version}\n"))
-
-    def process(self, output) -> dict:
-        return parse_installed(list(output))
-
-
-def parse_installed(lines: list[str]) -> dict:
-    """{"architecture": ..., "packages": {name: version}} from `InstalledVersions`' output: the
-    packages installed ("ii") for the native architecture or "all", names and versions checked."""
-    architecture = lines[0].strip() if lines else ""
-    packages = {}
-    for line in lines[1:]:
-        fields = line.split("\t")
-        if len(fields) != 4 or fields[0].strip() != "ii" or fields[2] not in (architecture, "all"):
-            continue
-        if (class_lock.PACKAGE_NAME.fullmatch(fields[1]) and class_lock.VERSION.fullmatch(fields[3])
-                and fields[1] not in class_lock.NOT_LOCKED):
-            packages[fields[1]] = fields[3]
-    return {"architecture": architecture, "packages": packages}
 
 
 def update_lines(moves: dict[str, list[tuple[str, str, str]]], hosts: dict[str, list[str]]) -> list[str]:
