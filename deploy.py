@@ -4,11 +4,13 @@ Every host gets every step, in this order; a step is switched off with its
 `<concern>_enabled: false` in the roster. A host that cannot get the ROS 2 the roster asks
 for (not Ubuntu, wrong release, distro without packages) is stopped before anything changes.
 At the end (also with --dry) roslab.reporting.summary prints one line per host: ok, changed, or
-failed with the step and the reason.
+failed with the step and the reason; with class_lock_auto, a real run then writes the groups
+classroom.lock lacks (roslab.class_lock_auto).
 """
 
 from deploy.apt_cache import apt_cache_client, apt_cache_filled, apt_cache_server
 from deploy.apt_ready import apt_lists, apt_ready
+from deploy.class_lock_taken import class_lock_taken
 from deploy.common import supported_host
 from deploy.discovery import discovery_in_place
 from deploy.locale import system_locale
@@ -65,5 +67,6 @@ if supported_host():
     workspace()
     profile_services_in_place()  # the rover's service, the micro-ROS agent: after the build they run
     profile_switch_cleaned()  # an earlier profile's units and groups gone, the profile recorded
+    class_lock_taken()  # last: class_lock_auto reads the versions of a group the lock lacks
 
 summary.mark_planned()  # this host's plan is complete (a run that stops before is reported so)

@@ -18,8 +18,17 @@ from pyinfra.api import deploy
 from pyinfra.operations import apt, files, server
 from pyinfra.operations.util import any_changed
 
-from deploy.common import as_login_user, existing_login_home, login_home, login_user, should_run, stop_host, where
-from roslab import probe, settings
+from deploy.common import (
+    as_login_user,
+    existing_login_home,
+    host_distro,
+    login_home,
+    login_user,
+    should_run,
+    stop_host,
+    where,
+)
+from roslab import class_lock, class_lock_auto, probe, settings
 from roslab.python_env import wheelhouse
 from roslab.operations import apt_install_options
 from roslab.python_env.venv import (
@@ -103,6 +112,8 @@ def python_env():
         except wheelhouse.WheelhouseError as error:
             stop_host(f"{where()}: python_packages: {error}; nothing was changed on it")
             return
+        if not wheelhouse_meets_lock(house, target):
+            return
         host.data._roslab_python_sdist = house.has_sdist
 
     apt.packages(
@@ -123,6 +134,24 @@ def python_env():
         venv=venv, python=target.python, wheelhouse=WHEELHOUSE, requirements_file=REQUIREMENTS,
         stamp=house.digest, **as_login_user(user),
     )
+
+
+def wheelhouse_meets_lock(house: wheelhouse.Wheelhouse, target: wheelhouse.Target) -> bool:
+    """Stop the host before anything is installed if a file of `house` has another sha256 than
+    the class lock's for its name and version (the host's group: its distro and `uname -m`), in
+    one line naming the file, both hashes and what to do; note the files for a lock this run
+    takes (class_lock_auto). True: the host carries on."""
+    typed = host_settings(host)
+    locked = class_lock.lock_beside(typed.roslab_roster_path) is not None  # none: no distro read either
+    group = class_lock.host_group(typed.roslab_roster_path, host_distro(), target.machine) if locked else None
+    problems = class_lock.wheel_mismatches(group, house.files) if group is not None else []
+    if problems:
+        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+        stop_host(f"{where()}: python_packages: {problems[0]}{more}")
+        return False
+    if typed.class_lock_auto and typed.roslab_roster_path:
+        class_lock_auto.note_wheels(typed.roslab_roster_path, host.name, house.files)
+    return True
 
 
 def wheelhouse_on_host(house: wheelhouse.Wheelhouse) -> None:

@@ -13,13 +13,17 @@
           ros-jazzy-ros-base: 0.11.0-1noble.20250101.000000
         sources:
           turtlebot3: 0123456789abcdef0123456789abcdef01234567
+        wheels:
+          rpi-gpio: {version: '0.7.1', sha256: '<64 hex digits>'}
 
 Every value is hostile until checked here: a package name must be one Debian allows
-(policy 5.6.1), a version one Debian allows (policy 5.6.12), a commit 40 hex digits.
-A group's versions are taken once, by `roslab lock` from a converged host of the group (a
-run does not take them by itself), and only ever added to (`merged`: a package a profile
-gained later is locked at its first install); moving a locked version is
-`roslab lock --update`'s job (`updates`), never a run's.
+(policy 5.6.1), a version one Debian allows (policy 5.6.12), a commit 40 hex digits; a wheel's
+name is PEP 503-normalised, its version a PEP 440 public version, its sha256 64 hex digits.
+A group's versions are taken once, by `roslab lock` from a converged host of the group, or by
+a run itself when the roster sets `class_lock_auto: true` (roslab.class_lock_auto), and only
+ever added to (`merged`: a package a profile gained later is locked at its first install);
+moving a locked version (or a wheel's hash) is `roslab lock --update`'s job (`updates`), never
+a run's.
 """
 
 from __future__ import annotations
@@ -42,8 +46,9 @@ from roslab.probe import read
 
 LOCK_FILE = "classroom.lock"
 PREFERENCES_FILE = "/etc/apt/preferences.d/roslab-lock"
-HEADER = ("# roslab class lock: the versions every host of a group installs. Written on a group's\n"
-          "# first converge; move it on purpose with `roslab lock --update` (see the README).\n")
+HEADER = ("# roslab class lock: the versions every host of a group installs. A group is taken by\n"
+          "# `roslab lock`, or by a run at its first converge when the roster sets class_lock_auto: true;\n"
+          "# move it on purpose with `roslab lock --update` (see docs/class-cache.md).\n")
 
 # Debian policy 5.6.1 (package names) and 5.6.12 (versions: [epoch:]upstream[-revision]).
 PACKAGE_NAME = re.compile(r"[a-z0-9][a-z0-9+.-]+")
@@ -53,12 +58,25 @@ GROUP = re.compile(r"([a-z][a-z0-9]*)/([a-z0-9]+)")  # distro/architecture, e.g.
 REPOSITORY = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*(?:/[A-Za-z0-9][A-Za-z0-9._-]*)*")
 TIMESTAMP = re.compile(r"[0-9]{4}-[0-9]{2}-[0-9]{2}T[0-9]{2}:[0-9]{2}:[0-9]{2}Z")
 HOST_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,62}")
-GROUP_KEYS = ("taken", "taken_from", "packages", "sources")
+GROUP_KEYS = ("taken", "taken_from", "packages", "sources", "wheels")
+# A Python distribution's name after PEP 503 normalisation, a PEP 440 public version as a
+# wheel's file name carries it (normalised; no local `+label`), a sha256 in hex.
+WHEEL_NAME = re.compile(r"[a-z0-9]+(?:-[a-z0-9]+)*")
+WHEEL_VERSION = re.compile(r"(?:[0-9]+!)?[0-9]+(?:\.[0-9]+)*(?:(?:a|b|rc)[0-9]+)?(?:\.post[0-9]+)?(?:\.dev[0-9]+)?")
+SHA256 = re.compile(r"[0-9a-f]{64}")
 # Installed by roslab from a downloaded .deb at the roster's ros_apt_source_version, from no apt
 # archive: its version is the roster's to set (deploy/ros_apt_source.py), never the lock's.
 NOT_LOCKED = frozenset({"ros2-apt-source"})
 # `uname -m` (pyinfra's Arch fact) -> the Debian architecture a lock group is named by.
 DEBIAN_ARCHITECTURES = {"aarch64": "arm64", "x86_64": "amd64", "armv7l": "armhf"}
+
+
+@dataclass(frozen=True)
+class LockedWheel:
+    """One file of the class's wheelhouse (a wheel, or an sdist the host builds): its version and hash."""
+
+    version: str
+    sha256: str
 
 
 @dataclass(frozen=True)
@@ -69,6 +87,7 @@ class LockedGroup:
     taken_from: str
     packages: dict[str, str] = field(default_factory=dict)  # Debian package -> exact version
     sources: dict[str, str] = field(default_factory=dict)  # source repository -> commit
+    wheels: dict[str, LockedWheel] = field(default_factory=dict)  # PEP 503 name -> version and sha256
 
 
 @dataclass(frozen=True)
@@ -148,7 +167,29 @@ def _group(value, where: str, report: Report) -> LockedGroup | None:
                      field=f"{where}.packages.{name}")
     sources = _pairs(value.get("sources") or {}, f"{where}.sources", REPOSITORY, COMMIT,
                      "a 40-hex-digit commit", report)
-    return LockedGroup(taken or "", taken_from or "", packages, sources)
+    wheels = _wheels(value.get("wheels") or {}, f"{where}.wheels", report)
+    return LockedGroup(taken or "", taken_from or "", packages, sources, wheels)
+
+
+def _wheels(value, where: str, report: Report) -> dict[str, LockedWheel]:
+    if not isinstance(value, dict):
+        report.error("must map each wheel's name to its version and sha256", field=where)
+        return {}
+    out = {}
+    for name, item in value.items():
+        here = f"{where}.{name}"
+        if not isinstance(name, str) or not WHEEL_NAME.fullmatch(name):
+            report.error(f"{name!r} is not a Python package name as PEP 503 normalises it (e.g. rpi-gpio)",
+                         field=here)
+            continue
+        if not isinstance(item, dict) or set(item) != {"version", "sha256"}:
+            report.error("must be a mapping of version and sha256", field=here)
+            continue
+        version = _matching(item["version"], WHEEL_VERSION, f"{here}.version", "a PEP 440 public version", report)
+        sha256 = _matching(item["sha256"], SHA256, f"{here}.sha256", "a sha256 (64 hex digits)", report)
+        if version is not None and sha256 is not None:
+            out[name] = LockedWheel(version, sha256)
+    return out
 
 
 def _matching(value, pattern: re.Pattern, where: str, wanted: str, report: Report) -> str | None:
@@ -197,28 +238,38 @@ def render_lock(lock: ClassLock) -> str:
         for part, items in (("packages", group.packages), ("sources", group.sources)):
             lines.append(f"    {part}:" if items else f"    {part}: {{}}")
             lines += [f"      '{name}': '{value}'" for name, value in sorted(items.items())]
+        if group.wheels:  # a group without a profile's Python requirements has none
+            lines.append("    wheels:")
+            lines += [f"      '{name}': {{version: '{wheel.version}', sha256: '{wheel.sha256}'}}"
+                      for name, wheel in sorted(group.wheels.items())]
     return "\n".join(lines) + "\n"
 
 
 def merged(lock: ClassLock, key: str, installed: dict[str, str], sources: dict[str, str],
-           taken: str, taken_from: str) -> tuple[ClassLock, list[str]]:
+           taken: str, taken_from: str,
+           wheels: dict[str, LockedWheel] | None = None) -> tuple[ClassLock, list[str]]:
     """`lock` with what a converged host of group `key` has installed added, and the names added.
 
-    A group absent from the lock is taken whole; a locked group only gains the packages and
-    repositories it does not name yet (a package a profile gained later is locked at its first
-    install). A locked version is never changed here: that is `updates`' decision.
+    A group absent from the lock is taken whole; a locked group only gains the packages,
+    repositories and wheels it does not name yet (a package a profile gained later is locked at
+    its first install). A locked version is never changed here: that is `updates`' decision.
     """
     installed = {name: version for name, version in installed.items() if name not in NOT_LOCKED}
+    wheels = wheels or {}
     old = lock.groups.get(key)
     if old is None:
-        group = LockedGroup(taken, taken_from, dict(installed), dict(sources))
-        return replace(lock, groups={**lock.groups, key: group}), sorted(installed) + sorted(sources)
+        group = LockedGroup(taken, taken_from, dict(installed), dict(sources), dict(wheels))
+        return (replace(lock, groups={**lock.groups, key: group}),
+                sorted(installed) + sorted(sources) + sorted(wheels))
     new_packages = {name: version for name, version in installed.items() if name not in old.packages}
     new_sources = {name: commit for name, commit in sources.items() if name not in old.sources}
-    if not new_packages and not new_sources:
+    new_wheels = {name: wheel for name, wheel in wheels.items() if name not in old.wheels}
+    if not new_packages and not new_sources and not new_wheels:
         return lock, []
-    group = replace(old, packages={**old.packages, **new_packages}, sources={**old.sources, **new_sources})
-    return replace(lock, groups={**lock.groups, key: group}), sorted(new_packages) + sorted(new_sources)
+    group = replace(old, packages={**old.packages, **new_packages}, sources={**old.sources, **new_sources},
+                    wheels={**old.wheels, **new_wheels})
+    return (replace(lock, groups={**lock.groups, key: group}),
+            sorted(new_packages) + sorted(new_sources) + sorted(new_wheels))
 
 
 def updates(lock: ClassLock, key: str, candidates: dict[str, str]) -> list[tuple[str, str, str]]:
@@ -231,11 +282,73 @@ def updates(lock: ClassLock, key: str, candidates: dict[str, str]) -> list[tuple
                   if name not in lock.hold and candidates.get(name) not in (None, version))
 
 
-def updated(lock: ClassLock, key: str, moves: list[tuple[str, str, str]], taken: str) -> ClassLock:
-    """`lock` with group `key` moved to the candidates of `moves` (from `updates`)."""
+def updated(lock: ClassLock, key: str, moves: list[tuple[str, str, str]], taken: str,
+            wheels: dict[str, LockedWheel] | None = None) -> ClassLock:
+    """`lock` with group `key` moved to the candidates of `moves` (from `updates`) and to the
+    wheels of `wheels` (from `wheel_updates`)."""
     group = lock.groups[key]
     packages = {**group.packages, **{name: new for name, _old, new in moves}}
-    return replace(lock, groups={**lock.groups, key: replace(group, packages=packages, taken=taken)})
+    return replace(lock, groups={**lock.groups, key: replace(
+        group, packages=packages, wheels={**group.wheels, **(wheels or {})}, taken=taken)})
+
+
+# --- wheels ------------------------------------------------------------------------------
+
+
+def wheel_entry(file_name: str) -> tuple[str, str] | None:
+    """(PEP 503 name, version) of a wheelhouse file (`name-version(-build)-py-abi-platform.whl`,
+    or an sdist `name-version.tar.gz`/`.zip`), or None when either is not one the lock allows
+    (a local version like `2.1+cpu`: such a file is not locked)."""
+    if file_name.endswith(".whl"):
+        parts = file_name[: -len(".whl")].split("-")
+        if len(parts) not in (5, 6):
+            return None
+        name, version = parts[0], parts[1]
+    else:
+        stem = next((file_name[: -len(end)] for end in (".tar.gz", ".zip") if file_name.endswith(end)), None)
+        if stem is None or "-" not in stem:
+            return None
+        name, version = stem.rsplit("-", 1)
+    name = re.sub(r"[-_.]+", "-", name).lower()
+    if not WHEEL_NAME.fullmatch(name) or not WHEEL_VERSION.fullmatch(version):
+        return None
+    return name, version
+
+
+def wheels_of(files) -> dict[str, LockedWheel]:
+    """name -> LockedWheel of a wheelhouse's files (roslab.python_env.wheelhouse.File: name,
+    sha256); a file whose name the lock cannot hold is left out, the first of a name kept."""
+    found: dict[str, LockedWheel] = {}
+    for item in files:
+        entry = wheel_entry(item.name)
+        if entry is not None and SHA256.fullmatch(item.sha256) and entry[0] not in found:
+            found[entry[0]] = LockedWheel(entry[1], item.sha256)
+    return found
+
+
+def wheel_updates(group: LockedGroup, current: dict[str, LockedWheel]) -> list[tuple[str, str, str]]:
+    """(wheel, locked, now) for each locked wheel the class's wheelhouse now has at another
+    version or hash, sorted (`lock --update` moves them)."""
+    def text(wheel: LockedWheel) -> str:
+        return f"{wheel.version} sha256:{wheel.sha256[:12]}"
+
+    return sorted((name, text(wheel), text(current[name])) for name, wheel in group.wheels.items()
+                  if name in current and current[name] != wheel)
+
+
+def wheel_mismatches(group: LockedGroup, files) -> list[str]:
+    """One line per file of the wheelhouse a host would install whose hash differs from the
+    locked one of its name and version, naming the file, both hashes and what to do."""
+    lines = []
+    for item in files:
+        entry = wheel_entry(item.name)
+        locked = group.wheels.get(entry[0]) if entry else None
+        if entry is None or locked is None or locked.version != entry[1] or locked.sha256 == item.sha256:
+            continue
+        lines.append(f"{item.name} has sha256 {item.sha256} in the class's wheelhouse but the class lock has "
+                     f"{locked.sha256} for {entry[0]} {entry[1]}: nothing was installed; put the locked file back "
+                     f"in the wheelhouse, or take the new one with `roslab lock --update`")
+    return lines
 
 
 # --- on a host ---------------------------------------------------------------------------
@@ -267,6 +380,32 @@ def host_group(roster_path: str | None, distro: str, machine: str | None) -> Loc
     if lock is None or architecture is None:
         return None
     return lock.groups.get(f"{distro}/{architecture}")
+
+
+class InstalledVersions(FactBase):
+    """The host's Debian architecture, then `package<TAB>version` of every installed package."""
+
+    def command(self) -> str:
+        return ("dpkg --print-architecture && dpkg-query -W "
+                + shlex.quote("-f=${db:Status-Abbrev}\t${Package}\t${Architecture}\t${Version}\n"))
+
+    def process(self, output) -> dict:
+        return parse_installed(list(output))
+
+
+def parse_installed(lines: list[str]) -> dict:
+    """{"architecture": ..., "packages": {name: version}} from `InstalledVersions`' output: the
+    packages installed ("ii") for the native architecture or "all", names and versions checked."""
+    architecture = lines[0].strip() if lines else ""
+    packages = {}
+    for line in lines[1:]:
+        fields = line.split("\t")
+        if len(fields) != 4 or fields[0].strip() != "ii" or fields[2] not in (architecture, "all"):
+            continue
+        if (PACKAGE_NAME.fullmatch(fields[1]) and VERSION.fullmatch(fields[3])
+                and fields[1] not in NOT_LOCKED):
+            packages[fields[1]] = fields[3]
+    return {"architecture": architecture, "packages": packages}
 
 
 class AptVersions(FactBase):

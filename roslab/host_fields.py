@@ -61,6 +61,7 @@ class HostSettings:
     ros_variant_robot: str
     ros_dev_tools: bool
     ros_extra_packages: list[str]
+    class_lock_auto: bool
     # --- robot_base ---
     robot_base_enabled: bool
     # --- robot_profile ---

@@ -253,6 +253,12 @@ SCHEMA: list[Setting] = [
         ("ros_extra_packages", [], list,
          'Extra apt packages for every host; "{distro}" is replaced, e.g. "ros-{distro}-turtlesim".',
          f.package_template, {"item": str, "allowed": "Debian package names"}),
+        ("class_lock_auto", False, bool,
+         "Let a run take the class lock (classroom.lock beside the roster) itself: a group (ROS distro, "
+         "architecture) the lock lacks is written into it at the end of a run in which a host of the group "
+         "converged without failure, as `roslab lock` would take it (never on --dry); a locked group is never "
+         "rewritten by a run (`roslab lock --update` moves it). false: only `roslab lock` takes it.",
+         None, {"levels": ("classroom",)}),
     ),
     *_concern(
         "robot_base",

@@ -5,6 +5,10 @@
     roslab lock [ROSTER] --update [--limit NAME ...] --dry  list package old -> new, for which hosts
     roslab lock [ROSTER] --update [--limit NAME ...]        move the lock; the next run moves the hosts
 
+Taking also records the class's wheels for each group (its profiles' python_packages, as the
+controller's wheelhouse holds them): name -> version and sha256; `--update` takes a wheel the
+wheelhouse now holds at another version or hash.
+
 A group is (ROS distro, Debian architecture). A locked group is never rewritten by taking:
 only `--update` moves its versions, and never those of the lock's `hold:` list.
 """
@@ -12,40 +16,12 @@ only `--update` moves its versions, and never those of the lock's `hold:` list.
 from __future__ import annotations
 
 import argparse
-import shlex
 import time
 from pathlib import Path
 
-from pyinfra.api import FactBase
-
 from roslab import class_lock
+from roslab.class_lock import InstalledVersions, parse_installed  # noqa: F401 - `roslab lock` reads them
 from roslab.reach import RosterProblem, add_roster_argument, connected_state, fail, load_classroom_groups
-
-
-class InstalledVersions(FactBase):
-    """The host's Debian architecture, then `package<TAB>version` of every installed package."""
-
-    def command(self) -> str:
-        return ("dpkg --print-architecture && dpkg-query -W "
-                + shlex.quote("-f=${db:Status-Abbrev}\t${Package}\t${Architecture}\t${Version}\n"))
-
-    def process(self, output) -> dict:
-        return parse_installed(list(output))
-
-
-def parse_installed(lines: list[str]) -> dict:
-    """{"architecture": ..., "packages": {name: version}} from `InstalledVersions`' output: the
-    packages installed ("ii") for the native architecture or "all", names and versions checked."""
-    architecture = lines[0].strip() if lines else ""
-    packages = {}
-    for line in lines[1:]:
-        fields = line.split("\t")
-        if len(fields) != 4 or fields[0].strip() != "ii" or fields[2] not in (architecture, "all"):
-            continue
-        if (class_lock.PACKAGE_NAME.fullmatch(fields[1]) and class_lock.VERSION.fullmatch(fields[3])
-                and fields[1] not in class_lock.NOT_LOCKED):
-            packages[fields[1]] = fields[3]
-    return {"architecture": architecture, "packages": packages}
 
 
 def update_lines(moves: dict[str, list[tuple[str, str, str]]], hosts: dict[str, list[str]]) -> list[str]:
@@ -59,9 +35,31 @@ def update_lines(moves: dict[str, list[tuple[str, str, str]]], hosts: dict[str, 
     return lines
 
 
+def kept_wheels(state, host) -> dict[str, class_lock.LockedWheel]:
+    """The wheels the controller's wheelhouse holds for `host` (its profile's python_packages,
+    for its machine, glibc and Python as it reports them): what a run gives it. Nothing without
+    python_packages, or before a run downloaded them (an incomplete wheelhouse is not read)."""
+    from pyinfra.api.facts import get_fact
+
+    from roslab.python_env import wheelhouse
+    from roslab.python_env.venv import PythonTarget
+
+    profile = host.data.get("roslab_profile") or {}
+    requirements = list((profile.get("python") or {}).get("requirements") or [])
+    if not requirements:
+        return {}
+    target = wheelhouse.Target(**get_fact(state, host, PythonTarget))
+    if target.problem():
+        return {}
+    kept = wheelhouse.load(wheelhouse.set_dir(host.data.get("python_wheelhouse_dir"), target, requirements,
+                                              host.data.get("python_index_url")))
+    return class_lock.wheels_of(kept.files) if kept is not None else {}
+
+
 def read_hosts(args, classroom, groups, with_candidates: class_lock.ClassLock | None) -> dict:
-    """Per lock group: {"hosts": [...], "installed": {...}, "from": host, "candidates": {...}}
-    read from the hosts --limit selects that answer (the first one of each group is read)."""
+    """Per lock group: {"hosts": [...], "installed": {...}, "from": host, "candidates": {...},
+    "wheels": {...}} read from the hosts --limit selects that answer (the first one of each group
+    is read; the wheels are those of all its hosts, the first of a name kept)."""
     from pyinfra.api.facts import get_fact
 
     state = connected_state(groups, args.limit)
@@ -74,12 +72,33 @@ def read_hosts(args, classroom, groups, with_candidates: class_lock.ClassLock | 
         key = class_lock.group_key(distro_of[host.name], reading["architecture"])
         entry = found.setdefault(key, {"hosts": [], "installed": reading["packages"], "from": host.name})
         entry["hosts"].append(host.name)
+        entry["wheels"] = {**kept_wheels(state, host), **entry.get("wheels", {})}
         if with_candidates is not None and "candidates" not in entry and key in with_candidates.groups:
             locked = sorted(with_candidates.groups[key].packages)
             # what the archives offer now: the host's lists may be days old (apt_cache_max_age)
             versions = get_fact(state, host, class_lock.AptVersionsNow, kwargs={"packages": locked}) if locked else {}
             entry["candidates"] = {name: found_versions[0] for name, found_versions in versions.items()}
     return found
+
+
+def moved_lock(lock: class_lock.ClassLock, found: dict, taken: str) -> class_lock.ClassLock:
+    """`--update`: print each locked group's moves (packages the archives offer newer, wheels the
+    wheelhouse now holds at another version or hash) and return the lock moved to them."""
+    moves: dict[str, list[tuple[str, str, str]]] = {}
+    wheels: dict[str, dict[str, class_lock.LockedWheel]] = {}
+    for key, entry in found.items():
+        if key not in lock.groups:
+            continue
+        wheel_moves = class_lock.wheel_updates(lock.groups[key], entry.get("wheels", {}))
+        wheels[key] = {name: entry["wheels"][name] for name, _old, _new in wheel_moves}
+        moves[key] = (class_lock.updates(lock, key, entry.get("candidates", {}))
+                      + [(f"wheel {name}", old, new) for name, old, new in wheel_moves])
+    print("\n".join(update_lines(moves, {key: entry["hosts"] for key, entry in found.items()})))
+    for key, changes in moves.items():
+        if changes:
+            packages = [change for change in changes if not change[0].startswith("wheel ")]
+            lock = class_lock.updated(lock, key, packages, taken, wheels[key])
+    return lock
 
 
 def run_lock(args: argparse.Namespace) -> int:
@@ -94,15 +113,15 @@ def run_lock(args: argparse.Namespace) -> int:
     found = read_hosts(args, classroom, groups, lock if args.update else None)
     taken = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     if args.update:
-        moves = {key: class_lock.updates(lock, key, entry.get("candidates", {}))
-                 for key, entry in found.items() if key in lock.groups}
-        print("\n".join(update_lines(moves, {key: entry["hosts"] for key, entry in found.items()})))
-        for key, changes in moves.items():
-            lock = class_lock.updated(lock, key, changes, taken) if changes else lock
+        lock = moved_lock(lock, found, taken)
     else:
         for key, entry in sorted(found.items()):
-            lock, added = class_lock.merged(lock, key, entry["installed"], {}, taken, entry["from"])
-            print(f"{key}: {len(added)} packages locked from {entry['from']}" if added
+            before = lock.groups.get(key, class_lock.LockedGroup("", ""))
+            lock, added = class_lock.merged(lock, key, entry["installed"], {}, taken, entry["from"],
+                                            entry.get("wheels", {}))
+            wheels = len(lock.groups[key].wheels) - len(before.wheels)
+            print(f"{key}: {len(lock.groups[key].packages) - len(before.packages)} packages "
+                  + (f"and {wheels} wheels " if wheels else "") + f"locked from {entry['from']}" if added
                   else f"{key}: already locked; nothing new (roslab lock --update moves it)")
     if args.dry:
         print(f"--dry: {path.name} was not changed")

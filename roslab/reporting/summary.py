@@ -505,6 +505,19 @@ class RunSummary(BaseStateCallback):
             ))
         return [record_runs(roster, runs, when) for roster, runs in by_roster.items()]
 
+    def lock_taken(self, state: State) -> list[str]:
+        """class_lock_auto: write the groups classroom.lock lacks from the hosts that converged in
+        this run (ok or changed; roslab.class_lock_auto), one line per lock written. --dry
+        (nothing executed) writes nothing."""
+        from roslab import class_lock_auto
+
+        if not state.is_executing:
+            class_lock_auto.forget()
+            return []
+        rows = self.rows(state)
+        converged = [row.host for row in rows if row.status in (OK, CHANGED)]
+        return class_lock_auto.write_taken(converged)
+
 
 def dry_run_changes(state: State) -> dict:
     """--dry: for each host, whether its plan would change it, conditions included.
@@ -900,6 +913,11 @@ def _print_at_exit() -> None:
     except Exception as error:  # noqa: BLE001 - the run's result stands; say why it is not recorded
         sys.stderr.write(f"--> roslab could not record the run for `roslab status`: "
                          f"{type(error).__name__}: {error}\n")
+    try:
+        for line in summary.lock_taken(state):
+            sys.stderr.write(f"--> roslab class lock: {line}\n")
+    except Exception as error:  # noqa: BLE001 - the run's result stands; say why the lock is not written
+        sys.stderr.write(f"--> roslab could not write the class lock: {type(error).__name__}: {error}\n")
 
 
 def _host_name(host) -> str:

@@ -3,6 +3,9 @@
 On the session's converged default class (restored: team1 on 24.04/Jazzy, team2 on 22.04/Humble),
 with a copy of its roster in a folder of the test's, as a teacher keeps one in git:
 
+- with `class_lock_auto: true` and no lock, a no-op run writes a group per (distro, architecture)
+  itself, from a host of each, in one line; the next run pins the hosts and does not rewrite it,
+  the one after changes nothing (in a folder of its own; its pins are removed after);
 - `roslab lock` writes classroom.lock beside the roster, a group per (distro, architecture), taken
   from a host of each; the next run pins every host to it, the one after changes nothing;
 - the sandbox's upstream moves (`roslab sandbox publish PACKAGE --bump`): a newer ros-jazzy-desktop,
@@ -27,6 +30,7 @@ import subprocess
 import pytest
 import yaml
 
+from roslab import class_lock
 from tests.e2e.conftest import BIN, REPO, summary_lines
 
 pytestmark = pytest.mark.e2e
@@ -73,6 +77,49 @@ def versions(sandbox, host: str) -> dict[str, str]:
     out = sandbox.ssh(host, "dpkg-query -W -f='${db:Status-Abbrev} ${Package} ${Version}\\n'", check=True).stdout
     return {fields[1]: fields[2] for fields in (line.split() for line in out.splitlines())
             if len(fields) == 3 and fields[0] == "ii"}
+
+
+def test_with_class_lock_auto_a_no_op_run_takes_each_group_and_no_later_run_rewrites_it(sandbox, tmp_path):
+    """class_lock_auto: true and no lock: a run of the converged class writes a group per (distro,
+    architecture), each from a host of it, and says so in one line; the next run pins the hosts to it
+    and leaves the file as it was; the one after changes nothing. (The pins are removed after, so
+    the module's `roslab lock` below starts from a class without a lock, as before.)"""
+    document = yaml.safe_load(sandbox.roster_path.read_text())
+    document["classroom"]["class_lock_auto"] = True
+    roster = tmp_path / "classroom.yaml"
+    roster.write_text(yaml.safe_dump(document, sort_keys=False))
+    lock_file = tmp_path / "classroom.lock"
+    try:
+        first = deploy(sandbox, roster)
+
+        assert first.returncode == 0, first.stderr[-6000:]
+        (read_op,) = [name for name in first.changed if "Read the installed versions for classroom.lock" in name]
+        assert first.changed == {read_op: set(HOSTS)}, first.changed  # nothing else: the class was converged
+        said = [line for line in first.stderr.splitlines() if line.startswith("--> roslab class lock: ")]
+        lock = lock_of(roster)
+        assert sorted(lock["groups"]) == sorted(GROUP_HOSTS)
+        for key, names in GROUP_HOSTS.items():
+            group = lock["groups"][key]
+            assert group["taken_from"] in names, group["taken_from"]
+            assert f"{key} from {group['taken_from']} ({len(group['packages'])} packages, 0 wheels)" in said[0], said
+            installed = versions(sandbox, group["taken_from"])
+            assert group["packages"][DEBIAN_BUMPED] == installed[DEBIAN_BUMPED]
+            assert len(group["packages"]) > 100 and "ros2-apt-source" not in group["packages"]
+        assert len(said) == 1 and said[0].endswith("commit it; `roslab lock --update` moves it on purpose"), said
+        text = lock_file.read_text()
+
+        pinned = deploy(sandbox, roster)
+
+        assert pinned.returncode == 0, pinned.stderr[-6000:]
+        pin_op = [name for name in pinned.changed if "Ensure apt installs the class lock's versions" in name]
+        assert len(pin_op) == 1 and pinned.changed == {pin_op[0]: set(HOSTS)}, pinned.changed  # no read: locked
+        assert lock_file.read_text() == text and "--> roslab class lock: " not in pinned.stderr
+        again = deploy(sandbox, roster)
+        assert again.returncode == 0 and again.changed == {}, again.changed
+        assert lock_file.read_text() == text
+    finally:
+        for name in HOSTS:
+            sandbox.sudo(name, f"rm -f {class_lock.PREFERENCES_FILE}", check=True)
 
 
 @pytest.fixture(scope="module")

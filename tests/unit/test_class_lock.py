@@ -16,6 +16,8 @@ TAKEN = "2026-11-28T22:00:00Z"
 INSTALLED = {"ros-jazzy-ros-base": "0.11.0-1noble.20250101.000000", "libc6": "2.39-0ubuntu8.4"}
 ROSTERS = Path(__file__).parent / "rosters"
 COMMIT = "0123456789abcdef0123456789abcdef01234567"
+SHA = "ab" * 32
+OTHER_SHA = "cd" * 32
 
 
 def first_lock() -> class_lock.ClassLock:
@@ -50,6 +52,17 @@ def test_a_missing_lock_is_an_empty_one(tmp_path):
      f"groups.{KEY}.sources.tb3", "40-hex-digit commit"),
     ({"groups": {KEY: {"taken": "yesterday", "taken_from": "r1"}}}, f"groups.{KEY}.taken", "UTC time"),
     ({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1", "extra": 1}}}, f"groups.{KEY}.extra", "unknown key"),
+    ({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1", "wheels": {"RPi.GPIO": {"version": "0.7.1",
+                                                                                "sha256": SHA}}}}},
+     f"groups.{KEY}.wheels.RPi.GPIO", "PEP 503"),
+    ({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1", "wheels": {"torch": {"version": "2.1+cpu",
+                                                                             "sha256": SHA}}}}},
+     f"groups.{KEY}.wheels.torch.version", "PEP 440 public version"),
+    ({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1", "wheels": {"ina260": {"version": "0.0.3",
+                                                                              "sha256": "md5:abc"}}}}},
+     f"groups.{KEY}.wheels.ina260.sha256", "64 hex digits"),
+    ({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1", "wheels": {"ina260": "0.0.3"}}}},
+     f"groups.{KEY}.wheels.ina260", "version and sha256"),
     ({"hold": ["Bad Name"]}, "hold", "Debian package name"),
     ({"pins": {}}, "pins", "unknown key"),
 ])
@@ -166,7 +179,7 @@ def test_lock_update_asks_each_group_for_its_candidates_as_pyinfra_takes_fact_ar
             return {"ros-jazzy-ros-base": ["0.11.0-1noble.20260101.000000"]}
         return {"architecture": "arm64", "packages": INSTALLED}
 
-    pi = SimpleNamespace(name="robot1-1")
+    pi = SimpleNamespace(name="robot1-1", data={})  # no profile: no wheels to read
     state = SimpleNamespace(inventory=[pi], active_hosts=[pi])
     monkeypatch.setattr(pyinfra.api.facts, "get_fact", get_fact)
     monkeypatch.setattr(lock_cli, "connected_state", lambda groups, limit: state)
@@ -178,3 +191,68 @@ def test_lock_update_asks_each_group_for_its_candidates_as_pyinfra_takes_fact_ar
     command = class_lock.AptVersionsNow().command(["ros-jazzy-ros-base", "-oAPT::x=1"])
     assert command.startswith("DEBIAN_FRONTEND=noninteractive apt-get -q -o DPkg::Lock::Timeout=120 update ")
     assert command.endswith("apt-cache madison -- ros-jazzy-ros-base || true")
+
+
+# --- wheels --------------------------------------------------------------------------------
+
+def wheel_files(sha=SHA):
+    from roslab.python_env.wheelhouse import File
+
+    return [File("RPi.GPIO-0.7.1.tar.gz", sha, True), File("ina260-0.0.3-py3-none-any.whl", sha, False),
+            File("torch-2.1.0+cpu-cp312-cp312-linux_aarch64.whl", sha, False)]
+
+
+def test_each_wheel_is_locked_by_its_normalised_name_with_version_and_sha256(tmp_path):
+    wheels = class_lock.wheels_of(wheel_files())
+    assert wheels == {"rpi-gpio": class_lock.LockedWheel("0.7.1", SHA), "ina260": class_lock.LockedWheel("0.0.3", SHA)}
+    lock, added = class_lock.merged(class_lock.ClassLock(), KEY, INSTALLED, {}, TAKEN, "robot1-1", wheels)
+    assert added[-2:] == ["ina260", "rpi-gpio"]
+    text = class_lock.render_lock(lock)
+    assert f"      'rpi-gpio': {{version: '0.7.1', sha256: '{SHA}'}}\n" in text  # one line per wheel
+    path = tmp_path / "classroom.lock"
+    path.write_text(text)
+    again, report = class_lock.read_lock(path)
+    assert report.errors == [] and again == lock
+
+
+def test_a_wheelhouse_file_whose_hash_differs_from_the_lock_is_one_line_with_both_hashes_and_what_to_do():
+    group = class_lock.LockedGroup(TAKEN, "r1", wheels=class_lock.wheels_of(wheel_files()))
+    assert class_lock.wheel_mismatches(group, wheel_files()) == []
+    from roslab.python_env.wheelhouse import File
+
+    repinned = [File("ina260-0.0.4-py3-none-any.whl", OTHER_SHA, False)]  # another version: not this check's
+    assert class_lock.wheel_mismatches(group, repinned) == []
+    assert class_lock.wheel_mismatches(group, wheel_files(OTHER_SHA))[1] == (
+        f"ina260-0.0.3-py3-none-any.whl has sha256 {OTHER_SHA} in the class's wheelhouse but the class lock has "
+        f"{SHA} for ina260 0.0.3: nothing was installed; put the locked file back in the wheelhouse, or take "
+        "the new one with `roslab lock --update`")
+
+
+def test_merge_never_moves_a_locked_wheel_and_update_moves_it():
+    wheels = class_lock.wheels_of(wheel_files())
+    lock, _ = class_lock.merged(class_lock.ClassLock(), KEY, INSTALLED, {}, TAKEN, "r1", wheels)
+    newer = class_lock.wheels_of(wheel_files(OTHER_SHA))
+    same, added = class_lock.merged(lock, KEY, INSTALLED, {}, TAKEN, "r1", newer)
+    assert same is lock and added == []
+    moves = class_lock.wheel_updates(lock.groups[KEY], newer)
+    assert moves == [("ina260", "0.0.3 sha256:abababababab", "0.0.3 sha256:cdcdcdcdcdcd"),
+                     ("rpi-gpio", "0.7.1 sha256:abababababab", "0.7.1 sha256:cdcdcdcdcdcd")]
+    moved = class_lock.updated(lock, KEY, [], "2026-12-01T08:00:00Z", newer)
+    assert moved.groups[KEY].wheels == newer and moved.groups[KEY].packages == lock.groups[KEY].packages
+
+
+def test_lock_update_lists_a_moved_wheel_apart_from_a_package_of_the_same_name(capsys):
+    from roslab.cli import lock as lock_cli
+
+    wheels = class_lock.wheels_of(wheel_files())
+    lock, _ = class_lock.merged(class_lock.ClassLock(), KEY, {**INSTALLED, "ina260": "1.0-1"}, {}, TAKEN, "r1",
+                                wheels)
+    found = {KEY: {"hosts": ["r1"], "candidates": {"ina260": "1.1-1"},
+                   "wheels": {**wheels, "ina260": class_lock.LockedWheel("0.0.3", OTHER_SHA)}}}
+    moved = lock_cli.moved_lock(lock, found, "2026-12-01T08:00:00Z")
+    assert capsys.readouterr().out.splitlines() == [
+        f"{KEY}: ina260 1.0-1 -> 1.1-1 (r1)",
+        f"{KEY}: wheel ina260 0.0.3 sha256:abababababab -> 0.0.3 sha256:cdcdcdcdcdcd (r1)"]
+    group = moved.groups[KEY]
+    assert group.packages["ina260"] == "1.1-1" and group.wheels["ina260"].sha256 == OTHER_SHA
+    assert group.wheels["rpi-gpio"].sha256 == SHA

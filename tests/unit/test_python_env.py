@@ -399,3 +399,30 @@ def test_the_class_cache_learns_the_build_packages_from_a_kept_wheelhouse(tmp_pa
                           data["python_wheelhouse_dir"])
     assert deploy_python.python_env_packages(typed(data), "noble") == ["python3-venv", "python3-dev", "gcc"]
     assert deploy_python.python_env_packages(typed({**data, "python_env_enabled": False}), "noble") == []
+
+
+def test_a_wheel_whose_hash_differs_from_the_class_lock_stops_the_host_before_anything_is_installed(
+        tmp_path, monkeypatch):
+    from pyinfra.facts.server import Arch
+
+    from roslab import class_lock
+
+    monkeypatch.setattr(wheelhouse, "_run_pip", FakePip())
+    data = {**host_data(tmp_path, ["ina260==0.0.3"]), "roslab_roster_path": str(tmp_path / "classroom.yaml")}
+    house = wheelhouse.wheelhouse(["ina260==0.0.3"], PI, data["python_index_url"], data["python_wheelhouse_dir"])
+    (wheel,) = house.files
+    facts = {**host_facts({"python": None, "colcon_ignore": False, "stamp": ""}, {}), Arch: "aarch64"}
+
+    def with_lock(sha256: str):
+        group = class_lock.LockedGroup("2026-11-28T22:00:00Z", "robot1",
+                                       wheels={"ina260": class_lock.LockedWheel("0.0.3", sha256)})
+        (tmp_path / "classroom.lock").write_text(class_lock.render_lock(class_lock.ClassLock({"jazzy/arm64": group})))
+        return plan(deploy_python.python_env, facts, data)
+
+    stopped = with_lock("0" * 64)
+    assert stopped.failed and stopped.operations == []
+    assert (f"python_packages: {wheel.name} has sha256 {wheel.sha256} in the class's wheelhouse but the class lock "
+            f"has {'0' * 64} for ina260 0.0.3: nothing was installed; put the locked file back in the wheelhouse, "
+            "or take the new one with `roslab lock --update`") in " ".join(stopped.errors)
+    met = with_lock(wheel.sha256)
+    assert not met.failed and "pip install --no-index" in met.operation("ina260==0.0.3 are installed in").text()[-1]
