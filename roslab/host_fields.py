@@ -8,7 +8,7 @@ roslab/settings.py; tests/unit/test_settings_doc.py fails when this file is stal
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from roslab.profiles.resolve import ResolvedProfile
@@ -160,4 +160,4 @@ class HostSettings:
     roslab_verify_publisher: str | None
     roslab_profile: ResolvedProfile | None
     ssh_hostname: str | None
-    wifi_password: object | None
+    wifi_password: object | None = field(repr=False)

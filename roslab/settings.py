@@ -562,6 +562,7 @@ class HostKey:
     annotation: str  # the field's type, as roslab/host_fields.py writes it
     kind: type  # what a value must be (checked when a host's settings are built)
     doc: str
+    secret: bool = False  # kept out of the settings' repr: a hand-made inventory may give it as plain text
 
 
 HOST_KEYS: list[HostKey] = [
@@ -587,7 +588,7 @@ HOST_KEYS: list[HostKey] = [
             "last confirmed one)."),
     HostKey("wifi_password", "object", object, "The WiFi password wifi_password_secret names, read from the "
             "secrets file by the roster loader (a roslab.secrets.Secret, masked in every output; checked as a "
-            "WPA password by roslab.network.settings)."),
+            "WPA password by roslab.network.settings).", secret=True),
 ]
 
 

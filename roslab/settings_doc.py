@@ -148,7 +148,7 @@ def host_fields_module() -> str:
         "",
         "from __future__ import annotations",
         "",
-        "from dataclasses import dataclass",
+        "from dataclasses import dataclass" + (", field" if any(key.secret for key in settings.HOST_KEYS) else ""),
         "from typing import Any",
         "",
         "from roslab.profiles.resolve import ResolvedProfile",
@@ -165,7 +165,7 @@ def host_fields_module() -> str:
         lines.append(f"    {s.key}: {settings.annotation(s)}")
     lines.append("    # --- derived by the roster loader (None in a hand-made inventory that lacks it) ---")
     for key in settings.HOST_KEYS:
-        lines.append(f"    {key.key}: {key.annotation} | None")
+        lines.append(f"    {key.key}: {key.annotation} | None" + (" = field(repr=False)" if key.secret else ""))
     return "\n".join(lines) + "\n"
 
 

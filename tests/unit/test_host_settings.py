@@ -145,3 +145,11 @@ def test_hand_made_profile_data_carries_only_rules_roslab_writes_from_devices(ru
     with pytest.raises(typed.HostSettingsError, match="roslab_profile: line 9 of its udev rules is not one roslab "
                                                       "writes from a profile's devices"):
         typed.host_settings(inventory.get_host("pi"))
+
+
+def test_a_wifi_password_given_as_plain_text_stays_out_of_the_settings_repr():
+    """The roster loader gives wifi_password as a masked Secret; a hand-made inventory or --data
+    may give plain text, and a HostSettings shown in a traceback or a log must not carry it."""
+    built = typed.settings_of("pi", {"wifi_password": "correct horse battery"})
+    assert built.wifi_password == "correct horse battery"
+    assert "correct horse" not in repr(built) and "ssh_user" in repr(built)
