@@ -253,11 +253,14 @@ def _confirmed(jobs: list[Job], image: cards.Image, args: argparse.Namespace) ->
 
 
 def table(jobs: list[Job]) -> str:
-    rows = [("host", "device", "card", "result")] + [
-        (job.host.name, job.card.path, job.card.label,
+    """The final label table: host, device, card, result; with the reader's slot after the
+    device when cards were matched by slot, so each card is labelled by where it sat."""
+    slots = any(job.slot for job in jobs)
+    rows = [("host", "device", *(("slot",) if slots else ()), "card", "result")] + [
+        (job.host.name, job.card.path, *((job.slot,) if slots else ()), job.card.label,
          job.result + (f": {job.reason}" if job.reason else "")) for job in jobs]
-    widths = [max(len(row[i]) for row in rows) for i in range(3)]
-    return "\n".join("  ".join([*(cell.ljust(width) for cell, width in zip(row[:3], widths)), row[3]]).rstrip()
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]) - 1)]
+    return "\n".join("  ".join([*(cell.ljust(width) for cell, width in zip(row[:-1], widths)), row[-1]]).rstrip()
                      for row in rows)
 
 

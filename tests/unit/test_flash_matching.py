@@ -230,3 +230,17 @@ def test_flash_interactive_asks_on_the_terminal_and_takes_the_card_put_in(monkey
     assert [(host.name, slot, device) for host, slot, device in matched] == [("team1-main", "", "/dev/sdb")]
     assert capsys.readouterr().out == ("insert the card for team1-main (ENTER when it is in, s to skip) \n"
                                        "  team1-main: /dev/sdb\n")
+
+
+def test_the_final_table_shows_each_cards_slot_only_when_cards_were_matched_by_slot():
+    def job(name: str, path: str, slot: str = "", result: str = "verified") -> flash.Job:
+        card = cards.Card(path=path, size=32_000_000_000, kind="usb", serial="000000001234", model="Reader",
+                          majmin="8:16")
+        return flash.Job(SimpleNamespace(name=name), card, slot=slot, result=result)
+
+    by_slot = flash.table([job("team1-main", "/dev/sdb", "pci-0000:00:14.0-usb-0:1:1.0-scsi-0:0:0:0"),
+                           job("team1-robot", "/dev/sdc", "pci-0000:00:14.0-usb-0:2:1.0-scsi-0:0:0:0")]).splitlines()
+    assert by_slot[0].split() == ["host", "device", "slot", "card", "result"]
+    assert "usb-0:2:1.0" in by_slot[2] and by_slot[2].startswith("team1-robot") and by_slot[2].endswith("verified")
+    by_device = flash.table([job("team1-main", "/dev/sdb")]).splitlines()
+    assert by_device[0].split() == ["host", "device", "card", "result"]
