@@ -8,11 +8,14 @@ report in well under a second.
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import fcntl
 import hashlib
 import os
 import stat
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 # A secrets file or a key file holds a few lines.
@@ -101,3 +104,17 @@ def file_sha256(path: Path | str) -> str:
     if status.st_ctime_ns < reading_since - RECENT_CHANGE_NS:
         _DIGESTS[key] = hexdigest
     return hexdigest
+
+
+@contextlib.contextmanager
+def file_lock(path: Path) -> Iterator[None]:
+    """Hold an exclusive lock on `path` (a lock file, created with its folder if missing) for the
+    block, across processes and threads: flock() is per open file, so two threads of one run
+    that each open it wait for each other as two runs do."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)

@@ -19,17 +19,16 @@ runs that end at once (`--limit team1` and `--limit team2`) both land.
 
 from __future__ import annotations
 
-import fcntl
 import os
 import tempfile
-from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Iterable
 
 import yaml
 
+from roslab.controller_files import file_lock
 from roslab.network.state import STATE_DIR
 
 RUNS_FILE = "runs.yaml"
@@ -117,15 +116,8 @@ def read_runs(roster_path: str | os.PathLike) -> dict[str, RunRecord]:
     return records
 
 
-@contextmanager
-def _locked(path: Path) -> Iterator[None]:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path.parent / f".{path.name}.lock", "a") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(lock, fcntl.LOCK_UN)
+def _locked(path: Path):
+    return file_lock(path.parent / f".{path.name}.lock")
 
 
 def record_runs(roster_path: str | os.PathLike, runs: Iterable[HostRun], when: datetime | None = None) -> Path:

@@ -15,8 +15,10 @@ import os
 import shutil
 from pathlib import Path
 
+from roslab.controller_files import file_lock
+
 from . import seeding
-from .system import SandboxError, announced, file_lock, log, run, write_file
+from .system import SandboxError, announced, log, run, write_file
 
 # Bump when the way the image is built or customised changes: it is part of the cache key.
 BUILDER_VERSION = 6

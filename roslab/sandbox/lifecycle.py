@@ -20,12 +20,13 @@ from typing import Any
 
 import yaml
 
+from roslab.controller_files import file_lock
 from roslab.network.state import STATE_DIR
 from roslab.ssh import identity
 
 from . import create3_link, esp32_board, git_standins, hosts, image, seeding, upstream
 from .instance import STATE_ROOT, UPSTREAM_PORT, Instance, SandboxHost, releases_by_team
-from .system import SandboxError, announced, discard, file_lock, log, run, sweep_discarded, write_file
+from .system import SandboxError, announced, discard, log, run, sweep_discarded, write_file
 
 DEFAULT_HOSTS = 4
 INOTIFY_INSTANCES = Path("/proc/sys/fs/inotify/max_user_instances")

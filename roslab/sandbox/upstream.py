@@ -44,11 +44,12 @@ from typing import Any
 
 import yaml
 
+from roslab.controller_files import file_lock
 from roslab.ros.distro import DEFAULT_DISTRO, PLATFORMS
 from roslab.ros.distro import ROS_APT_SOURCE_VERSION as ROS_APT_SOURCE_PIN
 
 from . import git_standins, image, pypi, real_sources, ros_runtime
-from .system import SandboxError, announced, file_lock, pid_alive, run, terminate, write_file
+from .system import SandboxError, announced, pid_alive, run, terminate, write_file
 
 # Bump when the archives' layout or the stand-ins change: part of the cache keys.
 ARCHIVE_VERSION = 6

@@ -40,7 +40,6 @@ URL at a local mirror; the lock and messages keep the URL as given.
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import hashlib
 import json
 import os
@@ -52,7 +51,7 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
-from roslab.controller_files import UnreadableFile, read_regular_file
+from roslab.controller_files import UnreadableFile, file_lock, read_regular_file
 from roslab.sources.repos import COMMIT, rewritten
 
 LOCK_NAME = "sources.lock.json"
@@ -244,25 +243,13 @@ def _tag_checked(cache_dir: Path, digest: str, url: str, tag: str) -> bool:
     return record.get("pins") == digest and tag in (record["checked"].get(url) or [])
 
 
-@contextlib.contextmanager
-def _held(path: Path):
-    """An exclusive lock on `path` (a lock file beside what it guards) across threads and
-    processes: two runs on one controller (two classes, a second terminal) share the cache,
-    and a repository's mirror is fetched, or a cache file rewritten, by one of them at a time.
-    flock() is per open file, so two threads of one run wait for each other as well."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
-        yield
-
-
 def _files_lock(cache_dir: Path) -> Path:
     """The lock of the cache's own files (the lock file of pins, the tag checks)."""
     return Path(cache_dir) / "locks" / "files.lock"
 
 
 def _mark_checked(cache_dir: Path, digest: str, url: str, tag: str) -> None:
-    with _held(_files_lock(cache_dir)):
+    with file_lock(_files_lock(cache_dir)):
         _mark_checked_locked(cache_dir, digest, url, tag)
 
 
@@ -298,7 +285,7 @@ def _record(cache_dir: Path, url: str, tag: str | None, commit: str, sha256: str
     """Add what was seen to the lock file (atomically; entries never change once written). Read,
     added to and written under the cache's lock: repositories are fetched in parallel threads,
     and another run may share the cache, so an entry another writer added is never lost."""
-    with _held(_files_lock(cache_dir)):
+    with file_lock(_files_lock(cache_dir)):
         _record_locked(cache_dir, url, tag, commit, sha256)
 
 
@@ -362,7 +349,7 @@ def _fetch_healing(repo: dict, cache_dir: Path, fetch_url: str, offline: bool, t
                    digest: str) -> Fetched:
     """_fetch, and once more from a fresh mirror when the controller's copy is damaged."""
     mirror = mirror_path(cache_dir, repo["url"])
-    with _held(Path(cache_dir) / "locks" / f"{mirror.name}.lock"):  # another run may fetch the same mirror
+    with file_lock(Path(cache_dir) / "locks" / f"{mirror.name}.lock"):  # another run may fetch the same mirror
         return _fetch_healing_locked(repo, cache_dir, mirror, fetch_url, offline, timeout, digest)
 
 
