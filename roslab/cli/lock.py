@@ -20,7 +20,6 @@ import time
 from pathlib import Path
 
 from roslab import class_lock
-from roslab.class_lock import InstalledVersions, parse_installed  # noqa: F401 - `roslab lock` reads them
 from roslab.reach import RosterProblem, add_roster_argument, connected_state, fail, load_classroom_groups
 
 
@@ -41,18 +40,19 @@ def kept_wheels(state, host) -> dict[str, class_lock.LockedWheel]:
     python_packages, or before a run downloaded them (an incomplete wheelhouse is not read)."""
     from pyinfra.api.facts import get_fact
 
+    from roslab.host_settings import host_settings
     from roslab.python_env import wheelhouse
     from roslab.python_env.venv import PythonTarget
 
-    profile = host.data.get("roslab_profile") or {}
-    requirements = list((profile.get("python") or {}).get("requirements") or [])
+    typed = host_settings(host)
+    requirements = list(typed.roslab_profile.python.requirements) if typed.roslab_profile is not None else []
     if not requirements:
         return {}
     target = wheelhouse.Target(**get_fact(state, host, PythonTarget))
     if target.problem():
         return {}
-    kept = wheelhouse.load(wheelhouse.set_dir(host.data.get("python_wheelhouse_dir"), target, requirements,
-                                              host.data.get("python_index_url")))
+    kept = wheelhouse.load(wheelhouse.set_dir(typed.python_wheelhouse_dir, target, requirements,
+                                              typed.python_index_url))
     return class_lock.wheels_of(kept.files) if kept is not None else {}
 
 
@@ -68,7 +68,7 @@ def read_hosts(args, classroom, groups, with_candidates: class_lock.ClassLock | 
     for host in state.inventory:
         if host not in state.active_hosts or not distro_of.get(host.name):
             continue
-        reading = get_fact(state, host, InstalledVersions)
+        reading = get_fact(state, host, class_lock.InstalledVersions)
         key = class_lock.group_key(distro_of[host.name], reading["architecture"])
         entry = found.setdefault(key, {"hosts": [], "installed": reading["packages"], "from": host.name})
         entry["hosts"].append(host.name)

@@ -137,7 +137,8 @@ def test_a_broken_lock_beside_the_roster_stops_the_roster_before_any_host(tmp_pa
 
 
 def test_a_hosts_installed_packages_are_read_for_its_architecture_and_checked():
-    from roslab.cli.lock import parse_installed, update_lines
+    from roslab.class_lock import parse_installed
+    from roslab.cli.lock import update_lines
 
     reading = parse_installed(["arm64", "ii \tlibc6\tarm64\t2.39-0ubuntu8.4", "ii \ttzdata\tall\t2024a-3ubuntu1",
                                "ii \tlibc6\ti386\t2.39-0ubuntu8.4", "rc \told\tarm64\t1.0",
@@ -179,7 +180,11 @@ def test_lock_update_asks_each_group_for_its_candidates_as_pyinfra_takes_fact_ar
             return {"ros-jazzy-ros-base": ["0.11.0-1noble.20260101.000000"]}
         return {"architecture": "arm64", "packages": INSTALLED}
 
-    pi = SimpleNamespace(name="robot1-1", data={})  # no profile: no wheels to read
+    class Pi:  # pyinfra's Host as read_hosts uses it: a name and data (no profile: no wheels to read)
+        name = "robot1-1"
+        data = SimpleNamespace(dict=lambda: {})
+
+    pi = Pi()
     state = SimpleNamespace(inventory=[pi], active_hosts=[pi])
     monkeypatch.setattr(pyinfra.api.facts, "get_fact", get_fact)
     monkeypatch.setattr(lock_cli, "connected_state", lambda groups, limit: state)
