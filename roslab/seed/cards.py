@@ -81,6 +81,12 @@ def root_devices(tree: list[dict]) -> set[str]:
     return {device["path"] for device in tree if "/" in _mountpoints(device)}
 
 
+def transport_of(device: dict) -> str:
+    """A whole disk's transport as lsblk gives it (usb, ...), mmc for an MMC slot (whose lsblk
+    record has none), "" when lsblk names none."""
+    return device.get("tran") or ("mmc" if device.get("name", "").startswith("mmcblk") else "")
+
+
 def card_of(device: dict, roots: set[str], image_size: int, allow_large: bool) -> Card:
     """The Card a device (lsblk's record of a path given with --device) is, or CardError saying
     why roslab will not write it."""
@@ -90,7 +96,7 @@ def card_of(device: dict, roots: set[str], image_size: int, allow_large: bool) -
     if kind == "loop":
         transport = "loop"
     elif kind == "disk":
-        transport = device.get("tran") or ("mmc" if device.get("name", "").startswith("mmcblk") else "")
+        transport = transport_of(device)
         # A laptop's own SD slot (mmcblk) says it is not removable; a USB disk must say it is.
         if transport not in CARD_TRANSPORTS or (transport == "usb" and not (device.get("rm") or device.get("hotplug"))):
             raise CardError(f"{path} is not a removable USB or MMC card reader's card "

@@ -124,9 +124,8 @@ def reader_slots(links: dict[str, str], tree: list[dict]) -> list[tuple[str, str
     """The card readers' slots: (by-path name, device path) for each whole USB or MMC device
     (with or without a card: lsblk -a), in natural order of the name. `links` is by-path
     name -> the device it points to."""
-    readers = {device["path"] for device in tree if device.get("type") == "disk"
-               and (device.get("tran") or ("mmc" if device.get("name", "").startswith("mmcblk") else ""))
-               in cards.CARD_TRANSPORTS}
+    readers = {device["path"] for device in tree
+               if device.get("type") == "disk" and cards.transport_of(device) in cards.CARD_TRANSPORTS}
     slots = [(name, target) for name, target in links.items() if "-part" not in name and target in readers]
     return sorted(slots, key=lambda slot: _natural(slot[0]))
 
