@@ -17,7 +17,7 @@ from typing import Any
 
 from roslab.ros import discovery
 from roslab.ros import distro as distros
-from roslab import formats as f
+from roslab import boards, formats as f
 
 # Where a key may be set: everywhere, or only at one level.
 ANY = ("classroom", "team", "host")
@@ -276,8 +276,9 @@ SCHEMA: list[Setting] = [
          f.pattern(r"[a-z][a-z0-9_]{0,62}", "a profile name"),
          {"allowed": "a built-in profile (docs/robots.md) or a roster's profile"}),
         ("board", None, str,
-         "The board the host is: pi3b+, pi4, pi5 or pc; None: not said (nothing is checked). "
-         "Ubuntu 22.04 has no image for a Pi 5.", f.choice("pi3b+", "pi4", "pi5", "pc"),
+         f"The board the host is: {boards.in_words()}; None: not said (nothing is checked). "
+         + " ".join(f"Ubuntu's first image for a {b.title} is {b.first_release}." for b in boards.BOARDS
+                    if b.first_release), f.choice(*boards.NAMES),
          {"nullable": True}),
         ("ros_environment", {}, dict,
          "Extra environment variables for the login user's shell (~/.bashrc block), the nodes' "

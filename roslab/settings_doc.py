@@ -29,9 +29,11 @@ PROFILES_BEGIN_MARKER = "<!-- BEGIN profiles table (python -m roslab.settings_do
 PROFILES_END_MARKER = "<!-- END profiles table -->"
 RELEASES_BEGIN_MARKER = "<!-- BEGIN releases table (python -m roslab.settings_doc --write) -->"
 RELEASES_END_MARKER = "<!-- END releases table -->"
+BOARDS_BEGIN_MARKER = "<!-- BEGIN boards table (python -m roslab.settings_doc --write) -->"
+BOARDS_END_MARKER = "<!-- END boards table -->"
 REPO = Path(__file__).resolve().parent.parent
 SETTINGS_PAGE = REPO / "docs/roster-and-settings.md"  # the settings and the releases tables
-PROFILES_PAGE = REPO / "docs/robots.md"  # the profiles table
+PROFILES_PAGE = REPO / "docs/robots.md"  # the profiles and the boards tables
 HOST_FIELDS = Path(__file__).resolve().parent / "host_fields.py"
 COLUMNS = ("key", "type", "default", "allowed", "where", "what it does", "deploy")
 
@@ -131,6 +133,22 @@ def page_with_releases(page_text: str, table: str) -> str:
     return _between(page_text, RELEASES_BEGIN_MARKER, RELEASES_END_MARKER, table)
 
 
+def boards_table() -> str:
+    """The boards a host can be (roslab.boards.BOARDS): a new board record is a new row."""
+    from roslab import boards
+
+    rows = ["| `board` | what it is | boot partition (config.txt, cmdline.txt) | first Ubuntu image (older releases are refused) |",
+            "|---|---|---|---|"]
+    for board in boards.BOARDS:
+        rows.append(f"| `{board.name}` | {board.title} | {'yes' if board.raspberry_pi else 'no'} "
+                    f"| {board.first_release or 'no limit recorded'} |")
+    return "\n".join(rows)
+
+
+def page_with_boards(page_text: str, table: str) -> str:
+    return _between(page_text, BOARDS_BEGIN_MARKER, BOARDS_END_MARKER, table)
+
+
 def _comment(text: str) -> list[str]:
     return textwrap.wrap(text, 108, initial_indent="    # ", subsequent_indent="    # ", break_on_hyphens=False)
 
@@ -173,13 +191,13 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--write", action="store_true", help="rewrite the tables in their docs pages")
     args = parser.parse_args(argv)
-    table, profiles, releases = markdown_table(), profiles_table(), releases_table()
+    table, profiles, releases, boards = markdown_table(), profiles_table(), releases_table(), boards_table()
     if args.write:
         SETTINGS_PAGE.write_text(page_with_releases(page_with_settings(SETTINGS_PAGE.read_text(), table), releases))
-        PROFILES_PAGE.write_text(page_with_profiles(PROFILES_PAGE.read_text(), profiles))
+        PROFILES_PAGE.write_text(page_with_boards(page_with_profiles(PROFILES_PAGE.read_text(), profiles), boards))
         HOST_FIELDS.write_text(host_fields_module())
     else:
-        print(f"{releases}\n\n{table}\n\n{profiles}")
+        print(f"{releases}\n\n{table}\n\n{profiles}\n\n{boards}")
     return 0
 
 

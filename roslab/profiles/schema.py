@@ -14,14 +14,14 @@ from pathlib import Path
 
 import re2
 
-from roslab import formats, settings
+from roslab import boards, formats, settings
 from roslab.ros.distro import BY_NAME, DISTRO_RELEASES
 from roslab.profiles import devices as device_data
 from roslab.checked.loading import line_of
 from roslab.checked.problems import Report
 
 SIDES = ("main", "robot")
-BOARDS = ("pi3b+", "pi4", "pi5", "pc")
+BOARDS = boards.NAMES
 DISCOVERY = ("localhost",)  # room for issue 20's modes (static, discovery_server...)
 
 _NAME = re.compile(r"[a-z][a-z0-9_]{0,62}")

@@ -15,7 +15,7 @@ from collections.abc import Callable
 
 from roslab.ros import discovery
 from roslab.ros import distro as distros
-from roslab import host_rules, settings
+from roslab import boards, host_rules, settings
 from roslab.roster.model import ROLES, Classroom, Host
 from roslab.checked.problems import Report
 
@@ -72,10 +72,10 @@ def check_host(host: Host, report: Report) -> None:
             distros.check_distro(override, codename)
         except distros.DistroError as exc:
             report.error(str(exc), field="ros_distro", line=host.lines.get("ros_distro"), **where)
-    if data.get("board") == "pi5" and codename and distros.BY_CODENAME[codename].release == "22.04":
-        report.error("there is no Ubuntu 22.04 image for a Raspberry Pi 5 (its first is 24.04): use "
-                     "ubuntu_release 24.04 (jazzy), or another board for Humble",
-                     field="board", line=host.lines.get("board") or host.lines.get("ubuntu_release"), **where)
+    board_problem = codename and boards.release_problem(data.get("board"), distros.BY_CODENAME[codename].release)
+    if board_problem:
+        report.error(board_problem, field="board",
+                     line=host.lines.get("board") or host.lines.get("ubuntu_release"), **where)
     if data.get("ros_apt_source_enabled") and data.get("ros_apt_source_mode") == "mirror":
         for key in ("ros_apt_mirror_url", "ros_apt_mirror_key_file"):
             if not data.get(key):

@@ -1,7 +1,7 @@
 """STAND-INS of a Raspberry Pi's boot partition, for sandbox hosts whose roster `board` is a Pi.
 
 A sandbox host is a container: it has no SD card and no FAT partition. A host whose board is a
-Raspberry Pi (pi3b+, pi4, pi5) gets, where Ubuntu mounts that partition (/boot/firmware), the
+Raspberry Pi (roslab.boards) gets, where Ubuntu mounts that partition (/boot/firmware), the
 two files roslab's deploys read and change there, as Ubuntu's preinstalled server image for the
 Pi has them on first boot:
 
@@ -23,8 +23,10 @@ host gets no boot partition stand-in (a profile's boot config is then skipped th
 
 from __future__ import annotations
 
+from roslab import boards
+
 BOOT_PARTITION = "/boot/firmware"  # where Ubuntu for Pi mounts the boot partition
-PI_BOARDS = ("pi3b+", "pi4", "pi5")  # roslab.settings `board` values that are a Raspberry Pi
+PI_BOARDS = boards.PI_NAMES  # roslab.settings `board` values that are a Raspberry Pi
 SOURCE = ("github.com/canonical/pi-gadget, branch classic, commit c042c9a9504521855f266302cce4953a1dfddf5d, "
           "configs/{series}-arm64-server/")
 STANDIN_LINE = ("# roslab sandbox STAND-IN of Ubuntu {release}'s /boot/firmware/config.txt for a Raspberry Pi "

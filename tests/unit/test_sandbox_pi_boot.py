@@ -8,14 +8,14 @@ from ipaddress import IPv4Network
 import pytest
 
 from roslab.profiles import host as profile_host
-from roslab.profiles.schema import BOARDS
+from roslab import boards
 from roslab.sandbox import lifecycle, pi_boot, upstream
 from roslab.sandbox.instance import Instance
 from roslab.settings import SETTINGS
 
 
 @pytest.mark.parametrize("release", ["22.04", "24.04"])
-@pytest.mark.parametrize("board", ["pi3b+", "pi4", "pi5"])
+@pytest.mark.parametrize("board", boards.PI_NAMES)
 def test_a_pi_gets_ubuntus_config_and_cmdline_where_the_deploys_look(board, release):
     files = pi_boot.boot_files(board, release)
     # the same paths the boot config deploy detects a Pi's boot partition by
@@ -42,10 +42,11 @@ def test_no_boot_partition_for_a_pc_an_unsaid_board_or_a_release_without_ubuntus
     assert pi_boot.boot_files(board, release) == {}
 
 
-def test_the_pi_boards_are_the_boards_roslab_knows_but_a_pc():
+def test_the_pi_boards_are_the_board_records_that_are_a_pi_and_the_setting_takes_every_record():
     check = SETTINGS["board"].check
-    assert all(check(board) is None for board in pi_boot.PI_BOARDS)
-    assert set(pi_boot.PI_BOARDS) == set(BOARDS) - {"pc"}
+    assert all(check(board.name) is None for board in boards.BOARDS)
+    assert check("pi6") is not None
+    assert pi_boot.PI_BOARDS == tuple(board.name for board in boards.BOARDS if board.raspberry_pi)
 
 
 def test_sandbox_robots_are_pi4s_and_mains_pcs_in_the_plan_and_the_written_roster():

@@ -49,12 +49,25 @@ def test_profiles_table_is_up_to_date_and_has_a_row_per_profile_file():
         assert f"| `{path.stem}` |" in expected
 
 
+def test_boards_table_is_up_to_date_and_has_a_row_per_board_record():
+    from roslab.boards import BOARDS
+
+    expected = settings_doc.boards_table()
+    page = settings_doc.PROFILES_PAGE.read_text()
+    assert settings_doc.page_with_boards(page, expected) == page, (
+        "docs/robots.md's boards table is stale: run `python -m roslab.settings_doc --write`"
+    )
+    for board in BOARDS:
+        assert f"| `{board.name}` | {board.title} |" in expected
+
+
 def test_each_generated_table_has_one_home_in_the_docs():
     """Each table's markers are in its own page once and in no other markdown file of the repo (the
     README links to them), so `--write` and the drift tests above see every copy there is."""
     homes = {settings_doc.BEGIN_MARKER: settings_doc.SETTINGS_PAGE,
              settings_doc.RELEASES_BEGIN_MARKER: settings_doc.SETTINGS_PAGE,
-             settings_doc.PROFILES_BEGIN_MARKER: settings_doc.PROFILES_PAGE}
+             settings_doc.PROFILES_BEGIN_MARKER: settings_doc.PROFILES_PAGE,
+             settings_doc.BOARDS_BEGIN_MARKER: settings_doc.PROFILES_PAGE}
     pages = [settings_doc.REPO / "README.md", *sorted((settings_doc.REPO / "docs").glob("*.md"))]
     for marker, home in homes.items():
         holding = {page: page.read_text().count(marker) for page in pages if marker in page.read_text()}
