@@ -14,7 +14,7 @@ from roslab.sandbox.instance import Instance
 from roslab.settings import SETTINGS
 
 
-@pytest.mark.parametrize("release", ["22.04", "24.04"])
+@pytest.mark.parametrize("release", sorted(pi_boot.CONFIG_TXT))
 @pytest.mark.parametrize("board", boards.PI_NAMES)
 def test_a_pi_gets_ubuntus_config_and_cmdline_where_the_deploys_look(board, release):
     files = pi_boot.boot_files(board, release)
