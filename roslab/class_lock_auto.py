@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from roslab import class_lock
+from roslab.controller_files import replace_file
 
 
 @dataclass
@@ -89,7 +90,7 @@ def write_taken(converged: list[str]) -> list[str]:
         new, said = taken_groups(lock, found, converged, taken)
         if not said:
             continue
-        path.write_text(class_lock.render_lock(new))
+        replace_file(path, class_lock.render_lock(new))  # a run killed here leaves the old lock whole
         lines.append(f"{path.name} now locks {', '.join(said)}: commit it; "
                      "`roslab lock --update` moves it on purpose")
     return lines

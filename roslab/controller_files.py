@@ -14,6 +14,7 @@ import fcntl
 import hashlib
 import os
 import stat
+import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -104,6 +105,30 @@ def file_sha256(path: Path | str) -> str:
     if status.st_ctime_ns < reading_since - RECENT_CHANGE_NS:
         _DIGESTS[key] = hexdigest
     return hexdigest
+
+
+def replace_file(path: Path | str, data: bytes | str, mode: int = 0o644, sync: bool = True) -> None:
+    """Replace `path` with `data` atomically: a reader (or a run killed mid-write) sees the old
+    file or the new one, never half of one.
+
+    The new file is made beside `path` (mkstemp: O_EXCL, 0600 from its first byte, never someone's
+    link), written and synced, given `mode`, then renamed over `path` (a rename replaces the name
+    and follows no link there). On any failure the temporary file goes and `path` is untouched.
+    `sync=False`: the caller flushes the files it wrote itself, all at once (a seed on a card).
+    """
+    path = Path(path)
+    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}-")
+    try:
+        with os.fdopen(fd, "wb") as out:
+            out.write(data.encode() if isinstance(data, str) else data)
+            out.flush()
+            if sync:
+                os.fsync(out.fileno())
+            os.fchmod(out.fileno(), mode)
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
 
 
 @contextlib.contextmanager

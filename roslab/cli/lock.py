@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 from roslab import class_lock
+from roslab.controller_files import replace_file
 from roslab.reach import RosterProblem, add_roster_argument, connected_state, fail, load_classroom_groups
 
 
@@ -126,7 +127,7 @@ def run_lock(args: argparse.Namespace) -> int:
     if args.dry:
         print(f"--dry: {path.name} was not changed")
         return 0
-    path.write_text(class_lock.render_lock(lock))
+    replace_file(path, class_lock.render_lock(lock))  # never half a lock, whatever stops the command
     return 0
 
 

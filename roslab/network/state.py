@@ -12,13 +12,12 @@ from __future__ import annotations
 
 import os
 import socket
-import tempfile
 import threading
 from pathlib import Path
 
 import yaml
 
-from roslab.controller_files import UnreadableFile, read_regular_file
+from roslab.controller_files import UnreadableFile, read_regular_file, replace_file
 
 STATE_DIR = ".roslab-state"
 ADDRESSES_FILE = "addresses.yaml"
@@ -59,11 +58,8 @@ def record_address(roster_path: str | os.PathLike, host: str, address: str) -> N
     if addresses.get(host) == address:
         return
     addresses[host] = address
-    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=".addresses-")
-    with os.fdopen(fd, "w") as out:
-        out.write("# managed by roslab: where each host was last confirmed reachable.\n")
-        yaml.safe_dump(dict(sorted(addresses.items())), out, default_flow_style=False)
-    os.replace(temporary, path)
+    replace_file(path, "# managed by roslab: where each host was last confirmed reachable.\n"
+                 + yaml.safe_dump(dict(sorted(addresses.items())), default_flow_style=False), mode=0o600)
 
 
 # A change the controller started and has not seen end (confirmed, rolled back or failed):
@@ -94,11 +90,8 @@ def pending_changes(roster_path: str | os.PathLike) -> dict[str, dict]:
 
 def _write_pending(path: Path, pending: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=".pending-")
-    with os.fdopen(fd, "w") as out:
-        out.write("# managed by roslab: network changes started and not yet seen to end.\n")
-        yaml.safe_dump(dict(sorted(pending.items())), out, default_flow_style=False)
-    os.replace(temporary, path)
+    replace_file(path, "# managed by roslab: network changes started and not yet seen to end.\n"
+                 + yaml.safe_dump(dict(sorted(pending.items())), default_flow_style=False), mode=0o600)
 
 
 def record_pending(roster_path: str | os.PathLike, host: str, old_address: str, new_address: str,

@@ -20,7 +20,6 @@ runs that end at once (`--limit team1` and `--limit team2`) both land.
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -28,7 +27,7 @@ from typing import Iterable
 
 import yaml
 
-from roslab.controller_files import file_lock
+from roslab.controller_files import file_lock, replace_file
 from roslab.network.state import STATE_DIR
 
 RUNS_FILE = "runs.yaml"
@@ -142,14 +141,6 @@ def record_runs(roster_path: str | os.PathLike, runs: Iterable[HostRun], when: d
             elif (last_success := parse_time(previous.get("last_success"))) is not None:
                 entry["last_success"] = format_time(last_success)
             entries[run.host] = entry
-        fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{RUNS_FILE}-")
-        try:
-            with os.fdopen(fd, "w", encoding="utf-8") as out:
-                out.write(HEADER)
-                yaml.safe_dump(dict(sorted(entries.items())), out, default_flow_style=False,
-                               sort_keys=False, allow_unicode=True)
-            os.replace(temporary, path)
-        except BaseException:
-            Path(temporary).unlink(missing_ok=True)
-            raise
+        replace_file(path, HEADER + yaml.safe_dump(dict(sorted(entries.items())), default_flow_style=False,
+                                                   sort_keys=False, allow_unicode=True), mode=0o600)
     return path

@@ -19,6 +19,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from roslab.controller_files import replace_file
 from roslab.seed.documents import SEED_FILES, SeedFile
 
 BACKUP_SUFFIX = ".before-roslab"
@@ -35,17 +36,8 @@ class TargetError(ValueError):
 
 
 def _write_private_or_public(path: Path, seed_file: SeedFile) -> None:
-    """Atomically replace `path` with the file, created with its final mode (0600 for secrets)."""
-    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}-")
-    try:
-        os.fchmod(fd, seed_file.mode)
-        with os.fdopen(fd, "wb") as out:
-            out.write(seed_file.content)
-        os.replace(temporary, path)
-    except BaseException:
-        if os.path.exists(temporary):
-            os.unlink(temporary)
-        raise
+    """Atomically replace `path` with the file, never wider than 0600 before its final mode."""
+    replace_file(path, seed_file.content, seed_file.mode, sync=False)  # flushed with the others after
 
 
 def write_directory(directory: Path, files: dict[str, SeedFile]) -> list[str]:

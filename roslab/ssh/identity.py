@@ -33,7 +33,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from roslab import formats
-from roslab.controller_files import UnreadableFile, read_regular_file
+from roslab.controller_files import UnreadableFile, read_regular_file, replace_file
 from roslab.network.state import STATE_DIR
 
 KNOWN_HOSTS_FILE = "known_hosts"
@@ -246,16 +246,7 @@ def _write_known_hosts(roster_path, entries: list[KnownHost], known_hosts: Path 
     except FileNotFoundError:
         mode = 0o644
     body = "".join(entry.line() + "\n" for entry in entries)
-    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=".known_hosts-")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as out:
-            out.write((HEADER if own else "") + body)
-        os.chmod(temporary, mode)  # public keys: ssh refuses nothing for being readable
-        os.replace(temporary, path)
-    except BaseException:
-        if os.path.exists(temporary):
-            os.unlink(temporary)
-        raise
+    replace_file(path, (HEADER if own else "") + body, mode)  # public keys: ssh refuses nothing for being readable
 
 
 def _name_matches(name: str, wanted: str) -> bool:
