@@ -343,6 +343,7 @@ def nspawn_argv(instance: Instance, host: SandboxHost, merged: Path, seed: Path 
         "--console=read-only", "--resolv-conf=off", "--timezone=off", "--link-journal=no",
         # A host configures its own address (netplan, NetworkManager), as a Pi does.
         "--capability=CAP_NET_ADMIN",
+        f"--bind={image.compile_cache_dir()}:{image.COMPILE_CACHE}",
     ]
     if lxcfs_running():
         argv.append(f"--bind-ro={LXCFS_DIR}")
@@ -356,6 +357,7 @@ def start(instance: Instance, host: SandboxHost, merged: Path, seed: Path | None
     cgroups = host_cgroups(instance, host.name)
     for path in cgroups:
         path.mkdir(parents=True, exist_ok=True)
+    image.ensure_compile_cache()
     join = "".join(f'echo $$ > {shlex.quote(str(path / "cgroup.procs"))}\n' for path in cgroups)
     script = (
         join

@@ -21,7 +21,7 @@ from . import seeding
 from .system import SandboxError, announced, log, run, write_file
 
 # Bump when the way the image is built or customised changes: it is part of the cache key.
-BUILDER_VERSION = 6
+BUILDER_VERSION = 7
 
 # What a Pi's server image brings, minus the kernel: the deploys find these installed.
 # cloud-init (Debian's) stays disabled unless a host boots from a seed (seeding.py);
@@ -30,7 +30,27 @@ BASE_PACKAGES = (
     "openssh-server", "sudo", "python3", "locales", "systemd", "systemd-sysv", "dbus",
     "iproute2", "netplan.io", "network-manager", "ca-certificates", "gnupg", "curl",
     "iputils-ping", "procps", "libpam-systemd", "less", "nano", "cloud-init", "systemd-timesyncd",
+    "ccache",  # the sandbox's compile cache (COMPILE_CACHE below), not a Pi's
 )
+
+# The sandbox's hosts compile C and C++ through ccache, into one cache every host of every
+# instance on this machine shares (bound from compile_cache_dir()): a class rehearsed again, or
+# two classes building the same micro-ROS agent, compile each unchanged source once. colcon,
+# CMake and the linker still run on the host as on a Pi; only a compiler run whose inputs
+# ccache has seen (by content) is answered from the cache, and a failing one never is.
+# /usr/local/bin comes before /usr/bin in PATH and in sudo's secure_path, so CMake's `cc`/`c++`
+# (and `gcc`/`g++`) are ccache's, which runs the real /usr/bin compiler once the deploy installed
+# it. `base_dir`: paths under /home are hashed relative, so two hosts' build folders share.
+COMPILE_CACHE = "/var/cache/roslab-ccache"
+COMPILE_CACHE_CONF = f"""\
+# roslab sandbox (not on a Pi): one compile cache shared by the sandbox's hosts (roslab/sandbox/image.py)
+cache_dir = {COMPILE_CACHE}
+base_dir = /home
+hash_dir = false
+umask = 000
+max_size = 4G
+"""
+COMPILER_NAMES = ("cc", "c++", "gcc", "g++")
 
 LOGIN_USER = "ubuntu"
 LOGIN_UID = 1000
@@ -39,6 +59,22 @@ LOGIN_UID = 1000
 def cache_dir() -> Path:
     """Where images and archives are cached (outside the checkout, shared by instances)."""
     return Path(os.environ.get("ROSLAB_CACHE_DIR", "/var/cache/roslab"))
+
+
+def compile_cache_dir() -> Path:
+    """The sandbox hosts' shared compile cache on this machine (COMPILE_CACHE in each host)."""
+    return cache_dir() / "ccache" / "cache"
+
+
+def ensure_compile_cache() -> Path:
+    """Make compile_cache_dir(): writable by every user of every host (their uids differ), so its
+    parent is root's alone and no other user of this machine can reach it to plant an object."""
+    shared = compile_cache_dir()
+    shared.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+    os.chmod(shared.parent, 0o700)
+    shared.mkdir(exist_ok=True)
+    os.chmod(shared, 0o777)
+    return shared
 
 
 def machine_codename(os_release: Path = Path("/etc/os-release")) -> str:
@@ -174,6 +210,11 @@ def _customise(rootfs: Path) -> None:
     write_file(rootfs / "etc/dpkg/dpkg.cfg.d/roslab-sandbox-unsafe-io",
                "# roslab sandbox (not on a Pi): no fsync per unpacked file; the host's disk is a folder\n"
                "force-unsafe-io\n")
+    write_file(rootfs / "etc/ccache.conf", COMPILE_CACHE_CONF)
+    for name in COMPILER_NAMES:
+        (rootfs / "usr/local/bin" / name).symlink_to("/usr/bin/ccache")
+    (rootfs / COMPILE_CACHE.lstrip("/")).mkdir(mode=0o777, parents=True, exist_ok=True)
+    os.chmod(rootfs / COMPILE_CACHE.lstrip("/"), 0o777)  # the mount point: a host without the bind keeps its own
     # A host's own periodic apt runs would race the tests' apt runs for the dpkg lock.
     _chroot(rootfs, "systemctl", "mask", "apt-daily.timer", "apt-daily-upgrade.timer")
     # Nothing to resolve: hosts reach only the sandbox upstream by address, and an

@@ -7,6 +7,7 @@ from __future__ import annotations
 import errno
 import ipaddress
 import subprocess
+import stat
 import textwrap
 from pathlib import Path
 
@@ -424,6 +425,19 @@ def test_the_seed_is_bound_read_only_as_the_boot_partition(tmp_path):
     seeded = hosts.nspawn_argv(instance, host, tmp_path, seed=tmp_path / "seed")
     assert seeded[:len(plain)] == plain
     assert seeded[len(plain):] == [f"--bind-ro={tmp_path / 'seed'}:/boot/firmware"]
+
+
+def test_every_host_compiles_into_the_machines_one_compile_cache(tmp_path, monkeypatch):
+    """Bound read-write where the image's ccache.conf and compiler links point, from a folder only
+    root can reach on the machine (the cache itself is writable by every host user)."""
+    monkeypatch.setenv("ROSLAB_CACHE_DIR", str(tmp_path / "cache"))
+    instance = Instance.from_env()
+    argv = hosts.nspawn_argv(instance, instance.plan_hosts(1)[0], tmp_path)
+    assert f"--bind={tmp_path / 'cache/ccache/cache'}:{image.COMPILE_CACHE}" in argv
+    shared = image.ensure_compile_cache()
+    assert shared == tmp_path / "cache/ccache/cache"
+    assert stat.S_IMODE(shared.parent.stat().st_mode) == 0o700 and stat.S_IMODE(shared.stat().st_mode) == 0o777
+    assert f"cache_dir = {image.COMPILE_CACHE}\n" in image.COMPILE_CACHE_CONF and "ccache" in image.BASE_PACKAGES
 
 
 def test_the_stand_in_script_is_valid_python_that_locks_as_apt_does():
