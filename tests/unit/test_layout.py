@@ -273,3 +273,21 @@ def test_the_typed_settings_rule_sees_each_way_back_to_a_mapping():
     assert [line for line, _ in deploy_data_reads(ast.parse(source))] == [1, 2, 3, 4]
     from roslab.host_fields import HostSettings
     assert "data" not in HostSettings.__dataclass_fields__  # no embedded mapping to hand on
+
+
+def test_code_shape_reports_file_cycles_and_the_tool_modules(tmp_path, capsys):
+    (tmp_path / "roslab/ops").mkdir(parents=True)
+    (tmp_path / "roslab/__init__.py").write_text("")
+    (tmp_path / "roslab/ops/__init__.py").write_text("")
+    (tmp_path / "roslab/a.py").write_text("from roslab import b\n")
+    (tmp_path / "roslab/b.py").write_text("def f():\n    import roslab.a\n")
+    (tmp_path / "roslab/ops/tool.py").write_text(
+        "from pyinfra.api import FactBase, operation\n\nclass Seen(FactBase):\n    pass\n\n"
+        "@operation()\ndef done():\n    yield 'true'\n")
+    shape = code_shape()
+    assert shape.file_cycles(tmp_path) == [["roslab.a", "roslab.b"]]
+    shape.main(["code_shape.py", str(tmp_path)])
+    printed = capsys.readouterr().out
+    assert "- import cycles between files: 1 [['roslab.a', 'roslab.b']]" in printed
+    assert "1 of them tool modules in roslab/ops/ (1 facts, 1 operations), 0 elsewhere" in printed
+    assert "- roslab/ops/tool.py: 1 facts, 1 operations" in printed
