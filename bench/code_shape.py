@@ -1,6 +1,6 @@
 """The shape of roslab's code, as issue reviews measure it: size, the largest modules, functions
-over 40 and over 60 lines, pyinfra facts and operations per module, and import cycles through
-folders. It walks roslab/, deploy/ and deploy.py (TREES): the deploys are held to the same rule
+over 40 and over 60 lines, pyinfra facts and operations per module (those of roslab/ops/, one
+module per tool, apart), and import cycles through folders and between files. It walks roslab/, deploy/ and deploy.py (TREES): the deploys are held to the same rule
 (tests/unit/test_layout.py fails on a function over 60 lines in any of them).
 
     python bench/code_shape.py [ROOT]     # ROOT: a checkout (default: this one)
@@ -20,6 +20,8 @@ LONG = 60
 MEDIUM = 40
 # What is measured: the package, the deploys and the file pyinfra runs (a folder or a file).
 TREES = ("roslab", "deploy", "deploy.py")
+# roslab's package of pyinfra facts and operations, one module per tool.
+TOOLS = "roslab/ops/"
 
 
 def _is_operation(node: ast.AST) -> bool:
@@ -75,16 +77,29 @@ def shape(root: Path) -> dict:
             "trees": trees, "facts": facts, "operations": operations, "loose": loose, "folders": folders}
 
 
-def folder_cycles(root: Path) -> list[list[str]]:
+def _layout():
+    """tests/unit/test_layout.py, whose cycle finder this counts with."""
     import importlib.util
 
     spec = importlib.util.spec_from_file_location(
         "layout", Path(__file__).resolve().parent.parent / "tests/unit/test_layout.py")
     layout = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(layout)
+    return layout
+
+
+def folder_cycles(root: Path) -> list[list[str]]:
+    layout = _layout()
     layout.ROOT = root / "roslab"
     folders = {f"roslab.{name}" for name in shape(root)["folders"]}
     return [c for c in layout.cycles(layout.import_edges()) if folders & set(c)]
+
+
+def file_cycles(root: Path) -> list[list[str]]:
+    """Import cycles between files (each module a node) in roslab/ and in deploy/."""
+    layout = _layout()
+    return [cycle for tree in ("roslab", "deploy") if (root / tree).is_dir()
+            for cycle in layout.cycles(layout.file_import_edges(root / tree))]
 
 
 def main(argv: list[str]) -> int:
@@ -99,17 +114,28 @@ def main(argv: list[str]) -> int:
     print(f"- functions over {LONG} lines: {len(found['long'])}")
     print(f"- facts: {sum(found['facts'].values())} in {len(found['facts'])} modules; operations: "
           f"{sum(found['operations'].values())} in {len(found['operations'])} modules")
+    holders = sorted(set(found["facts"]) | set(found["operations"]))
+    tools = [name for name in holders if name.startswith(TOOLS)]
+    print(f"- modules holding facts or operations: {len(holders)}, {len(tools)} of them tool modules in "
+          f"{TOOLS} ({sum(found['facts'][n] for n in tools)} facts, {sum(found['operations'][n] for n in tools)} "
+          f"operations), {len(holders) - len(tools)} elsewhere")
     cycles = folder_cycles(root)
     print(f"- import cycles through a folder: {len(cycles)} {cycles if cycles else ''}")
+    cycles = file_cycles(root)
+    print(f"- import cycles between files: {len(cycles)} {cycles if cycles else ''}")
     print("\nLargest modules:\n")
     for name, lines in sorted(found["modules"].items(), key=lambda item: -item[1])[:8]:
         print(f"- {name}: {lines}")
     print(f"\nFunctions over {LONG} lines:\n")
     for length, where in found["long"]:
         print(f"- {where}: {length}")
-    print("\nFacts and operations per module:\n")
-    for name in sorted(set(found["facts"]) | set(found["operations"])):
+    print(f"\nFacts and operations per tool module ({TOOLS}):\n")
+    for name in tools:
         print(f"- {name}: {found['facts'][name]} facts, {found['operations'][name]} operations")
+    print("\nFacts and operations in other modules:\n")
+    for name in holders:
+        if name not in tools:
+            print(f"- {name}: {found['facts'][name]} facts, {found['operations'][name]} operations")
     return 0
 
 

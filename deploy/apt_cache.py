@@ -33,7 +33,7 @@ from pyinfra.operations import apt, files, systemd
 from deploy.common import ubuntu_codename, should_run, stop_host, where
 from roslab import probe, settings
 from roslab.ros.distro import DistroError, codename_for
-from roslab.operations import (
+from roslab.ops.apt import (
     apt_install_options,
     apt_lists_updated,
     packages_downloaded,

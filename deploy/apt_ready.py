@@ -21,15 +21,15 @@ from deploy.apt_cache import fills_the_class_cache, updates_through_the_class_ca
 from deploy.ros_apt_source import OLD_METHOD_FILES, old_method_moved_aside
 from roslab.host_settings import host_settings
 from roslab import probe, settings
-from roslab.facts import AptProblem
-from roslab.operations import (
+from roslab.ops.apt import (
+    AptProblem,
     apt_lists_updated,
     apt_lists_updated_reads,
     dpkg_interrupted_install_finished,
-    files_moved_aside_reads,
     ubuntu_apt_sources,
     ubuntu_apt_sources_reads,
 )
+from roslab.ops.files import files_moved_aside_reads
 
 DEFAULTS = settings.defaults("apt_ready")
 

@@ -17,8 +17,8 @@ from pyinfra.facts.server import Home, LinuxDistribution, User
 from roslab import settings
 from roslab.reporting import summary
 from roslab.ssh import run_lock
-from roslab.operations import as_user
-from roslab.facts import BOOT_WAIT, BootFinished
+from roslab.ops.users import as_user
+from roslab.ops.systemd import BOOT_WAIT, BootFinished
 from roslab.probe import read, read_ahead, registered_reads
 from roslab.ros.distro import DistroError, UBUNTU_CODENAMES, check_distro, codename_for, default_distro
 from roslab.host_settings import HostSettingsError, host_settings

@@ -10,7 +10,8 @@ from pyinfra.operations import apt, files
 
 from deploy.common import should_run
 from roslab import probe, settings
-from roslab.operations import apt_install_options, locale_generated, locale_generated_reads
+from roslab.ops.apt import apt_install_options
+from roslab.ops.locale import locale_generated, locale_generated_reads
 from roslab.quoting import shell_word
 from roslab.templating import render
 from roslab.host_settings import HostSettings, host_settings

@@ -23,7 +23,7 @@ from deploy.common import existing_login_home, host_distro, login_user, should_r
 from deploy.python_env import filled_venv
 from roslab import probe, settings
 from roslab.ros import workspace as ws_ops
-from roslab.profiles.host import service_installed_not_running
+from roslab.ops.systemd import service_installed_not_running
 from roslab.python_env.venv import venv_on_pythonpath
 from roslab.quoting import shell_word, systemd_value
 from roslab.service_units import NODE_RESTARTS, unit_values

@@ -1,7 +1,7 @@
 """A team that switches robot profile (osr -> demo) keeps nothing of the old one that could act.
 
 Runs last: the new profile's units, groups and sources are in place. From the host's record of
-what roslab wrote for its profile (roslab/profiles/switch.py), the units of an earlier profile
+what roslab wrote for its profile (roslab/ops/profile_record.py), the units of an earlier profile
 are stopped, disabled and removed, and the login user leaves the groups roslab added for it;
 what stays (a boot config block, whose removal needs a reboot; the login user's venv; the
 underlay's last build) is said in one warning line per host, in the run that switches. The
@@ -16,8 +16,9 @@ from pyinfra.api import deploy
 from deploy.common import existing_login_home, login_user, should_run, where
 from deploy.profile_services import MANAGED_MARK
 from roslab import probe, settings
-from roslab.profiles.host import CONFIG_TXT, UserGroups
-from roslab.profiles.switch import ProfileRecord, profile_recorded, profile_units_gone, user_left_groups
+from roslab.ops.boot_config import CONFIG_TXT
+from roslab.ops.users import UserGroups
+from roslab.ops.profile_record import ProfileRecord, profile_recorded, profile_units_gone, user_left_groups
 from roslab.host_settings import host_settings
 from roslab.profiles.resolve import ResolvedProfile
 

@@ -30,7 +30,7 @@ from deploy.common import (
 )
 from roslab import class_lock, class_lock_auto, probe, settings
 from roslab.python_env import wheelhouse
-from roslab.operations import apt_install_options
+from roslab.ops.apt import apt_install_options
 from roslab.python_env.venv import (
     PythonTarget,
     python_target_reads,

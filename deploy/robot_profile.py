@@ -22,26 +22,22 @@ from pyinfra.operations import apt, files
 from deploy.common import existing_login_home, login_user, should_run
 from roslab import probe, settings
 from roslab.reporting import summary
-from roslab.operations import BACKUP_SUFFIX, managed_block, managed_block_reads
-from roslab.profiles.host import (
+from roslab.ops.files import BACKUP_SUFFIX, managed_block, managed_block_reads
+from roslab.ops.boot_config import (
     CMDLINE_TXT,
     CONFIG_TXT,
     CmdlineText,
-    MemoryTotal,
     RebootRecord,
-    SwapFile,
-    UnitsMasked,
     cmdline_words_kept,
     config_txt_block,
     reboot_needed_recorded,
     reboot_pending,
     reboot_record_current,
-    swap_file_on,
-    udev_reloaded,
-    units_masked,
-    user_in_groups,
-    user_in_groups_reads,
 )
+from roslab.ops.memory import MemoryTotal, SwapFile, swap_file_on
+from roslab.ops.systemd import UnitsMasked, units_masked
+from roslab.ops.udev import udev_reloaded
+from roslab.ops.users import user_in_groups, user_in_groups_reads
 from roslab.profiles.resolve import UDEV_RULES_PATH
 from roslab.host_settings import host_settings
 from roslab.profiles.resolve import ResolvedProfile

@@ -21,7 +21,8 @@ from pyinfra.operations import apt, files
 
 from deploy.common import apt_sources_written, ubuntu_codename, should_run, stop_host, where
 from roslab import downloads, probe, settings
-from roslab.operations import apt_install_options, files_moved_aside, files_moved_aside_reads
+from roslab.ops.apt import apt_install_options
+from roslab.ops.files import files_moved_aside, files_moved_aside_reads
 from roslab.quoting import deb822_value
 from roslab.templating import render
 from roslab.host_settings import host_settings

@@ -11,7 +11,7 @@ from deploy.common import host_codename, host_distro, should_run, stop_host, whe
 from roslab import class_lock, probe, settings
 from roslab.ros.discovery import middleware_package
 from roslab.ros.distro import default_distro
-from roslab.operations import packages_installed
+from roslab.ops.apt import packages_installed
 from roslab.quoting import apt_arguments
 from roslab.host_settings import HostSettings, host_settings
 

@@ -32,10 +32,9 @@ from deploy.common import (
 from roslab.host_settings import host_settings
 from roslab import downloads, probe, settings
 from roslab.ros import rosdep_data
-from roslab.operations import (
+from roslab.ops.apt import command_installed, command_installed_reads
+from roslab.ops.rosdep import (
     ROSDEP_SOURCES_LIST,
-    command_installed,
-    command_installed_reads,
     rosdep_cache_updated,
     rosdep_cache_updated_reads,
     rosdep_initialized,

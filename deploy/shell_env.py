@@ -20,7 +20,7 @@ from deploy.common import (
     where,
 )
 from roslab import probe, settings
-from roslab.operations import managed_block, managed_block_reads
+from roslab.ops.files import managed_block, managed_block_reads
 from roslab.quoting import shell_home_path, shell_word
 from deploy.python_env import filled_venv
 from deploy.sources import repositories

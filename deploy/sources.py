@@ -37,7 +37,7 @@ from roslab.sources import groups as underlay_groups
 from roslab.sources import ship as underlay_ship
 from roslab.sources import underlay as underlay_ops
 from roslab.ros import workspace as ws_ops
-from roslab.profiles.host import MemoryTotal
+from roslab.ops.memory import MemoryTotal
 from roslab.host_settings import HostSettings, host_settings, peer_settings
 
 DEFAULTS = settings.defaults("sources")

@@ -11,7 +11,8 @@ from pyinfra.operations import apt, server, systemd
 
 from deploy.common import existing_login_home, login_home, login_user, should_run
 from roslab import probe, settings
-from roslab.operations import apt_install_options, managed_block, managed_block_reads
+from roslab.ops.apt import apt_install_options
+from roslab.ops.files import managed_block, managed_block_reads
 from roslab.host_settings import HostSettings, host_settings
 
 DEFAULTS = settings.defaults("ssh_identity")

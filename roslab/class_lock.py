@@ -41,7 +41,8 @@ from pyinfra.facts.files import FileContents
 
 from roslab.checked.loading import load_yaml
 from roslab.checked.problems import Report
-from roslab.operations import DPKG_KEEP_CONFFILES, _log_diff, _upload_text, apt_get, reporting_a_signal
+from roslab.ops.apt import DPKG_KEEP_CONFFILES, apt_get, reporting_a_signal
+from roslab.ops.files import _log_diff, _upload_text
 from roslab.probe import read
 
 LOCK_FILE = "classroom.lock"

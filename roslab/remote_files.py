@@ -25,7 +25,7 @@ python3. That script
   a rename replaces a name, it never follows a link, and nobody ever sees half a file.
 
 `OwnedFileUpload` is a FileUploadCommand that also gives the file its owner and mode
-before it takes the destination's name (roslab.operations' managed files: ~/.bashrc, ...),
+before it takes the destination's name (roslab.ops.files' managed files: ~/.bashrc, ...),
 so no chown or chmod follows the upload (they would follow a link put there in between).
 """
 

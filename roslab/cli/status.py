@@ -47,7 +47,7 @@ from pyinfra.api import FactBase
 
 from roslab.host_settings import HostSettings
 from roslab.roster import Classroom, RosterError, display_path, group_names, inventory_groups
-from roslab.profiles.host import RebootRecord, parse_reboot_record, reboot_pending
+from roslab.ops.boot_config import RebootRecord, parse_reboot_record, reboot_pending
 from roslab.reporting.runs import RunRecord, now_utc, read_runs, runs_path
 from roslab.cli import launch_journal, status_lock
 from roslab.cli.host_services import host_services, profile_name, runs_nodes, services_not_started

@@ -48,7 +48,7 @@ from roslab.ros.distro import default_distro
 from roslab.cli.host_services import (host_services, profile_name, runs_a_launch, runs_nodes,  # noqa: F401
                                       services_not_started)
 from roslab.cli import launch_journal
-from roslab.operations import as_user
+from roslab.ops.users import as_user
 from roslab.quoting import shell_home_path, shell_word
 from roslab.host_settings import host_settings
 from roslab.ros.environment import host_environment

@@ -1,4 +1,4 @@
-"""BootFinished (roslab/facts.py): a run right after a reboot waits for systemd to finish
+"""BootFinished (roslab/ops/systemd.py): a run right after a reboot waits for systemd to finish
 starting the host. Its command runs here, on this machine's sh, against a stand-in `systemctl`
 (a script that answers `is-system-running` as a booting host would)."""
 
@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import subprocess
 
-from roslab.facts import BootFinished
+from roslab.ops.systemd import BootFinished
 
 STANDIN = """#!/bin/sh
 # stand-in for systemctl is-system-running [--wait]: "starting" until --wait, which takes $SECONDS_LEFT s

@@ -11,7 +11,7 @@ from fixtures.fake_ubuntu import FakeUbuntu
 from deploy.apt_ready import apt_lists, apt_ready
 from deploy.common import supported_host
 from roslab import settings
-from roslab.operations import apt_update_command
+from roslab.ops.apt import apt_update_command
 
 STAMP = "/var/lib/apt/periodic/update-success-stamp"
 UPDATE = apt_update_command(600)  # fails on any failed download; the stamp only after success
@@ -139,7 +139,7 @@ def test_a_lock_wait_that_ended_well_is_reported_in_one_line_and_the_run_goes_on
 # cloud-init's first boot on a freshly seeded Pi: waited for, bounded, inside the probe.
 
 def test_the_probe_waits_for_cloud_init_only_while_it_runs_this_boot():
-    from roslab.facts import AptProblem
+    from roslab.ops.apt import AptProblem
 
     command = AptProblem().command(lock_timeout=42).get_raw_value()
     wait = command[: command.index("apt-get")]
@@ -152,7 +152,7 @@ def test_the_probe_waits_for_cloud_init_only_while_it_runs_this_boot():
     ("roslab-cloud-init=124 600 ", {"status": 124, "seconds": 600, "output": ""}),
 ])
 def test_what_the_cloud_init_wait_said_is_kept_beside_apts_verdict(line, expected):
-    from roslab.facts import AptProblem
+    from roslab.ops.apt import AptProblem
 
     assert AptProblem().process([line, "roslab-apt-exit=0"]) == {
         "interrupted": False, "message": None, "cloud_init": expected}

@@ -197,7 +197,7 @@ def osr_robot_data(tmp_path, **given):
 
 
 def test_an_osr_robot_gets_its_boot_config_once_records_the_reboot_and_then_nothing(tmp_path):
-    from roslab.profiles.host import CMDLINE_TXT, CONFIG_TXT, REBOOT_RECORD
+    from roslab.ops.boot_config import CMDLINE_TXT, CONFIG_TXT, REBOOT_RECORD
 
     host = with_stand_in_deb(FakeUbuntu())
     host.files[CONFIG_TXT] = ["[pi4]", "max_framebuffers=2", "[all]", "arm_64bit=1"]
@@ -229,8 +229,8 @@ def test_an_osr_robot_gets_its_boot_config_once_records_the_reboot_and_then_noth
 
 def test_a_team_switching_from_osr_to_demo_loses_the_rovers_unit_and_groups_says_what_stays_then_nothing(
         tmp_path, caplog):
-    from roslab.profiles.host import CONFIG_TXT
-    from roslab.profiles.switch import PROFILE_RECORD
+    from roslab.ops.boot_config import CONFIG_TXT
+    from roslab.ops.profile_record import PROFILE_RECORD
 
     host = with_stand_in_deb(FakeUbuntu())
     host.files[CONFIG_TXT] = ["[all]", "arm_64bit=1"]
@@ -265,7 +265,7 @@ def test_a_team_switching_from_osr_to_demo_loses_the_rovers_unit_and_groups_says
 
 
 def test_a_host_converged_before_the_record_existed_still_loses_the_old_profiles_unit(tmp_path, caplog):
-    from roslab.profiles.switch import PROFILE_RECORD
+    from roslab.ops.profile_record import PROFILE_RECORD
 
     host = with_stand_in_deb(FakeUbuntu())
     host.apply(plan(run_deploy_py, host.facts(), osr_robot_data(tmp_path, osr_calibrated="true")))

@@ -14,7 +14,7 @@ from fixtures.fake_ubuntu import FakeUbuntu
 from deploy.apt_ready import apt_lists
 from deploy.ros_apt_source import dearmored, ros_apt_source
 from roslab import downloads, quoting, settings
-from roslab.operations import apt_update_command
+from roslab.ops.apt import apt_update_command
 
 OLD_LIST = "/etc/apt/sources.list.d/ros2.list"
 SOURCES = "/etc/apt/sources.list.d/ros2.sources"

@@ -14,7 +14,7 @@ from deploy.ros_install import DEFAULTS, ros_install, ros_packages
 from deploy.rosdep import rosdep
 from roslab import settings as schema
 from roslab.class_lock import AptVersionsNow
-from roslab.operations import reporting_a_signal
+from roslab.ops.apt import reporting_a_signal
 
 
 def settings(**changes):

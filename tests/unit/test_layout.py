@@ -1,4 +1,5 @@
-"""roslab's layout: no import cycle between its folders (lazy imports inside functions count),
+"""roslab's layout: no import cycle between its folders nor between its files, in roslab/ and deploy/
+(lazy imports inside functions count),
 no function over 60 lines in roslab/, deploy/ or deploy.py (as bench/code_shape.py counts them),
 and robot commands come from the profiles that name them."""
 
@@ -46,6 +47,44 @@ def import_edges() -> dict[str, set[str]]:
     return edges
 
 
+def module_name(path: Path, root: Path) -> str:
+    """The dotted name of the module at `path` (a package's __init__.py: the package)."""
+    return ".".join(path.relative_to(root.parent).with_suffix("").parts).removesuffix(".__init__")
+
+
+def file_import_edges(root: Path | None = None) -> dict[str, set[str]]:
+    """Module -> the modules of the same tree it imports, each file a node (lazy imports inside
+    functions count). Relative imports are resolved; `from pkg import name` is an edge to
+    pkg.name when that is a module, else to pkg (its __init__.py)."""
+    root = root or ROOT
+    paths = {module_name(path, root): path for path in root.rglob("*.py")}
+    top = root.name
+    edges: dict[str, set[str]] = {}
+    for module, path in paths.items():
+        package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                    source = ".".join([*base, *([node.module] if node.module else [])])
+                else:
+                    source = node.module or ""
+                if source != top and not source.startswith(top + "."):
+                    continue
+                targets = [f"{source}.{alias.name}" if f"{source}.{alias.name}" in paths else source
+                           for alias in node.names]
+            elif isinstance(node, ast.Import):
+                targets = [alias.name for alias in node.names if alias.name.startswith(top + ".")]
+            else:
+                continue
+            for target in targets:
+                while target not in paths and "." in target:  # `import a.b.c` of a name, not a file
+                    target = target.rpartition(".")[0]
+                if target in paths and target != module:
+                    edges.setdefault(module, set()).add(target)
+    return edges
+
+
 def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
     """Strongly connected components of more than one unit (Tarjan)."""
     index: dict[str, int] = {}
@@ -85,12 +124,34 @@ def test_no_import_cycle_runs_through_a_folder():
 
 
 def test_no_import_cycle_at_all_not_even_between_two_loose_modules():
-    # facts <-> operations was the last one (issue 42): the lock-wait option now lives in facts
+    # a folder counts as one unit here (issue 42's facts <-> operations was the last cycle)
     assert cycles(import_edges()) == []
 
 
 def test_the_cycle_finder_finds_a_cycle():
     assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def test_no_import_cycle_between_files_in_roslab_or_deploy():
+    # each module a node (a folder's modules too, and roslab.ops' tools among them)
+    assert cycles(file_import_edges(ROOT)) == []
+    assert cycles(file_import_edges(CHECKOUT / "deploy")) == []
+
+
+def test_the_file_level_cycle_finder_resolves_imports_and_finds_a_planted_cycle(tmp_path):
+    package = tmp_path / "pkg"
+    (package / "sub").mkdir(parents=True)
+    (package / "__init__.py").write_text("X = 1\n")
+    (package / "sub/__init__.py").write_text("")
+    (package / "a.py").write_text("from . import b\n")  # relative: pkg.b, a module
+    (package / "b.py").write_text("from .sub.c import thing\n")
+    (package / "sub/c.py").write_text("def thing():\n    from pkg import a  # lazy, still an edge\n")
+    (package / "d.py").write_text("from pkg import X\nimport pkg.sub.c\nimport os\n")
+    (package / "sub/e.py").write_text("from .. import d\nfrom ..sub import c\n")
+    edges = file_import_edges(package)
+    assert edges["pkg.d"] == {"pkg", "pkg.sub.c"}  # X is a name in pkg/__init__.py, not a module
+    assert edges["pkg.sub.e"] == {"pkg.d", "pkg.sub.c"}
+    assert cycles(edges) == [["pkg.a", "pkg.b", "pkg.sub.c"]]
 
 
 def code_shape():
@@ -212,3 +273,21 @@ def test_the_typed_settings_rule_sees_each_way_back_to_a_mapping():
     assert [line for line, _ in deploy_data_reads(ast.parse(source))] == [1, 2, 3, 4]
     from roslab.host_fields import HostSettings
     assert "data" not in HostSettings.__dataclass_fields__  # no embedded mapping to hand on
+
+
+def test_code_shape_reports_file_cycles_and_the_tool_modules(tmp_path, capsys):
+    (tmp_path / "roslab/ops").mkdir(parents=True)
+    (tmp_path / "roslab/__init__.py").write_text("")
+    (tmp_path / "roslab/ops/__init__.py").write_text("")
+    (tmp_path / "roslab/a.py").write_text("from roslab import b\n")
+    (tmp_path / "roslab/b.py").write_text("def f():\n    import roslab.a\n")
+    (tmp_path / "roslab/ops/tool.py").write_text(
+        "from pyinfra.api import FactBase, operation\n\nclass Seen(FactBase):\n    pass\n\n"
+        "@operation()\ndef done():\n    yield 'true'\n")
+    shape = code_shape()
+    assert shape.file_cycles(tmp_path) == [["roslab.a", "roslab.b"]]
+    shape.main(["code_shape.py", str(tmp_path)])
+    printed = capsys.readouterr().out
+    assert "- import cycles between files: 1 [['roslab.a', 'roslab.b']]" in printed
+    assert "1 of them tool modules in roslab/ops/ (1 facts, 1 operations), 0 elsewhere" in printed
+    assert "- roslab/ops/tool.py: 1 facts, 1 operations" in printed

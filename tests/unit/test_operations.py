@@ -10,8 +10,24 @@ from fixtures.fake_host import plan
 from pyinfra.facts.files import File, FileContents, Link
 from pyinfra.facts.server import Locales, Which
 
-from roslab import operations, quoting
-from roslab.facts import AptProblem, FileAge
+from roslab import quoting
+from roslab.ops import apt
+from roslab.ops.apt import (
+    AptProblem,
+    apt_get,
+    apt_install_options,
+    apt_lists_updated,
+    apt_lock_options,
+    apt_update_command,
+    command_installed,
+    dpkg_interrupted_install_finished,
+    ubuntu_apt_sources,
+    with_deb822_suites,
+    with_one_line_suites,
+)
+from roslab.ops.files import BACKUP_SUFFIX, FileAge, block_repair, files_moved_aside, managed_block
+from roslab.ops.locale import locale_generated, with_locale_enabled
+from roslab.ops.rosdep import rosdep_cache_updated, rosdep_initialized
 
 BASHRC = ["# user's own settings", "alias ll='ls -alF'"]
 BLOCK_BEGIN = "# BEGIN roslab managed block (ROS 2 environment)"
@@ -32,7 +48,7 @@ def files(contents: dict):
 
 def block(facts, path="/home/student/.bashrc", content="export ROS_DOMAIN_ID=11", diff=False):
     return plan(
-        operations.managed_block, facts, diff=diff, path=path, content=content,
+        managed_block, facts, diff=diff, path=path, content=content,
         label="ROS 2 environment", user="student", group="student", mode="644",
     )
 
@@ -43,7 +59,7 @@ def test_managed_block_is_appended_after_the_users_lines_keeping_owner_and_mode(
         [*BASHRC, "", BLOCK_BEGIN, "export ROS_DOMAIN_ID=11", BLOCK_END]
     ) + "\n"
     # Owner and mode travel with the upload: no chown/chmod after it that could follow a link.
-    assert result.changing()["operations.managed_block"] == ["upload /home/student/.bashrc"]
+    assert result.changing()["files.managed_block"] == ["upload /home/student/.bashrc"]
     assert owner_and_mode(result) == ("student", "student", 0o640)  # the user's own mode
 
 
@@ -64,7 +80,7 @@ def test_managed_block_is_a_noop_when_the_block_is_current():
 
 def test_managed_block_creates_a_missing_file_with_the_given_owner():
     result = block(files({}))
-    assert result.changing()["operations.managed_block"] == ["upload /home/student/.bashrc"]
+    assert result.changing()["files.managed_block"] == ["upload /home/student/.bashrc"]
     assert owner_and_mode(result) == ("student", "student", 0o644)
 
 
@@ -137,21 +153,21 @@ ACCIDENTS = {
 @pytest.mark.parametrize("accident", sorted(ACCIDENTS))
 def test_an_edited_marker_is_repaired_without_losing_a_user_line(accident):
     current, user_lines, expected = ACCIDENTS[accident]
-    repaired, what = operations.block_repair(current, "ROS 2 environment", CONTENT)
+    repaired, what = block_repair(current, "ROS 2 environment", CONTENT)
     assert is_subsequence(user_lines, repaired), f"a user line was lost: {user_lines} vs {repaired}"
     assert one_block_holding_the_content(repaired)
     assert repaired == expected
     assert what and "expected one pair" in what
     # Repaired once, then left alone.
-    assert operations.block_repair(repaired, "ROS 2 environment", CONTENT) == (repaired, None)
+    assert block_repair(repaired, "ROS 2 environment", CONTENT) == (repaired, None)
 
 
 def test_a_repair_backs_the_file_up_first_logs_one_line_and_shows_the_diff(caplog):
     current = [*MINE, BLOCK_BEGIN, *OLD_BODY, *LATER]  # the end marker was deleted
     with caplog.at_level("INFO"):
         result = block(files({"/home/student/.bashrc": current}), content=CONTENT, diff=True)
-    commands = result.changing()["operations.managed_block"]
-    backup = f"/home/student/.bashrc{operations.BACKUP_SUFFIX}"
+    commands = result.changing()["files.managed_block"]
+    backup = f"/home/student/.bashrc{BACKUP_SUFFIX}"
     assert commands[0] == f"cp -p -- /home/student/.bashrc {backup}"
     assert commands[1] == "upload /home/student/.bashrc"
     uploaded = result.uploads()["/home/student/.bashrc"].splitlines()
@@ -167,13 +183,13 @@ def test_a_repair_backs_the_file_up_first_logs_one_line_and_shows_the_diff(caplo
 def test_lines_like_the_block_beside_a_lone_marker_stay_unless_they_are_all_of_it():
     # Only the whole old block, right at the marker, is taken as roslab's.
     current = [*MINE, BLOCK_BEGIN, BODY[0], *LATER]
-    repaired, _ = operations.block_repair(current, "ROS 2 environment", CONTENT)
+    repaired, _ = block_repair(current, "ROS 2 environment", CONTENT)
     assert repaired == [*MINE, *BLOCK, BODY[0], *LATER]
 
 
 def test_an_ordinary_update_takes_no_backup():
     result = block(files({"/home/student/.bashrc": [*BASHRC, BLOCK_BEGIN, "old", BLOCK_END]}))
-    assert not any(command.startswith("cp ") for command in result.changing()["operations.managed_block"])
+    assert not any(command.startswith("cp ") for command in result.changing()["files.managed_block"])
 
 
 # --- Ubuntu apt sources -------------------------------------------------------------
@@ -189,7 +205,7 @@ NOBLE = [
 
 def sources(contents):
     return plan(
-        operations.ubuntu_apt_sources, files(contents),
+        ubuntu_apt_sources, files(contents),
         codename=contents.get("codename", "noble"), components=["universe"],
         suites=["updates", "backports"],
     )
@@ -207,7 +223,7 @@ def test_deb822_sources_get_universe_and_the_extra_suites_in_place():
 
 
 def test_deb822_security_only_stanza_gets_universe_but_no_extra_suites():
-    lines = operations.with_deb822_suites(
+    lines = with_deb822_suites(
         ["# comment", *NOBLE, "", "Types: deb", "URIs: http://security.ubuntu.com/ubuntu/",
          "Suites: noble-security", "Components: main"],
         "noble", ["universe"], ["updates"],
@@ -218,11 +234,11 @@ def test_deb822_security_only_stanza_gets_universe_but_no_extra_suites():
 
 def test_deb822_sources_of_other_releases_are_left_alone():
     other = ["Types: deb", "URIs: http://x/", "Suites: jammy", "Components: main"]
-    assert operations.with_deb822_suites(other, "noble", ["universe"], ["updates"]) == other
+    assert with_deb822_suites(other, "noble", ["universe"], ["updates"]) == other
 
 
 def test_one_line_sources_get_universe_and_new_suite_lines_with_the_same_uri():
-    lines = operations.with_one_line_suites(
+    lines = with_one_line_suites(
         ["# deb-src http://ports.ubuntu.com/ubuntu-ports jammy main",
          "deb [arch=arm64] http://ports.ubuntu.com/ubuntu-ports jammy main restricted",
          "deb http://ports.ubuntu.com/ubuntu-ports jammy-updates main restricted universe"],
@@ -238,14 +254,14 @@ def test_one_line_sources_get_universe_and_new_suite_lines_with_the_same_uri():
 
 
 def test_complete_sources_are_a_noop():
-    complete = operations.with_deb822_suites(NOBLE, "noble", ["universe"], ["updates", "backports"])
+    complete = with_deb822_suites(NOBLE, "noble", ["universe"], ["updates", "backports"])
     result = sources({"/etc/apt/sources.list.d/ubuntu.sources": complete})
     assert result.changing() == {}
     assert result.noops == ["Ubuntu apt sources already enable universe noble-updates noble-backports"]
 
 
 def test_a_one_line_sources_comment_stays_a_comment():
-    lines = operations.with_one_line_suites(
+    lines = with_one_line_suites(
         ["deb http://ports.ubuntu.com/ubuntu-ports jammy main # the Pi's mirror"], "jammy", ["universe"], [],
     )
     assert lines == ["deb http://ports.ubuntu.com/ubuntu-ports jammy main universe # the Pi's mirror"]
@@ -254,7 +270,7 @@ def test_a_one_line_sources_comment_stays_a_comment():
 def test_the_hosts_own_odd_words_are_kept_as_they_are_never_refused():
     # A word roslab would never write (a control character) in the host's own file: kept, no error.
     odd = ["Types: deb", "URIs: http://x/", "Suites: noble noble-\x1bodd", "Components: main"]
-    lines = operations.with_deb822_suites(odd, "noble", ["universe"], ["updates"])
+    lines = with_deb822_suites(odd, "noble", ["universe"], ["updates"])
     assert lines[2] == "Suites: noble noble-\x1bodd noble-updates"
 
 
@@ -263,9 +279,9 @@ def test_a_suite_that_would_change_the_sources_meaning_is_refused(word):
     with pytest.raises(ValueError):
         quoting.sources_list_word(word)
     with pytest.raises(ValueError):
-        operations.with_deb822_suites(NOBLE, "noble", [], [word])
+        with_deb822_suites(NOBLE, "noble", [], [word])
     with pytest.raises(ValueError):
-        operations.with_one_line_suites(["deb http://x jammy main"], "jammy", [], [word])
+        with_one_line_suites(["deb http://x jammy main"], "jammy", [], [word])
 
 
 def test_an_empty_word_is_refused():
@@ -274,9 +290,9 @@ def test_an_empty_word_is_refused():
 
 
 def test_legal_suites_are_written_as_they_are_in_both_layouts():
-    assert operations.with_deb822_suites(NOBLE, "noble", [], ["proposed"])[2] == (
+    assert with_deb822_suites(NOBLE, "noble", [], ["proposed"])[2] == (
         "Suites: noble noble-security noble-proposed")
-    assert operations.with_one_line_suites(["deb http://x jammy main"], "jammy", [], ["proposed"]) == [
+    assert with_one_line_suites(["deb http://x jammy main"], "jammy", [], ["proposed"]) == [
         "deb http://x jammy main", "deb http://x jammy-proposed main"]
 
 
@@ -285,13 +301,13 @@ def test_legal_suites_are_written_as_they_are_in_both_layouts():
 STAMP = "/var/lib/apt/periodic/update-success-stamp"
 
 
-UPDATE = operations.apt_update_command(30)
+UPDATE = apt_update_command(30)
 
 
 @pytest.mark.parametrize("age", [None, 90000])
 def test_stale_or_missing_apt_lists_are_updated_with_a_bounded_lock_wait(age):
-    result = plan(operations.apt_lists_updated, {FileAge: lambda path: age}, lock_timeout=30, max_age=86400)
-    assert result.changing()["operations.apt_lists_updated"] == [UPDATE]
+    result = plan(apt_lists_updated, {FileAge: lambda path: age}, lock_timeout=30, max_age=86400)
+    assert result.changing()["apt.apt_lists_updated"] == [UPDATE]
     assert "-o DPkg::Lock::Timeout=30 -o APT::Update::Error-Mode=any update" in UPDATE
 
 
@@ -336,8 +352,8 @@ def test_an_update_with_a_failed_download_fails_in_one_line_and_leaves_the_lists
 
 def test_a_stuck_update_is_stopped_and_said_so_in_one_line(tmp_path, monkeypatch):
     """apt waiting forever on a proxy that dropped a request must not hang the class's run."""
-    monkeypatch.setattr(operations, "APT_UPDATE_MAX_SECONDS", 1)
-    done, stamp = run_update(tmp_path, "exec sleep 60\n", update=operations.apt_update_command(0))
+    monkeypatch.setattr(apt, "APT_UPDATE_MAX_SECONDS", 1)
+    done, stamp = run_update(tmp_path, "exec sleep 60\n", update=apt_update_command(0))
     assert done.returncode == 124
     assert not stamp.exists()
     (line,) = done.stderr.splitlines()
@@ -351,20 +367,20 @@ def test_a_successful_update_marks_the_lists_fresh(tmp_path):
 
 
 def test_fresh_apt_lists_are_a_noop():
-    result = plan(operations.apt_lists_updated, {FileAge: lambda path: 60}, lock_timeout=30, max_age=86400)
+    result = plan(apt_lists_updated, {FileAge: lambda path: 60}, lock_timeout=30, max_age=86400)
     assert result.changing() == {}
     assert result.noops == ["apt lists are 60 s old (max age 86400 s)"]
 
 
 def test_the_lock_wait_is_spelled_once():
-    assert operations.apt_lock_options(600) == "-o DPkg::Lock::Timeout=600"
-    assert operations.apt_install_options(5) == "-o DPkg::Lock::Timeout=5 --"
-    assert operations.apt_get("update", 7) == "DEBIAN_FRONTEND=noninteractive apt-get -y -o DPkg::Lock::Timeout=7 update"
+    assert apt_lock_options(600) == "-o DPkg::Lock::Timeout=600"
+    assert apt_install_options(5) == "-o DPkg::Lock::Timeout=5 --"
+    assert apt_get("update", 7) == "DEBIAN_FRONTEND=noninteractive apt-get -y -o DPkg::Lock::Timeout=7 update"
 
 
 def test_an_interrupted_dpkg_is_finished_then_apt_completes_it():
-    result = plan(operations.dpkg_interrupted_install_finished, {}, lock_timeout=30)
-    configure, fix = result.changing()["operations.dpkg_interrupted_install_finished"]
+    result = plan(dpkg_interrupted_install_finished, {}, lock_timeout=30)
+    configure, fix = result.changing()["apt.dpkg_interrupted_install_finished"]
     assert configure.startswith("DEBIAN_FRONTEND=noninteractive dpkg --force-confdef --force-confold --configure -a ||")
     assert fix == (
         "DEBIAN_FRONTEND=noninteractive apt-get -y -o DPkg::Lock::Timeout=30 "
@@ -374,19 +390,19 @@ def test_an_interrupted_dpkg_is_finished_then_apt_completes_it():
 
 def test_command_installed_installs_the_package_only_when_the_command_is_missing():
     facts = {Which: lambda command: None}
-    result = plan(operations.command_installed, facts, command="rosdep", package="python3-rosdep", lock_timeout=5)
-    assert result.changing()["operations.command_installed"] == [
+    result = plan(command_installed, facts, command="rosdep", package="python3-rosdep", lock_timeout=5)
+    assert result.changing()["apt.command_installed"] == [
         "DEBIAN_FRONTEND=noninteractive apt-get -y -o DPkg::Lock::Timeout=5 "
         "-o Dpkg::Options::=--force-confdef -o Dpkg::Options::=--force-confold install -- python3-rosdep"
     ]
     facts = {Which: lambda command: "/usr/bin/rosdep"}
-    result = plan(operations.command_installed, facts, command="rosdep", package="python3-rosdep", lock_timeout=5)
+    result = plan(command_installed, facts, command="rosdep", package="python3-rosdep", lock_timeout=5)
     assert result.noops == ["rosdep is already installed"]
 
 
 def test_command_installed_never_passes_an_option_as_a_package():
     with pytest.raises(ValueError, match="starts with '-'"):
-        plan(operations.command_installed, {Which: lambda command: None},
+        plan(command_installed, {Which: lambda command: None},
              command="rosdep", package="-oAPT::Get::AllowUnauthenticated=1", lock_timeout=5)
 
 
@@ -398,16 +414,16 @@ def test_old_files_are_moved_aside_and_symlinks_kept_when_asked():
         if path == "/etc/apt/sources.list.d/ros2.sources" else None,
     }
     paths = ["/etc/apt/sources.list.d/ros2.list", "/etc/apt/sources.list.d/ros2.sources"]
-    result = plan(operations.files_moved_aside, facts, paths=paths, backup_dir="/var/backups/roslab",
+    result = plan(files_moved_aside, facts, paths=paths, backup_dir="/var/backups/roslab",
                   only_regular_files=True)
-    assert result.changing()["operations.files_moved_aside"] == [
+    assert result.changing()["files.files_moved_aside"] == [
         "mkdir -p /var/backups/roslab",
         "mv --backup=numbered /etc/apt/sources.list.d/ros2.list /var/backups/roslab",
     ]
 
 
 def test_nothing_to_move_aside_is_a_noop():
-    result = plan(operations.files_moved_aside, {File: lambda path: None, Link: lambda path: None},
+    result = plan(files_moved_aside, {File: lambda path: None, Link: lambda path: None},
                   paths=["/a"], backup_dir="/b")
     assert result.changing() == {} and result.noops == ["none of /a exists"]
 
@@ -417,38 +433,38 @@ def test_nothing_to_move_aside_is_a_noop():
 
 def test_missing_locale_is_enabled_in_locale_gen_and_generated():
     facts = {Locales: ["C.UTF-8"], **files({"/etc/locale.gen": ["# en_US.UTF-8 UTF-8", "# de_DE.UTF-8 UTF-8"]})}
-    result = plan(operations.locale_generated, facts, locale="en_US.UTF-8")
+    result = plan(locale_generated, facts, locale="en_US.UTF-8")
     assert result.uploads()["/etc/locale.gen"].splitlines() == ["en_US.UTF-8 UTF-8", "# de_DE.UTF-8 UTF-8"]
-    assert result.changing()["operations.locale_generated"][-1] == "locale-gen en_US.UTF-8"
+    assert result.changing()["locale.locale_generated"][-1] == "locale-gen en_US.UTF-8"
 
 
 def test_generated_locale_is_a_noop():
-    result = plan(operations.locale_generated, {Locales: ["C.UTF-8", "en_US.UTF-8"]}, locale="en_US.UTF-8")
+    result = plan(locale_generated, {Locales: ["C.UTF-8", "en_US.UTF-8"]}, locale="en_US.UTF-8")
     assert result.changing() == {} and result.noops == ["locale en_US.UTF-8 is already generated"]
 
 
 def test_with_locale_enabled_appends_a_locale_the_file_does_not_list():
-    assert operations.with_locale_enabled(["# x"], "de_DE.UTF-8") == ["# x", "de_DE.UTF-8 UTF-8"]
+    assert with_locale_enabled(["# x"], "de_DE.UTF-8") == ["# x", "de_DE.UTF-8 UTF-8"]
 
 
 def test_rosdep_init_runs_only_without_a_sources_list():
-    assert plan(operations.rosdep_initialized, {File: lambda path: None}).changing() == {
-        "operations.rosdep_initialized": ["rosdep init"]
+    assert plan(rosdep_initialized, {File: lambda path: None}).changing() == {
+        "rosdep.rosdep_initialized": ["rosdep init"]
     }
-    result = plan(operations.rosdep_initialized, {File: lambda path: {"user": "root"}})
+    result = plan(rosdep_initialized, {File: lambda path: {"user": "root"}})
     assert result.changing() == {}
     assert result.noops == ["/etc/ros/rosdep/sources.list.d/20-default.list already exists"]
 
 
 def test_rosdep_update_reads_the_rosdistro_index_from_the_setting_when_stale():
     ages = {"/home/student/.ros/rosdep/sources.cache/index": 700000}
-    result = plan(operations.rosdep_cache_updated, {FileAge: lambda path: ages.get(path)},
+    result = plan(rosdep_cache_updated, {FileAge: lambda path: ages.get(path)},
                   home="/home/student", max_age=604800, rosdistro_index_url="http://10.0.0.1/index-v4.yaml")
-    assert result.changing()["operations.rosdep_cache_updated"] == [
+    assert result.changing()["rosdep.rosdep_cache_updated"] == [
         "env ROSDISTRO_INDEX_URL=http://10.0.0.1/index-v4.yaml rosdep update"
     ]
     ages["/home/student/.ros/rosdep/sources.cache/index"] = 10
-    result = plan(operations.rosdep_cache_updated, {FileAge: lambda path: ages.get(path)},
+    result = plan(rosdep_cache_updated, {FileAge: lambda path: ages.get(path)},
                   home="/home/student", max_age=604800)
     assert result.noops == ["rosdep cache is 10 s old (max age 604800 s)"]
 

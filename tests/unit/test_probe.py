@@ -19,8 +19,8 @@ from pyinfra.api import FactBase, HiddenValue, StringCommand
 from pyinfra.facts.files import Directory, File, FileContents, Sha1File
 
 from roslab import probe
-from roslab.facts import FileAge
-from roslab.operations import managed_block
+from roslab.ops.files import FileAge
+from roslab.ops.files import managed_block
 from roslab.ros.workspace import WorkspaceForeign, WorkspaceStamps
 
 

@@ -10,7 +10,8 @@ from fixtures.fake_host import plan
 from pyinfra.facts.files import File, FileContents
 
 from deploy.robot_profile import robot_profile
-from roslab.profiles.host import MemoryTotal, SwapFile, UnitsMasked
+from roslab.ops.memory import MemoryTotal, SwapFile
+from roslab.ops.systemd import UnitsMasked
 from roslab.profiles.library import builtin_profiles
 from roslab.profiles.resolve import resolve_host
 
@@ -117,7 +118,7 @@ def make_swap_locally(tmp_path, size_mb: int, margin_mb: int = 1, fallocate: str
 
     from fixtures.fake_host import plan as plan_op
 
-    from roslab.profiles.host import swap_file_on
+    from roslab.ops.memory import swap_file_on
 
     target = tmp_path / "disk" / "swapfile"
     target.parent.mkdir()
@@ -196,7 +197,7 @@ def test_hand_made_host_data_gets_the_same_allow_lists_as_a_profile():
     from pyinfra.api import OperationError
     from pyinfra.facts.server import Home, User
 
-    from roslab.profiles.host import UserGroups
+    from roslab.ops.users import UserGroups
 
     profile = turtlebot3_robot()
     profile["udev_rules"] = ""

@@ -17,17 +17,17 @@ from test_profiles import _in_tmp, errors_of, rosdistro_url, write  # noqa: F401
 from deploy.profile_services import profile_services_in_place, unit_text
 from roslab.profiles.resolve import ResolvedService
 from deploy.robot_profile import robot_profile
-from roslab.profiles.host import (
+from roslab.ops.boot_config import (
     CMDLINE_TXT,
     CONFIG_TXT,
-    REBOOT_RECORD,
-    RUN_MARK,
     CmdlineText,
+    REBOOT_RECORD,
     RebootRecord,
     cmdline_without,
     parse_reboot_record,
     reboot_pending,
 )
+from roslab.ops.files import RUN_MARK
 from roslab.profiles.library import builtin_profiles
 from roslab.profiles.resolve import resolve_host
 from roslab.roster import load_roster
@@ -311,7 +311,7 @@ def test_boot_files_and_the_reboot_record_are_renamed_durably(tmp_path):
 
     from fixtures.fake_host import plan as plan_op
 
-    from roslab.profiles.host import cmdline_words_absent
+    from roslab.ops.boot_config import cmdline_words_absent
 
     boot = tmp_path / "firmware"
     boot.mkdir()

@@ -95,9 +95,9 @@ def test_the_lock_lives_as_long_as_the_ssh_session_and_no_longer(tmp_path):
 def test_two_runs_write_a_record_through_different_temporary_names():
     import sys
 
-    from roslab.profiles.host import RUN_MARK, run_temporary
+    from roslab.ops.files import RUN_MARK, run_temporary
 
-    other = subprocess.run([sys.executable, "-c", "from roslab.profiles.host import RUN_MARK; print(RUN_MARK)"],
+    other = subprocess.run([sys.executable, "-c", "from roslab.ops.files import RUN_MARK; print(RUN_MARK)"],
                            capture_output=True, text=True, check=True).stdout.strip()
     assert other and other != RUN_MARK
     assert run_temporary("/var/lib/roslab/profile.json") == f"/var/lib/roslab/profile.json.roslab-new-{RUN_MARK}"

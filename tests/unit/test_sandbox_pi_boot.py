@@ -7,8 +7,8 @@ from ipaddress import IPv4Network
 
 import pytest
 
-from roslab.profiles import host as profile_host
 from roslab import boards
+from roslab.ops import boot_config
 from roslab.sandbox import lifecycle, pi_boot, upstream
 from roslab.sandbox.instance import Instance
 from roslab.settings import SETTINGS
@@ -19,13 +19,13 @@ from roslab.settings import SETTINGS
 def test_a_pi_gets_ubuntus_config_and_cmdline_where_the_deploys_look(board, release):
     files = pi_boot.boot_files(board, release)
     # the same paths the boot config deploy detects a Pi's boot partition by
-    assert {profile_host.CONFIG_TXT, profile_host.CMDLINE_TXT} <= set(files)
-    config, _ = files[profile_host.CONFIG_TXT]
+    assert {boot_config.CONFIG_TXT, boot_config.CMDLINE_TXT} <= set(files)
+    config, _ = files[boot_config.CONFIG_TXT]
     first, rest = config.split("\n", 1)
     assert first.startswith("# roslab sandbox STAND-IN") and "pi-gadget" in first
     assert rest == pi_boot.CONFIG_TXT[release]
     assert rest.startswith("[all]\n") and "kernel=vmlinuz\n" in rest and "[pi4]\n" in rest
-    cmdline, _ = files[profile_host.CMDLINE_TXT]
+    cmdline, _ = files[boot_config.CMDLINE_TXT]
     assert cmdline.count("\n") == 1 and cmdline.endswith("\n")  # one line, no comment
     assert "console=serial0,115200" in cmdline.split() and "root=LABEL=writable" in cmdline.split()
     assert "STAND-IN" in files[f"{pi_boot.BOOT_PARTITION}/README.roslab-sandbox"][0]

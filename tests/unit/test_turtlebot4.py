@@ -12,7 +12,7 @@ from fixtures.fake_host import plan
 from test_robots import BASE, UBUNTU_CMDLINE, boot_facts, problems_of, resolved  # noqa: F401
 
 from deploy.robot_profile import robot_profile
-from roslab.profiles.host import CMDLINE_TXT, CONFIG_TXT, cmdline_with
+from roslab.ops.boot_config import CMDLINE_TXT, CONFIG_TXT, cmdline_with
 from roslab.profiles.schema import cmdline_add_problem, config_line_problem
 
 USB0_OVERLAY = "dtoverlay=dwc2,dr_mode=peripheral"

@@ -19,7 +19,7 @@ import json
 from pyinfra import host
 from pyinfra.api import FactBase, operation
 
-from roslab.profiles.host import durably_renamed, run_temporary
+from roslab.ops.files import durably_renamed, run_temporary
 from roslab.quoting import shell_word
 
 PROFILE_RECORD = "/var/lib/roslab/profile.json"

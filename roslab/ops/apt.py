@@ -1,37 +1,29 @@
-"""pyinfra operations roslab needs beyond pyinfra's own, in pyinfra's style.
+"""apt: the host's Ubuntu sources, its package lists, dpkg's interrupted installs and packages
+(facts and operations side by side, roslab.ops).
 
-Each operation is named for the end state, reads facts, and either yields the commands
-that reach that state or says with ``host.noop`` why nothing needs doing. Facts are read
-again when an operation executes, so an operation that follows another one sees its effect.
+The lock wait is spelled in one place, `apt_lock_options`: every apt-get command line here, the
+AptProblem fact and `apt.packages(extra_install_args=apt_install_options(...))` use it.
 """
 
 from __future__ import annotations
 
 import re
 import shlex
-import time
-import weakref
-from io import StringIO
 
-from pyinfra import host, logger, state
-from pyinfra.api import QuoteString, StringCommand, operation
-from pyinfra.api.util import format_text
-from pyinfra.context import ctx_host
+from pyinfra import host
+from pyinfra.api import FactBase, QuoteString, StringCommand, operation
 from pyinfra.facts.deb import DebPackages
-from pyinfra.facts.files import File, FileContents, Link
-from pyinfra.facts.server import Locales, Which
-from pyinfra.operations.util.files import generate_color_diff
+from pyinfra.facts.files import FileContents
+from pyinfra.facts.server import Which
+from typing_extensions import override
 
-from roslab.facts import FileAge, apt_lock_options
+from roslab.ops.files import FileAge, _log_diff, _upload_text
 from roslab.probe import read
 from roslab.quoting import apt_arguments, deb822_value, sources_list_word
-from roslab.remote_files import OwnedFileUpload
+
 
 # Ubuntu touches this after every successful `apt-get update`; Debian does not, so we do.
 APT_UPDATE_STAMP = "/var/lib/apt/periodic/update-success-stamp"
-ROSDEP_SOURCES_LIST = "/etc/ros/rosdep/sources.list.d/20-default.list"
-# rosdep rewrites this index on every `rosdep update`: its age is the cache's age.
-ROSDEP_CACHE_INDEX = ".ros/rosdep/sources.cache/index"
 
 
 # Keep the host's edited configuration files when a package brings new ones (never ask).
@@ -41,9 +33,123 @@ DPKG_KEEP_CONFFILES = "-o Dpkg::Options::=--force-confdef -o Dpkg::Options::=--f
 APT_UPDATE_FAIL_ON_ANY_ERROR = "-o APT::Update::Error-Mode=any"
 
 
-def as_user(user: str) -> dict:
-    """pyinfra arguments that run an operation or fact as `user` (rosdep and colcon refuse root)."""
-    return {"_sudo": True, "_sudo_user": user}
+# apt's words for a dpkg lock another process holds (apt-get check waited for it).
+_LOCK_HELD = ("Could not get lock", "Unable to acquire the dpkg frontend lock", "Unable to lock")
+_UPDATE_PREFIX = "roslab-dpkg-update: "
+_AUDIT_PREFIX = "roslab-dpkg-audit: "
+_EXIT_PREFIX = "roslab-apt-exit="
+_CLOUD_INIT_PREFIX = "roslab-cloud-init="
+# cloud-init's systemd generator decided it runs this boot (else it is disabled, and
+# `cloud-init status --wait` could wait for a stage that never starts) ...
+CLOUD_INIT_RUNS = "/run/cloud-init/enabled"
+# ... and its final stage has not written its result yet.
+CLOUD_INIT_DONE = "/run/cloud-init/result.json"
+
+
+def apt_lock_options(lock_timeout: int) -> str:
+    """apt-get options that wait (bounded) for the dpkg lock instead of failing at once.
+
+    The one place roslab spells the lock wait: every apt-get command line of this
+    module, the AptProblem fact and
+    `apt.packages(extra_install_args=apt_install_options(...))` use it.
+    """
+    return f"-o DPkg::Lock::Timeout={int(lock_timeout)}"
+
+class AptProblem(FactBase):
+    """
+    Waits (bounded) until apt can take the dpkg lock, then reports whether apt is usable.
+
+    Returns ``None`` when ``apt-get check`` succeeds within ``lock_timeout`` seconds and
+    dpkg has nothing half-done (``{"interrupted": False, "message": None, "waited": line}``
+    when it had to wait for the lock first: apt's line naming who held it), else
+    ``{"interrupted": bool, "message": str}``:
+
+    - ``interrupted``: dpkg was stopped in the middle of an install (a Pi unplugged,
+      dpkg killed): its journal ``/var/lib/dpkg/updates/`` is not empty, ``dpkg --audit``
+      lists half-installed or unconfigured packages, or apt says "dpkg was interrupted".
+      ``dpkg --configure -a`` and ``apt-get -f install`` heal it
+      (``dpkg_interrupted_install_finished``).
+    - otherwise apt's own error lines, e.g. the lock still held by unattended-upgrades
+      after the wait, or broken dependencies. Fresh Ubuntu images hold the lock for
+      minutes at first boot.
+
+    While another process holds the lock its half-done work is normal, not interrupted.
+
+    First, on a freshly seeded Pi, it waits (bounded by ``lock_timeout`` too) for cloud-init
+    to finish its first boot (``cloud-init status --wait``): cloud-init's own package step
+    fails when a deploy takes the dpkg lock from under it. Only where cloud-init exists and
+    has not finished this boot: on a settled host the wait costs a few ``test -e``. Then
+    the result has ``"cloud_init": {"status": exit status (124: still running at the
+    timeout), "seconds": waited, "output": its last words}`` (else no such key).
+    """
+
+    @override
+    def command(self, lock_timeout: int) -> StringCommand:
+        wait_for_cloud_init = (
+            f"if [ -e {CLOUD_INIT_RUNS} ] && [ ! -e {CLOUD_INIT_DONE} ] && command -v cloud-init >/dev/null 2>&1; then "
+            "started=$(date +%s); "
+            f"said=$(timeout {int(lock_timeout) or 1} cloud-init status --wait 2>&1 </dev/null); rc=$?; "
+            f'echo "{_CLOUD_INIT_PREFIX}$rc $(( $(date +%s) - started )) '
+            '$(printf %s "$said" | tr -s \'.\\n\' \' \' | tail -c 200)"; '
+            "fi;"
+        )
+        # `; echo` keeps the fact's exit status 0 so the failure reaches process().
+        return StringCommand(
+            wait_for_cloud_init,
+            f"apt-get -qq {apt_lock_options(lock_timeout)} check 2>&1;",
+            f'echo "{_EXIT_PREFIX}$?";',
+            f"ls -A /var/lib/dpkg/updates 2>/dev/null | sed 's/^/{_UPDATE_PREFIX}/';",
+            f"dpkg --audit 2>&1 | sed 's/^/{_AUDIT_PREFIX}/'",
+        )
+
+    @override
+    def process(self, output):
+        cloud_init = None
+        for line in output:
+            if line.startswith(_CLOUD_INIT_PREFIX):
+                status, seconds, *said = line[len(_CLOUD_INIT_PREFIX):].split(" ", 2)
+                cloud_init = {"status": int(status) if status.isdigit() else -1,
+                              "seconds": int(seconds) if seconds.isdigit() else 0,
+                              "output": (said[0] if said else "").strip()}
+        apt = self._apt(line for line in output if not line.startswith(_CLOUD_INIT_PREFIX))
+        if cloud_init is None:
+            return apt
+        return {**(apt or {"interrupted": False, "message": None}), "cloud_init": cloud_init}
+
+    @staticmethod
+    def _apt(output):
+        check, updates, audit, status, waited = [], [], [], "", ""
+        for line in output:
+            if line.startswith(_EXIT_PREFIX):
+                status = line
+            elif line.startswith(_UPDATE_PREFIX):
+                updates.append(line[len(_UPDATE_PREFIX):])
+            elif line.startswith(_AUDIT_PREFIX):
+                if line[len(_AUDIT_PREFIX):].strip():
+                    audit.append(line[len(_AUDIT_PREFIX):].strip())
+            # apt prints "Waiting for cache lock" lines while it waits: keep the verdict,
+            # and the first of them to say who held the lock.
+            elif line.startswith("Waiting for cache lock"):
+                waited = waited or line
+            else:
+                check.append(line)
+        text = "\n".join(check)
+        ok = status == f"{_EXIT_PREFIX}0"
+        lock_held = not ok and any(words in text for words in _LOCK_HELD)
+        interrupted = not lock_held and bool(updates or audit or "dpkg was interrupted" in text)
+        if ok and not interrupted:
+            # A wait that ended well is no problem, but the teacher should know it happened.
+            return {"interrupted": False, "message": None, "waited": waited} if waited else None
+        if interrupted:
+            found = []
+            if updates:
+                found.append(f"{len(updates)} pending entries in /var/lib/dpkg/updates/")
+            if audit:
+                found.append("dpkg --audit: " + " ".join(audit)[:300])
+            message = "dpkg was interrupted" + (f" ({'; '.join(found)})" if found else "")
+        else:
+            message = text or status or "apt-get check printed nothing"
+        return {"interrupted": interrupted, "message": message}
 
 
 def apt_install_options(lock_timeout: int) -> str:
@@ -62,189 +168,6 @@ def apt_get(command: str, lock_timeout: int) -> str:
     behind `--` for package names.
     """
     return f"DEBIAN_FRONTEND=noninteractive apt-get -y {apt_lock_options(lock_timeout)} {command}"
-
-
-def _log_diff(path: str, current_lines: list[str] | None, desired_lines: list[str]) -> None:
-    """Print a unified diff like files.put does under ``--diff``."""
-    if not state.config.DIFF:
-        return
-    verb = "create" if current_lines is None else "modify"
-    host.log(f"Will {verb} {format_text(path, bold=True)}", logger.info)
-    for line in generate_color_diff(
-        [line + "\n" for line in current_lines or []], [line + "\n" for line in desired_lines]
-    ):
-        logger.info("  %s", line)
-    logger.info("")
-
-
-def _upload_text(path: str, lines: list[str], user=None, group=None, mode=None):
-    """The upload that replaces `path` with `lines`, with its owner and mode from its first
-    byte (roslab.remote_files: a chown/chmod after it would follow a link put there)."""
-    yield OwnedFileUpload(
-        StringIO("".join(line + "\n" for line in lines)), path, user=user, group=group, mode=mode,
-    )
-
-
-# --- marked blocks ---------------------------------------------------------------
-
-# One name per pyinfra run for the backups a repair leaves beside a file.
-BACKUP_SUFFIX = ".roslab-" + time.strftime("%Y%m%d-%H%M%S")
-# (path, label) of the repairs already reported, per host of this run.
-_REPAIRS_REPORTED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def block_markers(label: str) -> tuple[str, str]:
-    return (f"# BEGIN roslab managed block ({label})", f"# END roslab managed block ({label})")
-
-
-def _scan_markers(lines: list[str], begin: str, end: str):
-    """Marker kinds by line index, the (begin, end) pairs in order, and the lone markers.
-
-    An end closes the nearest open begin before it; a begin that another begin follows
-    before any end, and an end with no open begin, are lone markers.
-    """
-    kinds: dict[int, str] = {}
-    for index, line in enumerate(lines):
-        if line.strip() == begin:
-            kinds[index] = "begin"
-        elif line.strip() == end:
-            kinds[index] = "end"
-    pairs: list[tuple[int, int]] = []
-    lone: list[int] = []
-    open_begin = None
-    for index, kind in kinds.items():
-        if kind == "begin":
-            if open_begin is not None:
-                lone.append(open_begin)
-            open_begin = index
-        elif open_begin is None:
-            lone.append(index)
-        else:
-            pairs.append((open_begin, index))
-            open_begin = None
-    if open_begin is not None:
-        lone.append(open_begin)
-    return kinds, pairs, sorted(lone)
-
-
-def block_repair(lines: list[str], label: str, content: str) -> tuple[list[str], str | None]:
-    """`lines` with one roslab block for `label` holding `content`, and what was repaired.
-
-    The usual cases repair nothing (None): no block yet (appended after the user's lines)
-    or one begin/end pair (replaced in place). Any other arrangement of markers (a
-    deleted end or begin marker, a second begin, two blocks, an end before its begin) is
-    repaired without dropping a single line outside the markers:
-
-    - the lines between a begin and its end are roslab's (as in the usual case) and go;
-    - a lone marker goes, and with it the lines beside it only when they are exactly
-      `content` (the old block, on the side the missing marker would have closed);
-    - every other line stays where it is, and the one block goes where the first marker was.
-    """
-    begin, end = block_markers(label)
-    body = content.rstrip("\n").split("\n")
-    block = [begin, *body, end]
-    kinds, pairs, lone = _scan_markers(lines, begin, end)
-    if not kinds:
-        separator = [""] if lines and lines[-1].strip() else []
-        return lines + separator + block, None
-    if len(pairs) == 1 and not lone:
-        start, stop = pairs[0]
-        return lines[:start] + block + lines[stop + 1 :], None
-
-    drop: set[int] = set()
-    for start, stop in pairs:
-        drop.update(range(start, stop + 1))
-
-    def is_old_block(first: int) -> bool:
-        span = range(first, first + len(body))
-        return (first >= 0 and span.stop <= len(lines) and not drop.intersection(span)
-                and not kinds.keys() & set(span)
-                and [line.rstrip() for line in lines[first : span.stop]] == [line.rstrip() for line in body])
-
-    for index in lone:
-        drop.add(index)
-        first = index + 1 if kinds[index] == "begin" else index - len(body)
-        if is_old_block(first):
-            drop.update(range(first, first + len(body)))
-    at = min(kinds)
-    repaired = []
-    for index, line in enumerate(lines):
-        if index == at:
-            repaired.extend(block)
-        if index not in drop:
-            repaired.append(line)
-    begins = sum(kind == "begin" for kind in kinds.values())
-    ends = len(kinds) - begins
-    found = ", ".join(f"{'begin' if kinds[i] == 'begin' else 'end'} at line {i + 1}" for i in sorted(kinds))
-    return repaired, f"{begins} begin and {ends} end markers ({found}), expected one pair"
-
-
-def with_block(lines: list[str], label: str, content: str) -> list[str]:
-    """`lines` with roslab's block for `label` holding `content` (see `block_repair`)."""
-    return block_repair(lines, label, content)[0]
-
-
-@operation()
-def managed_block(
-    path: str,
-    content: str,
-    label: str,
-    user: str | None = None,
-    group: str | None = None,
-    mode: str | None = None,
-):
-    """
-    Ensure a file holds one roslab-managed block between markers; the rest stays untouched.
-
-    + path: the file to edit (created when missing)
-    + content: the text between the markers
-    + label: names the block in its markers, ``# BEGIN roslab managed block (<label>)``
-    + user/group/mode: owner and mode for a file this creates; an existing file keeps its own
-
-    Unlike ``files.block``, this prints a unified diff of the file under ``--diff``.
-    Markers someone edited (a deleted end marker, a duplicated block, ...) are repaired
-    without dropping any line outside the block (see ``block_repair``): the file is first
-    copied to ``<path>.roslab-<date>-<time>`` and the repair is logged in one line.
-
-    **Example:**
-
-    .. code:: python
-
-        managed_block(
-            name="Ensure ~/.bashrc sources ROS 2",
-            path="/home/student/.bashrc",
-            content="source /opt/ros/jazzy/setup.bash",
-            label="ROS 2 environment",
-            user="student",
-        )
-    """
-    current = host.get_fact(FileContents, path=path)
-    desired, repaired = block_repair(current or [], label, content)
-    if current == desired:
-        host.noop(f"block ({label}) in {path} is already up to date")
-        return
-
-    existing = host.get_fact(File, path=path) if current is not None else None
-    if existing:
-        user, group, mode = existing["user"], existing["group"], f"{existing['mode']:03d}"
-    if repaired:
-        backup = path + BACKUP_SUFFIX
-        # Once per host and file, whether pyinfra calls this when planning, executing or both.
-        reported = _REPAIRS_REPORTED.setdefault(ctx_host.get(), set())
-        if (path, label) not in reported:
-            reported.add((path, label))
-            logger.warning(
-                f"{host.print_prefix}roslab repairs the markers of the block ({label}) in {path}: "
-                f"{repaired}; no line outside the block is dropped, the file is kept as {backup}"
-            )
-        yield StringCommand("cp -p --", QuoteString(path), QuoteString(backup))
-    _log_diff(path, current, desired)
-    yield from _upload_text(path, desired, user=user, group=group, mode=mode)
-
-
-def managed_block_reads(path: str) -> list:
-    """What `managed_block` reads on a file it need not change (roslab.probe)."""
-    return [read(FileContents, path=path)]
 
 
 # --- apt sources -----------------------------------------------------------------
@@ -555,119 +478,3 @@ def packages_downloaded_reads() -> list:
 def command_installed_reads(command: str) -> list:
     """What `command_installed` reads (roslab.probe)."""
     return [read(Which, command=command)]
-
-
-@operation()
-def files_moved_aside(paths: list[str], backup_dir: str, only_regular_files: bool = False):
-    """
-    Ensure files are gone from their place, kept as numbered backups in `backup_dir`.
-
-    + paths: the files that must not be where they are
-    + backup_dir: where they go (``mv --backup=numbered`` never overwrites an older copy)
-    + only_regular_files: leave symlinks in place (a package's own symlink is not a leftover)
-    """
-    moved = False
-    for path in paths:
-        # File is False for a symlink, Link is False for a regular file; both None if missing.
-        if not host.get_fact(File, path=path) and (
-            only_regular_files or not host.get_fact(Link, path=path)
-        ):
-            continue
-        moved = True
-        if state.config.DIFF:
-            host.log(f"Will move {format_text(path, bold=True)} to {backup_dir}", logger.info)
-        yield StringCommand("mkdir -p", QuoteString(backup_dir))
-        yield StringCommand("mv --backup=numbered", QuoteString(path), QuoteString(backup_dir))
-    if not moved:
-        host.noop(f"none of {', '.join(paths)} exists")
-
-
-def files_moved_aside_reads(paths: list[str]) -> list:
-    """What `files_moved_aside` reads (roslab.probe)."""
-    return [item for path in paths for item in (read(File, path=path), read(Link, path=path))]
-
-
-LOCALE_GEN = "/etc/locale.gen"
-
-
-def with_locale_enabled(lines: list[str], locale: str) -> list[str]:
-    """/etc/locale.gen with `locale`'s line uncommented (or added)."""
-    charset = locale.split(".", 1)[1]
-    wanted = f"{locale} {charset}"
-    pattern = re.compile(rf"^#?\s*{re.escape(locale)}\s+{re.escape(charset)}\s*$")
-    if wanted in lines:
-        return list(lines)
-    for index, line in enumerate(lines):
-        if pattern.match(line):
-            return lines[:index] + [wanted] + lines[index + 1 :]
-    return lines + [wanted]
-
-
-@operation()
-def locale_generated(locale: str):
-    """
-    Ensure a locale is generated, the way both Ubuntu and Debian honour.
-
-    + locale: e.g. ``en_US.UTF-8``
-
-    Debian's ``locale-gen`` ignores its arguments and reads ``/etc/locale.gen``; Ubuntu's
-    takes them. So the line is enabled in ``/etc/locale.gen`` and the name passed too.
-    """
-    if locale in host.get_fact(Locales):
-        host.noop(f"locale {locale} is already generated")
-        return
-    current = host.get_fact(FileContents, path=LOCALE_GEN) or []
-    desired = with_locale_enabled(current, locale)
-    if desired != current:
-        _log_diff(LOCALE_GEN, current, desired)
-        yield from _upload_text(LOCALE_GEN, desired, user="root", group="root", mode="644")
-    yield StringCommand("locale-gen", QuoteString(locale))
-
-
-def locale_generated_reads() -> list:
-    """What `locale_generated` reads on a host that has the locale (roslab.probe)."""
-    return [read(Locales)]
-
-
-@operation()
-def rosdep_initialized():
-    """
-    Ensure rosdep's system sources list exists, running ``rosdep init`` only if it is missing.
-    """
-    if host.get_fact(File, path=ROSDEP_SOURCES_LIST):
-        host.noop(f"{ROSDEP_SOURCES_LIST} already exists")
-        return
-    yield "rosdep init"
-
-
-def rosdep_initialized_reads() -> list:
-    """What `rosdep_initialized` reads (roslab.probe)."""
-    return [read(File, path=ROSDEP_SOURCES_LIST)]
-
-
-@operation(is_idempotent=False)
-def rosdep_cache_updated(home: str, max_age: int | None = None, rosdistro_index_url=None):
-    """
-    Ensure the user's rosdep cache is fresh (run with ``_sudo_user`` = that user, never root).
-
-    + home: the user's home directory (where ``~/.ros/rosdep`` lives)
-    + max_age: update only when the cache is older than this many seconds, or missing;
-      ``None`` always updates (gate it with ``_if=`` on a sources change)
-    + rosdistro_index_url: where rosdep reads the rosdistro index (``None``: rosdep's own)
-    """
-    if max_age is not None:
-        age = host.get_fact(FileAge, path=f"{home}/{ROSDEP_CACHE_INDEX}")
-        if age is not None and age < max_age:
-            host.noop(f"rosdep cache is {age} s old (max age {max_age} s)")
-            return
-    if rosdistro_index_url:
-        yield StringCommand(
-            "env", QuoteString(f"ROSDISTRO_INDEX_URL={rosdistro_index_url}"), "rosdep update"
-        )
-    else:
-        yield "rosdep update"
-
-
-def rosdep_cache_updated_reads(home: str) -> list:
-    """What `rosdep_cache_updated` reads (roslab.probe)."""
-    return [read(FileAge, path=f"{home}/{ROSDEP_CACHE_INDEX}")]
