@@ -132,7 +132,7 @@ def probe_script(service: str = NODES_SERVICE, others: tuple[str, ...] = (), lau
     ])
 
 
-# The host's "reboot needed" record (roslab.profiles.host), readable without sudo.
+# The host's "reboot needed" record (roslab.ops.boot_config), readable without sudo.
 REBOOT_RECORD_COMMAND = RebootRecord().command()
 
 
