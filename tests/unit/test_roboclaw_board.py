@@ -21,6 +21,7 @@ import pytest
 import yaml
 
 from roslab.sandbox import roboclaw_board as board
+from roslab.sandbox import rover_board
 
 REPO = Path(__file__).resolve().parents[2]
 TAG = yaml.safe_load((REPO / "roslab/profiles/data/osr.repos").read_text())["repositories"]["osr-rover-code"]["version"]
@@ -36,18 +37,23 @@ def bundle() -> Path | None:
 
 
 @pytest.fixture(scope="module")
-def roboclaw_module(tmp_path_factory):
-    """The upstream driver module (its class Roboclaw), imported from a clone of the bundle."""
+def upstream(tmp_path_factory):
+    """show(path): a file of osr-rover-code at TAG, from a clone of the bundle."""
     path = bundle()
     if path is None:
         pytest.skip("osr-rover-code.bundle is absent (set ROSLAB_SANDBOX_SOURCES, or put ../shared/sources "
                     "beside the clone): no real RoboClaw driver to drive the stand-in with")
-    work = tmp_path_factory.mktemp("osr")
-    clone = work / "osr-rover-code"
+    clone = tmp_path_factory.mktemp("osr") / "osr-rover-code"
     subprocess.run(["git", "clone", "--quiet", "--no-checkout", str(path), str(clone)], check=True, capture_output=True)
-    driver = work / "roboclaw.py"
-    driver.write_bytes(subprocess.run(["git", "-C", str(clone), "show", f"{TAG}:{DRIVER}"], check=True,
-                                      capture_output=True).stdout)
+    return lambda name: subprocess.run(["git", "-C", str(clone), "show", f"{TAG}:{name}"], check=True,
+                                       capture_output=True).stdout
+
+
+@pytest.fixture(scope="module")
+def roboclaw_module(upstream, tmp_path_factory):
+    """The upstream driver module (its class Roboclaw), imported from the bundle's file."""
+    driver = tmp_path_factory.mktemp("driver") / "roboclaw.py"
+    driver.write_bytes(upstream(DRIVER))
     spec = importlib.util.spec_from_file_location("upstream_roboclaw", driver)
     assert spec and spec.loader
     module = importlib.util.module_from_spec(spec)
@@ -76,6 +82,12 @@ def connect(roboclaw_module, link: Path):
     assert rc.Open() == 1
     rc._port.timeout = 0.2  # a refused packet costs 0.2 s here, not the driver's 1 s per try
     return rc
+
+
+def test_the_board_serves_where_the_wrappers_params_look(upstream):
+    params = yaml.safe_load(upstream("ROS/osr_bringup/config/roboclaw_params.yaml"))["roboclaw_wrapper"]
+    assert params["ros__parameters"]["device"] == rover_board.PORT
+    assert params["ros__parameters"]["addresses"] == list(rover_board.ADDRESSES) == ADDRESSES
 
 
 def test_crc_is_the_drivers(roboclaw_module):
