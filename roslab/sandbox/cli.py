@@ -42,12 +42,15 @@ def register(subparsers) -> argparse.ArgumentParser:
     ssh.add_argument("host")
     ssh.add_argument("cmd", nargs=argparse.REMAINDER, metavar="CMD")
     board = commands.add_parser(
-        "board", help="start, stop or show a team's emulated ESP32 board",
-        description="The emulated ESP32 board of an esp32_microros team (esp32_transport: udp): a program on "
-                    "this machine that publishes what firmware/esp32_microros publishes, with the team's domain "
-                    "and node name (the values `roslab esp32-firmware` prints), through the real micro-ROS agent "
-                    "on the team's host, and reconnects when the agent restarts. Needs ROSLAB_SANDBOX_SOURCES "
-                    "(the board is built from the Micro-XRCE-DDS-Client bundle).")
+        "board", help="start, stop or show a team's emulated board (an ESP32, an OSR's RoboClaws)",
+        description="The emulated board of a team, by its robot profile. esp32_microros (esp32_transport: "
+                    "udp): a program on this machine that publishes what firmware/esp32_microros publishes, "
+                    "with the team's domain and node name (the values `roslab esp32-firmware` prints), "
+                    "through the real micro-ROS agent on the team's host, and reconnects when the agent "
+                    "restarts; needs ROSLAB_SANDBOX_SOURCES (it is built from the Micro-XRCE-DDS-Client "
+                    "bundle). osr: stand-in RoboClaw motor controllers (addresses 128, 129, 130) on "
+                    "/dev/serial1 inside the team's robot, answering the rover's real roboclaw_wrapper, which "
+                    "then publishes /drive_state and /status.")
     board.add_argument("team")
     board.add_argument("action", choices=("start", "stop", "status"))
     board.add_argument("--roster", type=Path, metavar="FILE",
@@ -153,13 +156,13 @@ def reset_hosts(args: argparse.Namespace) -> float:
 
 
 def run_board(args: argparse.Namespace) -> int:
-    """`roslab sandbox board TEAM start|stop|status`."""
+    """`roslab sandbox board TEAM start|stop|status`: the team's emulated board, by its robot profile
+    (esp32_microros: the ESP32 stand-in; osr: the stand-in RoboClaws in the rover)."""
     from roslab.robot_tools.esp32_firmware import board_values
     from roslab.reach import RosterProblem, load_classroom
 
-    from . import esp32_board
+    from . import rover_board
     from .instance import Instance
-    from .real_sources import Bundles
 
     instance = Instance.from_env()
     roster = args.roster or instance.roster_path
@@ -168,10 +171,23 @@ def run_board(args: argparse.Namespace) -> int:
     except RosterProblem as problem:
         raise SandboxError(str(problem)) from None
     values = board_values(classroom, args.team)
-    if values is None:
-        teams = sorted({host.team for host in classroom.hosts if board_values(classroom, host.team)})
-        raise SandboxError(f"{roster}: team {args.team!r} has no ESP32 board (robot_profile esp32_microros); "
-                           f"teams with one: {', '.join(teams) or 'none'}")
+    if values is not None:
+        return esp32_board_action(args, values, instance, roster)
+    rover = rover_board.robot_host(classroom, args.team)
+    if rover is not None:
+        return rover_board_action(args, instance, rover.name)
+    teams = sorted({host.team for host in classroom.hosts
+                    if board_values(classroom, host.team) or rover_board.robot_host(classroom, host.team)})
+    raise SandboxError(f"{roster}: team {args.team!r} has no board the sandbox emulates (an ESP32 of robot_profile "
+                       f"esp32_microros, the RoboClaws of robot_profile osr); teams with one: "
+                       f"{', '.join(teams) or 'none'}")
+
+
+def esp32_board_action(args: argparse.Namespace, values, instance, roster: Path) -> int:
+    """start/stop/status of an esp32_microros team's ESP32 stand-in (on this machine)."""
+    from . import esp32_board
+    from .real_sources import Bundles
+
     if values.transport != "udp":
         raise SandboxError(f"{roster}: team {args.team!r} has esp32_transport {values.transport}: the sandbox "
                            "emulates a board on WiFi only (no USB link reaches a sandbox host); set it to udp")
@@ -185,6 +201,23 @@ def run_board(args: argparse.Namespace) -> int:
         log_file = esp32_board.board_files(instance.state_dir, args.team)[1]
         print(f"{board_line(values)}: " + ("publishing" if publishing else
               f"started, still waiting for the agent (is micro_ros_agent running there?); log: {log_file}"))
+    return 0
+
+
+def rover_board_action(args: argparse.Namespace, instance, host_name: str) -> int:
+    """start/stop/status of an osr team's stand-in RoboClaws (inside its robot host)."""
+    from . import rover_board
+
+    line = rover_board.describe(args.team, host_name)
+    if args.action == "stop":
+        stopped = rover_board.stop(instance, host_name)
+        print(f"{line}: {'stopped' if stopped else 'was not running'}")
+    elif args.action == "status":
+        print(f"{line}: {rover_board.state(instance, host_name)}")
+    else:
+        pid = rover_board.start(instance, host_name)
+        print(f"{line}: answering (pid {pid} in {host_name}); the rover's service (osr_startup, when "
+              "osr_calibrated) respawns roboclaw_wrapper, which now finds them")
     return 0
 
 

@@ -16,7 +16,9 @@ esp32_board_team2), publishes through that agent, so `roslab verify` hears the b
 main, hears it again after the agent is killed (the board reconnects, as the firmware does), and
 fails naming the board when `roslab sandbox board team2 stop` stops it. What stays a stand-in and why: the rover's joy and teleop_twist_joy (the
 shared runtime lacks them: the sandbox's stand-in executables), its RoboClaws and servo board
-(serial and I2C hardware: those nodes fail, each in its own line of the launch's journal).
+(serial and I2C hardware: those nodes fail, each in its own line of the launch's journal) until
+`roslab sandbox board team1 start` runs STAND-IN RoboClaws in the rover
+(roslab/sandbox/roboclaw_board.py): then the real roboclaw_wrapper publishes /drive_state.
 Without bundles or a real runtime, every robot repository is a stand-in (git_standins.py): the
 same class converges and the real-only tests skip, saying so.
 
@@ -429,6 +431,29 @@ def test_the_board_on_its_teams_domain_is_heard_reconnects_after_the_agent_is_ki
     silent = verify(sandbox, roster, "--limit", "team2")
     assert silent.returncode == 1, silent.stdout + silent.stderr
     assert "ESP32 board" in silent.stdout and BOARD_HOST in silent.stdout, silent.stdout
+
+
+def test_the_stand_in_roboclaws_let_the_rovers_real_wrapper_publish_drive_state(sandbox, roster, first_run):
+    """`roslab sandbox board team1 start` runs the STAND-IN RoboClaws (roslab/sandbox/roboclaw_board.py)
+    inside the rover on /dev/serial1: osr-rover-code's real roboclaw_wrapper, respawned by the
+    rover's launch, connects to addresses 128-130 and publishes /drive_state; `stop` ends it."""
+    needs_real(sandbox)
+
+    def rover_board(action: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "roslab", "sandbox", "board", "team1", action, "--roster",
+                               str(roster)], env=sandbox.env, capture_output=True, text=True, timeout=120)
+
+    started = rover_board("start")
+    try:
+        assert started.returncode == 0, started.stdout + started.stderr
+        assert f"on /dev/serial1 of {ROVER}" in started.stdout and ": answering (pid " in started.stdout, started.stdout
+        echoed = sandbox.ssh(ROVER, "timeout -k 5 90 bash -ic 'ros2 topic echo --once /drive_state "
+                                    "sensor_msgs/msg/JointState' 2>/dev/null", timeout=120)
+        assert "drive_left_front" in echoed.stdout and "drive_right_back" in echoed.stdout, echoed
+    finally:
+        stopped = rover_board("stop")
+    assert stopped.returncode == 0 and stopped.stdout.rstrip().endswith(": stopped"), stopped
+    assert sandbox.ssh(ROVER, "test -e /dev/serial1").returncode != 0
 
 
 def test_the_students_shell_and_the_rovers_service_overlay_the_underlay(sandbox, first_run):
