@@ -94,7 +94,7 @@ class LockedGroup:
 @dataclass(frozen=True)
 class ClassLock:
     groups: dict[str, LockedGroup] = field(default_factory=dict)  # "jazzy/arm64" -> its versions
-    hold: tuple[str, ...] = ()  # packages `lock --update` keeps back
+    hold: tuple[str, ...] = ()  # packages and wheels (PEP 503 names) `lock --update` keeps back
 
 
 def group_key(distro: str, architecture: str) -> str:
@@ -327,14 +327,16 @@ def wheels_of(files) -> dict[str, LockedWheel]:
     return found
 
 
-def wheel_updates(group: LockedGroup, current: dict[str, LockedWheel]) -> list[tuple[str, str, str]]:
+def wheel_updates(group: LockedGroup, current: dict[str, LockedWheel],
+                  hold: tuple[str, ...] = ()) -> list[tuple[str, str, str]]:
     """(wheel, locked, now) for each locked wheel the class's wheelhouse now has at another
-    version or hash, sorted (`lock --update` moves them)."""
+    version or hash, sorted (`lock --update` moves them); a wheel whose PEP 503 name the lock's
+    `hold` list names is kept back, as a package of that name is."""
     def text(wheel: LockedWheel) -> str:
         return f"{wheel.version} sha256:{wheel.sha256[:12]}"
 
     return sorted((name, text(wheel), text(current[name])) for name, wheel in group.wheels.items()
-                  if name in current and current[name] != wheel)
+                  if name in current and current[name] != wheel and name not in hold)
 
 
 def wheel_mismatches(group: LockedGroup, files) -> list[str]:

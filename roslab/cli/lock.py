@@ -90,7 +90,7 @@ def moved_lock(lock: class_lock.ClassLock, found: dict, taken: str) -> class_loc
     for key, entry in found.items():
         if key not in lock.groups:
             continue
-        wheel_moves = class_lock.wheel_updates(lock.groups[key], entry.get("wheels", {}))
+        wheel_moves = class_lock.wheel_updates(lock.groups[key], entry.get("wheels", {}), lock.hold)
         wheels[key] = {name: entry["wheels"][name] for name, _old, _new in wheel_moves}
         moves[key] = (class_lock.updates(lock, key, entry.get("candidates", {}))
                       + [(f"wheel {name}", old, new) for name, old, new in wheel_moves])

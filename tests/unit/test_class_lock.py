@@ -246,6 +246,26 @@ def test_merge_never_moves_a_locked_wheel_and_update_moves_it():
     assert moved.groups[KEY].wheels == newer and moved.groups[KEY].packages == lock.groups[KEY].packages
 
 
+def test_a_held_wheel_stays_at_its_locked_file_while_the_others_move(capsys, tmp_path):
+    from dataclasses import replace
+
+    from roslab.cli import lock as lock_cli
+
+    wheels = class_lock.wheels_of(wheel_files())
+    lock, _ = class_lock.merged(class_lock.ClassLock(), KEY, INSTALLED, {}, TAKEN, "r1", wheels)
+    lock = replace(lock, hold=("rpi-gpio",))
+    newer = class_lock.wheels_of(wheel_files(OTHER_SHA))
+    assert [name for name, _old, _new in class_lock.wheel_updates(lock.groups[KEY], newer, lock.hold)] == ["ina260"]
+    moved = lock_cli.moved_lock(lock, {KEY: {"hosts": ["r1"], "candidates": {}, "wheels": newer}},
+                                "2026-12-01T08:00:00Z")
+    assert moved.groups[KEY].wheels == {**wheels, "ina260": newer["ina260"]}
+    assert "rpi-gpio" not in capsys.readouterr().out
+    path = tmp_path / class_lock.LOCK_FILE
+    path.write_text(class_lock.render_lock(moved))
+    again, report = class_lock.read_lock(path)  # a wheel's name is one `hold:` accepts
+    assert not report.errors and again.hold == ("rpi-gpio",)
+
+
 def test_lock_update_lists_a_moved_wheel_apart_from_a_package_of_the_same_name(capsys):
     from roslab.cli import lock as lock_cli
 
