@@ -17,7 +17,6 @@ upstream, or a new pin that opens another device, fails here.
 from __future__ import annotations
 
 import functools
-import os
 import re
 import subprocess
 from pathlib import Path
@@ -28,6 +27,7 @@ import yaml
 from roslab.profiles.library import builtin_profiles
 from roslab.profiles.resolve import resolve_host
 from tests import udev_harness as harness
+from tests import upstream_bundles
 
 REPO = Path(__file__).resolve().parents[2]
 DATA = REPO / "roslab" / "profiles" / "data"
@@ -41,9 +41,7 @@ NOT_A_PROFILES_DEVICE = ("fff1:ff48",)
 
 
 def sources_folder() -> Path | None:
-    given = os.environ.get("ROSLAB_SANDBOX_SOURCES")
-    folder = Path(given) if given else REPO.parent / "shared" / "sources"
-    return folder if all((folder / f"{name}.bundle").is_file() for name in BUNDLES) else None
+    return upstream_bundles.all_present(*BUNDLES)
 
 
 @pytest.fixture(scope="module")

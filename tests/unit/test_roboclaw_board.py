@@ -22,6 +22,7 @@ import yaml
 
 from roslab.sandbox import roboclaw_board as board
 from roslab.sandbox import rover_board
+from tests import upstream_bundles
 
 REPO = Path(__file__).resolve().parents[2]
 TAG = yaml.safe_load((REPO / "roslab/profiles/data/osr.repos").read_text())["repositories"]["osr-rover-code"]["version"]
@@ -30,10 +31,7 @@ ADDRESSES = [128, 129, 130]  # osr_bringup/config/roboclaw_params.yaml at the ta
 
 
 def bundle() -> Path | None:
-    given = os.environ.get("ROSLAB_SANDBOX_SOURCES")
-    folder = Path(given) if given else REPO.parent / "shared" / "sources"
-    path = folder / "osr-rover-code.bundle"
-    return path if path.is_file() else None
+    return upstream_bundles.bundle("osr-rover-code")
 
 
 @pytest.fixture(scope="module")

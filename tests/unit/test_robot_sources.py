@@ -29,6 +29,7 @@ from roslab.sources import fetch as source_fetch
 from roslab.sources import underlay
 from roslab.profiles import library
 from roslab.profiles.resolve import resolve_host
+from tests import upstream_bundles
 
 REPO = Path(__file__).resolve().parents[2]
 DATA = REPO / "roslab/profiles/data"
@@ -36,9 +37,7 @@ COLCON = Path(sys.executable).parent / "colcon"
 
 
 def bundles_dir() -> Path | None:
-    value = os.environ.get("ROSLAB_SANDBOX_SOURCES", "").strip()
-    folder = Path(value) if value else REPO.parent / "shared/sources"
-    return folder if (folder / "micro-ROS-Agent.bundle").is_file() else None
+    return upstream_bundles.all_present("micro-ROS-Agent")
 
 
 pytestmark = pytest.mark.skipif(bundles_dir() is None, reason=(

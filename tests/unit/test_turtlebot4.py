@@ -14,6 +14,7 @@ from test_robots import BASE, UBUNTU_CMDLINE, boot_facts, problems_of, resolved 
 from deploy.robot_profile import robot_profile
 from roslab.ops.boot_config import CMDLINE_TXT, CONFIG_TXT, cmdline_with
 from roslab.profiles.schema import cmdline_add_problem, config_line_problem
+from tests import upstream_bundles
 
 USB0_OVERLAY = "dtoverlay=dwc2,dr_mode=peripheral"
 I2C3_OVERLAY = "dtoverlay=i2c-gpio,bus=3,i2c_gpio_delay_us=1,i2c_gpio_sda=4,i2c_gpio_scl=5"
@@ -92,13 +93,11 @@ def test_both_models_get_usb0_and_i2c3_at_boot(model, distro):
 @pytest.fixture(scope="module")
 def setup_repo(tmp_path_factory):
     """turtlebot4_setup from its bundle (ROSLAB_SANDBOX_SOURCES or ../shared/sources), bare."""
-    from test_robot_sources import bundles_dir
-
-    folder = bundles_dir()
-    if folder is None or not (folder / "turtlebot4_setup.bundle").is_file():
+    bundle = upstream_bundles.bundle("turtlebot4_setup")
+    if bundle is None:
         pytest.skip("no turtlebot4_setup.bundle (set ROSLAB_SANDBOX_SOURCES, or ../shared/sources)")
     repo = tmp_path_factory.mktemp("tb4") / "turtlebot4_setup.git"
-    subprocess.run(["git", "clone", "--quiet", "--bare", str(folder / "turtlebot4_setup.bundle"), str(repo)],
+    subprocess.run(["git", "clone", "--quiet", "--bare", str(bundle), str(repo)],
                    check=True, capture_output=True)
     return repo
 
