@@ -187,8 +187,8 @@ def assign_domain_ids(classroom: Classroom) -> None:
         team.ros_domain_id = assigned[team.name]
         team.domain_assigned = True
         for host in team.hosts:
-            host.data["ros_domain_id"] = team.ros_domain_id
-            host.data["roslab_domain_assigned"] = True
+            host.set_data(ros_domain_id=team.ros_domain_id)
+            host.domain_assigned = True
 
 
 def check_domain_ids(classroom: Classroom, report: Report) -> None:

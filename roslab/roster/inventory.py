@@ -38,8 +38,7 @@ def add_host_lists(classroom: Classroom) -> None:
         members = [{"name": host.name, "address": host_ip(host), "role": host.role}
                    for host in team.hosts]
         for host in team.hosts:
-            host.data["roslab_classroom_hosts"] = everyone
-            host.data["roslab_team_hosts"] = members
+            host.set_data(roslab_classroom_hosts=everyone, roslab_team_hosts=members)
 
 
 def group_names(classroom: Classroom) -> dict[str, list[str]]:

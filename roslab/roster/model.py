@@ -28,6 +28,8 @@ class Host:
     line: int | None = None
     # Roster line where each resolved field was set, for checks' messages.
     lines: dict = field(default_factory=dict, repr=False)
+    # Whether roslab gave the host's team a free ROS_DOMAIN_ID from its name (assign_domain_ids).
+    domain_assigned: bool = False
 
     @cached_property
     def settings(self) -> HostSettings:
@@ -38,7 +40,14 @@ class Host:
     @property
     def ros_domain_id(self) -> int | None:
         """The team's domain, as the deploys read it (one value: host data, set from the team)."""
-        return self.data.get("ros_domain_id")
+        return self.settings.ros_domain_id
+
+    def set_data(self, **values) -> None:
+        """Put what the loader derives after reading the roster (a team's assigned domain, the
+        classroom's host lists) into the host's data, and drop typed settings built before it,
+        so `settings` is rebuilt from the data pyinfra gets."""
+        self.data.update(values)
+        self.__dict__.pop("settings", None)
 
 
 @dataclass

@@ -179,7 +179,7 @@ def test_table_fields_resolve_distro_variant_and_domain_by_level(tmp_path):
     assert (robot.distro, robot.variant) == ("jazzy", "ros-core")
     # A team without one gets a free ID from its name (never 0, everyone's default).
     assert main.ros_domain_id == robot.ros_domain_id == preferred_domain_id("solo") != 0
-    assert main.data["ros_domain_id"] == main.ros_domain_id and main.data["roslab_domain_assigned"]
+    assert main.data["ros_domain_id"] == main.ros_domain_id and main.domain_assigned
 
 
 def test_every_deploy_setting_is_accepted_with_its_default(tmp_path):
