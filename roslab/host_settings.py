@@ -29,7 +29,7 @@ from roslab.host_fields import HostSettings
 from roslab.profiles.devices import rules_text_problem
 from roslab.profiles.resolve import ResolvedProfile
 
-__all__ = ["HostSettings", "HostSettingsError", "host_settings", "peer_settings", "settings_of"]
+__all__ = ["HostSettings", "HostSettingsError", "host_settings", "peer_settings", "settings_of", "updated"]
 
 
 class HostSettingsError(ValueError):
@@ -139,6 +139,16 @@ def settings_of(name: str, data: Mapping[str, Any]) -> HostSettings:
     if problems:
         raise HostSettingsError(f"host {name}: {'; '.join(problems)} (in its inventory data or pyinfra's --data)")
     return _built(values)
+
+
+def updated(typed: HostSettings, values: Mapping[str, Any]) -> HostSettings:
+    """`typed` with `values` in place of some fields' (what the roster loader derives after a
+    host's settings were first read: its team's assigned domain, the classroom's host lists).
+    The loader made them, so they are not checked again here."""
+    unknown = set(values) - _FIELDS
+    if unknown:
+        raise TypeError(f"not fields of HostSettings: {', '.join(sorted(unknown))}")
+    return _built({**vars(typed), **values})
 
 
 def _built(values: dict[str, Any]) -> HostSettings:

@@ -7,7 +7,7 @@ from functools import cached_property
 from pathlib import Path
 
 from roslab.checked.problems import Problem
-from roslab.host_settings import HostSettings, settings_of
+from roslab.host_settings import HostSettings, settings_of, updated
 
 ROLES = ("main", "robot")
 
@@ -44,10 +44,11 @@ class Host:
 
     def set_data(self, **values) -> None:
         """Put what the loader derives after reading the roster (a team's assigned domain, the
-        classroom's host lists) into the host's data, and drop typed settings built before it,
-        so `settings` is rebuilt from the data pyinfra gets."""
+        classroom's host lists) into the host's data, and into its typed settings if a check has
+        built them already, so both say what pyinfra gets."""
         self.data.update(values)
-        self.__dict__.pop("settings", None)
+        if "settings" in self.__dict__:
+            self.__dict__["settings"] = updated(self.__dict__["settings"], values)
 
 
 @dataclass
