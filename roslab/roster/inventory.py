@@ -147,8 +147,8 @@ def known_addresses(host, moved_to: str | None) -> list[str]:
     """Every address this host may be reached at in a run: the roster's, the last confirmed
     one, and the static address the network deploy moves it to (and reconnects at)."""
     addresses = [host.address, moved_to]
-    network_address = host.data.get("network_address")
-    if network_address and host.data.get("network_enabled", True):
+    network_address = host.settings.network_address
+    if network_address and host.settings.network_enabled:
         addresses.append(network_address.split("/")[0])
     return [address for address in dict.fromkeys(addresses) if address]
 
