@@ -68,8 +68,9 @@ class ResolvedProfile:
 
     `resolve_host` makes it as a plain mapping with these keys: that is what travels in pyinfra's
     host data (`host.data.roslab_profile`: its JSON output, `--data` and a hand-made inventory give
-    plain mappings), and what the roster, status and verify read. A deploy reads this dataclass,
-    `roslab.host_settings.host_settings(host).roslab_profile`, made by `from_data`."""
+    plain mappings). Everything else reads this dataclass, made by `from_data`: a deploy and
+    `roslab verify` as `roslab.host_settings.host_settings(host).roslab_profile`, the roster's
+    checks and `roslab status` as a roster host's `settings.roslab_profile`."""
 
     name: str
     distro: str
