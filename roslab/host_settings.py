@@ -85,6 +85,7 @@ _SCALARS = [(kind, [key for key, (k, _, none) in _CHECKS.items() if k is kind an
 _CONTAINERS = [key for key, (kind, _, _) in _CHECKS.items() if kind in (list, dict)]
 _EMPTY = {key: _CHECKS[key][0]() for key in _CONTAINERS}  # [] or {}: nothing to look into
 _ORDER = {key: index for index, key in enumerate(_CHECKS)}
+_HOST_KEYS = [(key.key, key.kind) for key in settings.HOST_KEYS]
 _FIELDS = frozenset(field.name for field in dataclasses.fields(HostSettings))
 assert _FIELDS == {*_CHECKS, *(key.key for key in settings.HOST_KEYS)}, "roslab/host_fields.py is stale"
 
@@ -116,11 +117,11 @@ def settings_of(name: str, data: Mapping[str, Any]) -> HostSettings:
         problem = "must not be null" if values[key] is None else _problem(values[key], kind, item)
         if problem:
             problems.append(f"{key} {problem}")
-    for host_key in settings.HOST_KEYS:
-        value = values[host_key.key] = data.get(host_key.key)
-        problem = None if value is None else settings.type_problem(value, host_key.kind)
+    for key, kind in _HOST_KEYS:
+        value = values[key] = data.get(key)
+        problem = None if value is None or type(value) is kind else settings.type_problem(value, kind)
         if problem:
-            problems.append(f"{host_key.key} {problem}")
+            problems.append(f"{key} {problem}")
     profile = values["roslab_profile"]
     if isinstance(profile, Mapping):
         try:

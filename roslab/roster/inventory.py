@@ -33,9 +33,10 @@ def default_roster_path(base: Path | None = None) -> Path:
 
 def add_host_lists(classroom: Classroom) -> None:
     """Each host's view of the classroom: every host (for /etc/hosts) and its own team."""
-    everyone = [{"name": host.name, "address": host_ip(host)} for host in classroom.hosts]
+    ips = {host.name: host_ip(host) for host in classroom.hosts}  # each host's once, not once per list
+    everyone = [{"name": host.name, "address": ips[host.name]} for host in classroom.hosts]
     for team in classroom.teams:
-        members = [{"name": host.name, "address": host_ip(host), "role": host.role}
+        members = [{"name": host.name, "address": ips[host.name], "role": host.role}
                    for host in team.hosts]
         for host in team.hosts:
             host.set_data(roslab_classroom_hosts=everyone, roslab_team_hosts=members)
