@@ -76,6 +76,8 @@ def single_line(value: str, _context: Context | None = None) -> str | None:
     """One line of text: no newline, no control character, not empty."""
     if value == "":
         return "must not be empty"
+    if value.isprintable():  # no control, separator or surrogate in it (the common case, at C speed)
+        return None
     for char in value:
         if _breaks_lines(char):
             return (f"must be a single line of text without control characters "
