@@ -80,6 +80,7 @@ _CHECKS = {s.key: (s.kind, str if s.kind is dict else s.item, s.nullable or s.co
            for s in settings.HOST_SETTINGS}
 # pyinfra's own defaults for the connection's keys: None here, as in settings.defaults()
 _DEFAULTS = [(s.key, None if s.concern in settings.ROSTER_CONCERNS else s.default) for s in settings.HOST_SETTINGS]
+_MUTABLE = frozenset(key for key, default in _DEFAULTS if isinstance(default, (list, dict)))  # copied per host
 _SCALARS = [(kind, [key for key, (k, _, none) in _CHECKS.items() if k is kind and none is may_be_none], may_be_none)
             for kind in (str, int, bool) for may_be_none in (False, True)]
 _CONTAINERS = [key for key, (kind, _, _) in _CHECKS.items() if kind in (list, dict)]
@@ -110,7 +111,8 @@ def _suspects(values: dict[str, Any]) -> list[str]:
 def settings_of(name: str, data: Mapping[str, Any]) -> HostSettings:
     """A host's typed settings from its data (a pyinfra host's `data.dict()` or a roster host's
     dict): the schema's defaults under it, every value's type checked."""
-    values: dict[str, Any] = {key: data[key] if key in data else copy.deepcopy(default) for key, default in _DEFAULTS}
+    values: dict[str, Any] = {key: data[key] if key in data else copy.deepcopy(default) if key in _MUTABLE else default
+                              for key, default in _DEFAULTS}
     problems: list[str] = []
     for key in _suspects(values):
         kind, item, may_be_none = _CHECKS[key]
