@@ -94,8 +94,8 @@ assert _FIELDS == {*_CHECKS, *(key.key for key in settings.HOST_KEYS)}, "roslab/
 def _plainly(value, kind: type, item: type | None) -> bool:
     """Whether a list or mapping is exactly of `kind`, its items exactly of `item`."""
     if kind is list:
-        return type(value) is list and all(type(element) is item for element in value)
-    return type(value) is dict and all(type(key) is str and type(element) is item for key, element in value.items())
+        return type(value) is list and set(map(type, value)) <= {item}
+    return type(value) is dict and set(map(type, value)) <= {str} and set(map(type, value.values())) <= {item}
 
 
 def _suspects(values: dict[str, Any]) -> list[str]:

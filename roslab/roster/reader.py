@@ -429,9 +429,11 @@ class RosterReader:
     def warn_deprecated(self, outer: list[dict], own: dict[str, Value], lines: dict, team: Team) -> None:
         """One warning per deprecated key the classroom, team or host sets (the command line's are
         not the roster's to fix)."""
+        levels = (*outer, own)
+        if not any(DEPRECATED.keys() & level.keys() for level in levels):
+            return  # the common case, said at C speed for each host
         for old_key, new_key in DEPRECATED.items():
-            if any(level.get(old_key) is not None and level[old_key].value is not None
-                   for level in (*outer, own)):
+            if any(level.get(old_key) is not None and level[old_key].value is not None for level in levels):
                 self.report.warning(f"{old_key} is deprecated: set {new_key} (on the host, or in a robot "
                                     "profile's side); it is honoured for now", field=old_key,
                                     line=lines.get(old_key), team=team.name)
