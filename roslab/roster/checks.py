@@ -131,6 +131,11 @@ def check_controller_folders(host: Host, report: Report, seen: set, resolved: di
     where = {"team": host.team, "host": host.name}
     typed = host.settings
     folders = [(key, real(getattr(typed, key))) for key in CACHE_SETTINGS if getattr(typed, key)]
+    nodes = typed.workspace_nodes_dir
+    layout = ("layout", tuple(folders), nodes)
+    if layout in seen:
+        return  # the same folders as a host before: each of their clashes was reported there
+    seen.add(layout)
     for index, (key, folder) in enumerate(folders):
         for other, other_folder in folders[:index]:
             if (inside(folder, other_folder) or inside(other_folder, folder)) and \
@@ -138,7 +143,6 @@ def check_controller_folders(host: Host, report: Report, seen: set, resolved: di
                 seen.add((key, folder, other, other_folder))
                 report.error(f"{key} ({folder}) and {other} ({other_folder}) share a folder: each cache needs "
                              "one of its own", field=key, line=host.lines.get(key) or host.lines.get(other), **where)
-        nodes = typed.workspace_nodes_dir
         if nodes and (inside(folder, real(nodes)) or inside(real(nodes), folder)) and (key, folder, nodes) not in seen:
             seen.add((key, folder, nodes))
             report.error(f"{key} ({folder}) and workspace_nodes_dir ({real(nodes)}) overlap: the nodes folder is "
