@@ -76,6 +76,8 @@ def single_line(value: str, _context: Context | None = None) -> str | None:
     """One line of text: no newline, no control character, not empty."""
     if value == "":
         return "must not be empty"
+    if value.isprintable():  # no control, separator or surrogate in it (the common case, at C speed)
+        return None
     for char in value:
         if _breaks_lines(char):
             return (f"must be a single line of text without control characters "
@@ -334,10 +336,13 @@ def _loose_ipv4(value: str) -> str | None:
     return socket.inet_ntoa(packed)
 
 
-def _non_canonical_ip(value: str) -> str | None:
-    """Why an address ipaddress accepts is not in the one form roslab compares, or None:
-    IPv4 as a dotted quad, IPv6 in its canonical (lower-case, compressed, no zone) form."""
-    ip = ipaddress.ip_address(value)
+_BROADCAST = ipaddress.IPv4Address("255.255.255.255")
+
+
+def _non_canonical_ip(value: str, ip: ipaddress.IPv4Address | ipaddress.IPv6Address) -> str | None:
+    """Why an address ipaddress accepts (`ip`, read from `value`) is not in the one form roslab
+    compares, or None: IPv4 as a dotted quad, IPv6 in its canonical (lower-case, compressed, no
+    zone) form."""
     if ip.version == 6 and ip.ipv4_mapped:
         return f"{value!r} is an IPv4 address in IPv6's clothes: write {str(ip.ipv4_mapped)!r}"
     if ip.version == 6 and str(ip) != value:
@@ -347,25 +352,30 @@ def _non_canonical_ip(value: str) -> str | None:
 
 def ip_address(value: str, context: Context | None = None) -> str | None:
     """An IP address: IPv4 as a dotted quad, IPv6 in canonical form."""
+    return _ip_problem(value)[0]
+
+
+def _ip_problem(value: str) -> tuple[str | None, ipaddress.IPv4Address | ipaddress.IPv6Address | None]:
+    """(ip_address's problem, the address read) of `value`: read once (a roster's check reads
+    every host's address)."""
     try:
-        ipaddress.ip_address(value)
+        ip = ipaddress.ip_address(value)
     except ValueError:
         loose = _loose_ipv4(value) if isinstance(value, str) else None
         if loose:
             return (f"{value!r} is not an IP address written as four decimal numbers (a resolver "
-                    f"would read it as {loose!r})")
-        return f"{value!r} is not an IP address"
-    return _non_canonical_ip(value)
+                    f"would read it as {loose!r})"), None
+        return f"{value!r} is not an IP address", None
+    return _non_canonical_ip(value, ip), ip
 
 
 def address(value: str, context: Context | None = None) -> str | None:
     """Where SSH reaches a host: an IP address (one a host can have: loopback is fine, the
     unspecified, multicast, broadcast or reserved addresses are not) or a host name."""
-    problem = ip_address(value)
+    problem, ip = _ip_problem(value)
     if problem is None:
-        ip = ipaddress.ip_address(value)
-        if ip.is_unspecified or ip.is_multicast or ip.is_reserved or (
-                ip.version == 4 and ip == ipaddress.IPv4Address("255.255.255.255")):
+        if ip is not None and (ip.is_unspecified or ip.is_multicast or ip.is_reserved
+                               or (ip.version == 4 and ip == _BROADCAST)):
             return f"{value!r} is not an address a host can have (unspecified, multicast, broadcast or reserved)"
         return None
     if "written" in problem or "resolver" in problem or "clothes" in problem:  # 0x7f.0.0.11, 127.11, FD00::1: an address, in a form not compared
@@ -384,7 +394,7 @@ def ip_interface(value: str, context: Context | None = None) -> str | None:
     address_part, _, prefix = value.partition("/")
     if prefix and not (prefix.isascii() and prefix.isdigit() and str(int(prefix)) == prefix):
         return f"{value!r}: the prefix length is a plain decimal number, e.g. '192.168.50.11/24'"
-    return _non_canonical_ip(address_part)
+    return _non_canonical_ip(address_part, ipaddress.ip_address(address_part))
 
 
 def ubuntu_release(value: str, context: Context | None = None) -> str | None:

@@ -16,6 +16,8 @@ deploy asks first.
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import weakref
 from collections.abc import Mapping
 from typing import Any
@@ -27,7 +29,7 @@ from roslab.host_fields import HostSettings
 from roslab.profiles.devices import rules_text_problem
 from roslab.profiles.resolve import ResolvedProfile
 
-__all__ = ["HostSettings", "HostSettingsError", "host_settings", "peer_settings", "settings_of"]
+__all__ = ["HostSettings", "HostSettingsError", "host_settings", "peer_settings", "settings_of", "updated"]
 
 
 class HostSettingsError(ValueError):
@@ -71,25 +73,57 @@ def _problem(value, kind: type, item: type | None = None) -> str | None:
     return problem
 
 
+# What settings_of checks of each setting, worked out once: every host's settings are built in
+# a roster's check (issue 41 measures it per host), so the common case (each value exactly of its
+# type) is a few comprehensions; a value that fails them is judged again by _problem, which words it.
+_CHECKS = {s.key: (s.kind, str if s.kind is dict else s.item, s.nullable or s.concern in settings.ROSTER_CONCERNS)
+           for s in settings.HOST_SETTINGS}
+# pyinfra's own defaults for the connection's keys: None here, as in settings.defaults()
+_DEFAULTS = [(s.key, None if s.concern in settings.ROSTER_CONCERNS else s.default) for s in settings.HOST_SETTINGS]
+_MUTABLE = frozenset(key for key, default in _DEFAULTS if isinstance(default, (list, dict)))  # copied per host
+_SCALARS = [(kind, [key for key, (k, _, none) in _CHECKS.items() if k is kind and none is may_be_none], may_be_none)
+            for kind in (str, int, bool) for may_be_none in (False, True)]
+_CONTAINERS = [key for key, (kind, _, _) in _CHECKS.items() if kind in (list, dict)]
+_EMPTY = {key: _CHECKS[key][0]() for key in _CONTAINERS}  # [] or {}: nothing to look into
+_ORDER = {key: index for index, key in enumerate(_CHECKS)}
+_HOST_KEYS = [(key.key, key.kind) for key in settings.HOST_KEYS]
+_FIELDS = frozenset(field.name for field in dataclasses.fields(HostSettings))
+assert _FIELDS == {*_CHECKS, *(key.key for key in settings.HOST_KEYS)}, "roslab/host_fields.py is stale"
+
+
+def _plainly(value, kind: type, item: type | None) -> bool:
+    """Whether a list or mapping is exactly of `kind`, its items exactly of `item`."""
+    if kind is list:
+        return type(value) is list and set(map(type, value)) <= {item}
+    return type(value) is dict and set(map(type, value)) <= {str} and set(map(type, value.values())) <= {item}
+
+
+def _suspects(values: dict[str, Any]) -> list[str]:
+    """The settings whose values are not plainly of their type (what _problem then judges), in
+    the schema's order."""
+    found = [key for kind, keys, may_be_none in _SCALARS for key in keys
+             if type(values[key]) is not kind and not (may_be_none and values[key] is None)]
+    found += [key for key in _CONTAINERS if not (values[key] is None and _CHECKS[key][2])
+              and not (values[key] == _EMPTY[key] or _plainly(values[key], *_CHECKS[key][:2]))]
+    return sorted(found, key=_ORDER.__getitem__) if found else found
+
+
 def settings_of(name: str, data: Mapping[str, Any]) -> HostSettings:
     """A host's typed settings from its data (a pyinfra host's `data.dict()` or a roster host's
     dict): the schema's defaults under it, every value's type checked."""
-    merged = {**settings.defaults(), **data}
-    values: dict[str, Any] = {}
+    values: dict[str, Any] = {key: data[key] if key in data else copy.deepcopy(default) if key in _MUTABLE else default
+                              for key, default in _DEFAULTS}
     problems: list[str] = []
-    for setting in settings.HOST_SETTINGS:
-        value = values[setting.key] = merged.get(setting.key)
-        if value is None and (setting.nullable or setting.concern in settings.ROSTER_CONCERNS):
-            continue
-        item = str if setting.kind is dict else setting.item  # every mapping setting maps names to text
-        problem = "must not be null" if value is None else _problem(value, setting.kind, item)
+    for key in _suspects(values):
+        kind, item, may_be_none = _CHECKS[key]
+        problem = "must not be null" if values[key] is None else _problem(values[key], kind, item)
         if problem:
-            problems.append(f"{setting.key} {problem}")
-    for key in settings.HOST_KEYS:
-        value = values[key.key] = merged.get(key.key)
-        problem = None if value is None else settings.type_problem(value, key.kind)
+            problems.append(f"{key} {problem}")
+    for key, kind in _HOST_KEYS:
+        value = values[key] = data.get(key)
+        problem = None if value is None or type(value) is kind else settings.type_problem(value, kind)
         if problem:
-            problems.append(f"{key.key} {problem}")
+            problems.append(f"{key} {problem}")
     profile = values["roslab_profile"]
     if isinstance(profile, Mapping):
         try:
@@ -102,8 +136,27 @@ def settings_of(name: str, data: Mapping[str, Any]) -> HostSettings:
             if rules_problem:
                 problems.append(f"roslab_profile: {rules_problem}")
     if "roslab_roster_path" not in data:  # a hand-made inventory: the rules a roster's values meet
+        merged = {**settings.defaults(), **data}
         problems.extend(f"{key}: {problem}" for key, problem in host_rules.hand_made_problems(data, merged)
                         if not any(shown.startswith(f"{key} ") for shown in problems))
     if problems:
         raise HostSettingsError(f"host {name}: {'; '.join(problems)} (in its inventory data or pyinfra's --data)")
-    return HostSettings(**values)
+    return _built(values)
+
+
+def updated(typed: HostSettings, values: Mapping[str, Any]) -> HostSettings:
+    """`typed` with `values` in place of some fields' (what the roster loader derives after a
+    host's settings were first read: its team's assigned domain, the classroom's host lists).
+    The loader made them, so they are not checked again here."""
+    unknown = set(values) - _FIELDS
+    if unknown:
+        raise TypeError(f"not fields of HostSettings: {', '.join(sorted(unknown))}")
+    return _built({**vars(typed), **values})
+
+
+def _built(values: dict[str, Any]) -> HostSettings:
+    """HostSettings of `values` (one per field, _FIELDS): its fields set as dataclass's frozen
+    __init__ would set them, without its 160 object.__setattr__ calls (a third of settings_of)."""
+    typed = object.__new__(HostSettings)
+    typed.__dict__.update(values)
+    return typed

@@ -12,6 +12,7 @@ generated from here), and its `data_defaults` are `defaults(concern)`.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any
 
@@ -619,8 +620,10 @@ def defaults(concern: str | None = None) -> dict:
     }
 
 
+@functools.cache
 def keys_at(level: str) -> dict[str, Setting]:
-    """The settings a roster may set at `level` (classroom, team or host)."""
+    """The settings a roster may set at `level` (classroom, team or host): one dict per level,
+    read-only (the roster reader asks once per host)."""
     return {s.key: s for s in SCHEMA if level in s.levels}
 
 

@@ -1,7 +1,7 @@
 """The systemd services a host runs by its roster and robot profile, for `roslab verify` and
 `roslab status` to judge it by.
 
-One source, from the same host data the deploys read:
+One source, the host's typed settings (roslab.host_settings.HostSettings), as the deploys read them:
 
 - `roslab-nodes.service` when the host has a launch to run (its nodes_launch, else its
   profile side's; a hand-made inventory without a resolved profile runs the demo's) and
@@ -20,8 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from roslab import settings
-from roslab.host_settings import settings_of
+from roslab.host_settings import HostSettings
 from roslab.ros import discovery
 from roslab.ros.workspace import NODES_SERVICE
 
@@ -36,58 +35,51 @@ class HostService:
     launch: bool = False
 
 
-def _on(data, key: str) -> bool:
-    value = data.get(key)
-    return True if value is None else bool(value)
-
-
-def runs_a_launch(data) -> bool:
+def runs_a_launch(typed: HostSettings) -> bool:
     """Whether the host's roslab-nodes service has a launch to run: its nodes_launch (or a
     deprecated nodes_launch_<role>), as the roster loader resolved it from the robot profile; a
     host without a resolved profile (a hand-made inventory) runs the demo's."""
-    if data.get("roslab_profile") is None:
+    if typed.roslab_profile is None:
         return True
-    return bool(data.get("nodes_launch") or data.get(f"nodes_launch_{data.get('roslab_role')}"))
+    side = {"main": typed.nodes_launch_main, "robot": typed.nodes_launch_robot}.get(typed.roslab_role or "")
+    return bool(typed.nodes_launch or side)
 
 
-def runs_nodes(data) -> bool:
+def runs_nodes(typed: HostSettings) -> bool:
     """Whether the deploys install and run roslab-nodes.service on the host."""
-    return _on(data, "workspace_enabled") and _on(data, "nodes_service_enabled") and runs_a_launch(data)
+    return typed.workspace_enabled and typed.nodes_service_enabled and runs_a_launch(typed)
 
 
-def profile_name(data) -> str:
-    return (data.get("roslab_profile") or {}).get("name") or "demo"
+def profile_name(typed: HostSettings) -> str:
+    return (typed.roslab_profile.name if typed.roslab_profile is not None else None) or "demo"
 
 
-def services_not_started(data) -> list[tuple[str, str]]:
+def services_not_started(typed: HostSettings) -> list[tuple[str, str]]:
     """(service, why) of the robot profile's services that the roster's settings leave off here
     (the rover's osr_startup until osr_calibrated: true): the reason a robot runs nothing yet."""
-    if not _on(data, "profile_services_enabled"):
+    if not typed.profile_services_enabled or typed.roslab_profile is None:
         return []
-    return [(service["name"], service.get("disabled_because") or "not enabled by the roster")
-            for service in (data.get("roslab_profile") or {}).get("services") or () if not service.get("enabled")]
+    return [(service.name, service.disabled_because or "not enabled by the roster")
+            for service in typed.roslab_profile.services if not service.enabled]
 
 
-def host_services(data) -> list[HostService]:
+def host_services(typed: HostSettings) -> list[HostService]:
     """Every service the host runs by its roster, the team's discovery service first (when it is
     down, nothing else can be heard), then the profile's, then the nodes."""
     services: list[HostService] = []
-    if _on(data, "discovery_enabled"):
-        distro = data.get("ros_distro") or data.get("roslab_expected_distro") or "jazzy"
-        given = data.dict() if hasattr(data, "dict") else dict(data)  # pyinfra's HostData, or a dict
-        merged = {**settings.defaults("discovery"), **{k: v for k, v in given.items() if v is not None}}
-        typed = settings_of(str(merged.get("roslab_hostname") or ""), merged)  # the boundary: a mapping to typed
+    if typed.discovery_enabled:
+        distro = typed.ros_distro or typed.roslab_expected_distro or "jazzy"
         service = discovery.host_discovery(typed, distro).service
         if service is not None:
             what = ("the team's Zenoh router" if service.name == discovery.ZENOH_ROUTER_SERVICE
                     else "the team's Fast DDS discovery server")
             services.append(HostService(f"{service.name}.service", what, "discovery"))
-    if _on(data, "profile_services_enabled"):
-        for service in (data.get("roslab_profile") or {}).get("services") or ():
-            if service.get("enabled"):
-                services.append(HostService(f"{service['name']}.service",
-                                            f"robot profile {profile_name(data)}'s {service['name']}", "profile",
-                                            launch=str(service.get("command") or "").startswith("ros2 launch ")))
-    if runs_nodes(data):
+    if typed.profile_services_enabled and typed.roslab_profile is not None:
+        for own in typed.roslab_profile.services:
+            if own.enabled:
+                services.append(HostService(f"{own.name}.service",
+                                            f"robot profile {profile_name(typed)}'s {own.name}", "profile",
+                                            launch=str(own.command or "").startswith("ros2 launch ")))
+    if runs_nodes(typed):
         services.append(HostService(NODES_SERVICE, "the nodes", "nodes"))
     return services

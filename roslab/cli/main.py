@@ -30,28 +30,29 @@ import sys
 
 from roslab import __version__
 from roslab.reach import RosterProblem, add_roster_argument, load_classroom
+from roslab.host_settings import HostSettings
 from roslab.roster import Classroom, display_path
 
 TABLE_COLUMNS = ("TEAM", "HOST", "ROLE", "ADDRESS", "UBUNTU", "DISTRO", "VARIANT", "DOMAIN", "DISCOVERY", "PROFILE")
 
 
-def profile_cell(data: dict) -> str:
+def profile_cell(typed: HostSettings) -> str:
     """The host's robot profile and its settings, as a teacher checks them before deploying:
     `turtlebot3 (burger, LDS-03)`. A setting whose values are words of its own (allowed) shows
     its value; a yes/no, a number or free text (a serial number) shows `name=value`."""
     from roslab.profiles.library import builtin_profiles
 
-    profile = data.get("roslab_profile")
-    if not profile:
-        return data.get("robot_profile") or "-"
-    builtin = builtin_profiles().get(profile["name"])  # a roster's own profile: every setting as name=value
+    profile = typed.roslab_profile
+    if profile is None:
+        return typed.robot_profile or "-"
+    builtin = builtin_profiles().get(profile.name)  # a roster's own profile: every setting as name=value
     declared = builtin.settings if builtin is not None else {}
     words = []
-    for name, value in (profile.get("settings") or {}).items():
+    for name, value in profile.settings.items():
         setting = declared.get(name)
         bare = setting is not None and setting.allowed and str(value) not in ("true", "false")
         words.append(str(value) if bare else f"{name}={value}")
-    return profile["name"] + (f" ({', '.join(words)})" if words else "")
+    return profile.name + (f" ({', '.join(words)})" if words else "")
 
 
 def classroom_table(classroom: Classroom) -> str:
@@ -67,9 +68,9 @@ def classroom_table(classroom: Classroom) -> str:
             host.distro or "-",
             host.variant or "-",
             "-" if host.ros_domain_id is None else
-            str(host.ros_domain_id) + (" (auto)" if host.data.get("roslab_domain_assigned") else ""),
-            host.data.get("ros_discovery_mode") or "-",
-            profile_cell(host.data),
+            str(host.ros_domain_id) + (" (auto)" if host.domain_assigned else ""),
+            host.settings.ros_discovery_mode or "-",
+            profile_cell(host.settings),
         ))
     widths = [max(len(row[column]) for row in rows) for column in range(len(TABLE_COLUMNS))]
     return "\n".join(

@@ -569,21 +569,22 @@ def host_statuses(classroom: Classroom, groups: dict, limit: list[str] | None = 
     for host in classroom.hosts:
         if selected is not None and host.name not in selected:
             continue
+        typed = host.settings
         statuses.append(HostStatus(
             name=host.name, team=host.team, role=host.role,
             address=str(addresses.get(host.name) or host.address),
             roster_domain=host.ros_domain_id,
-            domain_assigned=bool(host.data.get("roslab_domain_assigned")),
-            discovery_mode=host.data.get("ros_discovery_mode"),
-            middleware=host.data.get("ros_middleware"),
+            domain_assigned=host.domain_assigned,
+            discovery_mode=typed.ros_discovery_mode,
+            middleware=typed.ros_middleware,
             expected_release=host.ubuntu_release, expected_distro=host.distro,
-            profile=profile_name(host.data), runs_nodes=runs_nodes(host.data),
-            other_services=[service for service in host_services(host.data) if service.kind != "nodes"],
-            listens=bool(host.data.get("nodes_verify_topic")),
-            not_started=services_not_started(host.data),
-            listen_timeout=int(host.data.get("nodes_verify_timeout") or LISTEN_TIMEOUT),
-            underlay=origin_file(host.settings),
-            base=host.settings.roslab_profile.base if host.settings.roslab_profile is not None else None,
+            profile=profile_name(typed), runs_nodes=runs_nodes(typed),
+            other_services=[service for service in host_services(typed) if service.kind != "nodes"],
+            listens=bool(typed.nodes_verify_topic),
+            not_started=services_not_started(typed),
+            listen_timeout=int(typed.nodes_verify_timeout or LISTEN_TIMEOUT),
+            underlay=origin_file(typed),
+            base=typed.roslab_profile.base if typed.roslab_profile is not None else None,
         ))
     return statuses
 
@@ -1107,9 +1108,9 @@ def attach_lock(classroom: Classroom, statuses: list[HostStatus]):
 def status_context(classroom: Classroom, statuses: list[HostStatus], now: datetime,
                    args: argparse.Namespace, warnings: list[str]) -> dict:
     """The page's data, with each team's topic and message type from its main host's settings."""
-    topics = {host.team: host.data.get("nodes_verify_topic") or "/chatter"
+    topics = {host.team: host.settings.nodes_verify_topic or "/chatter"
               for host in classroom.hosts if host.role == "main"}
-    message_types = {host.team: host.data.get("nodes_verify_type") or CHATTER_TYPE
+    message_types = {host.team: host.settings.nodes_verify_type or CHATTER_TYPE
                      for host in classroom.hosts if host.role == "main"}
     return page_context(classroom.name, display_path(classroom.path), statuses, now, args.listen, topics,
                         warnings, checklists(classroom, {status.name for status in statuses}), message_types,

@@ -94,14 +94,14 @@ def run_trust(args: argparse.Namespace) -> int:
     for host in hosts:
         # The file the run checks this host against (the roster's ssh_known_hosts_file, or the
         # classroom's own): recording the key anywhere else would say "recorded" and fail the run.
-        known_hosts_file = identity.known_hosts_of(path, host.data)
+        known_hosts_file = identity.known_hosts_of(path, host.settings.ssh_known_hosts_file)
         known_hosts = display_path(known_hosts_file)
         if str(known_hosts_file) == os.devnull:
             print(f"{host.name}: its ssh_known_hosts_file is /dev/null, where no key can be recorded: "
                   "set it to a known_hosts file (or leave it unset for the classroom's own)", file=sys.stderr)
             failed += 1
             continue
-        port = host.data.get("ssh_port") or 22
+        port = host.settings.ssh_port or 22
         try:
             address, public = scan_first(addresses_to_try(host, moved.get(host.name)), port)
         except OSError as error:
@@ -154,13 +154,13 @@ def run_forget(args: argparse.Namespace) -> int:
     for host in hosts:
         # The file the run checks this host against; under the host's name and under every
         # address it is reached at, so no other line (the teacher's own) still vouches for it.
-        known_hosts_file = identity.known_hosts_of(path, host.data)
+        known_hosts_file = identity.known_hosts_of(path, host.settings.ssh_known_hosts_file)
         known_hosts = display_path(known_hosts_file)
         if str(known_hosts_file) == os.devnull:
             print(f"{host.name}: its ssh_known_hosts_file is /dev/null: no key is recorded for it")
             continue
         names = identity.host_names(host.name, known_addresses(host, moved.get(host.name)),
-                                    host.data.get("ssh_port") or 22)
+                                    host.settings.ssh_port or 22)
         try:
             removed = identity.forget(path, *names, known_hosts=known_hosts_file)
         except (OSError, UnicodeDecodeError, identity.IdentityError) as error:

@@ -50,7 +50,7 @@ from roslab.cli.host_services import (host_services, profile_name, runs_a_launch
 from roslab.cli import launch_journal
 from roslab.ops.users import as_user
 from roslab.quoting import shell_home_path, shell_word
-from roslab.host_settings import host_settings
+from roslab.host_settings import HostSettings, host_settings
 from roslab.ros.environment import host_environment
 from roslab.ros.workspace import NODES_SERVICE, NodesUnitState
 
@@ -465,8 +465,8 @@ def service_state(unit_state: dict) -> str:
 
 def host_distro(host) -> str:
     """The host's ROS 2 distro: ros_distro, else its Ubuntu release's default."""
-    if host.data.get("ros_distro"):
-        return host.data.ros_distro
+    if host_settings(host).ros_distro:
+        return str(host_settings(host).ros_distro)
     release = host.get_fact(LinuxDistribution)["release_meta"]
     return default_distro(release.get("UBUNTU_CODENAME") or release.get("VERSION_CODENAME"))
 
@@ -479,19 +479,20 @@ def hear(host, distro: str | None = None, timeout: int | None = None) -> dict:
     the host's release); `timeout`: seconds to wait for a message (else
     `nodes_verify_timeout`). As the SSH user itself, the check runs without sudo.
     """
-    timeout = int(host.data.nodes_verify_timeout if timeout is None else timeout)
+    typed = host_settings(host)
+    timeout = int(typed.nodes_verify_timeout if timeout is None else timeout)
     distro = distro or host_distro(host)
-    login_user = host.data.get("login_user") or host.data.get("ssh_user")
-    user = {"_sudo": False} if login_user == host.data.get("ssh_user") else as_user(login_user)
+    login_user = typed.login_user or typed.ssh_user
+    user = {"_sudo": False} if login_user is None or login_user == typed.ssh_user else as_user(login_user)
     return host.get_fact(
         NodesHeard,
         distro=distro,
-        environment=host_environment(host_settings(host), distro, shell=True),
-        workspace_dir=host.data.workspace_dir,
-        topic=host.data.nodes_verify_topic,
+        environment=host_environment(typed, distro, shell=True),
+        workspace_dir=typed.workspace_dir,
+        topic=typed.nodes_verify_topic,
         timeout=timeout,
-        message_type=host.data.get("nodes_verify_type") or CHATTER_TYPE,
-        publisher=host.data.get("roslab_verify_publisher") or "",
+        message_type=typed.nodes_verify_type or CHATTER_TYPE,
+        publisher=typed.roslab_verify_publisher or "",
         **user,
         # The connection's own bound, beyond the check's.
         _timeout=check_bound(timeout) + 30,
@@ -504,13 +505,14 @@ def _check_host(state: State, host) -> tuple[str, dict, dict | None, str | None,
     with ctx_host.use(host):
         try:
             service = service_state(host.get_fact(NodesUnitState, service=NODES_SERVICE))
-            services = [item for item in host_services(host.data) if item.kind != "nodes"]
+            typed = host_settings(host)
+            services = [item for item in host_services(typed) if item.kind != "nodes"]
             others = {item.unit: service_state(host.get_fact(NodesUnitState, service=item.unit)) for item in services}
             deaths = [(host.name, item.unit.removesuffix(".service"), node, count, why)
                       for item in services if item.launch and others.get(item.unit) == SERVICE_RUNNING
                       for node, (count, why) in launch_journal.died_nodes(
                           host.get_fact(LaunchDeaths, unit=item.unit)).items()]
-            if host.data.get("roslab_role") != "main" or not host.data.get("nodes_verify_topic"):
+            if typed.roslab_role != "main" or not typed.nodes_verify_topic:
                 return service, others, None, None, deaths  # a robot, or a main with nothing to hear (sim)
             return service, others, hear(host), None, deaths
         except Exception as error:  # one host's trouble is its team's row, not a crash
@@ -528,42 +530,37 @@ def verify(state: State) -> list[TeamResult]:
     greenlets = {host: state.pool.spawn(_check_host, state, host) for host in hosts}
     teams: dict[str, TeamResult] = {}
 
-    def team_of(host) -> TeamResult:
-        name = host.data.get("roslab_team") or host.name
+    def team_of(typed: HostSettings, name: str) -> TeamResult:
+        name = typed.roslab_team or name
         if name not in teams:
             teams[name] = TeamResult(
-                name, topic=host.data.get("nodes_verify_topic") or "/chatter",
-                timeout=host.data.get("nodes_verify_timeout") or 0,
-                message_type=host.data.get("nodes_verify_type") or CHATTER_TYPE,
+                name, topic=typed.nodes_verify_topic or "/chatter",
+                timeout=typed.nodes_verify_timeout or 0,
+                message_type=typed.nodes_verify_type or CHATTER_TYPE,
             )
         return teams[name]
 
     for host, greenlet in greenlets.items():
         service, others, heard, error, deaths = greenlet.get()
-        team = team_of(host)
+        typed = host_settings(host)
+        team = team_of(typed, host.name)
         team.node_deaths += deaths
         team.services[host.name] = service
-        if not runs_nodes(host.data):
+        if not runs_nodes(typed):
             team.without_service.add(host.name)
         team.other_services += [(host.name, item, others.get(item.unit, "?"))
-                                for item in host_services(host.data) if item.kind != "nodes" and not error]
-        if host.data.get("roslab_role") == "main":
+                                for item in host_services(typed) if item.kind != "nodes" and not error]
+        if typed.roslab_role == "main":
             team.main, team.heard = host.name, heard
-            team.listens = bool(host.data.get("nodes_verify_topic"))
-            team.profile = profile_name(host.data)
-            team.topic = host.data.get("nodes_verify_topic") or team.topic
-            team.timeout = host.data.get("nodes_verify_timeout") or team.timeout
-            team.message_type = host.data.get("nodes_verify_type") or team.message_type
-            team.source = host.data.get("roslab_verify_source") or ""
-            team.publisher = host.data.get("roslab_verify_publisher") or ""
+            _main_says(team, typed)
         else:
             team.robots.append(host.name)
-        team.not_started += [(host.name, name, why) for name, why in services_not_started(host.data)]
+        team.not_started += [(host.name, name, why) for name, why in services_not_started(typed)]
         team.error = team.error or error
     for host in state.inventory:  # unreachable ones too: never activated, or failed since
         if state.is_host_in_limit(host) and host not in state.active_hosts:
-            team = team_of(host)
-            if host.data.get("roslab_role") == "main":
+            team = team_of(host_settings(host), host.name)
+            if host_settings(host).roslab_role == "main":
                 team.main = host.name
             else:
                 team.robots.append(host.name)
@@ -574,16 +571,26 @@ def verify(state: State) -> list[TeamResult]:
     return list(teams.values())
 
 
+def _main_says(team: TeamResult, typed: HostSettings) -> None:
+    """What a team's main host's settings say of the check: its topic, bound, profile, publisher."""
+    team.listens = bool(typed.nodes_verify_topic)
+    team.profile = profile_name(typed)
+    team.topic = typed.nodes_verify_topic or team.topic
+    team.timeout = typed.nodes_verify_timeout or team.timeout
+    team.message_type = typed.nodes_verify_type or team.message_type
+    team.source = typed.roslab_verify_source or ""
+    team.publisher = typed.roslab_verify_publisher or ""
+
+
 def listening_line(state: State) -> str:
     """What the check is about to do, before its silent wait: which main host listens for which
     topic, and for how long at most (all at once)."""
-    mains = [host for host in state.inventory.iter_activated_hosts()
-             if host in state.active_hosts and host.data.get("roslab_role") == "main"]
-    listening = [f"{host.name} for {host.data.nodes_verify_topic}" for host in mains
-                 if host.data.get("nodes_verify_topic")]
+    mains = [(host.name, host_settings(host)) for host in state.inventory.iter_activated_hosts()
+             if host in state.active_hosts and host_settings(host).roslab_role == "main"]
+    listening = [f"{name} for {typed.nodes_verify_topic}" for name, typed in mains if typed.nodes_verify_topic]
     if not listening:
         return "roslab verify: reading the services' states (no main host has a topic to hear)"
-    longest = max(int(host.data.get("nodes_verify_timeout") or 0) for host in mains)
+    longest = max(int(typed.nodes_verify_timeout or 0) for _, typed in mains)
     return f"roslab verify: listening on {', '.join(listening)} (all at once, up to {longest} s)"
 
 

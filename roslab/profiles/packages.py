@@ -15,12 +15,14 @@ import difflib
 import re
 import threading
 from pathlib import Path
+from typing import Protocol
 from urllib.parse import urljoin
 
 import yaml
 
 from roslab import downloads
 from roslab.ros import discovery
+from roslab.profiles.resolve import ResolvedProfile
 from roslab.ros.rosdep_data import OFFICIAL_INDEX_URL
 
 _lock = threading.Lock()
@@ -82,22 +84,34 @@ def distro_packages(index_url: str | None, distro: str, cache_dir: Path, offline
     return result
 
 
-def named_packages(data: dict, distro: str) -> list[tuple[str, str, str]]:
+class PackageSettings(Protocol):
+    """What the package check reads of a host's settings: roslab.host_settings.HostSettings has
+    these fields (named here, not imported: HostSettings holds this folder's ResolvedProfile)."""
+
+    @property
+    def ros_extra_packages(self) -> list[str]: ...
+    @property
+    def ros_middleware(self) -> str: ...
+    @property
+    def roslab_profile(self) -> ResolvedProfile | None: ...
+
+
+def named_packages(typed: PackageSettings, distro: str) -> list[tuple[str, str, str]]:
     """(Debian name, ROS name, field) for each ROS package a host's settings and profile name."""
     named = []
-    for template in data.get("ros_extra_packages") or []:
+    for template in typed.ros_extra_packages:
         match = _ROS_DEB.fullmatch(template.replace("{distro}", distro))
         if match and match.group(1) == distro:
             named.append((match.group(0), match.group(2).replace("-", "_"), "ros_extra_packages"))
-    middleware = discovery.middleware_ros_package(discovery.middleware_of(data))
+    middleware = discovery.middleware_ros_package(typed.ros_middleware)
     package = discovery.middleware_package(middleware, distro) if middleware else None
     if middleware and package:  # both or neither: Fast DDS comes with ros-base
         named.append((package, middleware, "ros_middleware"))
-    profile = data.get("roslab_profile") or {}
-    for ros_name in profile.get("ros_packages") or []:
+    profile = typed.roslab_profile
+    for ros_name in profile.ros_packages if profile else ():
         named.append((f"ros-{distro}-{ros_name.replace('_', '-')}", ros_name, "robot_profile"))
     ros_debs = {debian for debian, _, _ in named}
-    for debian in profile.get("packages") or []:  # a profile's apt_packages, {distro} filled in
+    for debian in profile.packages if profile else ():  # a profile's apt_packages, {distro} filled in
         match = _ROS_DEB.fullmatch(debian)
         if match and match.group(1) == distro and debian not in ros_debs:
             named.append((debian, match.group(2).replace("-", "_"), "robot_profile"))
@@ -116,16 +130,16 @@ def check_classroom(classroom, report) -> None:
     """Validator: every host's named ROS packages exist in its distro (roslab.roster.VALIDATORS)."""
     unavailable: set[tuple] = set()
     for host in classroom.hosts:
-        data = host.data
-        distro = data.get("roslab_expected_distro")
-        if not distro or not data.get("ros_packages_check") or not data.get("ros_install_enabled", True):
+        typed = host.settings
+        distro = typed.roslab_expected_distro
+        if not distro or not typed.ros_packages_check or not typed.ros_install_enabled:
             continue
-        named = named_packages(data, distro)
+        named = named_packages(typed, distro)
         if not named:
             continue
-        index_url = data.get("rosdistro_index_url")
-        cache_dir = Path(str(data.get("rosdep_cache_dir") or "~/.cache/roslab/rosdep")).expanduser()
-        offline = bool(data.get("offline"))
+        index_url = typed.rosdistro_index_url
+        cache_dir = Path(str(typed.rosdep_cache_dir or "~/.cache/roslab/rosdep")).expanduser()
+        offline = typed.offline
         try:
             known = distro_packages(index_url, distro, cache_dir, offline)
         except PackagesUnavailable as error:
@@ -137,12 +151,12 @@ def check_classroom(classroom, report) -> None:
                                field="ros_packages_check", line=host.lines.get("ros_packages_check"))
             continue
         source = f"rosdistro {index_url or OFFICIAL_INDEX_URL}"
-        profile = data.get("roslab_profile") or {}
+        profile_name = typed.roslab_profile.name if typed.roslab_profile else None
         for debian, ros_name, field in named:
             if ros_name in known:
                 continue
             message = unknown_package_message(debian, ros_name, distro, known, source)
             if field == "robot_profile":
-                message = f"profile {profile.get('name')!r} installs {message}"
+                message = f"profile {profile_name!r} installs {message}"
             report.error(message, team=host.team, host=host.name, field=field,
                          line=host.lines.get(field) or host.line)

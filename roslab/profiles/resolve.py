@@ -10,6 +10,7 @@ filled into a file or a command is one of the values the profile allows.
 
 from __future__ import annotations
 
+import functools
 import re
 from collections.abc import Mapping
 from dataclasses import MISSING, dataclass, field, fields
@@ -34,8 +35,14 @@ UDEV_RULES_PATH = "/etc/udev/rules.d/60-roslab-profile.rules"
 def _fields_of(cls, data: Mapping) -> dict:
     """Each field of dataclass `cls` from the mapping `data` (KeyError: one without a default is
     missing)."""
-    return {item.name: data[item.name] for item in fields(cls)
-            if item.name in data or (item.default is MISSING and item.default_factory is MISSING)}
+    return {name: data[name] for name, required in _field_names(cls) if required or name in data}
+
+
+@functools.cache
+def _field_names(cls) -> tuple[tuple[str, bool], ...]:
+    """(name, required) of each field of dataclass `cls`: read once, as every host's settings
+    make its resolved profile's dataclass (roslab check builds them all)."""
+    return tuple((item.name, item.default is MISSING and item.default_factory is MISSING) for item in fields(cls))
 
 
 @dataclass(frozen=True)
@@ -68,8 +75,9 @@ class ResolvedProfile:
 
     `resolve_host` makes it as a plain mapping with these keys: that is what travels in pyinfra's
     host data (`host.data.roslab_profile`: its JSON output, `--data` and a hand-made inventory give
-    plain mappings), and what the roster, status and verify read. A deploy reads this dataclass,
-    `roslab.host_settings.host_settings(host).roslab_profile`, made by `from_data`."""
+    plain mappings). Everything else reads this dataclass, made by `from_data`: a deploy and
+    `roslab verify` as `roslab.host_settings.host_settings(host).roslab_profile`, the roster's
+    checks and `roslab status` as a roster host's `settings.roslab_profile`."""
 
     name: str
     distro: str

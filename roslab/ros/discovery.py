@@ -34,9 +34,8 @@ the values were checked by the settings schema before, and each destination esca
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Protocol
 from xml.sax.saxutils import escape, quoteattr
 
 from roslab.ros import distro as distros
@@ -128,21 +127,6 @@ class DiscoverySettings(Protocol):
     def roslab_hostname(self) -> str | None: ...
     @property
     def roslab_role(self) -> str | None: ...
-
-
-def _get(data: Mapping[str, Any], key: str, default: str) -> str:
-    value = data.get(key)
-    return default if value is None else value
-
-
-def mode_of(data: Mapping[str, Any]) -> str:
-    """The discovery mode of a roster host's data (the roster's checks across hosts read it)."""
-    return _get(data, "ros_discovery_mode", DEFAULT_MODE)
-
-
-def middleware_of(data: Mapping[str, Any]) -> str:
-    """The middleware of a roster host's data (the roster's checks across hosts read it)."""
-    return _get(data, "ros_middleware", DEFAULT_MIDDLEWARE)
 
 
 def team_main(data: DiscoverySettings) -> dict | None:

@@ -16,6 +16,7 @@ from collections.abc import Callable
 from roslab.ros import discovery
 from roslab.ros import distro as distros
 from roslab import boards, host_rules, settings
+from roslab.host_settings import HostSettings
 from roslab.roster.model import ROLES, Classroom, Host
 from roslab.checked.problems import Report
 
@@ -62,28 +63,30 @@ def check_host(host: Host, report: Report) -> None:
     """Settings of one host that only make sense together (roslab.host_rules: the rules a
     hand-made inventory's hosts meet too, then the roster's own)."""
     where = {"team": host.team, "host": host.name}
-    data = host.data
-    for key, problem in host_rules.across_problems(data, given=host.lines):
+    # host_rules judges a hand-made inventory's mapping too, before any typed settings exist
+    for key, problem in host_rules.across_problems(host.data, given=host.lines):
         report.error(problem, field=key, line=host.lines.get(key), **where)
+    typed = host.settings
     codename = distros.UBUNTU_CODENAMES.get(str(host.ubuntu_release))
-    override = data.get("ros_distro")
+    override = typed.ros_distro
     if codename and override in distros.DISTRO_RELEASES:
         try:
-            distros.check_distro(override, codename)
+            distros.check_distro(str(override), codename)
         except distros.DistroError as exc:
             report.error(str(exc), field="ros_distro", line=host.lines.get("ros_distro"), **where)
-    board_problem = codename and boards.release_problem(data.get("board"), distros.BY_CODENAME[codename].release)
+    board_problem = codename and boards.release_problem(typed.board, distros.BY_CODENAME[codename].release)
     if board_problem:
         report.error(board_problem, field="board",
                      line=host.lines.get("board") or host.lines.get("ubuntu_release"), **where)
-    if data.get("ros_apt_source_enabled") and data.get("ros_apt_source_mode") == "mirror":
-        for key in ("ros_apt_mirror_url", "ros_apt_mirror_key_file"):
-            if not data.get(key):
+    if typed.ros_apt_source_enabled and typed.ros_apt_source_mode == "mirror":
+        for key, value in (("ros_apt_mirror_url", typed.ros_apt_mirror_url),
+                           ("ros_apt_mirror_key_file", typed.ros_apt_mirror_key_file)):
+            if not value:
                 report.error(f"ros_apt_source_mode is 'mirror', so {key} must be set",
                              field=key, line=host.lines.get("ros_apt_source_mode"), **where)
-    elif data.get("ros_apt_source_enabled") and codename:
-        if codename not in (data.get("ros_apt_source_sha256") or {}):
-            version = data.get("ros_apt_source_version")
+    elif typed.ros_apt_source_enabled and codename:
+        if codename not in (typed.ros_apt_source_sha256 or {}):
+            version = typed.ros_apt_source_version
             report.error(
                 f"roslab knows no sha256 of ros2-apt-source {version} for Ubuntu {host.ubuntu_release} "
                 f"({codename}), which this host runs: set ros_apt_source_sha256: {{{codename}: <sha256 of "
@@ -91,12 +94,11 @@ def check_host(host: Host, report: Report) -> None:
                 "or use ros_apt_source_mode: mirror",
                 field="ros_apt_source_sha256",
                 line=host.lines.get("ros_apt_source_sha256") or host.lines.get("ubuntu_release"), **where)
-    if data.get("login_user") == "root" or (not data.get("login_user") and data.get("ssh_user") == "root"):
-        field = "login_user" if data.get("login_user") else "ssh_user"
+    if typed.login_user == "root" or (not typed.login_user and typed.ssh_user == "root"):
+        field = "login_user" if typed.login_user else "ssh_user"
         report.error("the ROS environment belongs to a student account, not root: set login_user",
                      field=field, line=host.lines.get(field), **where)
-    elif data.get("ssh_user") == "root" and data.get("ssh_hardening_enabled") \
-            and data.get("ssh_permit_root_login") == "no":
+    elif typed.ssh_user == "root" and typed.ssh_hardening_enabled and typed.ssh_permit_root_login == "no":
         report.error("roslab logs in as root, and ssh hardening (PermitRootLogin no) would lock it out: "
                      "log in as the lab user, or set ssh_permit_root_login: prohibit-password",
                      field="ssh_user", line=host.lines.get("ssh_user"), **where)
@@ -127,7 +129,13 @@ def check_controller_folders(host: Host, report: Report, seen: set, resolved: di
         return inner == outer or inner.startswith(outer.rstrip("/") + "/")
 
     where = {"team": host.team, "host": host.name}
-    folders = [(key, real(host.data[key])) for key in CACHE_SETTINGS if host.data.get(key)]
+    typed = host.settings
+    folders = [(key, real(getattr(typed, key))) for key in CACHE_SETTINGS if getattr(typed, key)]
+    nodes = typed.workspace_nodes_dir
+    layout = ("layout", tuple(folders), nodes)
+    if layout in seen:
+        return  # the same folders as a host before: each of their clashes was reported there
+    seen.add(layout)
     for index, (key, folder) in enumerate(folders):
         for other, other_folder in folders[:index]:
             if (inside(folder, other_folder) or inside(other_folder, folder)) and \
@@ -135,7 +143,6 @@ def check_controller_folders(host: Host, report: Report, seen: set, resolved: di
                 seen.add((key, folder, other, other_folder))
                 report.error(f"{key} ({folder}) and {other} ({other_folder}) share a folder: each cache needs "
                              "one of its own", field=key, line=host.lines.get(key) or host.lines.get(other), **where)
-        nodes = host.data.get("workspace_nodes_dir")
         if nodes and (inside(folder, real(nodes)) or inside(real(nodes), folder)) and (key, folder, nodes) not in seen:
             seen.add((key, folder, nodes))
             report.error(f"{key} ({folder}) and workspace_nodes_dir ({real(nodes)}) overlap: the nodes folder is "
@@ -147,7 +154,7 @@ def check_apt_cache_host(classroom: Classroom, report: Report) -> None:
     """apt_cache_host (a classroom setting) names a host of this roster."""
     names = {host.name for host in classroom.hosts}
     for host in classroom.hosts[:1]:  # the same classroom value on every host: report it once
-        cache_host = host.data.get("apt_cache_host")
+        cache_host = host.settings.apt_cache_host
         if cache_host and cache_host not in names:
             close = difflib.get_close_matches(cache_host, sorted(names), n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
@@ -187,8 +194,8 @@ def assign_domain_ids(classroom: Classroom) -> None:
         team.ros_domain_id = assigned[team.name]
         team.domain_assigned = True
         for host in team.hosts:
-            host.data["ros_domain_id"] = team.ros_domain_id
-            host.data["roslab_domain_assigned"] = True
+            host.set_data(ros_domain_id=team.ros_domain_id)
+            host.domain_assigned = True
 
 
 def check_domain_ids(classroom: Classroom, report: Report) -> None:
@@ -215,9 +222,9 @@ def check_discovery(classroom: Classroom, report: Report) -> None:
     for team in classroom.teams:
         main = next((host for host in team.hosts if host.role == "main"), None)
         for host in team.hosts:
-            data = host.data
+            typed = host.settings
             where = {"team": host.team, "host": host.name}
-            mode, middleware = discovery.mode_of(data), discovery.middleware_of(data)
+            mode, middleware = typed.ros_discovery_mode, typed.ros_middleware
             mode_line = host.lines.get("ros_discovery_mode") or host.line
             if mode == "discovery_server" and middleware != discovery.FASTDDS:
                 report.error(f"a discovery server is Fast DDS's: ros_middleware {middleware} has none "
@@ -228,26 +235,26 @@ def check_discovery(classroom: Classroom, report: Report) -> None:
             if needs_main and main is None:
                 report.error(f"{what} runs on the team's main host, and this team has none: "
                              "give it a host with role: main", field="ros_discovery_mode", line=mode_line, **where)
-            elif needs_main and main is not None and main is not host and discovery.mode_of(main.data) == "localhost":
+            elif needs_main and main is not None and main is not host and main.settings.ros_discovery_mode == "localhost":
                 report.error(f"{what} runs on the team's main host, and {main.name!r} keeps its discovery on "
                              "itself (ros_discovery_mode localhost): this host would find nobody",
                              field="ros_discovery_mode",
                              line=main.lines.get("ros_discovery_mode") or main.line, **where)
-            dds_only = _dds_only_package(data) if middleware == discovery.ZENOH else None
+            dds_only = _dds_only_package(typed) if middleware == discovery.ZENOH else None
             if dds_only:
                 report.error(f"{dds_only} speaks DDS only, so its robot would be invisible under "
                              "rmw_zenoh_cpp: use rmw_fastrtps_cpp for this class",
                              field="ros_middleware", line=host.lines.get("ros_middleware") or host.line, **where)
 
 
-def _dds_only_package(data: dict) -> str | None:
+def _dds_only_package(typed: HostSettings) -> str | None:
     """What the host runs or installs that speaks DDS only (a profile's `dds_only_packages`), in
     words: from its launch, its extra packages or its profile's packages; else None."""
     from roslab.profiles.library import dds_only_packages
 
-    profile = data.get("roslab_profile") or {}
-    names = [*(profile.get("ros_packages") or ()), *(profile.get("packages") or ()),
-             *(data.get("ros_extra_packages") or ()), (data.get("nodes_launch") or "").split(" ")[0]]
+    profile = typed.roslab_profile
+    names = [*(profile.ros_packages if profile else ()), *(profile.packages if profile else ()),
+             *typed.ros_extra_packages, (typed.nodes_launch or "").split(" ")[0]]
     for package, what in dds_only_packages().items():
         if any(package in str(name).replace("-", "_") for name in names):
             return what
@@ -281,7 +288,7 @@ def _address_key(host: Host):
 
 
 def _network_ip_key(host: Host):
-    value = host.data.get("network_address")
+    value = host.settings.network_address
     try:
         return ipaddress.ip_interface(value).ip if value else None
     except ValueError:

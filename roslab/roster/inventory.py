@@ -33,13 +33,13 @@ def default_roster_path(base: Path | None = None) -> Path:
 
 def add_host_lists(classroom: Classroom) -> None:
     """Each host's view of the classroom: every host (for /etc/hosts) and its own team."""
-    everyone = [{"name": host.name, "address": host_ip(host)} for host in classroom.hosts]
+    ips = {host.name: host_ip(host) for host in classroom.hosts}  # each host's once, not once per list
+    everyone = [{"name": host.name, "address": ips[host.name]} for host in classroom.hosts]
     for team in classroom.teams:
-        members = [{"name": host.name, "address": host_ip(host), "role": host.role}
+        members = [{"name": host.name, "address": ips[host.name], "role": host.role}
                    for host in team.hosts]
         for host in team.hosts:
-            host.data["roslab_classroom_hosts"] = everyone
-            host.data["roslab_team_hosts"] = members
+            host.set_data(roslab_classroom_hosts=everyone, roslab_team_hosts=members)
 
 
 def group_names(classroom: Classroom) -> dict[str, list[str]]:
@@ -148,8 +148,8 @@ def known_addresses(host, moved_to: str | None) -> list[str]:
     """Every address this host may be reached at in a run: the roster's, the last confirmed
     one, and the static address the network deploy moves it to (and reconnects at)."""
     addresses = [host.address, moved_to]
-    network_address = host.data.get("network_address")
-    if network_address and host.data.get("network_enabled", True):
+    network_address = host.settings.network_address
+    if network_address and host.settings.network_enabled:
         addresses.append(network_address.split("/")[0])
     return [address for address in dict.fromkeys(addresses) if address]
 

@@ -7,7 +7,7 @@ from functools import cached_property
 from pathlib import Path
 
 from roslab.checked.problems import Problem
-from roslab.host_settings import HostSettings, settings_of
+from roslab.host_settings import HostSettings, settings_of, updated
 
 ROLES = ("main", "robot")
 
@@ -28,6 +28,8 @@ class Host:
     line: int | None = None
     # Roster line where each resolved field was set, for checks' messages.
     lines: dict = field(default_factory=dict, repr=False)
+    # Whether roslab gave the host's team a free ROS_DOMAIN_ID from its name (assign_domain_ids).
+    domain_assigned: bool = False
 
     @cached_property
     def settings(self) -> HostSettings:
@@ -38,7 +40,15 @@ class Host:
     @property
     def ros_domain_id(self) -> int | None:
         """The team's domain, as the deploys read it (one value: host data, set from the team)."""
-        return self.data.get("ros_domain_id")
+        return self.settings.ros_domain_id
+
+    def set_data(self, **values) -> None:
+        """Put what the loader derives after reading the roster (a team's assigned domain, the
+        classroom's host lists) into the host's data, and into its typed settings if a check has
+        built them already, so both say what pyinfra gets."""
+        self.data.update(values)
+        if "settings" in self.__dict__:
+            self.__dict__["settings"] = updated(self.__dict__["settings"], values)
 
 
 @dataclass

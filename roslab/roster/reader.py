@@ -10,6 +10,7 @@ and teacher key files are read, so no deploy needs the roster's location for the
 from __future__ import annotations
 
 import difflib
+import functools
 import os
 import re
 from dataclasses import dataclass
@@ -101,6 +102,11 @@ class RosterReader:
         self._key_files: dict[str, list[str]] = {}  # teacher_ssh_keys entry -> its key lines
         self.profiles: dict = {}  # name -> roslab.profiles.Profile (built-in and the roster's)
         self.profile_settings: dict[str, list[str]] = {}  # profile setting -> profiles declaring it
+
+    @functools.cached_property
+    def resolved_path(self) -> str:
+        """Every host's roslab_roster_path: one lookup of the file, not one per host."""
+        return str(self.path.resolve())
 
     # --- one level ---
 
@@ -349,7 +355,7 @@ class RosterReader:
             "roslab_hostname": name,
             "roslab_ubuntu_release": release,
             "roslab_expected_distro": expected,
-            "roslab_roster_path": str(self.path.resolve()),
+            "roslab_roster_path": self.resolved_path,
             "ros_domain_id": team.ros_domain_id,
             "ssh_hostname": address,
         })
@@ -423,9 +429,11 @@ class RosterReader:
     def warn_deprecated(self, outer: list[dict], own: dict[str, Value], lines: dict, team: Team) -> None:
         """One warning per deprecated key the classroom, team or host sets (the command line's are
         not the roster's to fix)."""
+        levels = (*outer, own)
+        if not any(DEPRECATED.keys() & level.keys() for level in levels):
+            return  # the common case, said at C speed for each host
         for old_key, new_key in DEPRECATED.items():
-            if any(level.get(old_key) is not None and level[old_key].value is not None
-                   for level in (*outer, own)):
+            if any(level.get(old_key) is not None and level[old_key].value is not None for level in levels):
                 self.report.warning(f"{old_key} is deprecated: set {new_key} (on the host, or in a robot "
                                     "profile's side); it is honoured for now", field=old_key,
                                     line=lines.get(old_key), team=team.name)

@@ -176,7 +176,7 @@ def _record_key(host, path: Path, moved: dict | None = None) -> tuple[str | None
     (ssh_known_hosts_file, or the classroom's own): (that file's name, the key recorded before),
     (None, None) where the roster checks no keys (/dev/null)."""
     public = identity.host_keys(path, host.name).public_line()
-    known_hosts = identity.known_hosts_of(path, host.data)
+    known_hosts = identity.known_hosts_of(path, host.settings.ssh_known_hosts_file)
     if str(known_hosts) == os.devnull:
         return None, None
     if moved is None:

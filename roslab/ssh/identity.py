@@ -211,10 +211,9 @@ def _parse_line(text: str) -> KnownHost:
                      raw=None if owner else text)
 
 
-def known_hosts_of(roster_path: str | os.PathLike, data: Mapping | None = None) -> Path:
+def known_hosts_of(roster_path: str | os.PathLike, chosen: str | None = None) -> Path:
     """The known_hosts file a run checks a host against: the roster's `ssh_known_hosts_file`
-    for it (absolute in its host data), else the classroom's own beside the roster."""
-    chosen = (data or {}).get("ssh_known_hosts_file")
+    for it (`chosen`, absolute in its settings), else the classroom's own beside the roster."""
     return Path(chosen) if chosen else known_hosts_path(roster_path)
 
 

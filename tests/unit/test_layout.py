@@ -291,3 +291,56 @@ def test_code_shape_reports_file_cycles_and_the_tool_modules(tmp_path, capsys):
     assert "- import cycles between files: 1 [['roslab.a', 'roslab.b']]" in printed
     assert "1 of them tool modules in roslab/ops/ (1 facts, 1 operations), 0 elsewhere" in printed
     assert "- roslab/ops/tool.py: 1 facts, 1 operations" in printed
+
+
+# The same down to roster, status and verify: in these folders a host's settings are read typed
+# (a roster Host's `.settings`, `host_settings(host)` for pyinfra's Host); a host's mapping
+# (`<host>.data`) is read only where it is the boundary, each place named here with why.
+MAPPING_FOLDERS = ("cli", "roster", "profiles")
+MAPPING_BOUNDARY = {
+    "roslab/roster/model.py::Host.settings": "builds the host's typed settings from its mapping, once",
+    "roslab/roster/model.py::Host.set_data": "what the loader adds after reading, into the mapping pyinfra gets",
+    "roslab/roster/inventory.py::inventory_groups": "hands each host's mapping to pyinfra as its host data",
+    "roslab/roster/reader.py::RosterReader.check_command_line": "compares the mapping with what pyinfra's --data "
+                                                                "puts on top of it, as given",
+    "roslab/roster/checks.py::check_host": "roslab.host_rules judges the mapping, as it judges a hand-made "
+                                           "inventory's before any settings are built",
+}
+
+
+def host_mapping_reads(tree: ast.AST) -> list[tuple[str, int, str]]:
+    """(function, line, expression) of each `<x>.data` (a host's mapping: `host.data`,
+    `self.data`, `hosts[0].data.get(...)`); a call's `.data` (a download's bytes) is not a host's. `function`: `Class.method`, `function`, or "" at module level."""
+    found: list[tuple[str, int, str]] = []
+
+    def visit(node: ast.AST, scope: str) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                inner = f"{scope}.{child.name}" if scope else child.name
+                # a function's helpers count as the function (check_host's own closures)
+                visit(child, scope if isinstance(child, ast.FunctionDef) and scope and
+                      not isinstance(node, ast.ClassDef) else inner)
+                continue
+            if isinstance(child, ast.Attribute) and child.attr == "data" and not isinstance(child.value, ast.Call):
+                found.append((scope, child.lineno, ast.unparse(child)))
+            visit(child, scope)
+
+    visit(tree, "")
+    return found
+
+
+def test_roster_status_and_verify_read_a_hosts_settings_typed():
+    paths = [path for folder in MAPPING_FOLDERS for path in sorted((ROOT / folder).rglob("*.py"))]
+    reads = {f"{path.relative_to(CHECKOUT)}::{scope}": (line, expression)
+             for path in paths for scope, line, expression in host_mapping_reads(ast.parse(path.read_text()))}
+    assert {place: read for place, read in reads.items() if place not in MAPPING_BOUNDARY} == {}
+    assert set(MAPPING_BOUNDARY) - set(reads) == set(), "a boundary that no longer reads the mapping leaves the list"
+
+
+def test_the_mapping_rule_sees_each_read_and_where_it_is():
+    source = ("class Host:\n    def settings(self):\n        return of(self.data)\n"
+              "def f(host):\n    return host.data.get('k')\n"
+              "def g(classroom):\n    def inner(h):\n        return h.data['k']\n    return [inner(h) for h in classroom.hosts]\n"
+              "def h(url):\n    return kept(url).data, host.settings.ros_distro, hosts[0].data\n")
+    assert [(scope, line) for scope, line, _ in host_mapping_reads(ast.parse(source))] == [
+        ("Host.settings", 3), ("f", 5), ("g", 8), ("h", 11)]

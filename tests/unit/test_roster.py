@@ -179,7 +179,7 @@ def test_table_fields_resolve_distro_variant_and_domain_by_level(tmp_path):
     assert (robot.distro, robot.variant) == ("jazzy", "ros-core")
     # A team without one gets a free ID from its name (never 0, everyone's default).
     assert main.ros_domain_id == robot.ros_domain_id == preferred_domain_id("solo") != 0
-    assert main.data["ros_domain_id"] == main.ros_domain_id and main.data["roslab_domain_assigned"]
+    assert main.data["ros_domain_id"] == main.ros_domain_id and main.domain_assigned
 
 
 def test_every_deploy_setting_is_accepted_with_its_default(tmp_path):
@@ -705,3 +705,15 @@ def test_a_typo_of_a_team_setting_on_a_host_suggests_it_and_where_it_belongs(tmp
     assert one_error(one_team(tmp_path, "ros_domian_id: 3\n")) == (
         "lab.yaml:10: team 'team1', host 'team1-main', field 'ros_domian_id': unknown key "
         "'ros_domian_id' (did you mean 'ros_domain_id', set on a classroom or a team?)")
+
+
+def test_what_the_loader_adds_after_a_check_read_the_settings_is_in_them_too(tmp_path):
+    # add_host_lists runs after the classroom's checks have built each host's typed settings
+    path = tmp_path / "lab.yaml"
+    path.write_text("teams:\n  solo:\n    hosts:\n      solo-main: {role: main, address: 10.0.0.5}\n")
+    host = load_roster(path).hosts[0]
+    assert host.settings.roslab_team_hosts == host.data["roslab_team_hosts"] == [
+        {"name": "solo-main", "address": "10.0.0.5", "role": "main"}]
+    assert host.settings.ros_domain_id == host.data["ros_domain_id"] is not None
+    host.set_data(ros_domain_id=7)
+    assert host.settings.ros_domain_id == host.data["ros_domain_id"] == 7

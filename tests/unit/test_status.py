@@ -612,9 +612,19 @@ def test_the_probe_reads_a_launch_services_journal_bounded_and_in_its_own_sectio
 def test_the_rovers_service_is_known_to_run_a_launch():
     from roslab.cli.host_services import host_services as services_of
 
-    data = {"roslab_role": "robot", "roslab_profile": {"name": "osr", "services": [
-        {"name": "osr_startup", "command": "ros2 launch osr_bringup osr_launch.py", "enabled": True},
-        {"name": "micro_ros_agent", "command": "ros2 run micro_ros_agent micro_ros_agent udp4 --port 8888",
-         "enabled": True}]}, "discovery_enabled": False, "nodes_launch": None}
-    launches = {service.unit: service.launch for service in services_of(data) if service.kind == "profile"}
+    from dataclasses import replace
+
+    from roslab.host_settings import settings_of
+    from roslab.profiles.library import builtin_profiles
+    from roslab.profiles.resolve import ResolvedService, resolve_host
+
+    osr = builtin_profiles()["osr"]
+    resolved, problems = resolve_host(osr, {"osr_calibrated": "true"}, distro=osr.distros[0], role="robot")
+    assert problems == []
+    typed = settings_of("osr-robot", {"roslab_role": "robot", "roslab_profile": resolved, "discovery_enabled": False})
+    services = [ResolvedService("osr_startup", "", "ros2 launch osr_bringup osr_launch.py", {}, True, ""),
+                ResolvedService("micro_ros_agent", "", "ros2 run micro_ros_agent micro_ros_agent udp4 --port 8888",
+                                {}, True, "")]
+    typed = replace(typed, roslab_profile=replace(typed.roslab_profile, services=services))
+    launches = {service.unit: service.launch for service in services_of(typed) if service.kind == "profile"}
     assert launches == {"osr_startup.service": True, "micro_ros_agent.service": False}

@@ -3,6 +3,8 @@ that the robot is read from the message itself, and the table a teacher reads.""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import shlex
 import subprocess
 import sys
@@ -12,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from roslab.cli import verify
+from roslab.host_settings import settings_of
 from roslab.ros.workspace import NodesUnitState
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "nodes" / "roslab_demo"))
@@ -279,11 +282,20 @@ def test_a_main_whose_profile_runs_no_launch_needs_no_service_but_a_robot_does()
     demo = result("team1", heard=heard("team1-robot"))
     demo.services["team1-main"] = "not installed"
     assert not demo.passed
-    assert verify.runs_a_launch({"roslab_role": "main", "roslab_profile": {"name": "turtlebot3"},
-                                 "nodes_launch": None}) is False
-    assert verify.runs_a_launch({"roslab_role": "main", "roslab_profile": {"name": "demo"},
-                                 "nodes_launch": "roslab_bringup main.launch.py"}) is True
-    assert verify.runs_a_launch({"roslab_role": "main"}) is True  # a hand-made inventory: the demo's
+    assert verify.runs_a_launch(main_settings("turtlebot3", {"turtlebot3_model": "burger"})) is False
+    assert verify.runs_a_launch(main_settings("demo", {}, nodes_launch="roslab_bringup main.launch.py")) is True
+    assert verify.runs_a_launch(settings_of("pi", {"roslab_role": "main"})) is True  # a hand-made inventory: the demo's
+
+
+def main_settings(profile: str, given: dict, **values):
+    """A main host's typed settings with the built-in `profile` resolved for its side."""
+    from roslab.profiles.library import builtin_profiles
+    from roslab.profiles.resolve import resolve_host
+
+    chosen = builtin_profiles()[profile]
+    resolved, problems = resolve_host(chosen, given, distro=chosen.distros[0], role="main")
+    assert problems == [], problems
+    return settings_of("pi", {"roslab_role": "main", "roslab_profile": resolved, **values})
 
 
 def test_an_unreachable_host_fails_its_team():
@@ -418,7 +430,7 @@ def turtlebot3_and_sim_class(tmp_path, url, classroom_extra="", demo_discovery="
 
 def test_each_host_runs_the_services_its_profile_and_discovery_give_it(tmp_path, rosdistro_url):
     classroom = turtlebot3_and_sim_class(tmp_path, rosdistro_url)
-    units = {host.name: [service.unit for service in host_services(host.data)] for host in classroom.hosts}
+    units = {host.name: [service.unit for service in host_services(host.settings)] for host in classroom.hosts}
     assert units == {
         "blue-main": [],  # a TurtleBot3's main runs nothing: teleop and RViz are the students'
         "blue-robot": ["roslab-nodes.service"],
@@ -430,14 +442,14 @@ def test_each_host_runs_the_services_its_profile_and_discovery_give_it(tmp_path,
 
 def test_a_zenoh_main_runs_the_router_and_a_switched_off_deploy_runs_nothing(tmp_path, rosdistro_url):
     classroom = turtlebot3_and_sim_class(tmp_path, rosdistro_url, "ros_middleware: rmw_zenoh_cpp", "static")
-    units = {host.name: [service.unit for service in host_services(host.data)] for host in classroom.hosts}
+    units = {host.name: [service.unit for service in host_services(host.settings)] for host in classroom.hosts}
     assert units["blue-main"] == ["roslab-zenoh-router.service"]
     assert units["sim1-main"] == ["roslab-zenoh-router.service"]  # its own router, on the loopback
     assert units["blue-robot"] == ["roslab-nodes.service"]
-    data = next(host.data for host in classroom.hosts if host.name == "blue-main")
-    assert host_services({**data, "discovery_enabled": False}) == []
-    robot = next(host.data for host in classroom.hosts if host.name == "blue-robot")
-    assert [s.unit for s in host_services({**robot, "nodes_service_enabled": False})] == []
+    main = next(host.settings for host in classroom.hosts if host.name == "blue-main")
+    assert host_services(replace(main, discovery_enabled=False)) == []
+    robot = next(host.settings for host in classroom.hosts if host.name == "blue-robot")
+    assert [s.unit for s in host_services(replace(robot, nodes_service_enabled=False))] == []
 
 
 def test_a_sim_team_has_no_robot_to_hear_and_is_not_checked_rather_than_passed():
@@ -577,16 +589,14 @@ def test_the_opencr_step_names_the_robot_and_the_page_shows_the_command_as_code(
 def test_verify_says_which_main_listens_for_what_before_it_waits():
     from types import SimpleNamespace
 
-    class Data(dict):
-        def __getattr__(self, name):
-            return self[name]
+    from pyinfra.api import Inventory
 
-    def fake(name, role, topic=None, timeout=20):
-        return SimpleNamespace(name=name, data=Data(roslab_role=role, nodes_verify_topic=topic,
-                                                    nodes_verify_timeout=timeout))
+    def data(role, topic=None, timeout=20):
+        return {"roslab_role": role, "nodes_verify_topic": topic, "nodes_verify_timeout": timeout}
 
-    hosts = [fake("team1-main", "main", "/chatter"), fake("team1-robot", "robot"),
-             fake("blue-main", "main", "/scan", 30), fake("sim1-main", "main")]
+    inventory = Inventory(([("team1-main", data("main", "/chatter")), ("team1-robot", data("robot")),
+                            ("blue-main", data("main", "/scan", 30)), ("sim1-main", data("main"))], {}))
+    hosts = list(inventory)
     state = SimpleNamespace(inventory=SimpleNamespace(iter_activated_hosts=lambda: hosts), active_hosts=hosts)
     assert verify.listening_line(state) == ("roslab verify: listening on team1-main for /chatter, blue-main for "
                                             "/scan (all at once, up to 30 s)")
