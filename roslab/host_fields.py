@@ -161,3 +161,4 @@ class HostSettings:
     roslab_profile: ResolvedProfile | None
     ssh_hostname: str | None
     wifi_password: object | None = field(repr=False)
+    console_password: object | None = field(repr=False)

@@ -591,6 +591,9 @@ HOST_KEYS: list[HostKey] = [
     HostKey("wifi_password", "object", object, "The WiFi password wifi_password_secret names, read from the "
             "secrets file by the roster loader (a roslab.secrets.Secret, masked in every output; checked as a "
             "WPA password by roslab.network.settings).", secret=True),
+    HostKey("console_password", "object", object, "The console password console_password_secret names, read "
+            "from the secrets file by the roster loader (a roslab.secrets.Secret); `roslab seed` writes only its "
+            "hash.", secret=True),
 ]
 
 

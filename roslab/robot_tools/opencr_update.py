@@ -33,6 +33,7 @@ from pathlib import Path
 
 from pyinfra.api import FactBase
 
+from roslab.host_settings import HostSettings
 from roslab.quoting import shell_word
 
 OPENCR_USB_ID = "0483:5740"
@@ -189,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"roslab opencr-update: {shown} {'is' if len(hosts) == 1 else 'are'} not a TurtleBot3 robot "
               "in the roster (role robot with robot_profile: turtlebot3)", file=sys.stderr)
         return 2
-    archive = checked_archive(args, robots[0].data)
+    archive = checked_archive(args, robots[0].settings)
     if archive is None:
         return 1
 
@@ -216,14 +217,14 @@ def turtlebot3_model(host) -> str | None:
     return (profile.settings if profile is not None else {}).get("turtlebot3_model") if host.role == "robot" else None
 
 
-def checked_archive(args: argparse.Namespace, data: dict) -> bytes | None:
+def checked_archive(args: argparse.Namespace, typed: HostSettings) -> bytes | None:
     """ROBOTIS's archive from `--url` whose sha256 is `--sha256` (kept in the controller's cache
     under it, for the offline mode), or None after one line saying why not."""
     from roslab import downloads
 
     try:
-        return downloads.pinned(args.url, args.sha256, Path(data["rosdep_cache_dir"]).expanduser() / "opencr",
-                                ARCHIVE_NAME, "--sha256", offline=bool(data.get("offline")))
+        return downloads.pinned(args.url, args.sha256, Path(typed.rosdep_cache_dir).expanduser() / "opencr",
+                                ARCHIVE_NAME, "--sha256", offline=bool(typed.offline))
     except downloads.DownloadError as error:
         print(f"roslab opencr-update: {error}; no robot was flashed", file=sys.stderr)
         return None

@@ -44,7 +44,7 @@ def members(classroom) -> tuple[list[dict], list[str]]:
                          f"{DEFAULT_RELEASE}")
             release = DEFAULT_RELEASE
         hosts.append({"name": host.name, "team": host.team, "role": host.role, "release": release,
-                      "board": host.data.get("board")})
+                      "board": host.settings.board})
     return hosts, notes
 
 

@@ -24,15 +24,14 @@ def _secrets_of(host, roster_path) -> list[str]:
     private = identity.host_keys(roster_path, host.name).private_text()
     found = [private, private.replace("\n", "\\n"),
              *(line for line in private.splitlines() if not line.startswith("-----"))]
-    for key in ("wifi_password", "console_password"):
-        password = host.data.get(key)
+    for password in (host.settings.wifi_password, host.settings.console_password):
         if password is not None:
             found.append(str(getattr(password, "unmask", lambda: password)()))
     return found
 
 
 def console_password_problem(host) -> None:
-    if host.data.get("console_password_secret"):
+    if host.settings.console_password_secret:
         check_console_password(host)
 
 
@@ -116,7 +115,7 @@ def _refuse_what_the_roster_cannot_say(hosts: list, path: Path) -> None:
     if shared:
         raise _Stop(1, *grouped(shared, hosts, path), "roslab seed: nothing was written")
     without_domain = [host.name for host in hosts
-                      if host.data.get("network_kind") == "wifi" and not host.data.get("wifi_regulatory_domain")]
+                      if host.settings.network_kind == "wifi" and not host.settings.wifi_regulatory_domain]
     if without_domain:
         print(f"warning: {display_path(path)}: {', '.join(without_domain)} on WiFi without "
               "wifi_regulatory_domain: their WiFi keeps to the channels and power allowed everywhere; "
@@ -184,7 +183,7 @@ def _record_key(host, path: Path, moved: dict | None = None) -> tuple[str | None
     try:
         recorded = identity.known_key(path, host.name, known_hosts=known_hosts)
         identity.trust(path, host.name, known_addresses(host, moved.get(host.name)), public,
-                       port=host.data.get("ssh_port") or 22, known_hosts=known_hosts)
+                       port=host.settings.ssh_port or 22, known_hosts=known_hosts)
     except (OSError, identity.IdentityError) as error:
         raise _Stop(1, f"roslab: {host.name}: its seed is written, but its key could not be "
                        f"recorded in {display_path(known_hosts)}: "

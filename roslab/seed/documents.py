@@ -72,7 +72,7 @@ def dump(document) -> str:
 
 def login_public_key(host: Host) -> list[str]:
     """The controller's login key (`ssh_key`) as a public key line, from its .pub file."""
-    private = host.data.get("ssh_key")
+    private = host.settings.ssh_key
     if not private:
         return []
     public = Path(f"{private}.pub")
@@ -88,7 +88,7 @@ def login_public_key(host: Host) -> list[str]:
 
 
 def authorized_keys(host: Host) -> list[str]:
-    keys = list(dict.fromkeys([*host.data.get("teacher_ssh_keys", []), *login_public_key(host)]))
+    keys = list(dict.fromkeys([*host.settings.teacher_ssh_keys, *login_public_key(host)]))
     if not keys:
         raise SeedError(host.name, "teacher_ssh_keys",
                         "a seeded Pi allows no password login, so it needs an SSH key to let you in: "
@@ -98,8 +98,8 @@ def authorized_keys(host: Host) -> list[str]:
 
 def user_data(host: Host, keys: identity.HostKeys) -> dict:
     """The cloud-config of one host (see cloud-init's cc_* modules of the same names)."""
-    data = host.data
-    ssh_user = data.get("ssh_user") or settings.SETTINGS["ssh_user"].default
+    typed = host.settings
+    ssh_user = typed.ssh_user or settings.SETTINGS["ssh_user"].default
     keys_text = authorized_keys(host)
     user = {
         "name": ssh_user,
@@ -111,22 +111,21 @@ def user_data(host: Host, keys: identity.HostKeys) -> dict:
         "sudo": "ALL=(ALL) NOPASSWD:ALL",
         "ssh_authorized_keys": keys_text,
     }
-    console = data.get("console_password")
-    if console is not None:
+    if typed.console_password is not None:
         # A way in at the Pi's own keyboard when its network is wrong. Hashed here, never the
         # plain text; SSH still takes keys only (ssh_pwauth: false).
         user["lock_passwd"] = False
         user["hashed_passwd"] = console_password_hash(host, keys)
     users = [user]
-    login = data.get("login_user")
+    login = typed.login_user
     if login and login != ssh_user:  # the student account that owns the ROS environment
         users.append({"name": login, "groups": [g for g in LAB_USER_GROUPS if g != "sudo"],
                       "shell": "/bin/bash", "lock_passwd": True, "ssh_authorized_keys": keys_text})
     return {
         "hostname": host.name,
         "preserve_hostname": False,
-        "locale": data["locale"],
-        "timezone": data["timezone"],
+        "locale": typed.locale,
+        "timezone": typed.timezone,
         "users": users,
         "ssh_pwauth": False,
         "disable_root": True,
@@ -150,7 +149,7 @@ def check_console_password(host: Host) -> tuple[str, str]:
     """(the console password, openssl's path); SeedError when it cannot be hashed."""
     import shutil
 
-    secret = host.data.get("console_password")
+    secret = host.settings.console_password
     unmask = getattr(secret, "unmask", None)  # a Secret from the secrets file, else plain text
     password = str(unmask() if unmask is not None else secret)
     if secret is None or not password or any(char in password for char in "\n\r\0"):
