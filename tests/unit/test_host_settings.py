@@ -147,9 +147,10 @@ def test_hand_made_profile_data_carries_only_rules_roslab_writes_from_devices(ru
         typed.host_settings(inventory.get_host("pi"))
 
 
-def test_a_wifi_password_given_as_plain_text_stays_out_of_the_settings_repr():
-    """The roster loader gives wifi_password as a masked Secret; a hand-made inventory or --data
+@pytest.mark.parametrize("key", ["wifi_password", "console_password"])
+def test_a_password_given_as_plain_text_stays_out_of_the_settings_repr(key):
+    """The roster loader gives the passwords as masked Secrets; a hand-made inventory or --data
     may give plain text, and a HostSettings shown in a traceback or a log must not carry it."""
-    built = typed.settings_of("pi", {"wifi_password": "correct horse battery"})
-    assert built.wifi_password == "correct horse battery"
+    built = typed.settings_of("pi", {key: "correct horse battery"})
+    assert getattr(built, key) == "correct horse battery"
     assert "correct horse" not in repr(built) and "ssh_user" in repr(built)
