@@ -379,6 +379,22 @@ def apt_lists_updated_reads() -> list:
     return [read(FileAge, path=APT_UPDATE_STAMP)]
 
 
+# A package dpkg left half-installed (reinst-required) whose installed version no apt source holds
+# (a .deb installed from a file: ros2-apt-source) is one apt cannot reinstall: every apt-get then
+# stops with "needs to be reinstalled, but I can't find an archive for it" (a run interrupted in
+# its dpkg -i did that). dpkg's own way out removes it; the step that installed it installs it
+# again. One a source holds stays for apt-get -f to reinstall.
+REMOVE_UNFETCHABLE_HALF_INSTALLED = r"""
+for package in $(dpkg-query -W -f '${db:Status-Eflag} ${binary:Package}\n' 2>/dev/null | awk '$1 == "reinstreq" {print $2}'); do
+  version=$(dpkg-query -W -f '${Version}' "$package" 2>/dev/null)
+  if ! apt-cache madison "${package%%:*}" 2>/dev/null | awk -F'|' -v want="$version" '{gsub(/ /, "", $2)} $2 == want {found = 1} END {exit !found}'; then
+    echo "roslab: $package $version is half-installed and no apt source holds it: removing it (dpkg --force-remove-reinstreq); the step that installs it installs it again" >&2
+    dpkg --remove --force-remove-reinstreq "$package" || exit 1
+  fi
+done
+""".strip()
+
+
 @operation(is_idempotent=False)
 def dpkg_interrupted_install_finished(lock_timeout: int):
     """
@@ -387,15 +403,17 @@ def dpkg_interrupted_install_finished(lock_timeout: int):
     + lock_timeout: seconds apt waits for the dpkg lock
 
     Call it when the ``AptProblem`` fact says ``interrupted``: ``dpkg --configure -a``
-    configures what was unpacked, then ``apt-get -f install`` reinstalls what was left
-    half-installed and completes missing dependencies. A package whose configuration
-    still fails makes the second command fail, with apt's own message.
+    configures what was unpacked; a half-installed package no apt source holds is removed
+    (REMOVE_UNFETCHABLE_HALF_INSTALLED: its own step installs it again); then ``apt-get -f
+    install`` reinstalls what was left half-installed and completes missing dependencies. A
+    package whose configuration still fails makes the last command fail, with apt's own message.
     """
     # dpkg's own failure (e.g. a half-installed dependency) is for apt-get -f to fix.
     yield (
         "DEBIAN_FRONTEND=noninteractive dpkg --force-confdef --force-confold --configure -a "
         "|| echo 'roslab: dpkg --configure -a failed; apt-get -f install follows' >&2"
     )
+    yield REMOVE_UNFETCHABLE_HALF_INSTALLED
     yield apt_get(f"{DPKG_KEEP_CONFFILES} -f install", lock_timeout)
 
 

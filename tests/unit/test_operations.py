@@ -20,6 +20,7 @@ from roslab.ops.apt import (
     apt_lock_options,
     apt_update_command,
     command_installed,
+    REMOVE_UNFETCHABLE_HALF_INSTALLED,
     dpkg_interrupted_install_finished,
     ubuntu_apt_sources,
     with_deb822_suites,
@@ -380,7 +381,8 @@ def test_the_lock_wait_is_spelled_once():
 
 def test_an_interrupted_dpkg_is_finished_then_apt_completes_it():
     result = plan(dpkg_interrupted_install_finished, {}, lock_timeout=30)
-    configure, fix = result.changing()["apt.dpkg_interrupted_install_finished"]
+    configure, remove, fix = result.changing()["apt.dpkg_interrupted_install_finished"]
+    assert remove == REMOVE_UNFETCHABLE_HALF_INSTALLED
     assert configure.startswith("DEBIAN_FRONTEND=noninteractive dpkg --force-confdef --force-confold --configure -a ||")
     assert fix == (
         "DEBIAN_FRONTEND=noninteractive apt-get -y -o DPkg::Lock::Timeout=30 "
@@ -523,3 +525,43 @@ def test_apt_problem_fact_says_who_held_the_lock_when_the_wait_ended_well():
     waiting = "Waiting for cache lock: Could not get lock /var/lib/dpkg/lock-frontend. It is held by process 812 (unattended-upgr)..."
     assert AptProblem().process([waiting, waiting, "roslab-apt-exit=0"]) == {
         "interrupted": False, "message": None, "waited": waiting}
+
+
+def _half_installed_host(tmp_path, archive_versions: dict[str, str]):
+    """Stand-ins of dpkg-query, apt-cache and dpkg for the removal script: two half-installed
+    packages (ros2-apt-source 1.2.0 from a file, libfoo 2.0), `archive_versions` what apt's
+    sources hold; dpkg records what it was asked to remove."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    scripts = {
+        "dpkg-query": """case "$3" in
+  *Eflag*) printf 'ok installed-pkg\\nreinstreq ros2-apt-source\\nreinstreq libfoo:arm64\\n' ;;
+  *) case "$4" in ros2-apt-source) printf 1.2.0 ;; libfoo:arm64) printf 2.0 ;; esac ;;
+esac""",
+        "apt-cache": "case \"$2\" in " + " ".join(f"{name}) echo ' {name} | {version} | http://archive/ubuntu noble/main';;"
+                                                  for name, version in archive_versions.items()) + " esac",
+        "dpkg": f"echo \"$@\" >> {tmp_path / 'removed'}",
+    }
+    for name, text in scripts.items():
+        (bin_dir / name).write_text(f"#!/bin/sh\n{text}\n")
+        (bin_dir / name).chmod(0o755)
+    return {"PATH": f"{bin_dir}:/usr/bin:/bin"}
+
+
+@pytest.mark.parametrize("archive, removed", [
+    ({"libfoo": "2.0"}, ["--remove --force-remove-reinstreq ros2-apt-source"]),
+    ({"libfoo": "2.0", "ros2-apt-source": "1.2.0"}, []),
+    ({"libfoo": "1.9"}, ["--remove --force-remove-reinstreq ros2-apt-source",
+                         "--remove --force-remove-reinstreq libfoo:arm64"]),
+])
+def test_a_half_installed_package_no_apt_source_holds_is_removed_for_its_step_to_install_again(
+        tmp_path, archive, removed):
+    """A run interrupted in ros2-apt-source's dpkg -i left it reinst-required; apt then cannot
+    reinstall it ("I can't find an archive for it") and every apt-get stops. Only a package whose
+    installed version no source holds is removed; apt-get -f reinstalls the others."""
+    run = subprocess.run(["sh", "-c", REMOVE_UNFETCHABLE_HALF_INSTALLED], env=_half_installed_host(tmp_path, archive),
+                         capture_output=True, text=True, timeout=30)
+    assert run.returncode == 0, run.stderr
+    done = (tmp_path / "removed").read_text().splitlines() if (tmp_path / "removed").exists() else []
+    assert done == removed
+    assert run.stderr.count("no apt source holds it") == len(removed)
