@@ -224,6 +224,29 @@ def test_a_team_switching_profile_loses_the_old_units_and_groups_says_so_once_th
     assert "faults_bot -> demo" not in again.stderr
 
 
+# dpkg's record of ros2-apt-source as a run killed in its `dpkg -i` leaves it: reinst-required.
+HALF_INSTALL_APT_SOURCE = (
+    "python3 -c \"import re; p = '/var/lib/dpkg/status'; s = open(p).read(); "
+    "s = re.sub(r'(Package: ros2-apt-source\\n(?:.+\\n)*?)Status: .*', "
+    "r'\\1Status: install reinstreq half-installed', s, count=1); open(p, 'w').write(s)\"")
+
+
+def test_a_package_left_half_installed_that_no_archive_holds_heals_in_one_run(sandbox, roster, converged):
+    """ros2-apt-source comes from its .deb, not an archive: a run interrupted in its dpkg -i leaves
+    it reinst-required, and then every apt-get stops ("needs to be reinstalled, but I can't find
+    an archive for it"). One re-run removes it and installs it again; the next changes nothing."""
+    sandbox.sudo(ROBOT, HALF_INSTALL_APT_SOURCE, check=True)
+    stuck = sandbox.sudo(ROBOT, "apt-get -s install curl")
+    assert "can't find an archive for it" in stuck.stdout + stuck.stderr, stuck
+    run = deploy(sandbox, roster)
+    assert run.returncode == 0 and not run.failed_hosts, run.stderr[-3000:]
+    assert set(run.changes_per_host()) == {ROBOT}, run.changed
+    state = sandbox.ssh(ROBOT, "dpkg-query -W -f '${db:Status-Abbrev}' ros2-apt-source", check=True).stdout
+    assert state.strip() == "ii", state
+    again = deploy(sandbox, roster)
+    assert again.returncode == 0 and again.changed == {}, (again.changed, again.stderr[-3000:])
+
+
 # Issue 28: a host lost in the middle of a step, a controller killed in the middle of a network
 # change. Each test leaves the class as it found it (hosts running at their roster addresses,
 # converged), also when it fails.
