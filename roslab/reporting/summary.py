@@ -177,6 +177,8 @@ def closed_by_the_host(connection) -> bool:
         return not connection.is_active()
     except gevent.Timeout:
         return True  # connected, and silent: the host stopped answering
+    except (EOFError, OSError):
+        return True  # the keepalive met the connection's end: the host went as it was asked
     except Exception:  # noqa: BLE001 - nothing more to learn
         return False
 
