@@ -41,6 +41,13 @@ class Secret(HiddenValue):
         return hash(self.unmask())
 
 
+def plain_text(value) -> str:
+    """The real text of a secret (a Secret from the secrets file: unmasked), or of a value a
+    hand-made inventory or --data gave as plain text."""
+    unmask = getattr(value, "unmask", None)
+    return str(unmask() if unmask is not None else value)
+
+
 def is_secret_reference(key: str) -> bool:
     """Whether a roster key names a secret rather than holding a value."""
     return key.endswith(SECRET_SUFFIX)

@@ -14,6 +14,7 @@ from roslab.reach import (
 )
 from roslab.roster import display_path
 from roslab.roster.inventory import known_addresses
+from roslab.secrets import plain_text
 from roslab.seed import targets, tools
 from roslab.seed.documents import SeedError, authorized_keys, check_console_password, host_seed, network_config
 
@@ -26,7 +27,7 @@ def _secrets_of(host, roster_path) -> list[str]:
              *(line for line in private.splitlines() if not line.startswith("-----"))]
     for password in (host.settings.wifi_password, host.settings.console_password):
         if password is not None:
-            found.append(str(getattr(password, "unmask", lambda: password)()))
+            found.append(plain_text(password))
     return found
 
 

@@ -22,6 +22,7 @@ import yaml
 from roslab import formats, settings
 from roslab.ssh import identity
 from roslab.controller_files import UnreadableFile, read_regular_file
+from roslab.secrets import plain_text
 from roslab.network.render import render_netplan
 from roslab.network.settings import NetworkSettingError, network_settings
 from roslab.roster.model import Host
@@ -150,8 +151,7 @@ def check_console_password(host: Host) -> tuple[str, str]:
     import shutil
 
     secret = host.settings.console_password
-    unmask = getattr(secret, "unmask", None)  # a Secret from the secrets file, else plain text
-    password = str(unmask() if unmask is not None else secret)
+    password = plain_text(secret)
     if secret is None or not password or any(char in password for char in "\n\r\0"):
         raise SeedError(host.name, "console_password_secret", "the console password must be one non-empty line")
     openssl = shutil.which("openssl")
