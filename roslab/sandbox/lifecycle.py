@@ -620,11 +620,15 @@ def power_on(host_name: str, instance: Instance | None = None, wait_at: str | No
     merged = classroom.instance.host_dir(host) / "merged"
     if not hosts.mounts_under(merged.parent) or not (merged / "etc").is_dir():
         raise SandboxError(f"host {host_name!r} has no disk to boot from: `roslab sandbox reset` it")
-    # A Pi's network card starts empty after a power cut; the host's netns outlives its
-    # processes here, so its addresses and routes go as the power would take them.
+    # A Pi's network card starts empty and down after a power cut; the host's netns outlives
+    # its processes here, so its addresses and routes go as the power would take them, and the
+    # link goes down: networkd brings it up, and the kernel gives it its IPv6 link-local address
+    # again (flushed with the others; without it networkd waits, "configuring", and
+    # network-online.target with it, for wait-online's 2 minutes).
     netns = classroom.instance.netns(host)
     run("ip", "-n", netns, "address", "flush", "dev", "eth0", check=False)
     run("ip", "-n", netns, "route", "flush", "dev", "eth0", check=False)
+    run("ip", "-n", netns, "link", "set", "dev", "eth0", "down", check=False)
     seed = _host_states(classroom.instance).get(host.name, {}).get("seed")
     hosts.start(classroom.instance, host, merged, Path(seed) if seed else None)
     hosts.wait_for_ssh(wait_at or host.address, timeout=timeout)
