@@ -19,6 +19,7 @@ every card is written from that one stream of bytes.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import lzma
@@ -37,6 +38,7 @@ LSBLK_COLUMNS = "NAME,PATH,TYPE,RM,HOTPLUG,SIZE,MOUNTPOINTS,TRAN,SERIAL,MODEL,MA
 CARD_TRANSPORTS = ("usb", "mmc")
 EXT4_MAGIC = 0xEF53
 ARCHITECTURES = {"aarch64-linux-gnu": "arm64", "arm-linux-gnueabihf": "armhf", "x86_64-linux-gnu": "amd64"}
+PI_ARCHITECTURES = ("arm64", "armhf")  # what a Raspberry Pi's Ubuntu image is for
 
 
 class CardError(ValueError):
@@ -126,13 +128,46 @@ def cards(paths: list[str], image_size: int, allow_large: bool = False) -> tuple
     found, problems = [], []
     if len(set(map(os.path.realpath, paths))) != len(paths):
         problems.append("a device is named twice")
+    loops = loops_over()
     for path in paths:
         try:
             (device,) = lsblk([path])
-            found.append(card_of(device, roots, image_size, allow_large))
+            card = card_of(device, roots, image_size, allow_large)
+            busy = in_use(card.path, loops)
+            if busy:
+                raise CardError(busy)
+            found.append(card)
         except CardError as error:
             problems.append(str(error))
     return found, problems
+
+
+def loops_over() -> dict[str, list[str]]:
+    """The loop devices over each backing file or device (realpath -> loop devices)."""
+    done = subprocess.run(["losetup", "--list", "--json", "--output", "NAME,BACK-FILE"],
+                          capture_output=True, text=True)
+    over: dict[str, list[str]] = {}
+    for loop in (json.loads(done.stdout or "{}").get("loopdevices") or []) if done.returncode == 0 else []:
+        back = (loop.get("back-file") or "").strip()
+        if back:
+            over.setdefault(os.path.realpath(back), []).append(loop["name"])
+    return over
+
+
+def in_use(path: str, loops: dict[str, list[str]]) -> str | None:
+    """Why a device is in use though lsblk shows nothing mounted on it, or None: a loop device
+    over it (how a partition of a whole card is mounted: `mount -o loop,offset=`, a sandbox host
+    running on it), or the kernel's exclusive claim (a mount, swap, RAID or device mapper)."""
+    over = loops.get(os.path.realpath(path))
+    if over:
+        return (f"{path} is in use: {', '.join(over)} is a loop device over it (a partition of it mounted, "
+                "or a sandbox host running on it): unmount or detach it first")
+    try:
+        os.close(os.open(path, os.O_RDONLY | os.O_EXCL))
+    except OSError as error:
+        if error.errno == errno.EBUSY:
+            return f"{path} is in use (the kernel holds it: a mount, swap, RAID or device mapper): free it first"
+    return None
 
 
 def still_the_same(card: Card) -> str | None:
@@ -155,7 +190,7 @@ class Image:
     path: Path  # the raw image the cards are written from (a .xz's decompressed copy)
     size: int
     release: str  # VERSION_ID of its writable partition: "24.04"
-    architecture: str  # arm64, armhf
+    architecture: str  # arm64, armhf (amd64: the sandbox's card image)
     boot: targets.Partition
 
 
@@ -227,6 +262,22 @@ def _debugfs(device: str, request: str) -> str:
     return subprocess.run(["debugfs", "-R", request, device], capture_output=True, text=True).stdout
 
 
+def writable_system(card: Path) -> tuple[str, str]:
+    """(Ubuntu release, architecture) of the system in the ext4 `writable` partition of an image
+    file or a card; CardError in one line when it is not Ubuntu or its architecture is unclear."""
+    with _partition_device(card, *_writable(card)) as device:
+        os_release = _debugfs(device, "cat /usr/lib/os-release") or _debugfs(device, "cat /etc/os-release")
+        listing = _debugfs(device, "ls -l /usr/lib")
+    fields = dict(line.split("=", 1) for line in os_release.splitlines() if "=" in line)
+    release = fields.get("VERSION_ID", "").strip('"')
+    if fields.get("ID", "").strip('"') != "ubuntu" or not release:
+        raise CardError(f"{card}: its writable partition is not Ubuntu (no ID=ubuntu in os-release)")
+    found = [arch for triplet, arch in ARCHITECTURES.items() if f" {triplet}" in listing]
+    if len(found) != 1:
+        raise CardError(f"{card}: cannot tell its architecture from /usr/lib")
+    return release, found[0]
+
+
 def image_of(raw: Path) -> Image:
     """The checked Image: a FAT system-boot with config.txt and cmdline.txt, an ext4 writable
     with its release and architecture; CardError in one line otherwise."""
@@ -238,14 +289,5 @@ def image_of(raw: Path) -> Image:
     missing = [name for name in targets.PI_BOOT_FILES if not fat.has(name)]
     if missing:
         raise CardError(f"{raw}: its boot partition has no {', '.join(missing)}: not a Raspberry Pi image")
-    with _partition_device(raw, *_writable(raw)) as device:
-        os_release = _debugfs(device, "cat /usr/lib/os-release") or _debugfs(device, "cat /etc/os-release")
-        listing = _debugfs(device, "ls -l /usr/lib")
-    fields = dict(line.split("=", 1) for line in os_release.splitlines() if "=" in line)
-    release = fields.get("VERSION_ID", "").strip('"')
-    if fields.get("ID", "").strip('"') != "ubuntu" or not release:
-        raise CardError(f"{raw}: its writable partition is not Ubuntu (no ID=ubuntu in os-release)")
-    found = [arch for triplet, arch in ARCHITECTURES.items() if f" {triplet}" in listing]
-    if len(found) != 1:
-        raise CardError(f"{raw}: cannot tell its architecture from /usr/lib")
-    return Image(raw, raw.stat().st_size, release, found[0], boot)
+    release, architecture = writable_system(raw)
+    return Image(raw, raw.stat().st_size, release, architecture, boot)

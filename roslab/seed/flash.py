@@ -205,8 +205,10 @@ def _plan(args: argparse.Namespace, image: cards.Image) -> tuple[list[Job], dict
     if wrong:
         raise _Stop(1, f"roslab flash: the image is Ubuntu {image.release} ({image.architecture}), but "
                        f"{'; '.join(wrong)}: nothing was written")
-    if image.architecture not in ("arm64", "armhf"):
-        raise _Stop(1, f"roslab flash: the image is for {image.architecture}, not a Raspberry Pi: nothing was written")
+    allowed = (args.architecture,) if args.architecture else cards.PI_ARCHITECTURES
+    if image.architecture not in allowed:
+        what = "not a Raspberry Pi" if not args.architecture else f"not {args.architecture} (--architecture)"
+        raise _Stop(1, f"roslab flash: the image is for {image.architecture}, {what}: nothing was written")
     _refuse_what_the_roster_cannot_say(hosts, classroom.path)
     seeds = _checked_seeds(hosts, classroom.path)  # before a teacher is asked for any card
     matched = _matched(args, hosts, image)
@@ -330,6 +332,9 @@ def register(commands) -> None:
                           "since the previous one is that host's")
     how.add_argument("--by-slot", action="store_true",
                      help="the card readers' slots (/dev/disk/by-path, in order) get the hosts in roster order")
+    flash.add_argument("--architecture", choices=sorted(set(cards.ARCHITECTURES.values())),
+                       help="the image's architecture, when it is not a Pi's (arm64, armhf): the sandbox's own "
+                            "card image is amd64, as its hosts are (`roslab sandbox card-image`)")
     flash.add_argument("--allow-large", action="store_true",
                        help=f"write a device larger than {cards.MAX_CARD_BYTES / 1e9:.0f} GB")
     flash.add_argument("--force", action="store_true", help="write cards already flashed for their host")

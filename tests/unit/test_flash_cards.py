@@ -79,3 +79,24 @@ def test_the_root_disk_is_refused_even_if_it_looked_removable():
     removable_root = {**DEVICES["/dev/nvme0n1"], "rm": True, "tran": "usb"}
     with pytest.raises(cards.CardError, match="holds / "):
         cards.card_of(removable_root, {"/dev/nvme0n1"}, IMAGE, False)
+
+
+# -- a card in use though nothing is mounted on it -----------------------------------------------
+
+def test_a_card_with_a_loop_device_over_it_is_in_use(tmp_path):
+    """A partition of a whole card mounted with `mount -o loop,offset=` (or a sandbox host running
+    on the card) leaves lsblk's record of the card without a mount point: the loop over it says so."""
+    backing = tmp_path / "card.bin"
+    backing.write_bytes(bytes(4096))
+    loops = {str(backing.resolve()): ["/dev/loop7"]}
+    why = cards.in_use(str(backing), loops)
+    assert why and str(backing) in why and "/dev/loop7 is a loop device over it" in why
+    assert cards.in_use(str(backing), {}) is None
+
+
+def test_the_loop_devices_over_each_file_are_read_from_losetup(monkeypatch):
+    listed = ('{"loopdevices": [{"name": "/dev/loop0", "back-file": "/tmp/card0.bin"},'
+              ' {"name": "/dev/loop1", "back-file": "/dev/loop0"}, {"name": "/dev/loop2", "back-file": null}]}')
+    monkeypatch.setattr(cards.subprocess, "run",
+                        lambda argv, **kwargs: __import__("subprocess").CompletedProcess(argv, 0, listed, ""))
+    assert cards.loops_over() == {"/tmp/card0.bin": ["/dev/loop0"], "/dev/loop0": ["/dev/loop1"]}

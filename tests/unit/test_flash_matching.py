@@ -244,3 +244,32 @@ def test_the_final_table_shows_each_cards_slot_only_when_cards_were_matched_by_s
     assert "usb-0:2:1.0" in by_slot[2] and by_slot[2].startswith("team1-robot") and by_slot[2].endswith("verified")
     by_device = flash.table([job("team1-main", "/dev/sdb")]).splitlines()
     assert by_device[0].split() == ["host", "device", "card", "result"]
+
+
+class _PastTheImageChecks(Exception):
+    """Raised where _plan goes on to the roster's checks: the image was accepted."""
+
+
+@pytest.mark.parametrize("architecture, allowed, refusal", [
+    ("amd64", None, "the image is for amd64, not a Raspberry Pi: nothing was written"),
+    ("arm64", "amd64", "the image is for arm64, not amd64 (--architecture): nothing was written"),
+    ("arm64", None, None),
+    ("armhf", None, None),
+    ("amd64", "amd64", None),  # the sandbox's own card image, asked for by name
+])
+def test_an_image_not_for_a_pi_is_written_only_for_the_architecture_named(monkeypatch, architecture, allowed,
+                                                                          refusal):
+    hosts = [SimpleNamespace(name="team1-robot", ubuntu_release="24.04")]
+    monkeypatch.setattr(flash, "_selected", lambda given, command: (SimpleNamespace(path="r.yaml"), hosts))
+
+    def past(*_):
+        raise _PastTheImageChecks
+
+    monkeypatch.setattr(flash, "_refuse_what_the_roster_cannot_say", past)
+    image = SimpleNamespace(release="24.04", architecture=architecture, size=IMAGE)
+    if refusal:
+        with pytest.raises(_Stop, match=refusal.replace("(", r"\(").replace(")", r"\)")):
+            flash._plan(args(architecture=allowed), image)
+    else:
+        with pytest.raises(_PastTheImageChecks):
+            flash._plan(args(architecture=allowed), image)
