@@ -10,7 +10,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from . import lifecycle, publish, seeding
+from . import card, card_image, lifecycle, pi_boot, publish, seeding
 from .system import SandboxError
 
 
@@ -65,8 +65,25 @@ def register(subparsers) -> argparse.ArgumentParser:
     create3.add_argument("--firmware", default=None, metavar="VERSION",
                          help="the firmware it reports (default I.0.0.FastDDS, a Jazzy generation; H.x for Humble)")
     _register_publish(commands)
+    _register_card_image(commands)
     parser.set_defaults(run=run)  # the `roslab` command calls args.run(args)
     return parser
+
+
+def _register_card_image(commands) -> None:
+    """`sandbox card-image FILE [--release R] [--board B]`."""
+    card_image = commands.add_parser(
+        "card-image", help="write the sandbox's own Pi-like card image (a stand-in for Ubuntu's), for `roslab flash`",
+        description="Write an image of the sandbox's host image laid out as Ubuntu's Raspberry Pi preinstalled "
+                    "image (FAT system-boot with config.txt, cmdline.txt and cloud-init's NoCloud files; ext4 "
+                    "writable, as before its first boot). A STAND-IN for Ubuntu's arm64 download, which cannot "
+                    "boot here: it is amd64, as the sandbox's hosts are. Flash it with `roslab flash ... "
+                    "--architecture amd64`, then boot a host from the card: `roslab sandbox reset HOST --card DEV`.")
+    card_image.add_argument("out", type=Path, metavar="FILE")
+    card_image.add_argument("--release", default="24.04", choices=sorted(pi_boot.CONFIG_TXT),
+                            help="the Ubuntu release it is (default %(default)s)")
+    card_image.add_argument("--board", default="pi4", choices=pi_boot.PI_BOARDS,
+                            help="whose config.txt and cmdline.txt it holds (default %(default)s)")
 
 
 def _register_publish(commands) -> None:
@@ -98,10 +115,13 @@ def _register_reset(commands) -> None:
     flash.add_argument("--seed", type=Path, metavar="DIR",
                        help="re-flash one HOST with a NoCloud seed (user-data, meta-data, network-config, "
                             "as `roslab seed` writes): it boots through cloud-init, as a flashed Pi does")
-    flash.add_argument("--card", type=Path, metavar="IMG",
-                       help="re-flash one HOST from a card `roslab flash` or `roslab seed --image` wrote (an "
-                            "image file or the card's device): it boots through cloud-init with the seed on "
-                            "the card's system-boot, which must be this HOST's")
+    flash.add_argument("--card", type=Path, metavar="DEV",
+                       help="boot one HOST from a card `roslab flash` or `roslab seed --image` wrote (the card's "
+                            "device or an image file), through cloud-init with the seed on the card's "
+                            "system-boot, which must be this HOST's. A card of the sandbox's own image "
+                            "(`sandbox card-image`) is the host's disk: its writable partition is the root; "
+                            "the system on a Pi's card (arm64) cannot run here, so the host boots the "
+                            "sandbox's image with the card's seed")
     reset.add_argument("--apt-lock-seconds", type=float, default=None, metavar="S",
                        help="on a boot from a seed, how long the stand-in for first-boot "
                             f"unattended-upgrades holds the dpkg lock (default {seeding.FIRST_BOOT_APT_LOCK_SECONDS}; "
@@ -152,7 +172,9 @@ def reset_hosts(args: argparse.Namespace) -> float:
         raise SandboxError("reset --card: a card is one host's: name exactly one HOST")
     with tempfile.TemporaryDirectory(prefix="roslab-card-seed-") as scratch:
         seed = seeding.seed_from_card(args.card, args.hosts[0], Path(scratch) / args.hosts[0])
-        return lifecycle.reset(args.hosts, seed=seed, apt_lock_seconds=args.apt_lock_seconds)
+        own = card.bootable_here(args.card)
+        return lifecycle.reset(args.hosts, seed=seed, apt_lock_seconds=args.apt_lock_seconds,
+                               card=args.card if own else None)
 
 
 def run_board(args: argparse.Namespace) -> int:
@@ -278,10 +300,17 @@ def run(args: argparse.Namespace) -> int:
             lifecycle.down()
         elif args.sandbox_command == "reset":
             seconds = reset_hosts(args)
-            how = ("booted from the card's seed with cloud-init" if args.card else
+            on_card = args.card and lifecycle.boots_from_card(args.hosts[0])
+            how = ("booted from the card itself (its writable the root), its seed read by cloud-init" if on_card else
+                   "booted from the card's seed with cloud-init (the card's own system cannot run here)"
+                   if args.card else
                    "booted from the seed with cloud-init" if args.seed else
                    "new random SSH host key, unknown to roslab" if args.unseeded else "fresh image")
             print(f"{', '.join(args.hosts)}: {how}, ssh ready after {seconds:.1f} s")
+        elif args.sandbox_command == "card-image":
+            written = card_image.write_image(args.out, args.release, args.board)
+            print(f"{written}: Ubuntu {args.release} for a {args.board}, the sandbox's stand-in "
+                  f"({written.stat().st_size / 1e6:,.0f} MB)")
         elif args.sandbox_command == "save":
             print(f"saved as {args.name!r} in {lifecycle.save(args.name):.1f} s")
         elif args.sandbox_command == "restore":

@@ -25,9 +25,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from . import emulation, image, pi_boot, seeding
+from . import card, emulation, image, pi_boot, seeding
 from .instance import STATE_ROOT, Instance, SandboxHost
-from .system import SandboxError, discard, log, run, terminate, write_file
+from .system import SandboxError, discard, log, run, terminate, unmount_all, write_file
 
 LXCFS_DIR = Path("/var/lib/lxcfs")
 REBOOT_EXIT_CODE = 133  # what systemd-nspawn returns when the container asked to reboot
@@ -169,28 +169,16 @@ def wire_host(instance: Instance, host: SandboxHost) -> None:
 
 # -- mounts and files --------------------------------------------------------------------
 
-def mounts_under(directory: Path) -> list[Path]:
-    """Mount points at or below `directory`, deepest first."""
-    found = []
-    prefix = str(directory).rstrip("/") + "/"
-    for line in Path("/proc/self/mountinfo").read_text().splitlines():
-        point = line.split()[4].replace("\\040", " ")
-        if point == str(directory) or point.startswith(prefix):
-            found.append(Path(point))
-    return sorted(found, key=lambda p: -len(str(p)))
-
-
-def unmount_all(directory: Path) -> None:
-    for point in mounts_under(directory):
-        if run("umount", point, check=False).returncode != 0:
-            run("umount", "--lazy", point, check=False)
-    if mounts_under(directory):
-        raise SandboxError(f"cannot unmount {mounts_under(directory)[0]}")
-
-
 def _host_paths(instance: Instance, host: SandboxHost) -> dict[str, Path]:
     base = instance.host_dir(host)
     return {name: base / name for name in ("upper", "work", "merged")}
+
+
+def release_card(instance: Instance, host: SandboxHost) -> None:
+    """Let go of the card the host was booted from, if any (card.release: its system-boot
+    written back, its writable unmounted), and unmount whatever else is at its root."""
+    card.release(instance.host_dir(host))
+    unmount_all(_host_paths(instance, host)["merged"])
 
 
 def mount_fresh(instance: Instance, host: SandboxHost, rootfs: Path, layers: Sequence[Path] = ()) -> Path:
@@ -199,7 +187,7 @@ def mount_fresh(instance: Instance, host: SandboxHost, rootfs: Path, layers: Seq
     `layers`: saved disk states (`lifecycle.save`), topmost first, laid read-only over the
     base image, so the host boots as it was saved while the saved layers stay as they are."""
     paths = _host_paths(instance, host)
-    unmount_all(paths["merged"])
+    release_card(instance, host)
     for name in ("upper", "work"):
         discard(paths[name], STATE_ROOT)  # a converged host's upper dir is large: deleted in the background
     for path in paths.values():
@@ -229,6 +217,7 @@ class Boot:
     """How a host boots: with a given SSH host key, or "as flashed" from a NoCloud seed.
 
     `host_key` is (private key, public key line) written as the host's ed25519 key;
+    with `card`, the host's root is that card's `writable` and its seed the card's system-boot;
     with `seed` (a directory holding user-data, meta-data, network-config) cloud-init
     runs on the seed instead, which brings the key, user, hostname and address, and a
     stand-in for first-boot unattended-upgrades holds the dpkg lock `apt_lock_seconds`.
@@ -237,6 +226,7 @@ class Boot:
     host_key: tuple[str, str] | None = None
     seed: Path | None = None
     apt_lock_seconds: float = seeding.FIRST_BOOT_APT_LOCK_SECONDS
+    card: Path | None = None  # boot from this card's own partitions (card.py); its seed is `seed`
 
 
 def write_host_files(instance: Instance, host: SandboxHost, root: Path, ubuntu_keyring: bytes, boot: Boot) -> None:
@@ -244,7 +234,12 @@ def write_host_files(instance: Instance, host: SandboxHost, root: Path, ubuntu_k
 
     A host booted from a seed gets only the emulation (Ubuntu's release files and apt
     layout): its user, keys, hostname and network come from the seed, through cloud-init.
+    A card that has booted before (its cloud-init has an instance) gets nothing: it is the
+    host's disk as the host left it.
     """
+    # (cloud-init's `instance` is an absolute symlink: it points into the card, not here)
+    if boot.card and os.path.lexists(root / "var/lib/cloud/instance"):
+        return  # a card that has booted before: its system as it is, host key and all, as on a Pi
     identity = host.identity(instance.subnet.prefixlen)
     for path, (content, mode) in emulation.host_files(identity, f"{instance.upstream_url}/ubuntu").items():
         if boot.seed and path.startswith("/etc/netplan/"):
@@ -260,7 +255,8 @@ def write_host_files(instance: Instance, host: SandboxHost, root: Path, ubuntu_k
     write_file(root / emulation.UBUNTU_KEYRING.lstrip("/"), ubuntu_keyring)
     write_file(root / "etc/apt/trusted.gpg.d/ubuntu-keyring-2018-archive.gpg", ubuntu_keyring)
     if boot.seed:
-        _prepare_seeded_boot(root, boot, boot.seed)
+        user_data = boot.seed / "user-data"
+        prepare_seeded_boot(root, boot.apt_lock_seconds, user_data.read_text() if user_data.is_file() else None)
         return
     # A Pi's boot partition (stand-ins of Ubuntu's files); a seeded host has its seed there instead.
     for path, (content, mode) in pi_boot.boot_files(host.board, host.release).items():
@@ -281,8 +277,9 @@ def write_host_files(instance: Instance, host: SandboxHost, root: Path, ubuntu_k
                mode=0o600, owner=(uid, uid))
 
 
-def _prepare_seeded_boot(root: Path, boot: Boot, seed: Path) -> None:
-    """A freshly flashed card: cloud-init enabled, the seed where NoCloud finds it, no host key yet."""
+def prepare_seeded_boot(root: Path, apt_lock_seconds: float, user_data: str | None) -> None:
+    """A freshly flashed card: cloud-init enabled, the seed where NoCloud finds it, no host key yet
+    (the locales the seed's `user_data` names enabled, as Ubuntu's image has them generated)."""
     (root / seeding.CLOUD_INIT_DISABLED.lstrip("/")).unlink(missing_ok=True)
     for key in (root / "etc/ssh").glob("ssh_host_*"):
         key.unlink()
@@ -296,14 +293,13 @@ def _prepare_seeded_boot(root: Path, boot: Boot, seed: Path) -> None:
         link.unlink()
     link.symlink_to(seeding.BOOT_PARTITION)
     (root / seeding.BOOT_PARTITION.lstrip("/")).mkdir(parents=True, exist_ok=True)
-    for path, (content, mode) in seeding.seeded_boot_files(boot.apt_lock_seconds).items():
+    for path, (content, mode) in seeding.seeded_boot_files(apt_lock_seconds).items():
         write_file(root / path.lstrip("/"), content, mode=mode)
-    if boot.apt_lock_seconds:
+    if apt_lock_seconds:
         run("systemctl", f"--root={root}", "enable", "--quiet", seeding.FIRST_BOOT_UNIT)
     locale_gen = root / "etc/locale.gen"
-    if locale_gen.exists() and (seed / "user-data").is_file():
-        enabled = seeding.seed_locale_enabled(locale_gen.read_text(), (seed / "user-data").read_text())
-        write_file(locale_gen, enabled)
+    if locale_gen.exists() and user_data is not None:
+        write_file(locale_gen, seeding.seed_locale_enabled(locale_gen.read_text(), user_data))
 
 
 def random_host_key(instance: Instance, host: SandboxHost) -> tuple[str, str]:
@@ -334,7 +330,10 @@ def keep_seed(instance: Instance, host: SandboxHost, seed: Path) -> Path:
 
 # -- processes ---------------------------------------------------------------------------
 
-def nspawn_argv(instance: Instance, host: SandboxHost, merged: Path, seed: Path | None = None) -> list[str]:
+def nspawn_argv(instance: Instance, host: SandboxHost, merged: Path, seed: Path | None = None,
+                card: bool = False) -> list[str]:
+    """The host's systemd-nspawn command: `merged` its root, `seed` at /boot/firmware, read-only
+    (a seed folder) or, with `card`, read-write (a card's system-boot, as a Pi mounts it)."""
     argv = [
         "systemd-nspawn", "--boot", f"--directory={merged}", f"--machine={instance.machine_name(host)}",
         f"--network-namespace-path=/run/netns/{instance.netns(host)}",
@@ -347,13 +346,14 @@ def nspawn_argv(instance: Instance, host: SandboxHost, merged: Path, seed: Path 
     ]
     if lxcfs_running():
         argv.append(f"--bind-ro={LXCFS_DIR}")
-    if seed:  # the seed where a Pi's boot partition is mounted (read-only)
-        argv.append(f"--bind-ro={seed}:{seeding.BOOT_PARTITION}")
+    if seed:  # the seed where a Pi's boot partition is mounted
+        argv.append(f"--bind{'' if card else '-ro'}={seed}:{seeding.BOOT_PARTITION}")
     return argv
 
 
-def start(instance: Instance, host: SandboxHost, merged: Path, seed: Path | None = None) -> None:
-    """Boot the host under a supervisor that restarts nspawn when the host reboots."""
+def start(instance: Instance, host: SandboxHost, merged: Path, seed: Path | None = None, card: bool = False) -> None:
+    """Boot the host under a supervisor that restarts nspawn when the host reboots (`seed` and
+    `card` as nspawn_argv takes them)."""
     cgroups = host_cgroups(instance, host.name)
     for path in cgroups:
         path.mkdir(parents=True, exist_ok=True)
@@ -362,7 +362,7 @@ def start(instance: Instance, host: SandboxHost, merged: Path, seed: Path | None
     script = (
         join
         + "while :; do\n"
-        + f"  {shlex.join(nspawn_argv(instance, host, merged, seed))}\n"
+        + f"  {shlex.join(nspawn_argv(instance, host, merged, seed, card))}\n"
         + "  rc=$?\n"
         + f'  [ "$rc" -eq {REBOOT_EXIT_CODE} ] || exit "$rc"\n'
         + "done\n"

@@ -24,9 +24,10 @@ from roslab.controller_files import file_lock
 from roslab.network.state import STATE_DIR
 from roslab.ssh import identity
 
+from . import card as card_boot
 from . import create3_link, esp32_board, git_standins, hosts, image, seeding, upstream
 from .instance import STATE_ROOT, UPSTREAM_PORT, Instance, SandboxHost, releases_by_team
-from .system import SandboxError, announced, discard, log, run, sweep_discarded, write_file
+from .system import SandboxError, announced, discard, log, mounts_under, run, sweep_discarded, unmount_all, write_file
 
 DEFAULT_HOSTS = 4
 INOTIFY_INSTANCES = Path("/proc/sys/fs/inotify/max_user_instances")
@@ -318,7 +319,7 @@ def _resync(running: Classroom, desktop: list[str] | None) -> Classroom:
 def _remove_host(instance: Instance, host: SandboxHost) -> None:
     """Stop a host the roster no longer names and remove its disk and network."""
     hosts.stop(instance, host.name)
-    hosts.unmount_all(instance.host_dir(host))
+    unmount_all(instance.host_dir(host))
     discard(instance.host_dir(host), STATE_ROOT)
     run("ip", "netns", "delete", instance.netns(host), check=False)  # its veth end goes with it
     run("ip", "link", "delete", instance.veth(host), check=False)
@@ -479,8 +480,10 @@ def _down_locked(instance: Instance) -> None:
         upstream.stop_server(instance.state_dir / "upstream.pid")
         esp32_board.stop_all(instance.state_dir)  # `roslab sandbox board` processes, on this machine
         create3_link.unplug_all(instance)  # `roslab sandbox create3` stand-ins (their netns go below)
+        for host_dir in sorted((instance.state_dir / "hosts").glob("*/")):
+            card_boot.release(host_dir)  # a card's system-boot written back before it is let go
         if instance.state_dir.exists():
-            hosts.unmount_all(instance.state_dir)
+            unmount_all(instance.state_dir)
         hosts.remove_network(instance)
         # Gone at once; its files (a converged host's overlay: ~557 MB) are deleted in the background.
         discard(instance.state_dir, STATE_ROOT)
@@ -507,7 +510,7 @@ def status(instance: Instance | None = None) -> dict:
 
 
 def reset(host_names: list[str] | str, instance: Instance | None = None, *, unseeded: bool = False,
-          seed: Path | None = None, apt_lock_seconds: float | None = None) -> float:
+          seed: Path | None = None, apt_lock_seconds: float | None = None, card: Path | None = None) -> float:
     """Re-flash hosts: a fresh image (their changes are lost), booted; return the seconds taken.
 
     Like a Pi's SD card written again, the host's SSH host key survives only if the card
@@ -517,20 +520,16 @@ def reset(host_names: list[str] | str, instance: Instance | None = None, *, unse
     longer counts as seeded). With `seed` (one host) it boots "as flashed": cloud-init
     runs on the NoCloud seed presented as the boot partition, and a stand-in for
     first-boot unattended-upgrades holds the dpkg lock `apt_lock_seconds` (default 20).
+    With `card` too (the card `seed` was read off), the host boots from the card itself:
+    its `writable` is the host's root, its system-boot the boot partition (card.py); a later
+    reset without it lets the card go and boots the sandbox's image with the card's seed.
     """
     started = time.monotonic()
     classroom = load(instance)
     names = [host_names] if isinstance(host_names, str) else list(host_names)
     targets = [classroom.host(name) for name in names]
     instance = classroom.instance
-    if seed is not None:
-        if unseeded:
-            raise SandboxError("reset: --seed and --unseeded exclude each other")
-        if len(targets) != 1:
-            raise SandboxError("reset --seed: a seed is one host's: name exactly one HOST")
-        seeding.seed_address(Path(seed), instance.subnet)
-    if apt_lock_seconds is not None:
-        seeding.check_apt_lock_seconds(apt_lock_seconds)
+    _check_reset(instance, targets, unseeded=unseeded, seed=seed, apt_lock_seconds=apt_lock_seconds, card=card)
     rootfs = image.base_image()
     keyring = upstream.ubuntu_key().keyring.read_bytes()
 
@@ -540,38 +539,62 @@ def reset(host_names: list[str] | str, instance: Instance | None = None, *, unse
         def boot_for(host: SandboxHost) -> hosts.Boot:
             seed_copy = hosts.keep_seed(instance, host, Path(seed)) if seed is not None else None
             state = states[host.name] = reflash_state(states.get(host.name, {}), seed_copy=seed_copy,
-                                                      unseeded=unseeded, apt_lock_seconds=apt_lock_seconds)
+                                                      unseeded=unseeded, apt_lock_seconds=apt_lock_seconds,
+                                                      card=card)
             if state["seed"]:
-                return hosts.Boot(seed=Path(state["seed"]), apt_lock_seconds=state["apt_lock_seconds"])
+                return hosts.Boot(seed=Path(state["seed"]), apt_lock_seconds=state["apt_lock_seconds"],
+                                  card=Path(state["card"]) if state["card"] else None)
             if state["seeded"]:
                 return _store_boot(instance, host)
             return hosts.Boot(host_key=hosts.random_host_key(instance, host))
 
         boots = {host.name: boot_for(host) for host in targets}
 
-        def fresh(host: SandboxHost) -> None:
-            boot = boots[host.name]
-            hosts.stop(instance, host.name)
-            merged = hosts.mount_fresh(instance, host, rootfs)
-            hosts.write_host_files(instance, host, merged, keyring, boot)
-            hosts.start(instance, host, merged, boot.seed)
-            if boot.seed:  # at the seed's address, after cloud-init's first stages (docs/sandbox.md)
-                hosts.wait_for_ssh(seeding.seed_address(boot.seed, instance.subnet), timeout=180)
-            else:
-                hosts.wait_for_ssh(host.address)
-
         try:
-            _on_all(targets, fresh)
+            _on_all(targets, lambda host: _boot_reflashed(instance, host, boots[host.name], rootfs, keyring))
         finally:
             _save_host_states(instance, states)
     return time.monotonic() - started
 
 
+def _check_reset(instance: Instance, targets: list[SandboxHost], *, unseeded: bool, seed: Path | None,
+                 apt_lock_seconds: float | None, card: Path | None) -> None:
+    """SandboxError, before any host is touched, for a reset that cannot be done as asked."""
+    if card is not None and seed is None:
+        raise SandboxError("reset: a card is booted with the seed read off it")
+    if seed is not None:
+        if unseeded:
+            raise SandboxError("reset: --seed and --unseeded exclude each other")
+        if len(targets) != 1:
+            raise SandboxError("reset --seed: a seed is one host's: name exactly one HOST")
+        seeding.seed_address(Path(seed), instance.subnet)
+    if apt_lock_seconds is not None:
+        seeding.check_apt_lock_seconds(apt_lock_seconds)
+
+
+def _boot_reflashed(instance: Instance, host: SandboxHost, boot: hosts.Boot, rootfs: Path, keyring: bytes) -> None:
+    """Stop the host, give it its new disk (a fresh overlay, or its card) and boot it; wait for SSH."""
+    hosts.stop(instance, host.name)
+    if boot.card:  # the card's own partitions: the seed is on its system-boot
+        merged, boot_partition = card_boot.mount(instance.host_dir(host), boot.card, host.release, host.name)
+        boot = replace(boot, seed=boot_partition)
+    else:
+        merged = hosts.mount_fresh(instance, host, rootfs)
+    hosts.write_host_files(instance, host, merged, keyring, boot)
+    hosts.start(instance, host, merged, boot.seed, card=boot.card is not None)
+    if boot.seed:  # at the seed's address, after cloud-init's first stages (docs/sandbox.md)
+        hosts.wait_for_ssh(seeding.seed_address(boot.seed, instance.subnet), timeout=180)
+    else:
+        hosts.wait_for_ssh(host.address)
+
+
 def reflash_state(state: dict, *, seed_copy: Path | None = None, unseeded: bool = False,
-                  apt_lock_seconds: float | None = None) -> dict:
+                  apt_lock_seconds: float | None = None, card: Path | None = None) -> dict:
     """A host's boot state after a re-flash: a seed makes it seeded (and boots from it from
-    now on), `unseeded` makes it unseeded; a plain re-flash keeps what it was."""
-    state = {"seeded": False, "seed": None, "apt_lock_seconds": seeding.FIRST_BOOT_APT_LOCK_SECONDS, **state}
+    now on), `unseeded` makes it unseeded; a plain re-flash keeps what it was. It boots from
+    `card` only when this re-flash names one: any other lets the card go."""
+    state = {"seeded": False, "seed": None, "apt_lock_seconds": seeding.FIRST_BOOT_APT_LOCK_SECONDS, **state,
+             "card": str(card) if card else None}
     if seed_copy is not None:
         state.update(seeded=True, seed=str(seed_copy))
     elif unseeded:
@@ -579,6 +602,21 @@ def reflash_state(state: dict, *, seed_copy: Path | None = None, unseeded: bool 
     if apt_lock_seconds is not None:
         state["apt_lock_seconds"] = apt_lock_seconds
     return state
+
+
+def boots_from_card(host_name: str, instance: Instance | None = None) -> bool:
+    """Whether the host runs on a card's own partitions (`reset --card` of a sandbox card)."""
+    classroom = load(instance)
+    return bool(_host_states(classroom.instance).get(classroom.host(host_name).name, {}).get("card"))
+
+
+def _boot_partition(instance: Instance, host: SandboxHost) -> tuple[Path | None, bool]:
+    """(what the host has at /boot/firmware, whether it is a card's) when booted from its disk as
+    it is: its card's system-boot (still mounted), its seed, or nothing."""
+    state = _host_states(instance).get(host.name, {})
+    if state.get("card"):
+        return instance.host_dir(host) / "card" / "boot", True
+    return (Path(state["seed"]) if state.get("seed") else None), False
 
 
 def reboot(host_name: str, instance: Instance | None = None, timeout: float = 60.0) -> float:
@@ -618,7 +656,7 @@ def power_on(host_name: str, instance: Instance | None = None, wait_at: str | No
     if hosts.is_running(classroom.instance, host.name):
         raise SandboxError(f"host {host_name!r} of sandbox {classroom.instance.name!r} is running")
     merged = classroom.instance.host_dir(host) / "merged"
-    if not hosts.mounts_under(merged.parent) or not (merged / "etc").is_dir():
+    if not mounts_under(merged.parent) or not (merged / "etc").is_dir():
         raise SandboxError(f"host {host_name!r} has no disk to boot from: `roslab sandbox reset` it")
     # A Pi's network card starts empty and down after a power cut; the host's netns outlives
     # its processes here, so its addresses and routes go as the power would take them, and the
@@ -629,8 +667,7 @@ def power_on(host_name: str, instance: Instance | None = None, wait_at: str | No
     run("ip", "-n", netns, "address", "flush", "dev", "eth0", check=False)
     run("ip", "-n", netns, "route", "flush", "dev", "eth0", check=False)
     run("ip", "-n", netns, "link", "set", "dev", "eth0", "down", check=False)
-    seed = _host_states(classroom.instance).get(host.name, {}).get("seed")
-    hosts.start(classroom.instance, host, merged, Path(seed) if seed else None)
+    hosts.start(classroom.instance, host, merged, *_boot_partition(classroom.instance, host))
     hosts.wait_for_ssh(wait_at or host.address, timeout=timeout)
     return time.monotonic() - started
 
@@ -697,6 +734,10 @@ def save(name: str, instance: Instance | None = None) -> float:
         if target.exists():
             raise SandboxError(f"sandbox {instance.name!r} already has a saved state {name!r}: choose another name "
                                f"(saved: {', '.join(saved_names(instance))})")
+        on_cards = sorted(host for host, state in _host_states(instance).items() if state.get("card"))
+        if on_cards:
+            raise SandboxError(f"{', '.join(on_cards)} run on a card (`reset --card`): a saved state holds "
+                               "hosts' overlays, not cards; `roslab sandbox reset` them first")
         partial = target.with_name(f".{name}.partial")
         discard(partial, STATE_ROOT)
         layers = {}
@@ -762,6 +803,5 @@ def _boot_disk(classroom: Classroom, host: SandboxHost, timeout: float = 120.0) 
     # The host's netns and its eth0 stay as they are, as for a reset: a flush would also take
     # the IPv6 link-local address the kernel gives only when the link comes up, and networkd
     # would wait for it ("configuring"), holding network-online.target and the nodes' service.
-    seed = _host_states(instance).get(host.name, {}).get("seed")
-    hosts.start(instance, host, instance.host_dir(host) / "merged", Path(seed) if seed else None)
+    hosts.start(instance, host, instance.host_dir(host) / "merged", *_boot_partition(instance, host))
     hosts.wait_for_ssh(host.address, timeout=timeout)

@@ -158,3 +158,22 @@ def _delete_in_background(path: Path) -> None:
         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
         start_new_session=True, check=False,
     )
+
+
+def mounts_under(directory: Path) -> list[Path]:
+    """Mount points at or below `directory`, deepest first."""
+    found = []
+    prefix = str(directory).rstrip("/") + "/"
+    for line in Path("/proc/self/mountinfo").read_text().splitlines():
+        point = line.split()[4].replace("\\040", " ")
+        if point == str(directory) or point.startswith(prefix):
+            found.append(Path(point))
+    return sorted(found, key=lambda p: -len(str(p)))
+
+
+def unmount_all(directory: Path) -> None:
+    for point in mounts_under(directory):
+        if run("umount", point, check=False).returncode != 0:
+            run("umount", "--lazy", point, check=False)
+    if mounts_under(directory):
+        raise SandboxError(f"cannot unmount {mounts_under(directory)[0]}")

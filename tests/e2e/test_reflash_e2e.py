@@ -7,6 +7,9 @@
   key stored beside the roster, while a stand-in for Ubuntu's first-boot unattended-upgrades
   holds the dpkg lock. The deploy connects with strict host key checking, waits for the lock,
   converges, and a second run changes nothing.
+- A card `roslab flash` wrote with the sandbox's own Pi-like image (`sandbox card-image`) is the
+  host's disk (`reset HOST --card DEV`): it boots from it, converges, and stays converged when
+  it boots from the card again; what the deploy wrote is on the card.
 - A host re-flashed without a seed (`reset --unseeded`) shows a new host key: the deploy
   refuses it with the command to run, and after `roslab forget` + `roslab trust` it is
   reachable again.
@@ -35,7 +38,8 @@ sys.path.insert(0, str(Path(__file__).parent.parent))
 import pi_image  # noqa: E402  (the tests' stand-in image)
 
 from roslab.ssh import identity  # noqa: E402
-from roslab.sandbox import lifecycle, seeding  # noqa: E402
+from roslab.sandbox import card, lifecycle, seeding  # noqa: E402
+from roslab.sandbox import hosts as sandbox_hosts  # noqa: E402
 from roslab.sandbox.instance import Instance  # noqa: E402
 
 pytestmark = pytest.mark.e2e
@@ -258,3 +262,81 @@ def test_trust_and_forget_keep_to_the_known_hosts_file_the_run_reads(sandbox, tm
     forgotten = roslab("forget", str(roster), "--limit", host)
     assert f"removed from {own}" in forgotten.stdout
     assert hostname().returncode != 0
+
+
+@pytest.fixture
+def loop_card(sandbox, tmp_path):
+    """A 3 GiB "SD card": a loop device over a sparse file. Whatever happens, the host running
+    on it lets it go (its system-boot written back) before the card is detached."""
+    backing = tmp_path / "card.bin"
+    with open(backing, "wb") as handle:
+        handle.truncate(3 << 30)
+    device = subprocess.run(["losetup", "--find", "--show", str(backing)], capture_output=True, text=True,
+                            check=True).stdout.strip()
+    try:
+        yield Path(device)
+    finally:
+        host = lifecycle.load(INSTANCE).host(SEEDED)
+        sandbox_hosts.stop(INSTANCE, SEEDED)
+        card.release(INSTANCE.host_dir(host))
+        subprocess.run(["losetup", "--detach", device], check=False)
+
+
+def test_a_card_roslab_flashed_with_the_sandboxs_image_boots_as_the_hosts_disk_converges_and_stays_converged(
+        sandbox, classroom_copy, loop_card, tmp_path):
+    """Issue 38's "flash -> boot -> deploy -> no-op": the sandbox's own Pi-like image (a stand-in for
+    Ubuntu's, amd64 as the hosts are) is written to a card by `roslab flash` with the host's seed,
+    and the host boots from the card itself: its writable the root (grown to the card's end, as
+    cloud-init's growpart does), its system-boot at /boot/firmware, where cloud-init reads the seed."""
+    image = tmp_path / "sandbox-24.04.img"
+    made = roslab("sandbox", "card-image", str(image), "--release", "24.04")
+    assert "stand-in" in made.stdout
+    flash = ["flash", str(classroom_copy), "--limit", SEEDED, "--image", str(image), "--device", str(loop_card), "-y"]
+    # A Pi's image is what flash writes; the sandbox's amd64 one only when named.
+    refused = roslab(*flash, check=False)
+    assert refused.returncode == 1, refused.stdout
+    assert "the image is for amd64, not a Raspberry Pi: nothing was written" in refused.stderr
+    flashed = roslab(*flash, "--architecture", "amd64")
+    assert re.search(rf"^{SEEDED}\s+{loop_card}\s+\S+\s+verified$", flashed.stdout, re.MULTILINE), flashed.stdout
+
+    booted = roslab("sandbox", "reset", SEEDED, "--card", str(loop_card), "--apt-lock-seconds", "0")
+    assert "booted from the card itself" in booted.stdout
+    known_hosts, address = identity.known_hosts_path(classroom_copy), sandbox.host(SEEDED).address
+
+    def on_host(command: str) -> str:
+        proc = strict_ssh(known_hosts, LAB_USER, address, command)
+        assert proc.returncode == 0, f"{command}: {proc.stderr}"
+        return proc.stdout
+
+    assert on_host("hostname").strip() == SEEDED
+    assert json.loads(on_host("cat /boot/firmware/roslab-flash.json"))["host"] == SEEDED
+    # The card is the disk, grown from the image's ~0.7 GB writable to the 3 GiB card's end.
+    assert int(on_host("df -B1 --output=size / | tail -1")) > 2.5e9
+    # A card a host runs on is in use: flash refuses it without writing a byte.
+    busy = roslab(*flash, "--architecture", "amd64", "--force", check=False)
+    assert busy.returncode == 1 and f"{loop_card} is in use" in busy.stderr, busy.stderr
+
+    first, changed = deploy(classroom_copy, SEEDED)
+    assert first.returncode == 0, (first.stdout + first.stderr)[-6000:]
+    assert changed, "a freshly flashed host needs provisioning"
+    again, changed = deploy(classroom_copy, SEEDED)
+    assert again.returncode == 0 and changed == {}, changed
+
+    # Booted from the same card again, the host is as it left its disk: still converged.
+    assert "booted from the card itself" in roslab("sandbox", "reset", SEEDED, "--card", str(loop_card)).stdout
+    third, changed = deploy(classroom_copy, SEEDED)
+    assert third.returncode == 0 and changed == {}, changed
+
+    # What the deploy wrote is on the card's own partitions once the host lets it go.
+    sandbox_hosts.stop(INSTANCE, SEEDED)
+    card.release(INSTANCE.host_dir(sandbox.host(SEEDED)))
+    _, (start, size) = card._partitions(loop_card)
+    writable = subprocess.run(["losetup", "--find", "--show", "--read-only", "--offset", str(start),
+                               "--sizelimit", str(size), str(loop_card)], capture_output=True, text=True,
+                              check=True).stdout.strip()
+    try:
+        dropin = subprocess.run(["debugfs", "-R", "cat /etc/ssh/sshd_config.d/01-roslab.conf", writable],
+                                capture_output=True, text=True).stdout
+    finally:
+        subprocess.run(["losetup", "--detach", writable], check=False)
+    assert "PasswordAuthentication no" in dropin, dropin

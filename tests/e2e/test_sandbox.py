@@ -21,6 +21,7 @@ import yaml
 
 from roslab.sandbox import hosts as sandbox_hosts
 from roslab.sandbox import lifecycle
+from roslab.sandbox import system as sandbox_system
 from roslab.sandbox.instance import Instance
 
 pytestmark = pytest.mark.e2e
@@ -174,7 +175,7 @@ def _leftovers(instance: Instance) -> list[str]:
     found += [f"netns {line.split()[0]}" for line in netns.splitlines() if line.startswith(instance.netns_prefix)]
     found += [f"interface {path.name}" for path in Path("/sys/class/net").iterdir()
               if path.name == instance.bridge or path.name.startswith(f"rlv{instance.short_id}")]
-    found += [f"mount {point}" for point in sandbox_hosts.mounts_under(instance.state_dir)]
+    found += [f"mount {point}" for point in sandbox_system.mounts_under(instance.state_dir)]
     found += [f"cgroup {path}" for path in sandbox_hosts.instance_cgroups(instance) if path.exists()]
     if instance.state_dir.exists():
         found.append(f"state {instance.state_dir}")

@@ -563,3 +563,42 @@ def test_a_signing_key_is_made_and_signs_in_a_cache_folder_too_deep_for_gpgs_age
     key.sign_release(release)
     assert key.keyring.stat().st_size > 0 and len(key.fingerprint) == 40
     assert "BEGIN PGP SIGNED MESSAGE" in (tmp_path / "InRelease").read_text()
+
+
+def test_a_cards_first_boot_is_a_flashed_hosts_and_a_later_boot_finds_the_disk_as_it_was_left(host_root):
+    """A card of the sandbox's own image (card.py) is the host's disk: on its first boot it gets
+    what any host booted from a seed gets; once its cloud-init has an instance (an absolute
+    symlink into the card), the sandbox writes nothing on it: not the host key's removal, not
+    the apt layout a deploy may have changed, not a new machine id."""
+    instance, host, root, calls = host_root
+    boot = hosts.Boot(seed=Path("/seed"), apt_lock_seconds=0, card=Path("/dev/loop9"))
+    hosts.write_host_files(instance, host, root, b"keyring", boot)
+    assert not list((root / "etc/ssh").glob("ssh_host_*"))  # first boot: as flashed
+    assert "ID=ubuntu" in (root / "usr/lib/os-release").read_text()
+    (root / "etc/ssh/ssh_host_ed25519_key").write_text("made by its first boot\n")
+    (root / "var/lib/cloud").mkdir(parents=True, exist_ok=True)
+    (root / "var/lib/cloud/instance").symlink_to("/var/lib/cloud/instances/iid-team1-robot")
+    (root / "etc/machine-id").write_text("0123\n")
+    (root / "usr/lib/os-release").write_text("as the deploy left it\n")
+    calls.clear()
+    hosts.write_host_files(instance, host, root, b"keyring", boot)
+    assert (root / "etc/ssh/ssh_host_ed25519_key").read_text() == "made by its first boot\n"
+    assert (root / "etc/machine-id").read_text() == "0123\n"
+    assert (root / "usr/lib/os-release").read_text() == "as the deploy left it\n"
+    assert not calls
+
+
+def test_a_cards_system_boot_is_bound_read_write_as_a_pi_mounts_it(tmp_path):
+    instance = Instance.from_env()
+    host = instance.plan_hosts(1)[0]
+    plain = hosts.nspawn_argv(instance, host, tmp_path)
+    on_card = hosts.nspawn_argv(instance, host, tmp_path, seed=tmp_path / "boot", card=True)
+    assert on_card[len(plain):] == [f"--bind={tmp_path / 'boot'}:/boot/firmware"]
+
+
+def test_a_host_runs_on_its_card_only_while_reflashes_name_it():
+    state = lifecycle.reflash_state({"seeded": True}, seed_copy=Path("/s"), card=Path("/dev/loop9"))
+    assert (state["seeded"], state["seed"], state["card"]) == (True, "/s", "/dev/loop9")
+    # A plain reset lets the card go: the sandbox's image, with the card's seed.
+    state = lifecycle.reflash_state(state)
+    assert (state["seeded"], state["seed"], state["card"]) == (True, "/s", None)
