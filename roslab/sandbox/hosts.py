@@ -69,9 +69,10 @@ def kill_cgroup_trees(trees: list[Path], timeout: float = 120.0) -> None:
     A killed process can take long to go: on a busy disk the kernel first frees its files
     (seen: over 10 s in discard). Said once after a few seconds, then waited for, bounded.
     At the bound, a process that is only a zombie whose last thread is still in the kernel
-    (seen: 12 minutes of ext4 discard on a disk shared by five sandboxes) is dead to
-    everything above the kernel and goes on its own: it is named and left, with its cgroup,
-    to the kernel; one that still runs is an error."""
+    (seen: 12 minutes of ext4 discard on a disk shared by five sandboxes), or one waiting on the
+    disk with the SIGKILL pending (seen in CI: 120 s under disk load), is dead to everything
+    above the kernel and goes on its own: it is named and left, with its cgroup, to the
+    kernel; one that still runs is an error."""
     trees = [tree for tree in trees if tree.is_dir()]
     started = time.monotonic()
     deadline = started + timeout
@@ -86,12 +87,12 @@ def kill_cgroup_trees(trees: list[Path], timeout: float = 120.0) -> None:
                 "waiting for %d killed process(es) in %s to exit (the kernel is still freeing their files)",
                 len(pids), trees[0])
         if time.monotonic() > deadline:
-            running = sorted(pid for pid in pids if not _is_zombie(pid))
+            running = sorted(pid for pid in pids if not _is_dying(pid))
             if running:
                 raise SandboxError(f"processes {running} in {trees[0]} survived SIGKILL")
             logging.getLogger(__name__).warning(
-                "killed process(es) %s in %s are zombies still freeing their files in the kernel; "
-                "leaving them (and their cgroup) to exit on their own", sorted(pids), trees[0])
+                "killed process(es) %s in %s are zombies, or wait on the disk with SIGKILL pending, still "
+                "in the kernel; leaving them (and their cgroup) to exit on their own", sorted(pids), trees[0])
             break
         for pid in pids:
             try:
@@ -110,13 +111,32 @@ def kill_cgroup_trees(trees: list[Path], timeout: float = 120.0) -> None:
                     raise
 
 
-def _is_zombie(pid: int) -> bool:
-    """Whether the process has exited and only the kernel still holds it (gone: True too)."""
+def _is_dying(pid: int) -> bool:
+    """Whether a killed process is past running (gone: True too): see status_is_dying."""
     try:
-        status = Path(f"/proc/{pid}/status").read_text()
+        return status_is_dying(Path(f"/proc/{pid}/status").read_text())
     except OSError:
         return True
-    return any(line.startswith("State:") and "Z" in line.split()[1] for line in status.splitlines())
+
+
+SIGKILL_BIT = 1 << (signal.SIGKILL - 1)  # in /proc/PID/status's pending-signal masks
+
+
+def status_is_dying(status: str) -> bool:
+    """Whether /proc/PID/status says the process can no longer run a line of its own: a zombie,
+    or a process in uninterruptible sleep (state D: waiting on the disk) with SIGKILL pending,
+    which dies the moment the kernel's call returns (seen in CI: over 120 s under disk load)."""
+    fields = dict(line.split(":", 1) for line in status.splitlines() if ":" in line)
+    state = fields.get("State", "").split()[:1]
+    if state == ["Z"]:
+        return True
+    pending = 0
+    for mask in ("SigPnd", "ShdPnd"):
+        try:
+            pending |= int(fields.get(mask, "0").strip(), 16)
+        except ValueError:
+            pass
+    return state == ["D"] and bool(pending & SIGKILL_BIT)
 
 
 # -- network ----------------------------------------------------------------------------

@@ -42,7 +42,7 @@ def cgroup(tmp_path, monkeypatch):
 
 def test_a_process_that_still_runs_after_sigkill_is_an_error_naming_it(cgroup, monkeypatch):
     tree, killed = cgroup
-    monkeypatch.setattr(hosts, "_is_zombie", lambda pid: False)
+    monkeypatch.setattr(hosts, "_is_dying", lambda pid: False)
     with pytest.raises(SandboxError, match=rf"processes \[{PID}\] in .*class1 survived SIGKILL"):
         hosts.kill_cgroup_trees([tree], timeout=3)
     assert set(killed) == {PID}
@@ -50,7 +50,7 @@ def test_a_process_that_still_runs_after_sigkill_is_an_error_naming_it(cgroup, m
 
 def test_a_zombie_still_freeing_its_files_is_left_to_the_kernel_with_its_cgroup(cgroup, monkeypatch, caplog):
     tree, _ = cgroup
-    monkeypatch.setattr(hosts, "_is_zombie", lambda pid: True)
+    monkeypatch.setattr(hosts, "_is_dying", lambda pid: True)
     hosts.kill_cgroup_trees([tree], timeout=0)
     assert tree.is_dir(), "the busy cgroup stays for the kernel to empty"
     assert f"[{PID}]" in caplog.text and "zombies" in caplog.text
@@ -64,8 +64,23 @@ def test_an_emptied_cgroup_is_removed(cgroup):
 
 
 def test_a_pid_that_is_gone_counts_as_exited():
-    assert hosts._is_zombie(PID)
-    assert not hosts._is_zombie(os.getpid())
+    assert hosts._is_dying(PID)
+    assert not hosts._is_dying(os.getpid())
+
+
+STATUS = "Name:\tdpkg\nState:\t{state}\nSigQ:\t1/95000\nSigPnd:\t{pending}\nShdPnd:\t{shared}\n"
+
+
+@pytest.mark.parametrize("state, pending, shared, dying", [
+    ("Z (zombie)", "0000000000000000", "0000000000000000", True),
+    ("D (disk sleep)", "0000000000000000", "0000000000000100", True),  # SIGKILL pending, waiting on the disk
+    ("D (disk sleep)", "0000000000000100", "0000000000000000", True),
+    ("D (disk sleep)", "0000000000000000", "0000000000004000", False),  # SIGTERM only: may still run on
+    ("R (running)", "0000000000000000", "0000000000000100", False),  # on a CPU: not waiting on the kernel
+    ("S (sleeping)", "0000000000000000", "0000000000000000", False),
+])
+def test_a_process_waiting_on_the_disk_with_sigkill_pending_counts_as_dying(state, pending, shared, dying):
+    assert hosts.status_is_dying(STATUS.format(state=state, pending=pending, shared=shared)) is dying
 
 
 # Removing a host's files: gone at once, deleted in the background --------------------------
