@@ -16,6 +16,7 @@ from pyinfra.operations import python
 
 from deploy.common import host_distro, host_is_active
 from roslab import class_lock, class_lock_auto, probe, settings
+from roslab.ops import class_lock as lock_ops
 from roslab.host_settings import host_settings
 
 DEFAULTS = settings.defaults("ros_install")
@@ -32,7 +33,7 @@ def group_locked(roster_path: str, distro: str) -> bool:
 def installed_noted(state, host, roster_path: str, distro: str) -> None:
     """Run time, after the host's other steps: its installed packages, noted for the lock.
     (pyinfra's python.call passes `state` and `host` to a function that names them.)"""
-    reading = get_fact(state, host, class_lock.InstalledVersions)
+    reading = get_fact(state, host, lock_ops.InstalledVersions)
     key = class_lock.group_key(distro, reading["architecture"])
     class_lock_auto.note_installed(roster_path, host.name, key, reading["packages"])
 

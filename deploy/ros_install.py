@@ -9,6 +9,7 @@ from pyinfra.facts.server import Arch
 
 from deploy.common import host_codename, host_distro, should_run, stop_host, where
 from roslab import class_lock, probe, settings
+from roslab.ops import class_lock as lock_ops
 from roslab.ros.discovery import middleware_package
 from roslab.ros.distro import default_distro
 from roslab.ops.apt import packages_installed
@@ -97,19 +98,19 @@ def locked_versions_met(roster_path: str | None, distro: str, packages: list[str
     installed = host.get_fact(DebPackages) or {}
     # what this run would install or move: each must be at its locked version in some source
     needed = [name for name in packages if name in group.packages and name not in installed]
-    needed += [name for name in class_lock.off_lock(group, installed) if name not in needed]
+    needed += [name for name in lock_ops.off_lock(group, installed) if name not in needed]
     # read from fresh lists (apt-get update first): after `roslab lock --update` the host's own
     # lists may predate the versions it is to move to; read only when there is something to do.
     # A package the lists do not know (a fresh host: its ROS source comes with this run) is
     # judged by apt at install time, asked for at its locked version.
-    available = (host.get_fact(class_lock.AptVersionsNow, packages=needed) or {}) if needed else {}
-    problems = class_lock.unmet(group, [name for name in needed if available.get(name)], available)
+    available = (host.get_fact(lock_ops.AptVersionsNow, packages=needed) or {}) if needed else {}
+    problems = lock_ops.unmet(group, [name for name in needed if available.get(name)], available)
     if problems:
         stop_host(f"{where()}: {problems[0]}" + (f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""))
         return None
-    class_lock.locked_versions_pinned(
+    lock_ops.locked_versions_pinned(
         name=f"Ensure apt installs the class lock's versions ({len(group.packages)} packages)", group=group)
-    class_lock.packages_at_locked_versions(
+    lock_ops.packages_at_locked_versions(
         name="Ensure the installed packages are at the class lock's versions", group=group, lock_timeout=lock_timeout)
     return [f"{name}={group.packages[name]}" if name in group.packages else name for name in packages]
 
@@ -122,5 +123,5 @@ def ros_install_reads() -> list:
         return []
     reads = probe.packages_reads()
     if class_lock.lock_beside(host_settings(host).roslab_roster_path) is not None:
-        reads += [probe.read(Arch), *class_lock.locked_versions_pinned_reads()]
+        reads += [probe.read(Arch), *lock_ops.locked_versions_pinned_reads()]
     return reads

@@ -2,7 +2,7 @@
 
 A host whose (distro, architecture) group the lock beside its roster lacks gets a last step
 (deploy/class_lock_taken.py) that reads, at run time and after every other step of the host,
-what `roslab lock` reads (`dpkg-query`: roslab.class_lock.InstalledVersions) and notes it here;
+what `roslab lock` reads (`dpkg-query`: roslab.ops.class_lock.InstalledVersions) and notes it here;
 the python_env step notes the class wheelhouse's files the host was given. At the end of the run
 (roslab.reporting.summary, after the table) the controller writes classroom.lock once: each
 group the lock still lacks, from the first host of the group (roster order) that converged

@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 from roslab import class_lock
+from roslab.ops import class_lock as lock_ops
 from roslab.controller_files import replace_file
 from roslab.reach import RosterProblem, add_roster_argument, connected_state, fail, load_classroom_groups
 
@@ -69,7 +70,7 @@ def read_hosts(args, classroom, groups, with_candidates: class_lock.ClassLock | 
     for host in state.inventory:
         if host not in state.active_hosts or not distro_of.get(host.name):
             continue
-        reading = get_fact(state, host, class_lock.InstalledVersions)
+        reading = get_fact(state, host, lock_ops.InstalledVersions)
         key = class_lock.group_key(distro_of[host.name], reading["architecture"])
         entry = found.setdefault(key, {"hosts": [], "installed": reading["packages"], "from": host.name})
         entry["hosts"].append(host.name)
@@ -77,7 +78,7 @@ def read_hosts(args, classroom, groups, with_candidates: class_lock.ClassLock | 
         if with_candidates is not None and "candidates" not in entry and key in with_candidates.groups:
             locked = sorted(with_candidates.groups[key].packages)
             # what the archives offer now: the host's lists may be days old (apt_cache_max_age)
-            versions = get_fact(state, host, class_lock.AptVersionsNow, kwargs={"packages": locked}) if locked else {}
+            versions = get_fact(state, host, lock_ops.AptVersionsNow, kwargs={"packages": locked}) if locked else {}
             entry["candidates"] = {name: found_versions[0] for name, found_versions in versions.items()}
     return found
 

@@ -8,6 +8,7 @@ another in return (tests/unit/test_layout.py holds the modules free of import cy
 
     apt             Ubuntu apt sources, package lists, dpkg's interrupted installs, packages
     boot_config     a Pi's config.txt and cmdline.txt, the host's "reboot needed" record
+    class_lock      the class lock on a host: installed and offered versions, apt pins, moves
     files           managed blocks, files moved aside, a file's age, files renamed into place
     locale          a generated locale
     memory          the host's RAM, a swap file
@@ -19,7 +20,7 @@ another in return (tests/unit/test_layout.py holds the modules free of import cy
 
 Tools with a folder of their own keep their facts and operations there, one module each:
 roslab.ros.workspace (colcon workspace), roslab.python_env.venv, roslab.ssh.sshd,
-roslab.network.operation, roslab.sources.underlay, roslab.class_lock.
+roslab.network.operation, roslab.sources.underlay.
 
 Each operation is named for the end state, reads facts, and either yields the commands that
 reach that state or says with ``host.noop`` why nothing needs doing. Facts are read again when

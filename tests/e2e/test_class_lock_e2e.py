@@ -30,7 +30,7 @@ import subprocess
 import pytest
 import yaml
 
-from roslab import class_lock
+from roslab.ops import class_lock as lock_ops
 from tests.e2e.conftest import BIN, REPO, summary_lines
 
 pytestmark = pytest.mark.e2e
@@ -119,7 +119,7 @@ def test_with_class_lock_auto_a_no_op_run_takes_each_group_and_no_later_run_rewr
         assert lock_file.read_text() == text
     finally:
         for name in HOSTS:
-            sandbox.sudo(name, f"rm -f {class_lock.PREFERENCES_FILE}", check=True)
+            sandbox.sudo(name, f"rm -f {lock_ops.PREFERENCES_FILE}", check=True)
 
 
 @pytest.fixture(scope="module")

@@ -9,6 +9,7 @@ from fixtures.fake_host import plan
 from pyinfra.facts.files import FileContents
 
 from roslab import class_lock
+from roslab.ops import class_lock as lock_ops
 from roslab.checked.problems import Report
 
 KEY = "jazzy/arm64"
@@ -105,7 +106,7 @@ def test_update_lists_old_to_new_and_keeps_held_packages_back():
 
 def test_a_version_nobody_serves_is_one_line_naming_package_version_and_what_to_do():
     group = first_lock().groups[KEY]
-    lines = class_lock.unmet(group, ["libc6", "ros-jazzy-ros-base"],
+    lines = lock_ops.unmet(group, ["libc6", "ros-jazzy-ros-base"],
                              {"libc6": ["2.39-0ubuntu9"], "ros-jazzy-ros-base": [INSTALLED["ros-jazzy-ros-base"]]})
     assert lines == [
         "libc6=2.39-0ubuntu8.4 is locked but neither the archive nor the class cache has it: "
@@ -115,11 +116,11 @@ def test_a_version_nobody_serves_is_one_line_naming_package_version_and_what_to_
 
 def test_apt_is_pinned_to_the_locked_versions_by_one_whole_file():
     group = first_lock().groups[KEY]
-    result = plan(class_lock.locked_versions_pinned, {FileContents: lambda path: None}, group=group)
-    text = result.uploads()[class_lock.PREFERENCES_FILE]
+    result = plan(lock_ops.locked_versions_pinned, {FileContents: lambda path: None}, group=group)
+    text = result.uploads()[lock_ops.PREFERENCES_FILE]
     assert "Package: libc6\nPin: version 2.39-0ubuntu8.4\nPin-Priority: 1001\n" in text
     current = text.splitlines()
-    result = plan(class_lock.locked_versions_pinned, {FileContents: lambda path: current}, group=group)
+    result = plan(lock_ops.locked_versions_pinned, {FileContents: lambda path: current}, group=group)
     assert result.changing() == {} and result.noops == ["apt is pinned to the class lock's 2 versions"]
 
 
@@ -137,7 +138,7 @@ def test_a_broken_lock_beside_the_roster_stops_the_roster_before_any_host(tmp_pa
 
 
 def test_a_hosts_installed_packages_are_read_for_its_architecture_and_checked():
-    from roslab.class_lock import parse_installed
+    from roslab.ops.class_lock import parse_installed
     from roslab.cli.lock import update_lines
 
     reading = parse_installed(["arm64", "ii \tlibc6\tarm64\t2.39-0ubuntu8.4", "ii \ttzdata\tall\t2024a-3ubuntu1",
@@ -176,7 +177,7 @@ def test_lock_update_asks_each_group_for_its_candidates_as_pyinfra_takes_fact_ar
     def get_fact(*args, **kwargs):
         bound = real.bind(*args, **kwargs)  # a TypeError, as pyinfra's own, for a wrong call
         asked.append((bound.arguments["cls"], bound.arguments.get("kwargs")))
-        if bound.arguments["cls"] is class_lock.AptVersionsNow:
+        if bound.arguments["cls"] is lock_ops.AptVersionsNow:
             return {"ros-jazzy-ros-base": ["0.11.0-1noble.20260101.000000"]}
         return {"architecture": "arm64", "packages": INSTALLED}
 
@@ -192,8 +193,8 @@ def test_lock_update_asks_each_group_for_its_candidates_as_pyinfra_takes_fact_ar
     found = lock_cli.read_hosts(SimpleNamespace(limit=None), classroom, {}, first_lock())
     assert found[KEY]["candidates"] == {"ros-jazzy-ros-base": "0.11.0-1noble.20260101.000000"}
     # after `apt-get update` (as root, as every roster host's facts run): what the archives offer now
-    assert asked[-1] == (class_lock.AptVersionsNow, {"packages": sorted(INSTALLED)})
-    command = class_lock.AptVersionsNow().command(["ros-jazzy-ros-base", "-oAPT::x=1"])
+    assert asked[-1] == (lock_ops.AptVersionsNow, {"packages": sorted(INSTALLED)})
+    command = lock_ops.AptVersionsNow().command(["ros-jazzy-ros-base", "-oAPT::x=1"])
     assert command.startswith("DEBIAN_FRONTEND=noninteractive apt-get -q -o DPkg::Lock::Timeout=120 update ")
     assert command.endswith("apt-cache madison -- ros-jazzy-ros-base || true")
 

@@ -11,6 +11,7 @@ from pyinfra.facts.server import Arch, LinuxDistribution
 
 from deploy import class_lock_taken as step
 from roslab import class_lock, class_lock_auto, settings
+from roslab.ops import class_lock as lock_ops
 from roslab.python_env.wheelhouse import File
 from roslab.reporting.summary import RunSummary
 
@@ -57,7 +58,7 @@ def test_a_locked_group_or_the_setting_off_plans_nothing(tmp_path):
 
 def test_the_reading_is_noted_under_the_hosts_group(tmp_path, monkeypatch):
     roster = tmp_path / "classroom.yaml"
-    reading = class_lock.parse_installed(["arm64", "ii \tlibc6\tarm64\t2.39-0ubuntu8.4"])
+    reading = lock_ops.parse_installed(["arm64", "ii \tlibc6\tarm64\t2.39-0ubuntu8.4"])
     monkeypatch.setattr(step, "get_fact", lambda state, host, cls: reading)
     step.installed_noted(None, SimpleNamespace(name="robot1"), str(roster), "jazzy")
     assert class_lock_auto.write_taken(["robot1"]) == [

@@ -13,7 +13,7 @@ from fixtures.fake_ubuntu import FakeUbuntu
 from deploy.ros_install import DEFAULTS, ros_install, ros_packages
 from deploy.rosdep import rosdep
 from roslab import settings as schema
-from roslab.class_lock import AptVersionsNow
+from roslab.ops.class_lock import AptVersionsNow
 from roslab.ops.apt import reporting_a_signal
 
 
