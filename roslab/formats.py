@@ -102,14 +102,14 @@ def ascii_text(value: str, _context: Context | None = None) -> str | None:
 
 
 def pattern(regex: str, description: str) -> Check:
-    """A check that the whole value is ASCII and matches `regex` (compiled with re.ASCII)."""
-    compiled = re.compile(regex, re.ASCII)
+    """A check that the whole value is ASCII and matches `regex` (compiled with re.ASCII, at its
+    first use: every run imports the formats, few use each)."""
 
     def check(value: str, context: Context | None = None) -> str | None:
         problem = single_line(value) or ascii_text(value)
         if problem:
             return problem
-        if not compiled.fullmatch(value):
+        if not re.fullmatch(regex, value, re.ASCII):  # re's own cache keeps it compiled
             return f"{value!r} is not {description}"
         return None
 

@@ -7,6 +7,7 @@ import functools
 import os
 from pathlib import Path
 
+from roslab.profiles import parsed_cache
 from roslab.profiles.schema import Profile, read_profile
 from roslab.checked.loading import Mapping, line_of, load_yaml
 from roslab.checked.problems import Problem, Report
@@ -33,6 +34,12 @@ def _inside(path: Path, folder: Path) -> bool:
 
 @functools.cache
 def _builtin() -> tuple[dict[str, Profile], tuple[Problem, ...]]:
+    """roslab's own profiles and the problems of the files that are not sound (_parse_builtin),
+    parsed once per content on this controller (roslab.profiles.parsed_cache)."""
+    return parsed_cache.cached(data_folder(), _parse_builtin)
+
+
+def _parse_builtin() -> tuple[dict[str, Profile], tuple[Problem, ...]]:
     """roslab's own profiles, checked by the same schema as a roster's, and the problems of the
     files that are not: a bad file is left out (and listed), never the end of a command.
 

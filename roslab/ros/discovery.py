@@ -36,7 +36,6 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass, field
 from typing import Protocol
-from xml.sax.saxutils import escape, quoteattr
 
 from roslab.ros import distro as distros
 
@@ -279,6 +278,7 @@ def _xml_head() -> str:
 def fastdds_peers_xml(peers: list[str]) -> str:
     """Fast DDS (2.x) default participant profile: no multicast, the host itself and its peers
     as initial peers (the discovery Fast DDS's docs give for networks without multicast)."""
+    from xml.sax.saxutils import escape  # only here: every run imports this module
     locators = "".join(
         f"                    <locator><udpv4><address>{escape(peer)}</address></udpv4></locator>\n"
         for peer in ["127.0.0.1", *peers])
@@ -303,6 +303,7 @@ def fastdds_peers_xml(peers: list[str]) -> str:
 
 def fastdds_super_client_xml(server: str, port: int) -> str:
     """Fast DDS (2.x) super client of discovery server 0: what lets `ros2 topic list` see the graph."""
+    from xml.sax.saxutils import escape, quoteattr  # only here: every run imports this module
     return (
         _xml_head()
         + "<dds>\n"
@@ -335,6 +336,7 @@ def fastdds_super_client_xml(server: str, port: int) -> str:
 
 def cyclonedds_peers_xml(peers: list[str]) -> str:
     """Cyclone DDS configuration: no multicast, the host itself and its peers."""
+    from xml.sax.saxutils import quoteattr  # only here: every run imports this module
     entries = "".join(f"            <Peer address={quoteattr(peer)}/>\n" for peer in ["127.0.0.1", *peers])
     return (
         _xml_head()
