@@ -46,19 +46,43 @@ def bootable_here(card: Path) -> bool:
     return architecture == run("dpkg", "--print-architecture").stdout.strip()  # the image's: this machine's
 
 
+def check(host_dir: Path, card: Path, ubuntu_release: str, host_name: str) -> None:
+    """SandboxError, with nothing changed or stopped, when the card cannot be the disk of the host
+    whose folder is `host_dir`: it is in use (by another host, or mounted here; the card this
+    host runs on is its own), or its system is not Ubuntu `ubuntu_release` (the host's)."""
+    from roslab.seed import cards
+
+    if _running_on(host_dir) != os.path.realpath(card):
+        busy = cards.in_use(str(card), cards.loops_over())
+        if busy:
+            raise SandboxError(f"--card {busy}")
+    try:
+        found, _ = cards.writable_system(card)  # read-only
+    except cards.CardError as error:
+        raise SandboxError(f"--card {card}: {error}") from None
+    if found != ubuntu_release:
+        raise SandboxError(f"--card {card}: its system is Ubuntu {found}, but {host_name} is on Ubuntu "
+                           f"{ubuntu_release}: write a card image of {ubuntu_release} "
+                           f"(`roslab sandbox card-image FILE --release {ubuntu_release}`)")
+
+
+def _running_on(host_dir: Path) -> str | None:
+    """The card (its real path) the host runs on, from its record; None when it runs on none."""
+    try:
+        return os.path.realpath(json.loads((host_dir / RECORD).read_text())["card"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
 def mount(host_dir: Path, card: Path, ubuntu_release: str, host_name: str) -> tuple[Path, Path]:
     """Make the card the disk of the host whose folder is `host_dir`: its `writable` (grown to
     the card's end first) mounted at `merged`, its system-boot's files in a folder beside it;
-    return (root, boot folder). SandboxError, the card let go again, when its system is not
-    Ubuntu `ubuntu_release` (the host's)."""
-    from roslab.seed import cards
-
+    return (root, boot folder). SandboxError, before the card is changed, when it is in use or
+    its system is not Ubuntu `ubuntu_release` (the host's)."""
     release(host_dir)
     root, boot = host_dir / "merged", host_dir / "card" / "boot"
     unmount_all(root)
-    busy = cards.in_use(str(card), cards.loops_over())  # another host on it, or mounted here
-    if busy:
-        raise SandboxError(f"--card {busy}")
+    check(host_dir, card, ubuntu_release, host_name)
     root.mkdir(parents=True, exist_ok=True)
     fat, writable = _partitions(card)
     if _grow_writable(card):
@@ -67,10 +91,6 @@ def mount(host_dir: Path, card: Path, ubuntu_release: str, host_name: str) -> tu
     # A loop mount with autoclear: unmounting it lets the card go.
     run("mount", "-o", f"loop,offset={writable[0]},sizelimit={writable[1]}", card, root)
     try:
-        found = _release_of(root)
-        if found != ubuntu_release:
-            raise SandboxError(f"--card {card}: its system is Ubuntu {found or '(unknown)'}, "
-                               f"but {host_name} is on Ubuntu {ubuntu_release}")
         shutil.rmtree(boot.parent, ignore_errors=True)
         boot.parent.mkdir(mode=0o700, parents=True)  # user-data may hold a WiFi password
         boot.mkdir(mode=0o755)
@@ -178,10 +198,3 @@ def _grow_writable(card: Path) -> bool:
             os.fsync(disk.fileno())
             return True
     return False
-
-
-def _release_of(root: Path) -> str:
-    text = (root / "usr/lib/os-release").read_text() if (root / "usr/lib/os-release").is_file() else ""
-    fields = dict(line.split("=", 1) for line in text.splitlines() if "=" in line)
-    return fields.get("VERSION_ID", "").strip('"')
-

@@ -530,6 +530,8 @@ def reset(host_names: list[str] | str, instance: Instance | None = None, *, unse
     targets = [classroom.host(name) for name in names]
     instance = classroom.instance
     _check_reset(instance, targets, unseeded=unseeded, seed=seed, apt_lock_seconds=apt_lock_seconds, card=card)
+    if card is not None:  # refused before the host is stopped
+        card_boot.check(instance.host_dir(targets[0]), card, targets[0].release, targets[0].name)
     rootfs = image.base_image()
     keyring = upstream.ubuntu_key().keyring.read_bytes()
 

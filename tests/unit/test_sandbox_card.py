@@ -82,3 +82,34 @@ def test_a_card_without_a_writable_partition_is_refused_naming_it(tmp_path):
 def test_a_host_on_no_card_has_nothing_to_let_go(tmp_path):
     card.release(tmp_path)  # no record: nothing unmounted, nothing written
     assert not (tmp_path / card.RECORD).exists()
+
+
+@pytest.fixture
+def card_read(monkeypatch, tmp_path):
+    """The card's system as debugfs would read it, and the loop devices over each file."""
+    from roslab.seed import cards
+
+    device = tmp_path / "card.bin"
+    device.write_bytes(b"")
+    seen = {"system": ("24.04", "amd64"), "loops": {}}
+    monkeypatch.setattr(cards, "writable_system", lambda path: seen["system"])
+    monkeypatch.setattr(cards, "loops_over", lambda: seen["loops"])
+    return device, seen
+
+
+def test_a_card_is_refused_before_anything_is_stopped_when_in_use_or_of_another_release(card_read, tmp_path):
+    device, seen = card_read
+    host_dir = tmp_path / "hosts" / "team1-robot"
+    host_dir.mkdir(parents=True)
+    card.check(host_dir, device, "24.04", "team1-robot")  # a free card of the host's release
+    seen["loops"] = {str(device.resolve()): ["/dev/loop4"]}  # another host runs on it
+    with pytest.raises(card.SandboxError, match=r"--card .*card\.bin is in use: /dev/loop4"):
+        card.check(host_dir, device, "24.04", "team1-robot")
+    # The card this host runs on is its own: booting from it again is not refused.
+    (host_dir / card.RECORD).write_text(f'{{"card": "{device}", "fat_offset": 1048576}}\n')
+    card.check(host_dir, device, "24.04", "team1-robot")
+    seen["system"] = ("22.04", "amd64")
+    with pytest.raises(card.SandboxError, match=r"its system is Ubuntu 22\.04, but team1-robot is on Ubuntu 24\.04: "
+                                                r"write a card image of 24\.04 \(`roslab sandbox card-image FILE "
+                                                r"--release 24\.04`\)"):
+        card.check(host_dir, device, "24.04", "team1-robot")
