@@ -21,24 +21,20 @@ import json
 import os
 import shutil
 import struct
-import subprocess
 from pathlib import Path
+
+from roslab.seed import cards, targets
 
 from .system import SandboxError, log, run, unmount_all
 
 MIB = 1 << 20
 SECTOR = 512
-FAT32_LBA, LINUX = 0x0C, 0x83  # MBR partition types: system-boot, writable
-FAT_TYPES = (0x01, 0x04, 0x06, 0x0B, 0x0C, 0x0E, 0xEF)
 RECORD = "card.json"  # in the host's folder while it runs on a card: which card, where its FAT is
-MTOOLS_ENV = {"MTOOLS_SKIP_CHECK": "1"}  # a card's FAT geometry need not match a floppy's
 
 
 def bootable_here(card: Path) -> bool:
     """Whether the system on the card's `writable` can boot on this machine (its architecture
     is the sandbox image's); an arm64 card (Ubuntu's real image) cannot."""
-    from roslab.seed import cards
-
     try:
         _, architecture = cards.writable_system(card)
     except cards.CardError as error:
@@ -46,12 +42,15 @@ def bootable_here(card: Path) -> bool:
     return architecture == run("dpkg", "--print-architecture").stdout.strip()  # the image's: this machine's
 
 
+def boot_folder(host_dir: Path) -> Path:
+    """Where the system-boot's files of the card a host runs on are (its /boot/firmware)."""
+    return host_dir / "card" / "boot"
+
+
 def check(host_dir: Path, card: Path, ubuntu_release: str, host_name: str) -> None:
     """SandboxError, with nothing changed or stopped, when the card cannot be the disk of the host
     whose folder is `host_dir`: it is in use (by another host, or mounted here; the card this
     host runs on is its own), or its system is not Ubuntu `ubuntu_release` (the host's)."""
-    from roslab.seed import cards
-
     if _running_on(host_dir) != os.path.realpath(card):
         busy = cards.in_use(str(card), cards.loops_over())
         if busy:
@@ -80,12 +79,12 @@ def mount(host_dir: Path, card: Path, ubuntu_release: str, host_name: str) -> tu
     return (root, boot folder). SandboxError, before the card is changed, when it is in use or
     its system is not Ubuntu `ubuntu_release` (the host's)."""
     release(host_dir)
-    root, boot = host_dir / "merged", host_dir / "card" / "boot"
+    root, boot = host_dir / "merged", boot_folder(host_dir)
     unmount_all(root)
     check(host_dir, card, ubuntu_release, host_name)
     root.mkdir(parents=True, exist_ok=True)
     fat, writable = _partitions(card)
-    if _grow_writable(card):
+    if _grow_writable(card, writable[0]):
         fat, writable = _partitions(card)
         _resize_filesystem(card, *writable)
     # A loop mount with autoclear: unmounting it lets the card go.
@@ -94,7 +93,7 @@ def mount(host_dir: Path, card: Path, ubuntu_release: str, host_name: str) -> tu
         shutil.rmtree(boot.parent, ignore_errors=True)
         boot.parent.mkdir(mode=0o700, parents=True)  # user-data may hold a WiFi password
         boot.mkdir(mode=0o755)
-        _mtools("mcopy", "-s", "-n", "-m", "-i", _drive(card, fat[0]), "::/*", f"{boot}/")
+        _fat(card, fat[0]).copy_out(boot)
         (host_dir / RECORD).write_text(json.dumps({"card": str(card), "fat_offset": fat[0]}) + "\n")
     except BaseException:
         unmount_all(root)
@@ -109,59 +108,45 @@ def release(host_dir: Path) -> None:
     if not record_path.is_file():
         return
     record = json.loads(record_path.read_text())
-    card, boot = Path(record["card"]), host_dir / "card" / "boot"
+    card, boot = Path(record["card"]), boot_folder(host_dir)
     try:
-        write_back(boot, _drive(card, int(record["fat_offset"])))
-    except (SandboxError, OSError) as error:  # the card was pulled out: its host is let go all the same
+        write_back(boot, _fat(card, int(record["fat_offset"])))
+    except (targets.TargetError, OSError) as error:  # the card was pulled out: its host is let go all the same
         log.warning("the system-boot of card %s was not written back: %s", card, error)
     unmount_all(host_dir / "merged")
     record_path.unlink()
 
 
-def write_back(folder: Path, drive: str) -> None:
-    """Make the FAT at `drive` hold what `folder` holds: new and changed files copied, new
+def write_back(folder: Path, fat: targets.ImageFat) -> None:
+    """Make the FAT partition `fat` hold what `folder` holds: new and changed files copied, new
     folders made, what the folder no longer has deleted."""
-    listing = _mtools("mdir", "-/", "-b", "-i", drive, "::/").stdout.splitlines()
-    on_card = {line[len("::/"):].rstrip("/"): line.endswith("/") for line in listing if line.startswith("::/")}
+    on_card = fat.names()
     here = {path.relative_to(folder).as_posix(): path for path in sorted(folder.rglob("*"))}
     for name, path in here.items():
         if path.is_dir():
             if name not in on_card:
-                _mtools("mmd", "-i", drive, f"::/{name}")
-        elif path.is_file() and (name not in on_card or _mtools("mtype", "-i", drive, f"::/{name}",
-                                                                   text=False).stdout != path.read_bytes()):
-            _mtools("mcopy", "-o", "-m", "-i", drive, path, f"::/{name}")
-    for name, is_dir in sorted(on_card.items(), key=lambda item: -len(item[0])):  # deepest first
-        if name and name not in here:
-            _mtools("mrd" if is_dir else "mdel", "-i", drive, f"::/{name}")
+                fat.make_folder(name)
+        elif path.is_file() and (name not in on_card or fat.read(name) != path.read_bytes()):
+            fat.write(name, path.read_bytes())
+    for name, is_folder in sorted(on_card.items(), key=lambda item: -len(item[0])):  # deepest first
+        if name not in here:
+            fat.remove(name, folder=is_folder)
 
 
-def _drive(card: Path, offset: int) -> str:
-    return f"{card}@@{offset}"
-
-
-def _mtools(*argv, text: bool = True) -> subprocess.CompletedProcess:
-    result = subprocess.run([str(arg) for arg in argv], capture_output=True, text=text,
-                            env={**os.environ, **MTOOLS_ENV})
-    if result.returncode:
-        detail = result.stderr if text else result.stderr.decode(errors="replace")
-        raise SandboxError(f"`{' '.join(str(arg) for arg in argv)}` failed: {detail.strip()}")
-    return result
+def _fat(card: Path, start: int) -> targets.ImageFat:
+    """The card's FAT partition that starts at byte `start` (mtools needs only its start)."""
+    return targets.ImageFat(card, targets.Partition(0, start, 0, "system-boot"))
 
 
 def _partitions(card: Path) -> tuple[tuple[int, int], tuple[int, int]]:
-    """((start, size) of system-boot, (start, size) of writable) in bytes, from the card's MBR."""
-    from roslab.seed import cards
-
+    """((start, size) of system-boot, (start, size) of writable) in bytes: the FAT partition and
+    the ext4 one, found as `roslab flash` and `roslab seed` find them."""
     try:
-        found = cards._partitions(card)
-    except cards.CardError as error:
-        raise SandboxError(f"--card {card}: {error}") from None
-    fats = [(start, size) for kind, start, size in found if kind in FAT_TYPES]
-    linux = [(start, size) for kind, start, size in found if kind == LINUX]
-    if not fats or not linux:
-        raise SandboxError(f"--card {card}: no FAT system-boot and Linux writable partition in its MBR")
-    return fats[0], linux[0]
+        fat = targets.boot_partition(card)
+        return (fat.start, fat.size), cards._writable(card)
+    except (targets.TargetError, cards.CardError) as error:
+        raise SandboxError(f"--card {card}: no FAT system-boot and Linux writable partition in its MBR "
+                           f"({error})") from None
 
 
 def _resize_filesystem(card: Path, start: int, size: int) -> None:
@@ -177,21 +162,21 @@ def _resize_filesystem(card: Path, start: int, size: int) -> None:
         run("losetup", "--detach", device, check=False)
 
 
-def _grow_writable(card: Path) -> bool:
-    """Grow the `writable` partition to the card's end, as cloud-init's growpart does on a Pi's
-    first boot; False when it already ends there."""
+def _grow_writable(card: Path, start: int) -> bool:
+    """Grow the `writable` partition (the MBR entry that starts at byte `start`) to the card's
+    end, as cloud-init's growpart does on a Pi's first boot; False when it already ends there."""
     size = int(run("blockdev", "--getsize64", card).stdout) if card.is_block_device() else card.stat().st_size
+    end = min(size // SECTOR, 0xFFFFFFFF)  # an MBR addresses 2 TiB
     with open(card, "r+b") as disk:
         mbr = bytearray(disk.read(SECTOR))
         for index in range(4):
             entry = 446 + 16 * index
-            status, _, _, _, kind, _, _, _, start, sectors = struct.unpack("<BBBBBBBBII", mbr[entry:entry + 16])
-            if kind != LINUX or not sectors:
+            first, sectors = struct.unpack("<II", mbr[entry + 8:entry + 16])
+            if first * SECTOR != start or not sectors:
                 continue
-            end = min(size // SECTOR, 0xFFFFFFFF)  # an MBR addresses 2 TiB
-            if (start + sectors) * SECTOR + MIB > end * SECTOR:
+            if (first + sectors) * SECTOR + MIB > end * SECTOR:
                 return False
-            mbr[entry + 12:entry + 16] = struct.pack("<I", end - start)
+            mbr[entry + 12:entry + 16] = struct.pack("<I", end - first)
             disk.seek(0)
             disk.write(mbr)
             disk.flush()

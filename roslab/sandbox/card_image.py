@@ -19,12 +19,14 @@ import tempfile
 from pathlib import Path
 
 from roslab import boards
+from roslab.seed import targets
 
 from . import card, emulation, hosts, image, pi_boot
 from .emulation import HostIdentity
 from .system import SandboxError, run, unmount_all, write_file
 
-MIB, SECTOR, FAT32_LBA, LINUX = card.MIB, card.SECTOR, card.FAT32_LBA, card.LINUX
+MIB, SECTOR = card.MIB, card.SECTOR
+FAT32_LBA, LINUX = 0x0C, 0x83  # MBR partition types: system-boot, writable
 BOOT_MIB = 256  # Ubuntu's system-boot is 512 MiB; a FAT32 of 256 MiB holds the stand-ins with room
 SLACK_MIB = 160  # free space in `writable` beyond the host image, before it is grown on a card
 ARCHIVE_ON_A_PI = "http://ports.ubuntu.com/ubuntu-ports"  # the apt sources an arm64 Pi image ships
@@ -64,7 +66,7 @@ def write_image(out: Path, release: str, board: str = "pi4") -> Path:
             used = int(run("du", "-s", "-B1", "--one-file-system", work / "merged").stdout.split()[0])
             writable_mib = (used * 5 // 4) // MIB + SLACK_MIB
             _partitioned(out, writable_mib)
-            _fill_boot(out, work / "boot", board, release)
+            _fill_boot(out, board, release)
             run("mkfs.ext4", "-q", "-F", "-L", "writable", "-d", work / "merged",
                 "-E", f"offset={(1 + BOOT_MIB) * MIB}", out, f"{writable_mib}M")
         finally:
@@ -103,13 +105,10 @@ def _mbr(partitions: list[tuple[int, int, int, int]]) -> bytes:
     return bytes(440) + os.urandom(4) + bytes(2) + table + bytes(16 * (4 - len(partitions))) + b"\x55\xaa"
 
 
-def _fill_boot(out: Path, scratch: Path, board: str, release: str) -> None:
+def _fill_boot(out: Path, board: str, release: str) -> None:
     # One sector per cluster: a FAT32 this small has too few clusters otherwise (mtools refuses it).
     run("mkfs.vfat", "-F", "32", "-s", "1", "-n", "system-boot", "--offset", str(MIB // 512), out, str(BOOT_MIB * 1024))
-    scratch.mkdir()
+    fat = targets.ImageFat(out, targets.Partition(1, MIB, BOOT_MIB * MIB, "system-boot"))
     files = {Path(path).name: content for path, (content, _) in pi_boot.boot_files(board, release).items()}
-    files.update(UBUNTU_NOCLOUD)
-    env = {**os.environ, "MTOOLS_SKIP_CHECK": "1"}
-    for name, content in files.items():
-        (scratch / name).write_text(content)
-        run("mcopy", "-i", f"{out}@@{MIB}", scratch / name, f"::/{name}", env=env)
+    for name, content in {**files, **UBUNTU_NOCLOUD}.items():
+        fat.write(name, content.encode())

@@ -617,7 +617,7 @@ def _boot_partition(instance: Instance, host: SandboxHost) -> tuple[Path | None,
     it is: its card's system-boot (still mounted), its seed, or nothing."""
     state = _host_states(instance).get(host.name, {})
     if state.get("card"):
-        return instance.host_dir(host) / "card" / "boot", True
+        return card_boot.boot_folder(instance.host_dir(host)), True
     return (Path(state["seed"]) if state.get("seed") else None), False
 
 

@@ -215,6 +215,29 @@ class ImageFat:
     def has(self, name: str) -> bool:
         return self._mtools("mdir", "-b", "-i", self.drive, f"::/{name}").returncode == 0
 
+    def names(self) -> dict[str, bool]:
+        """Every file and folder in the partition, by path ("overlays/x.dtbo"): whether a folder."""
+        listing = self._checked("list", "mdir", "-/", "-b", "-i", self.drive, "::/").stdout.decode(errors="replace")
+        return {line[len("::/"):].rstrip("/"): line.endswith("/") for line in listing.splitlines()
+                if line.startswith("::/") and line != "::/"}
+
+    def copy_out(self, folder: Path) -> None:
+        """Every file and folder of the partition into `folder` (which exists)."""
+        self._checked("copy out", "mcopy", "-s", "-n", "-m", "-i", self.drive, "::/*", f"{folder}/")
+
+    def make_folder(self, name: str) -> None:
+        self._checked(f"make {name}", "mmd", "-i", self.drive, f"::/{name}")
+
+    def remove(self, name: str, folder: bool = False) -> None:
+        self._checked(f"remove {name}", "mrd" if folder else "mdel", "-i", self.drive, f"::/{name}")
+
+    def _checked(self, what: str, *argv: str) -> subprocess.CompletedProcess:
+        result = self._mtools(*argv)
+        if result.returncode != 0:
+            raise TargetError(f"{argv[0]} could not {what} in {self.image}: "
+                              f"{result.stderr.decode(errors='replace').strip()}")
+        return result
+
 
 def write_image(image: Path, files: dict[str, SeedFile]) -> list[str]:
     """Write the seed into the image's boot partition; back up Ubuntu's files once."""

@@ -45,7 +45,7 @@ def test_the_boot_folder_is_written_back_to_the_cards_fat_changes_new_folders_an
     (folder / "overlays").mkdir()
     (folder / "overlays/i2c-rtc.dtbo").write_bytes(b"\xd0\x0d\xfe\xed")
     (folder / "network-config").unlink()
-    card.write_back(folder, f"{image}@@{MIB}")
+    card.write_back(folder, card._fat(image, MIB))
     files = fat_files(image)
     assert files["config.txt"].endswith(b"dtoverlay=i2c-rtc\n")
     assert files["overlays"] == b"(folder)" and files["overlays/i2c-rtc.dtbo"] == b"\xd0\x0d\xfe\xed"
@@ -54,7 +54,7 @@ def test_the_boot_folder_is_written_back_to_the_cards_fat_changes_new_folders_an
     # The folder emptied of the overlay: the card's folder goes too.
     (folder / "overlays/i2c-rtc.dtbo").unlink()
     (folder / "overlays").rmdir()
-    card.write_back(folder, f"{image}@@{MIB}")
+    card.write_back(folder, card._fat(image, MIB))
     assert not any(name.startswith("overlays") for name in fat_files(image))
 
 
@@ -62,11 +62,11 @@ def test_the_writable_partition_grows_to_the_cards_end_once(image):
     (_, fat_size), (start, size) = card._partitions(image)
     with open(image, "r+b") as disk:
         disk.truncate(image.stat().st_size + 64 * MIB)  # a card larger than the image
-    assert card._grow_writable(image)
+    assert card._grow_writable(image, start)
     (_, fat_after), (start_after, size_after) = card._partitions(image)
     assert (start_after, start_after + size_after) == (start, image.stat().st_size)
     assert fat_after == fat_size  # system-boot as it was
-    assert not card._grow_writable(image)  # it ends at the card's end: nothing more to do
+    assert not card._grow_writable(image, start)  # it ends at the card's end: nothing more to do
     with open(image, "rb") as disk:
         assert disk.read(512)[510:] == b"\x55\xaa"
 
