@@ -12,6 +12,7 @@ import os as _os
 import sys as _sys
 from pathlib import Path as _Path
 
+from roslab import pyinfra_planning as _pyinfra_planning
 from roslab import remote_files as _remote_files
 from roslab.ssh import keepalive as _ssh_keepalive
 from roslab.ssh import sudo as _sudo
@@ -37,6 +38,7 @@ _summary.install()  # before pyinfra connects: a run where no host answers is su
 _sudo.install()  # before pyinfra's first command: no sudo password on a host's command line
 _remote_files.install()  # every upload: never through a link, never via SFTP or a temp file
 _ssh_keepalive.install()  # a host that goes silent mid-step is lost in seconds, not waited for forever
+_pyinfra_planning.install()  # before pyinfra builds its hosts: its connectors read once, not four times
 _groups = _inventory_groups(_classroom)
 _refuse_unmatched_limit(_groups)  # a --limit that selects no host stops here, naming it
 globals().update(_groups)

@@ -75,7 +75,7 @@ def checked_classroom(path: Path):
     inventory file: they are checked here like the roster's own (roslab.roster.overrides).
     An invalid roster or override stops the run here, before pyinfra connects to any host.
     """
-    from roslab import remote_files
+    from roslab import pyinfra_planning, remote_files
     from roslab.ssh import keepalive as ssh_keepalive
     from roslab.ssh import sudo
     from roslab.reporting import summary
@@ -92,4 +92,5 @@ def checked_classroom(path: Path):
     sudo.install()  # before pyinfra's first command: no sudo password on a host's command line
     remote_files.install()  # every upload: never through a link, never via SFTP or a temp file
     ssh_keepalive.install()  # a host that goes silent mid-step is lost in seconds, not waited for forever
+    pyinfra_planning.install()  # before pyinfra builds its hosts: its connectors read once, not four times
     return classroom

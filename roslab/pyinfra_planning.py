@@ -3,7 +3,7 @@
 pyinfra runs deploy.py once per host, and for every operation, @deploy and fact on every
 host it does work that costs far more CPU than its result needs: on a converged class's
 no-op re-run that was most of the controller's CPU, and it grew with every host (issue 32).
-Four of pyinfra 3.10's functions are replaced by exact equivalents:
+Five of pyinfra 3.10's functions are replaced by exact equivalents:
 
 1. `pyinfra.api.util.get_operation_order_from_stack`: in CLI mode pyinfra orders operations
    by the line numbers of the call stack from deploy.py inwards, leaving out pyinfra's own
@@ -32,6 +32,12 @@ Four of pyinfra 3.10's functions are replaced by exact equivalents:
    layers once per call and searches those, as `HostData.__getattr__` does (first layer
    holding the key, a shallow copy of its value). Nothing in the loop can change a layer:
    it runs only pyinfra's argument defaults and `generate_env`.
+5. `pyinfra.api.connectors.get_all_connectors`, as `pyinfra.api.inventory` and `pyinfra.api.host`
+   call it (also through `get_execution_connectors` and `get_execution_connector`): it reads
+   every installed distribution's entry points again on each call (`importlib.metadata`,
+   about 7 ms), four times before the first host is contacted. `all_connectors` below reads
+   them once per run (what is installed does not change during a run) and hands out a new
+   dict of the same connectors each time.
 
 `install()` puts them in place of pyinfra's, in the modules that call them, only for the
 pyinfra version they were checked against (`CHECKED_PYINFRA`, the pin in pyproject.toml;
@@ -59,6 +65,9 @@ from types import FrameType
 import pyinfra
 from pyinfra.api import arguments as pyinfra_arguments
 from pyinfra.api import facts as pyinfra_facts
+from pyinfra.api import connectors as pyinfra_connectors
+from pyinfra.api import host as pyinfra_host
+from pyinfra.api import inventory as pyinfra_inventory
 from pyinfra.api import util as pyinfra_util
 from pyinfra.api.host import extract_callable_datas
 from pyinfra.context import ctx_config
@@ -80,6 +89,9 @@ BYTECODE_SUFFIXES = tuple(importlib.machinery.DEBUG_BYTECODE_SUFFIXES
 pyinfra_get_operation_order_from_stack = pyinfra_util.get_operation_order_from_stack
 pyinfra_all_global_arguments = pyinfra_arguments.all_global_arguments
 pyinfra_pop_global_arguments = pyinfra_arguments.pop_global_arguments
+pyinfra_get_all_connectors = pyinfra_connectors.get_all_connectors
+pyinfra_get_execution_connectors = pyinfra_connectors.get_execution_connectors
+pyinfra_get_execution_connector = pyinfra_connectors.get_execution_connector
 # The modules that call pop_global_arguments by the name they imported.
 POP_GLOBAL_ARGUMENTS_CALLERS = ("pyinfra.api.arguments", "pyinfra.api.deploy", "pyinfra.api.operation",
                                 "pyinfra.api.facts")
@@ -223,6 +235,26 @@ def operation_signature(function) -> inspect.Signature:
 
 
 @cache
+def _connectors() -> tuple[tuple[str, object], ...]:
+    return tuple(pyinfra_get_all_connectors().items())
+
+
+def all_connectors() -> dict:
+    """pyinfra's connectors by name, as `get_all_connectors` returns them, read once per run."""
+    return dict(_connectors())
+
+
+def execution_connectors() -> dict:
+    """pyinfra's `get_execution_connectors` over `all_connectors`."""
+    return {name: module for name, module in _connectors() if module.handles_execution}  # type: ignore[attr-defined]  # a connector class
+
+
+def execution_connector(name: str):
+    """pyinfra's `get_execution_connector` over `all_connectors`."""
+    return execution_connectors()[name]
+
+
+@cache
 def installed_pyinfra() -> str | None:
     try:
         return version("pyinfra")
@@ -247,4 +279,8 @@ def install() -> bool:
     for name in POP_GLOBAL_ARGUMENTS_CALLERS:
         importlib.import_module(name).pop_global_arguments = (  # type: ignore[attr-defined]  # pyinfra imports it privately; roslab patches it here
             pop_global_arguments if ours else pyinfra_pop_global_arguments)
+    # pyinfra's inventory and host modules import these by name: patched where they call them
+    pyinfra_inventory.get_all_connectors = all_connectors if ours else pyinfra_get_all_connectors
+    pyinfra_inventory.get_execution_connectors = execution_connectors if ours else pyinfra_get_execution_connectors
+    pyinfra_host.get_execution_connector = execution_connector if ours else pyinfra_get_execution_connector
     return ours

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+import importlib.metadata
 import inspect
 import runpy
 import tomllib
@@ -15,7 +16,10 @@ from fixtures.fake_host import fake_host, plan
 from fixtures.fake_ubuntu import FakeUbuntu
 from pyinfra.api import State
 from pyinfra.api import arguments as pyinfra_arguments
+from pyinfra.api import connectors as pyinfra_connectors
 from pyinfra.api import facts as pyinfra_facts
+from pyinfra.api import host as pyinfra_host
+from pyinfra.api import inventory as pyinfra_inventory
 from pyinfra.api import util as pyinfra_util
 from pyinfra.api.state import StateStage
 
@@ -72,6 +76,9 @@ def restore_pyinfras_functions():
     pyinfra_facts.all_global_arguments = pyinfra_planning.pyinfra_all_global_arguments
     for name in pyinfra_planning.POP_GLOBAL_ARGUMENTS_CALLERS:
         importlib.import_module(name).pop_global_arguments = pyinfra_planning.pyinfra_pop_global_arguments
+    pyinfra_inventory.get_all_connectors = pyinfra_planning.pyinfra_get_all_connectors
+    pyinfra_inventory.get_execution_connectors = pyinfra_planning.pyinfra_get_execution_connectors
+    pyinfra_host.get_execution_connector = pyinfra_planning.pyinfra_get_execution_connector
 
 
 @pytest.fixture
@@ -178,14 +185,40 @@ def installed_functions():
             pyinfra_planning.pyinfra_operation.signature,
             pyinfra_arguments.all_global_arguments, pyinfra_facts.all_global_arguments,
             *(importlib.import_module(name).pop_global_arguments
-              for name in pyinfra_planning.POP_GLOBAL_ARGUMENTS_CALLERS))
+              for name in pyinfra_planning.POP_GLOBAL_ARGUMENTS_CALLERS),
+            pyinfra_inventory.get_all_connectors, pyinfra_inventory.get_execution_connectors,
+            pyinfra_host.get_execution_connector)
 
 
 OURS = (pyinfra_planning.get_operation_order_from_stack, pyinfra_planning.operation_signature,
         pyinfra_planning.all_global_arguments,
-        pyinfra_planning.all_global_arguments, *[pyinfra_planning.pop_global_arguments] * 4)
+        pyinfra_planning.all_global_arguments, *[pyinfra_planning.pop_global_arguments] * 4,
+        pyinfra_planning.all_connectors, pyinfra_planning.execution_connectors, pyinfra_planning.execution_connector)
 PYINFRAS = (pyinfra_util.get_operation_order_from_stack, inspect.signature, pyinfra_arguments.all_global_arguments,
-            pyinfra_facts.all_global_arguments, *[pyinfra_arguments.pop_global_arguments] * 4)
+            pyinfra_facts.all_global_arguments, *[pyinfra_arguments.pop_global_arguments] * 4,
+            pyinfra_connectors.get_all_connectors, pyinfra_connectors.get_execution_connectors,
+            pyinfra_connectors.get_execution_connector)
+
+
+def test_the_connectors_are_pyinfras_read_once_per_run(monkeypatch):
+    """The same connectors by name, a dict of its own each call; the entry points read once."""
+    pyinfra_planning._connectors.cache_clear()
+    reads = []
+    monkeypatch.setattr(pyinfra_connectors, "entry_points",
+                        lambda **kwargs: reads.append(kwargs) or importlib.metadata.entry_points(**kwargs))
+    monkeypatch.setattr(pyinfra_planning, "pyinfra_get_all_connectors", pyinfra_connectors.get_all_connectors)
+    try:
+        theirs = pyinfra_connectors.get_all_connectors()
+        assert pyinfra_planning.all_connectors() == theirs and "ssh" in theirs
+        assert pyinfra_planning.all_connectors() is not pyinfra_planning.all_connectors()
+        assert pyinfra_planning.execution_connectors() == pyinfra_connectors.get_execution_connectors()
+        assert pyinfra_planning.execution_connector("ssh") is pyinfra_connectors.get_execution_connector("ssh")
+        for _ in range(3):
+            pyinfra_planning.all_connectors()
+            pyinfra_planning.execution_connector("local")
+        assert len(reads) == 4  # pyinfra's own: one read per call; ours: one in all
+    finally:
+        pyinfra_planning._connectors.cache_clear()
 
 
 def test_install_only_for_the_checked_pyinfra_and_without_the_switch(monkeypatch):
