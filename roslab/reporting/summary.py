@@ -1006,6 +1006,20 @@ _log_capture: _LogCapture | None = None
 
 LONG_STEP = 5.0  # seconds after which a step that has changed nothing yet is shown anyway
 STILL_RUNNING_EVERY = 20.0  # seconds between "still running on ..." lines of a long step
+# The controller's environment may set another interval (whole seconds, 1 to 3600): a teacher
+# watching a long first build may want a line more often, a log kept for later one less often.
+STILL_RUNNING_VARIABLE = "ROSLAB_STILL_RUNNING_SECONDS"
+
+
+def still_running_every(environ=os.environ) -> tuple[float, str | None]:
+    """(seconds between "still running" lines, None or the warning for a value not taken)."""
+    value = environ.get(STILL_RUNNING_VARIABLE, "").strip()
+    if not value:
+        return STILL_RUNNING_EVERY, None
+    if value.isascii() and value.isdigit() and 1 <= int(value) <= 3600:
+        return float(value), None
+    return STILL_RUNNING_EVERY, (f"{STILL_RUNNING_VARIABLE}={value[:40]!r} is not a whole number of seconds from 1 "
+                                 f"to 3600: every {STILL_RUNNING_EVERY:.0f} s")
 _STARTING = re.compile(r"^--> Starting\b.*\boperation:")
 _QUIET_STATUSES = re.compile(r"^(?:No changes|Skipped)\b")
 # pyinfra's "[host] Ready: deploy.py", one per host once its plan is made: a host that cannot
@@ -1158,7 +1172,10 @@ _compact: CompactOutput | None = None
 def _attach_compact_output() -> None:
     global _compact
     if _compact is None:
-        _compact = CompactOutput(pyinfra.logger, hosts=_executing_hosts)
+        every, problem = still_running_every()
+        if problem:
+            pyinfra.logger.warning(f"roslab: {problem}")
+        _compact = CompactOutput(pyinfra.logger, hosts=_executing_hosts, every=every)
         pyinfra.logger.addFilter(_compact)
 
 

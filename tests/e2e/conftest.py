@@ -61,7 +61,8 @@ class PyinfraRun:
     returncode: int
     stdout: str
     stderr: str
-    changed: dict[str, set[str]] = field(default_factory=dict)  # operation name -> hosts it changed
+    # operation name -> hosts it changed (None: a run without --json, which does not say)
+    changed: dict[str, set[str]] | None = field(default_factory=dict)
     failed_hosts: list[str] = field(default_factory=list)
 
     def changes_per_host(self) -> Counter:
@@ -139,16 +140,25 @@ class SandboxClassroom:
         return self.ssh(host, f"sudo -n sh -c {shlex.quote(command)}", check=check, timeout=timeout)
 
     def pyinfra(self, *args: str, inventory: str = "inventories/sandbox.py", deploy: str = "deploy.py",
-                env: dict[str, str] | None = None, timeout: float = 1800) -> PyinfraRun:
-        """`pyinfra [-y] --json [args] INVENTORY DEPLOY` on this sandbox, with what changed per host."""
+                env: dict[str, str] | None = None, timeout: float = 1800, json_output: bool = True) -> PyinfraRun:
+        """`pyinfra [-y] --json [args] INVENTORY DEPLOY` on this sandbox, with what changed per host.
+
+        `json_output=False`: without --json, as a teacher runs it (roslab's compact output, with
+        its "still running" lines); the failed hosts are then read from roslab's summary, and
+        what changed is not known (`changed` is None)."""
         # -y applies without asking; with --dry it would also skip the change detection
         # that a dry run is for, leaving the plan's hosts_with_change empty.
         confirm = [] if "--dry" in args else ["-y"]
         proc = subprocess.run(
-            [str(BIN / "pyinfra"), *confirm, "--json", *args, inventory, deploy],
+            [str(BIN / "pyinfra"), *confirm, *(["--json"] if json_output else []), *args, inventory, deploy],
             cwd=REPO, env={**self.env, **(env or {})}, capture_output=True, text=True, timeout=timeout,
         )
         run = PyinfraRun(proc.returncode, proc.stdout, proc.stderr)
+        if not json_output:
+            run.changed = None
+            run.failed_hosts = [words[0] for words in map(str.split, summary_lines(proc.stderr)[1:])
+                                if len(words) > 1 and words[1] == "failed"]
+            return run
         try:
             run.changed, run.failed_hosts = parse_pyinfra_json(proc.stdout)
         except (json.JSONDecodeError, KeyError):

@@ -37,6 +37,7 @@ reboot, and after a real reboot of the sandbox host the next run changes nothing
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -47,6 +48,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from roslab.reporting.summary import LONG_STEP, STILL_RUNNING_VARIABLE
 from roslab.sandbox import git_standins, pi_boot, upstream
 from tests.e2e.conftest import bring_up, summary_lines
 
@@ -64,6 +66,7 @@ OSR_URL = "https://github.com/nasa-jpl/osr-rover-code.git"
 AGENT_URL = "https://github.com/micro-ROS/micro-ROS-Agent.git"
 XRCE_URL = "https://github.com/eProsima/Micro-XRCE-DDS-Agent.git"
 OSR_PIN = "v4.1.0"  # osr.repos
+STILL_RUNNING_EVERY = 2  # seconds between the first run's "still running" lines (ROSLAB_STILL_RUNNING_SECONDS)
 # the class's own tools (the roster's workspace_sources, a stand-in made by this test): every host
 LAB_TOOLS_URL = "https://github.com/roslab-standin/lab_tools.git"
 # every repository of the class, and the hosts that build it
@@ -95,8 +98,9 @@ def needs_real(sandbox) -> None:
                     "the robots' git bundles and ROSLAB_SANDBOX_ROS_RUNTIME to the real ROS runtime)")
 
 
-def deploy(sandbox, roster: Path, *args):
-    return sandbox.pyinfra(*args, inventory="inventories/lab.py", env={"ROSLAB_ROSTER": str(roster)})
+def deploy(sandbox, roster: Path, *args, json_output: bool = True, env: dict[str, str] | None = None):
+    return sandbox.pyinfra(*args, inventory="inventories/lab.py", env={"ROSLAB_ROSTER": str(roster), **(env or {})},
+                           json_output=json_output)
 
 
 def write_roster(sandbox, path: Path, rover_pin: str | None = None, offline: bool = False) -> Path:
@@ -205,7 +209,9 @@ def verify(sandbox, roster: Path, *args: str) -> subprocess.CompletedProcess:
 @pytest.fixture(scope="module")
 def first_run(sandbox, roster):
     start = request_count(sandbox)
-    run = deploy(sandbox, roster)
+    # As a teacher runs it, the output they read; a "still running" line every 2 s (rather than
+    # every 20), so the agent's build (13 s with the machine's compiler cache warm) is seen in it.
+    run = deploy(sandbox, roster, json_output=False, env={STILL_RUNNING_VARIABLE: str(STILL_RUNNING_EVERY)})
     run.requests = requests_since(sandbox, start)
     return run
 
@@ -222,6 +228,13 @@ def reboot_lines(stderr: str) -> list[str]:
 def test_the_class_converges_and_the_rover_reports_reboot_needed_once(sandbox, roster, first_run):
     assert first_run.returncode == 0, first_run.stderr[-4000:]
     assert first_run.failed_hosts == []
+    # roslab's summary: a line per host, each ok or changed
+    statuses: dict[str, str] = {}
+    for words in map(str.split, summary_lines(first_run.stderr)[1:]):  # a host's first line: its status
+        if len(words) > 1 and words[0] in {host.name for host in sandbox.hosts}:
+            statuses.setdefault(words[0], words[1])
+    assert set(statuses) == {host.name for host in sandbox.hosts}, summary_lines(first_run.stderr)
+    assert set(statuses.values()) <= {"ok", "changed"}, summary_lines(first_run.stderr)
     lines = reboot_lines(first_run.stderr)
     assert len(lines) == 1 and lines[0].startswith(f"{ROVER} needs a reboot: boot config changed:"), lines
 
@@ -346,6 +359,28 @@ def test_the_real_agent_is_an_elf_binary_built_after_the_xrce_agent_and_listens_
             break
         time.sleep(1)
     assert f":{AGENT_PORT} " in listening and "micro_ros_agent" in listening, listening
+
+
+def test_the_agents_long_build_names_its_package_in_the_runs_still_running_lines(sandbox, first_run):
+    """While colcon builds the board host's underlay, the run's "still running" lines say which
+    package it is at and how many of how many are built (roslab/ros/colcon_progress.py)."""
+    events = sandbox.ssh(BOARD_HOST, f"grep -hE '(JobStarted|JobEnded)' {UNDERLAY}/log/latest_build/events.log",
+                         check=True).stdout.splitlines()
+    # colcon's events.log: "[12.345] (package) JobStarted: {...}", seconds since colcon started
+    times = [float(line[1:line.index("]")]) for line in events]
+    packages = {line.split("(", 1)[1].split(")", 1)[0] for line in events}
+    took = max(times) - min(times)
+    # the first line comes LONG_STEP + STILL_RUNNING_EVERY seconds into the step, then one per
+    # STILL_RUNNING_EVERY: a build longer than both is under way at one of them, wherever it starts
+    assert took > LONG_STEP + STILL_RUNNING_EVERY + 1, f"colcon built {sorted(packages)} in {took:.1f} s"
+    said = [line for line in first_run.stderr.splitlines()
+            if "still running on" in line and f"{BOARD_HOST}: building " in line]
+    assert said, [line for line in first_run.stderr.splitlines() if "still running on" in line]
+    named = [re.search(rf"{BOARD_HOST}: building ([\w, ]+) \((\d+) of (\d+) built\)", line) for line in said]
+    assert None not in named, said
+    # the underlay's build (the workspace's, a later step, names its own packages)
+    underlay = [match for match in named if set(match.group(1).split(", ")) <= packages]
+    assert underlay and all(int(match.group(3)) == len(packages) for match in underlay), (said, packages)
 
 
 def test_the_rovers_real_packages_have_their_generated_code_and_its_launch_starts(sandbox, roster, first_run):
