@@ -4,6 +4,9 @@ Package mode: the machine running pyinfra downloads the pinned ros2-apt-source .
 (cached by its sha256, checked) and copies exactly those bytes to each host; no Pi fetches
 it from GitHub, whose API and downloads rate-limit a classroom behind one address.
 Mirror mode: a keyring and a deb822 source with `Signed-By` point at a local mirror.
+Snapshot mode: the same, pointing at the ROS archive as it was at one sync
+(snapshots.ros.org/<distro>/<snapshot>/ubuntu, signed with a key of its own whose
+fingerprint the ROS 2 documentation publishes: a key file with another is refused).
 Either way, leftovers of the pre-2025 method (ros2.list, ros-archive-keyring.gpg) are
 moved aside: beside ros2.sources they make apt fail ("Conflicting values set for option
 Signed-By"), and their key expired on 2025-06-01.
@@ -11,7 +14,6 @@ Signed-By"), and their key expired on 2025-06-01.
 
 from __future__ import annotations
 
-import base64
 from io import BytesIO, StringIO
 from pathlib import Path
 
@@ -19,11 +21,13 @@ from pyinfra import host
 from pyinfra.api import deploy
 from pyinfra.operations import apt, files
 
-from deploy.common import apt_sources_written, ubuntu_codename, should_run, stop_host, where
-from roslab import downloads, probe, settings
+from deploy.common import apt_sources_written, host_distro, ubuntu_codename, should_run, stop_host, where
+from roslab import downloads, openpgp, probe, settings
 from roslab.ops.apt import apt_install_options
 from roslab.ops.files import files_moved_aside, files_moved_aside_reads
 from roslab.quoting import deb822_value
+from roslab.ros import distro as distros
+from roslab.ros import snapshots
 from roslab.templating import render
 from roslab.host_settings import host_settings
 
@@ -65,21 +69,6 @@ def deb_name(version: str, codename: str) -> str:
     return f"{PACKAGE}_{version}.{codename}_all.deb"
 
 
-def dearmored(key: bytes) -> bytes:
-    """An OpenPGP key as binary (what apt's Signed-By reads), un-armoring it if needed."""
-    text = key.decode("ascii", errors="replace")
-    if "-----BEGIN PGP PUBLIC KEY BLOCK-----" not in text:
-        return key
-    body = text.split("-----BEGIN PGP PUBLIC KEY BLOCK-----", 1)[1]
-    body = body.split("-----END PGP PUBLIC KEY BLOCK-----", 1)[0]
-    lines = [line.strip() for line in body.strip().splitlines()]
-    if "" in lines:  # armor headers ("Version: ...") end at the first blank line
-        lines = lines[lines.index("") + 1 :]
-    # The "=XXXX" line is the armor's checksum, not key data.
-    data = "".join(line for line in lines if line and not line.startswith("="))
-    return base64.b64decode(data, validate=True)
-
-
 def _package_mode(codename: str) -> list | None:
     typed = host_settings(host)
     version = typed.ros_apt_source_version
@@ -116,28 +105,59 @@ def _package_mode(codename: str) -> list | None:
 
 def _mirror_mode(codename: str) -> list | None:
     typed = host_settings(host)
-    mirror_url = typed.ros_apt_mirror_url
-    key_file = typed.ros_apt_mirror_key_file
-    if not mirror_url or not key_file:
-        field = "ros_apt_mirror_url" if not mirror_url else "ros_apt_mirror_key_file"
-        stop_host(f"{where()}: ros_apt_source_mode is 'mirror' but {field} is not set; "
-                  "nothing was changed on it")
+    for field, value in (("ros_apt_mirror_url", typed.ros_apt_mirror_url),
+                         ("ros_apt_mirror_key_file", typed.ros_apt_mirror_key_file)):
+        if not value:
+            stop_host(f"{where()}: ros_apt_source_mode is 'mirror' but {field} is not set; "
+                      "nothing was changed on it")
+            return None
+    return _signed_source(str(typed.ros_apt_mirror_url), str(typed.ros_apt_mirror_key_file),
+                          "ros_apt_mirror_key_file", codename, "the mirror")
+
+
+def _snapshot_mode(codename: str) -> list | None:
+    typed = host_settings(host)
+    for field, value in (("ros_apt_snapshot", typed.ros_apt_snapshot),
+                         ("ros_apt_snapshot_key_file", typed.ros_apt_snapshot_key_file)):
+        if not value:
+            stop_host(f"{where()}: ros_apt_source_mode is 'snapshot' but {field} is not set; "
+                      "nothing was changed on it")
+            return None
+    distro = host_distro()
+    if not distros.record(distro).lts:
+        stop_host(f"{where()}: ros_apt_source_mode is 'snapshot' but ROS {distro} is not an LTS distro: "
+                  "snapshots.ros.org keeps LTS distros only; nothing was changed on it")
         return None
+    server, snapshot = typed.ros_apt_snapshot_url, str(typed.ros_apt_snapshot)
+    return _signed_source(snapshots.snapshot_url(server, distro, snapshot), str(typed.ros_apt_snapshot_key_file),
+                          "ros_apt_snapshot_key_file", codename, f"the ROS {distro} snapshot {snapshot}",
+                          key_problem=lambda key: snapshots.key_problem(server, key))
+
+
+def _signed_source(url: str, key_file: str, key_field: str, codename: str, what: str,
+                   key_problem=None) -> list | None:
+    """The ROS 2 apt source at `url`, signed by the key in `key_file`: the keyring and a deb822
+    source with Signed-By, and no ros2-apt-source package (whose source it replaces)."""
+    typed = host_settings(host)
     try:
-        key = dearmored(Path(key_file).read_bytes())
+        key = openpgp.dearmored(Path(key_file).read_bytes())
     except (OSError, ValueError) as error:
-        stop_host(f"{where()}: ros_apt_mirror_key_file {key_file}: {error}; nothing was changed on it")
+        stop_host(f"{where()}: {key_field} {key_file}: {error}; nothing was changed on it")
+        return None
+    problem = key_problem(key) if key_problem else None
+    if problem:
+        stop_host(f"{where()}: {key_field} {key_file} {problem}; nothing was changed on it")
         return None
 
     purged = apt.packages(
-        name="Ensure the ros2-apt-source package is not installed (the mirror replaces it)",
+        name=f"Ensure the ros2-apt-source package is not installed ({what} replaces it)",
         packages=[PACKAGE],
         present=False,
         purge=True,
         extra_uninstall_args=apt_install_options(typed.apt_lock_timeout),
     )
     keyring = files.put(
-        name="Ensure the mirror's signing key is in the ROS 2 keyring",
+        name=f"Ensure {what}'s signing key is in the ROS 2 keyring",
         src=BytesIO(key),
         dest=KEYRING,
         mode="644",
@@ -145,12 +165,12 @@ def _mirror_mode(codename: str) -> list | None:
     # deb822: a value holding a newline would add a field of its own (`Trusted: yes`).
     text = render(
         "ros2.sources.j2",
-        mirror_url=deb822_value(mirror_url),
+        mirror_url=deb822_value(url),
         codename=deb822_value(codename),
         keyring=deb822_value(KEYRING),
     )
     source = files.put(
-        name="Ensure the ROS 2 apt source points at the mirror",
+        name=f"Ensure the ROS 2 apt source points at {what}",
         src=StringIO(text),
         dest=SOURCES,
         mode="644",
@@ -164,7 +184,8 @@ def ros_apt_source():
 
     Reads host_settings(host): ros_apt_source_enabled, ros_apt_source_mode, ros_apt_source_version,
     ros_apt_source_sha256, ros_apt_source_url, ros_apt_source_cache_dir,
-    ros_apt_mirror_url, ros_apt_mirror_key_file, apt_lock_timeout, offline (the .deb only
+    ros_apt_mirror_url, ros_apt_mirror_key_file, ros_apt_snapshot, ros_apt_snapshot_url,
+    ros_apt_snapshot_key_file, apt_lock_timeout, offline (the .deb only
     from the controller's cache).
     """
     if not should_run("ros_apt_source_enabled"):
@@ -177,8 +198,11 @@ def ros_apt_source():
     old_method = old_method_moved_aside()
     # A file the controller cannot get stops this host here: pyinfra then runs none of its
     # operations, so nothing changes on it.
-    if host_settings(host).ros_apt_source_mode == "mirror":
+    mode = host_settings(host).ros_apt_source_mode
+    if mode == "mirror":
         changes = _mirror_mode(codename)
+    elif mode == "snapshot":
+        changes = _snapshot_mode(codename)
     else:
         changes = _package_mode(codename)
     if changes is None:
@@ -194,7 +218,7 @@ def ros_apt_source_reads() -> list:
     if not should_run("ros_apt_source_enabled"):
         return []
     reads = files_moved_aside_reads(OLD_METHOD_FILES)
-    if typed.ros_apt_source_mode == "mirror":
+    if typed.ros_apt_source_mode in ("mirror", "snapshot"):
         return [*reads, *probe.packages_reads(), *probe.put_reads(KEYRING), *probe.put_reads(SOURCES)]
     codename = ubuntu_codename()
     host_deb = f"{HOST_DEB_DIR}/{deb_name(typed.ros_apt_source_version, codename)}"

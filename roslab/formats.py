@@ -11,6 +11,7 @@ controller-side paths resolve them against the roster's directory.
 
 from __future__ import annotations
 
+import datetime
 import ipaddress
 import os
 import re
@@ -208,6 +209,25 @@ ros_message_type = pattern(r"[a-z][a-z0-9_]*/msg/[A-Z][A-Za-z0-9]*",
                            "a ROS message type (like sensor_msgs/msg/LaserScan)")
 version = pattern(r"[0-9]+(\.[0-9]+){1,3}", "a version like 1.2.0")
 sha256_hex = pattern(r"[0-9a-f]{64}", "a sha256 (64 lower-case hex digits)")
+
+
+def ros_snapshot(value: str, context: Context | None = None) -> str | None:
+    """A snapshot of the ROS archive as snapshots.ros.org names it: a sync's date or `final`."""
+    if not isinstance(value, str):
+        return "must be a string"
+    if value == "final":
+        return None
+    try:
+        date = datetime.date.fromisoformat(value) if len(value) == 10 else None
+    except ValueError:
+        date = None
+    if date is None or date.isoformat() != value:
+        return (f"{value!r} is not a snapshot name: a sync's date (YYYY-MM-DD, as snapshots.ros.org "
+                "lists them) or final")
+    return None
+
+
+describe(ros_snapshot, allowed="YYYY-MM-DD or final")
 interface_name = pattern(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,14}", "a network interface name (like eth0)")
 # A colcon argument: option or value, no shell or line syntax needed.
 colcon_argument = pattern(r"[A-Za-z0-9_@%+=:,./-]+", "a colcon argument (letters, digits, _ @ % + = : , . / -)")

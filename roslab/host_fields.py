@@ -52,6 +52,9 @@ class HostSettings:
     ros_apt_source_cache_dir: str
     ros_apt_mirror_url: str | None
     ros_apt_mirror_key_file: str | None
+    ros_apt_snapshot: str | None
+    ros_apt_snapshot_url: str
+    ros_apt_snapshot_key_file: str | None
     # --- ros_install ---
     ros_install_enabled: bool
     ubuntu_release: str

@@ -18,7 +18,7 @@ from typing import Any
 
 from roslab.ros import discovery
 from roslab.ros import distro as distros
-from roslab import boards, formats as f
+from roslab import boards, openpgp, formats as f
 
 # Where a key may be set: everywhere, or only at one level.
 ANY = ("classroom", "team", "host")
@@ -205,8 +205,9 @@ SCHEMA: list[Setting] = [
         "ros_apt_source",
         _enabled("ros_apt_source", "Configure the ROS 2 apt source (and move the old method's files aside)."),
         ("ros_apt_source_mode", "package", str,
-         "package: install ros2-apt-source (official); mirror: a local mirror's key and URL.",
-         f.choice("package", "mirror")),
+         "package: install ros2-apt-source (official); mirror: a local mirror's key and URL; snapshot: "
+         "the ROS archive as it was at one sync (snapshots.ros.org, LTS distros; ros_apt_snapshot).",
+         f.choice("package", "mirror", "snapshot")),
         ("ros_apt_source_version", distros.ROS_APT_SOURCE_VERSION, str,
          f"The pinned ros2-apt-source release ({distros.ROS_APT_SOURCE_VERSION}, 2026-04).", f.version),
         ("ros_apt_source_sha256", distros.ros_apt_source_pins(), dict,
@@ -231,6 +232,17 @@ SCHEMA: list[Setting] = [
          "Mirror mode: path, on the machine running pyinfra, to the mirror's signing key "
          "(an OpenPGP public key, ASCII-armored or binary, at most 1 MiB; it is copied to every Pi).",
          f.openpgp_key_file, {"nullable": True}),
+        ("ros_apt_snapshot", None, str,
+         "Snapshot mode: the snapshot to install from, as snapshots.ros.org names them: a sync's date "
+         "(YYYY-MM-DD) or final (a distro's last, after its end of life). New installs get that sync's "
+         "versions; a class lock keeps them.", f.ros_snapshot, {"nullable": True}),
+        ("ros_apt_snapshot_url", "http://snapshots.ros.org", str,
+         "Snapshot mode: the snapshot server (a local mirror of it may stand in); a host's source is "
+         "<this>/<distro>/<snapshot>/ubuntu.", f.http_url),
+        ("ros_apt_snapshot_key_file", None, str,
+         "Snapshot mode: path, on the machine running pyinfra, to the snapshot repository's signing key "
+         "(not packages.ros.org's); from snapshots.ros.org its fingerprint must be "
+         f"{openpgp.spaced(openpgp.SNAPSHOTS_FINGERPRINT)}.", f.openpgp_key_file, {"nullable": True}),
     ),
     *_concern(
         "ros_install",

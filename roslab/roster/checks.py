@@ -12,10 +12,12 @@ from __future__ import annotations
 import difflib
 import ipaddress
 from collections.abc import Callable
+from pathlib import Path
 
 from roslab.ros import discovery
 from roslab.ros import distro as distros
-from roslab import boards, host_rules, settings
+from roslab.ros import snapshots
+from roslab import boards, host_rules, openpgp, settings
 from roslab.host_settings import HostSettings
 from roslab.roster.model import ROLES, Classroom, Host
 from roslab.checked.problems import Report
@@ -84,6 +86,8 @@ def check_host(host: Host, report: Report) -> None:
             if not value:
                 report.error(f"ros_apt_source_mode is 'mirror', so {key} must be set",
                              field=key, line=host.lines.get("ros_apt_source_mode"), **where)
+    elif typed.ros_apt_source_enabled and typed.ros_apt_source_mode == "snapshot":
+        check_snapshot(host, codename, report)
     elif typed.ros_apt_source_enabled and codename:
         if codename not in (typed.ros_apt_source_sha256 or {}):
             version = typed.ros_apt_source_version
@@ -102,6 +106,32 @@ def check_host(host: Host, report: Report) -> None:
         report.error("roslab logs in as root, and ssh hardening (PermitRootLogin no) would lock it out: "
                      "log in as the lab user, or set ssh_permit_root_login: prohibit-password",
                      field="ssh_user", line=host.lines.get("ssh_user"), **where)
+
+
+def check_snapshot(host: Host, codename: str | None, report: Report) -> None:
+    """Snapshot mode: a snapshot and its key named, an LTS distro (snapshots.ros.org keeps no
+    other), and from snapshots.ros.org its own key (the fingerprint the ROS docs publish)."""
+    where = {"team": host.team, "host": host.name}
+    typed = host.settings
+    line = host.lines.get("ros_apt_source_mode")
+    for key, value in (("ros_apt_snapshot", typed.ros_apt_snapshot),
+                       ("ros_apt_snapshot_key_file", typed.ros_apt_snapshot_key_file)):
+        if not value:
+            report.error(f"ros_apt_source_mode is 'snapshot', so {key} must be set", field=key, line=line, **where)
+    distro = typed.ros_distro or (distros.default_distro(codename) if codename else None)
+    if distro in distros.BY_NAME and not distros.record(distro).lts:
+        report.error(f"ros_apt_source_mode is 'snapshot', but ROS {distro} is not an LTS distro: snapshots.ros.org "
+                     "keeps LTS distros only (use package or mirror mode for this host)",
+                     field="ros_apt_source_mode", line=line or host.lines.get("ros_distro"), **where)
+    if typed.ros_apt_snapshot_key_file:
+        path = Path(typed.ros_apt_snapshot_key_file)
+        try:
+            problem = snapshots.key_problem(typed.ros_apt_snapshot_url, openpgp.dearmored(path.read_bytes()))
+        except (OSError, ValueError) as error:
+            problem = f"cannot be read: {error}"
+        if problem:
+            report.error(f"{typed.ros_apt_snapshot_key_file} {problem}", field="ros_apt_snapshot_key_file",
+                         line=host.lines.get("ros_apt_snapshot_key_file"), **where)
 
 
 # The controller's folders that roslab writes into and copies from, each with a purpose of its

@@ -4,7 +4,8 @@ The class's roster gives the hosts (names, teams, roles, Ubuntu releases, in its
 sandbox's roster is the class's own, with what the sandbox must serve itself put in place:
 
 - the connection (`ssh_*`), each host's `address` (the sandbox's subnet) and the sandbox's
-  archives, indexes and middleware (`Upstream.roster_settings`) replace the class's;
+  archives, indexes and middleware (`Upstream.roster_settings`) replace the class's; a class
+  on a ROS snapshot gets the sandbox's stand-in snapshot (`Upstream.snapshot_settings`);
 - the network settings (`network_*`, WiFi) and secrets are left out: the sandbox's hosts
   keep its addresses, and it has no WiFi and no sudo password;
 - a controller path written relative to the class's roster (a key file, a cache, the nodes'
@@ -101,11 +102,21 @@ def default_middleware_note(class_settings: dict, replaced: dict) -> str | None:
             f"serves {replaced['ros_middleware']} only (its Humble has no Fast DDS); the sandbox runs that")
 
 
+def uses_snapshot(raw: dict) -> bool:
+    """Whether any level of a class roster (as read) sets the ROS source's snapshot mode."""
+    levels = [raw.get("classroom") or {}]
+    for team in (raw.get("teams") or {}).values():
+        levels += [team or {}, *((team or {}).get("hosts") or {}).values()]
+    return any(isinstance(level, dict) and level.get("ros_apt_source_mode") == "snapshot" for level in levels)
+
+
 def sandbox_roster(class_path: Path, base: dict, addresses: dict[str, str],
-                   releases: dict[str, str]) -> tuple[dict, list[str]]:
+                   releases: dict[str, str], snapshot: dict | None = None) -> tuple[dict, list[str]]:
     """The sandbox's roster for the class at `class_path`: `base` is the roster the sandbox
     writes for its own hosts (its classroom settings win), `addresses` and `releases` each
-    host's in the sandbox. Returns the roster and the notes."""
+    host's in the sandbox; `snapshot`: the settings of the sandbox's stand-in snapshot server,
+    which replace the class's own when it installs ROS from a snapshot (snapshots.ros.org is
+    out of the sandbox's reach). Returns the roster and the notes."""
     from roslab.checked.loading import load_yaml
     from roslab.checked.problems import Report
 
@@ -114,6 +125,8 @@ def sandbox_roster(class_path: Path, base: dict, addresses: dict[str, str],
     if report.errors or not isinstance(raw, dict):
         raise SandboxError(f"{class_path}: cannot read the roster")
     replaced = dict(base["classroom"])
+    if snapshot and uses_snapshot(raw):
+        replaced.update(snapshot)
     notes: list[str] = []
 
     def kept(mapping: dict, where: str) -> dict:

@@ -224,7 +224,8 @@ def _up_locked(instance: Instance, planned: list[SandboxHost], class_roster: Pat
     with announced("building the stand-in upstream (Ubuntu-layout archive, stand-in ROS packages, rosdep data)"):
         published = upstream.build(instance.state_dir / "upstream", instance.upstream_url, rootfs)
     _record_ros(instance, published.ros or {}, published.real_repositories)
-    _update_state(instance, ros_apt_source_sha256=published.ros_apt_source_sha256)  # for _resync's roster
+    _update_state(instance, ros_apt_source_sha256=published.ros_apt_source_sha256,  # for _resync's roster
+                  snapshot=published.snapshot)
     upstream.start_server(instance.state_dir / "upstream", instance.bridge_address, UPSTREAM_PORT,
                           instance.state_dir / "upstream.pid", instance.state_dir / "upstream.log")
     keyring = upstream.ubuntu_key().keyring.read_bytes()
@@ -299,7 +300,7 @@ def _resync(running: Classroom, desktop: list[str] | None) -> Classroom:
     classroom = Classroom(instance, planned, class_roster)
     before = instance.roster_path.read_text() if instance.roster_path.exists() else ""
     published = upstream.Upstream(instance.upstream_url, state["ros_apt_source_sha256"], state.get("ros"),
-                                  tuple(state.get("real_repositories", ())))
+                                  tuple(state.get("real_repositories", ())), state.get("snapshot", ""))
     write_roster(classroom, published)  # checked before any host changes
     for host in removed:
         _remove_host(instance, host)
@@ -402,12 +403,15 @@ def write_roster(classroom: Classroom, published: upstream.Upstream) -> None:
               "# and removed by `roslab sandbox down`. Its settings point at the sandbox's local\n"
               "# upstream exactly as a real classroom's would point at a mirror.\n")
     written = roster(classroom, published)
+    key_file = instance.state_dir / "ros-archive-key.asc"  # first: a roster in snapshot mode names it
+    write_file(key_file, upstream.ros_key().armored.read_bytes())
     if classroom.class_roster is not None:
         from .class_roster import sandbox_roster
 
         written, notes = sandbox_roster(classroom.class_roster, written,
                                         {host.name: host.address for host in classroom.hosts},
-                                        {host.name: host.release for host in classroom.hosts})
+                                        {host.name: host.release for host in classroom.hosts},
+                                        snapshot=published.snapshot_settings(key_file))
         header += f"# Its hosts and settings are the class's in {classroom.class_roster} (`up --roster`).\n"
         for note in notes:
             log.warning("note: %s", note)
@@ -419,11 +423,11 @@ def write_roster(classroom: Classroom, published: upstream.Upstream) -> None:
             load_roster(instance.roster_path)
         except RosterError as error:
             raise SandboxError(f"the sandbox's copy of {classroom.class_roster} has errors:\n{error}") from None
-    key_file = instance.state_dir / "ros-archive-key.asc"
-    write_file(key_file, upstream.ros_key().armored.read_bytes())
     write_file(instance.state_dir / "upstream.yaml",
-               "# Settings for the ROS apt source's mirror mode (ros_apt_source_mode: mirror).\n"
-               + yaml.safe_dump(published.mirror_settings(key_file), sort_keys=False))
+               "# Settings for the ROS apt source's mirror mode (ros_apt_source_mode: mirror)\n"
+               "# and its snapshot mode (ros_apt_source_mode: snapshot, the stand-in snapshot server).\n"
+               + yaml.safe_dump({**published.mirror_settings(key_file), **published.snapshot_settings(key_file)},
+                                sort_keys=False))
 
 
 # -- machine-wide resources ----------------------------------------------------------------

@@ -13,6 +13,10 @@ Served over HTTP on the instance's bridge address (hosts reach nothing else):
                     With ROSLAB_SANDBOX_ROS_RUNTIME (roslab.sandbox.ros_runtime),
                     ros-<distro>-ros-core is REAL ROS 2 instead, and the stand-ins
                     depend on it.
+  /ros-snapshots/<distro>/<date>/ubuntu/
+                    a STAND-IN of snapshots.ros.org: the ROS archive as `up` served
+                    it, named by the day it was built; `publish` moves /ros2/ubuntu
+                    only, so the snapshot keeps its versions (snapshot mode).
   /ros-apt-source/  stand-ins for ros2-apt-source's .deb (key + deb822 source).
   /rosdep/          rosdep's sources list and rules for the keys the demo nodes use.
   /rosdistro/       a rosdistro index listing the stand-in ROS packages.
@@ -26,6 +30,7 @@ directory; everything that embeds the instance's URL is rebuilt per instance.
 
 from __future__ import annotations
 
+import datetime
 import gzip
 import hashlib
 import json
@@ -60,6 +65,7 @@ ROS_APT_SOURCE_VERSION = ROS_APT_SOURCE_PIN  # the version roslab pins (roslab.r
 # (roslab.ros.distro's one record per Ubuntu/ROS pair).
 # codename -> distro: the release records' live index (a record added later is served too).
 ROS_DISTROS = DEFAULT_DISTRO
+SNAPSHOTS_PATH = "ros-snapshots"  # the stand-in of snapshots.ros.org: <distro>/<snapshot>/ubuntu
 UBUNTU_SUITE_POCKETS = ("", "-updates", "-backports", "-security")
 UBUNTU_COMPONENTS = ("main", "restricted", "universe", "multiverse")
 
@@ -800,6 +806,7 @@ class Upstream:
     ros: dict[str, str] | None = None
     # the built-in .repos repositories served from real bundles (real_sources), by URL
     real_repositories: tuple[str, ...] = ()
+    snapshot: str = ""  # the stand-in snapshot's name (snapshot_name), under SNAPSHOTS_PATH/<distro>/
 
     def roster_settings(self) -> dict:
         return {
@@ -842,6 +849,11 @@ class Upstream:
     def mirror_settings(self, key_file: Path) -> dict:
         return {"ros_apt_mirror_url": f"{self.url}/ros2/ubuntu", "ros_apt_mirror_key_file": str(key_file)}
 
+    def snapshot_settings(self, key_file: Path) -> dict:
+        """Snapshot mode from the stand-in snapshot server (signed with the stand-in ROS key)."""
+        return {"ros_apt_snapshot": self.snapshot, "ros_apt_snapshot_url": f"{self.url}/{SNAPSHOTS_PATH}",
+                "ros_apt_snapshot_key_file": str(key_file)}
+
 
 def builtin_repos_files() -> list[Path]:
     """The built-in robot profiles' .repos files (roslab/profiles/data)."""
@@ -874,6 +886,12 @@ def build(serve_dir: Path, url: str, rootfs: Path, nodes_dir: Path | None = None
     (serve_dir / "ros2").mkdir(parents=True)
     (serve_dir / "ubuntu").symlink_to(ubuntu)
     (serve_dir / "ros2/ubuntu").symlink_to(ros)
+    # A stand-in of snapshots.ros.org: the archive as `up` built it, named by the day it was built
+    # (a sync's date); `publish` moves ros2/ubuntu only, so the snapshot keeps these versions.
+    snapshot = snapshot_name(ros)
+    for distro in sorted(set(ROS_DISTROS.values())):
+        (serve_dir / SNAPSHOTS_PATH / distro / snapshot).mkdir(parents=True)
+        (serve_dir / SNAPSHOTS_PATH / distro / snapshot / "ubuntu").symlink_to(ros)
     sums = build_ros_apt_source(serve_dir, url)
     for path, content in {**rosdep_files(url, system_keys), **rosdistro_files(url, ros_keys_for(ros_keys))}.items():
         write_file(serve_dir / path, content)
@@ -893,7 +911,13 @@ def build(serve_dir: Path, url: str, rootfs: Path, nodes_dir: Path | None = None
         write_file(serve_dir / real_sources.OPENCR_SERVED, opencr)
     pypi.build_index(serve_dir)  # the stand-in Python index, for the profiles' python_packages
     served = {distro: "stand-in" for distro in ROS_DISTROS.values()} | runtime.describe()
-    return Upstream(url=url, ros_apt_source_sha256=sums, ros=served, real_repositories=tuple(real))
+    return Upstream(url=url, ros_apt_source_sha256=sums, ros=served, real_repositories=tuple(real),
+                    snapshot=snapshot)
+
+
+def snapshot_name(archive: Path) -> str:
+    """The stand-in snapshot's name: the UTC day the served ROS archive was built."""
+    return datetime.datetime.fromtimestamp(archive.stat().st_mtime, datetime.timezone.utc).date().isoformat()
 
 
 # -- the HTTP server ------------------------------------------------------------------------

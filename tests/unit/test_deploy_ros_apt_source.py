@@ -10,10 +10,12 @@ import pytest
 from fixtures.classroom import HOST_DEB, host_data, with_stand_in_deb
 from fixtures.fake_host import plan
 from fixtures.fake_ubuntu import FakeUbuntu
+from fixtures.openpgp_keys import RSA_BINARY as RSA_TEST_KEY, RSA_FINGERPRINT as RSA_TEST_FINGERPRINT
 
 from deploy.apt_ready import apt_lists
-from deploy.ros_apt_source import dearmored, ros_apt_source
-from roslab import downloads, quoting, settings
+from deploy.ros_apt_source import ros_apt_source
+from roslab import downloads, openpgp, quoting, settings
+from roslab.openpgp import dearmored
 from roslab.ops.apt import apt_update_command
 
 OLD_LIST = "/etc/apt/sources.list.d/ros2.list"
@@ -226,3 +228,66 @@ def test_a_legal_but_awkward_mirror_url_is_written_exactly(tmp_path):
     assert settings.check_value(settings.SETTINGS["ros_apt_mirror_url"], url) is None
     result = plan(ros_apt_source, FakeUbuntu().facts(), mirror_data(tmp_path, ros_apt_mirror_url=url))
     assert f"URIs: {url}" in result.uploads()[SOURCES].splitlines()
+
+
+# --- snapshot mode ----------------------------------------------------------------------------
+
+SNAPSHOT_MIRROR = "http://10.11.0.1/ros-snapshots"
+
+
+def snapshot_data(tmp_path, codename="noble", **more):
+    """Snapshot mode from a local mirror of the snapshot server (its own key, a test key)."""
+    key_file = tmp_path / "snapshots.asc"
+    key_file.write_bytes(RSA_TEST_KEY)
+    snapshot = {"ros_apt_snapshot": "2026-08-07", "ros_apt_snapshot_url": SNAPSHOT_MIRROR,
+                "ros_apt_snapshot_key_file": str(key_file)}
+    return host_data(tmp_path, codename=codename, ros_apt_source_mode="snapshot", **{**snapshot, **more})
+
+
+@pytest.mark.parametrize("codename, distro", [("noble", "jazzy"), ("jammy", "humble")])
+def test_snapshot_mode_points_the_ros_source_at_the_distros_snapshot_and_drops_the_package(tmp_path, codename,
+                                                                                        distro):
+    host = FakeUbuntu(codename=codename)
+    host.packages["ros2-apt-source"] = {f"1.2.0.{codename}"}
+    data = snapshot_data(tmp_path, codename)
+    result = plan(ros_apt_source, host.facts(), data)
+    assert result.uploads()["/usr/share/keyrings/ros2-archive-keyring.gpg"].encode("latin-1") == RSA_TEST_KEY
+    assert result.uploads()[SOURCES].splitlines()[1:] == [
+        "Types: deb",
+        f"URIs: {SNAPSHOT_MIRROR}/{distro}/2026-08-07/ubuntu",
+        f"Suites: {codename}",
+        "Components: main",
+        "Signed-By: /usr/share/keyrings/ros2-archive-keyring.gpg",
+    ]
+    assert "ros2-apt-source package is not installed (the ROS " in " ".join(result.changing())
+    host.apply(result)
+    host.packages.pop("ros2-apt-source")  # FakeUbuntu models `dpkg --purge`, not apt-get purge
+    assert plan(ros_apt_source, host.facts(), data).changing() == {}
+
+
+def test_from_snapshots_ros_org_only_its_own_key_is_taken(tmp_path):
+    data = snapshot_data(tmp_path, ros_apt_snapshot_url="http://snapshots.ros.org")
+    result = plan(ros_apt_source, FakeUbuntu().facts(), data)
+    assert result.failed and result.changing() == {}
+    assert (f"ros_apt_snapshot_key_file {tmp_path / 'snapshots.asc'} holds the key "
+            f"{openpgp.spaced(RSA_TEST_FINGERPRINT)}, not snapshots.ros.org's "
+            "(4B63 CF8F DE49 746E 98FA  01DD AD19 BAB3 CBF1 25EA); nothing was changed on it") in result.errors[0]
+
+
+def test_snapshot_mode_on_a_distro_without_snapshots_stops_that_host(tmp_path):
+    data = snapshot_data(tmp_path, ros_distro="kilted")
+    result = plan(ros_apt_source, FakeUbuntu().facts(), data)
+    assert result.failed and "ROS kilted is not an LTS distro" in result.errors[0]
+
+
+def test_snapshot_mode_without_a_snapshot_stops_that_host_naming_the_field(tmp_path):
+    result = plan(ros_apt_source, FakeUbuntu().facts(), snapshot_data(tmp_path, ros_apt_snapshot=None))
+    assert result.failed
+    assert "ros_apt_source_mode is 'snapshot' but ros_apt_snapshot is not set" in result.errors[0]
+
+
+@pytest.mark.parametrize("value, good", [("2026-08-07", True), ("final", True), ("2026-02-30", False),
+                                         ("2026-8-7", False), ("latest", False), ("2026-08-07\nx", False)])
+def test_a_snapshot_is_a_real_date_or_final(value, good):
+    problem = settings.check_value(settings.SETTINGS["ros_apt_snapshot"], value)
+    assert (problem is None) is good, problem

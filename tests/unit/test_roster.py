@@ -12,8 +12,9 @@ from pathlib import Path
 
 import pytest
 import yaml
+from fixtures.openpgp_keys import ED25519_ARMORED, ED25519_FINGERPRINT
 
-from roslab import roster
+from roslab import openpgp, roster
 from roslab import settings as schema
 from roslab.ros.discovery import assign_domain_ids, preferred_domain_id
 from roslab.ros.distro import PLATFORMS
@@ -717,3 +718,58 @@ def test_what_the_loader_adds_after_a_check_read_the_settings_is_in_them_too(tmp
     assert host.settings.ros_domain_id == host.data["ros_domain_id"] is not None
     host.set_data(ros_domain_id=7)
     assert host.settings.ros_domain_id == host.data["ros_domain_id"] == 7
+
+
+# --- snapshot mode (snapshots.ros.org) ----------------------------------------------------------
+
+
+def snapshot_key(tmp_path) -> Path:
+    key = tmp_path / "snapshots.asc"
+    key.write_text(ED25519_ARMORED)
+    return key
+
+
+def test_a_snapshot_class_from_a_mirror_of_the_snapshots_loads(tmp_path):
+    snapshot_key(tmp_path)
+    classroom = load_roster(one_team(tmp_path, """\
+        ros_apt_source_mode: snapshot
+        ros_apt_snapshot: "2026-08-07"
+        ros_apt_snapshot_url: http://10.0.0.1/snapshots
+        ros_apt_snapshot_key_file: snapshots.asc
+        """))
+    assert classroom.hosts[0].settings.ros_apt_snapshot_key_file == str(tmp_path / "snapshots.asc")
+
+
+def test_snapshot_mode_without_its_snapshot_is_refused_naming_the_field(tmp_path):
+    snapshot_key(tmp_path)
+    problem = one_error(one_team(tmp_path, """\
+        ros_apt_source_mode: snapshot
+        ros_apt_snapshot_url: http://10.0.0.1/snapshots
+        ros_apt_snapshot_key_file: snapshots.asc
+        """))
+    assert "host 'team1-main', field 'ros_apt_snapshot'" in problem
+    assert "ros_apt_source_mode is 'snapshot', so ros_apt_snapshot must be set" in problem
+
+
+def test_from_snapshots_ros_org_a_key_that_is_not_its_own_is_refused_before_any_host(tmp_path):
+    snapshot_key(tmp_path)
+    problem = one_error(one_team(tmp_path, """\
+        ros_apt_source_mode: snapshot
+        ros_apt_snapshot: final
+        ros_apt_snapshot_key_file: snapshots.asc
+        """))
+    assert "host 'team1-main', field 'ros_apt_snapshot_key_file'" in problem
+    assert (f"holds the key {openpgp.spaced(ED25519_FINGERPRINT)}, not snapshots.ros.org's "
+            "(4B63 CF8F DE49 746E 98FA  01DD AD19 BAB3 CBF1 25EA)") in problem
+
+
+def test_snapshot_mode_on_a_distro_without_snapshots_is_refused(tmp_path):
+    snapshot_key(tmp_path)
+    problem = one_error(one_team(tmp_path, """\
+        ros_distro: kilted
+        ros_apt_source_mode: snapshot
+        ros_apt_snapshot: "2026-08-07"
+        ros_apt_snapshot_url: http://10.0.0.1/snapshots
+        ros_apt_snapshot_key_file: snapshots.asc
+        """))
+    assert "ROS kilted is not an LTS distro: snapshots.ros.org keeps LTS distros only" in problem

@@ -219,3 +219,29 @@ def test_a_secret_setting_that_changed_is_named_without_its_value():
                                      "classroom: {wifi_password: new7654321}\n", [], [])
     assert lines == ["setting classroom.wifi_password: (hidden) -> (hidden)"]
     assert lifecycle.roster_changes("a: 1\n", "a: 1\n", [], []) == ["the roster is unchanged: nothing to do"]
+
+
+def test_a_class_on_a_ros_snapshot_gets_the_sandboxs_stand_in_snapshot(tmp_path, rosdistro_url):
+    """snapshots.ros.org is out of the sandbox's reach: a class in snapshot mode is tried on the
+    sandbox's stand-in snapshot server, and each of its snapshot settings is a note."""
+    path, instance, hosts, _ = planned(tmp_path, rosdistro_url)
+    text = path.read_text().replace("  nodes_verify_timeout: 30\n", "  nodes_verify_timeout: 30\n"
+                                    "  ros_apt_source_mode: snapshot\n  ros_apt_snapshot: '2026-08-07'\n"
+                                    "  ros_apt_snapshot_key_file: ros-snapshots.asc\n")
+    path.write_text(text)
+    served = {"ros_apt_snapshot": "2026-11-29", "ros_apt_snapshot_url": "http://10.213.163.1:8080/ros-snapshots",
+              "ros_apt_snapshot_key_file": "/run/roslab/sandbox/try-class/ros-archive-key.asc"}
+    published = SimpleNamespace(roster_settings=lambda: dict(SANDBOX_SETTINGS))
+    base = lifecycle.roster(lifecycle.Classroom(instance, hosts, path), published)
+    roster, notes = class_roster.sandbox_roster(path, base, {h.name: h.address for h in hosts},
+                                                {h.name: h.release for h in hosts}, snapshot=served)
+
+    assert roster["classroom"]["ros_apt_source_mode"] == "snapshot"
+    assert {key: roster["classroom"][key] for key in served} == served
+    assert "classroom: ros_apt_snapshot: the sandbox serves its own" in notes
+    assert "classroom: ros_apt_snapshot_key_file: the sandbox serves its own" in notes
+
+    path.write_text(text.replace("  ros_apt_source_mode: snapshot\n", ""))  # package mode: nothing replaced
+    roster, _ = class_roster.sandbox_roster(path, base, {h.name: h.address for h in hosts},
+                                            {h.name: h.release for h in hosts}, snapshot=served)
+    assert roster["classroom"]["ros_apt_snapshot"] == "2026-08-07" and "ros_apt_snapshot_url" not in roster["classroom"]
