@@ -165,6 +165,11 @@ class SandboxClassroom:
             pass  # pyinfra stopped before it could report: returncode and stderr say why
         return run
 
+    def roslab(self, *args: str, timeout: float = 600) -> subprocess.CompletedProcess:
+        """`roslab ARGS` from the checkout, on this sandbox (its instance's environment)."""
+        return subprocess.run([str(BIN / "roslab"), *args], cwd=REPO, env=self.env, capture_output=True,
+                              text=True, timeout=timeout)
+
     def reset(self, *hosts: str) -> float:
         return lifecycle.reset(list(hosts) or [host.name for host in self.hosts], self.instance)
 
@@ -310,3 +315,12 @@ def default_class(e2e_sandbox, default_class_saved):
         e2e_sandbox.ssh(host.name, "systemctl is-system-running --wait", timeout=180)
     yield e2e_sandbox
     e2e_sandbox.reset()
+
+
+@pytest.fixture(scope="module")
+def default_class_publishing(default_class):
+    """The converged default class for a module that moves its upstream (`roslab sandbox
+    publish PACKAGE --bump`): the archives as `up` served them again after the module."""
+    yield default_class
+    reverted = default_class.roslab("sandbox", "publish", "--revert")
+    assert reverted.returncode == 0, reverted.stderr

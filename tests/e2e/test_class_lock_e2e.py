@@ -25,13 +25,11 @@ instance serves its archives as `up` did for the next module.
 
 from __future__ import annotations
 
-import subprocess
-
 import pytest
 import yaml
 
 from roslab.ops import class_lock as lock_ops
-from tests.e2e.conftest import BIN, REPO, summary_lines
+from tests.e2e.conftest import summary_lines
 
 pytestmark = pytest.mark.e2e
 
@@ -43,17 +41,10 @@ GROUP_HOSTS = {"jazzy/amd64": ["team1-main", "team1-robot"], "humble/amd64": ["t
 HOSTS = [name for names in GROUP_HOSTS.values() for name in names]
 
 
-def roslab(sandbox, *args: str, timeout: float = 600) -> subprocess.CompletedProcess:
-    return subprocess.run([str(BIN / "roslab"), *args], cwd=REPO, env=sandbox.env, capture_output=True,
-                          text=True, timeout=timeout)
-
-
 @pytest.fixture(scope="module")
-def sandbox(default_class):
+def sandbox(default_class_publishing):
     """The converged default class; the archives as `up` served them again after the module."""
-    yield default_class
-    reverted = roslab(default_class, "sandbox", "publish", "--revert")
-    assert reverted.returncode == 0, reverted.stderr
+    return default_class_publishing
 
 
 @pytest.fixture(scope="module")
@@ -124,7 +115,7 @@ def test_with_class_lock_auto_a_no_op_run_takes_each_group_and_no_later_run_rewr
 
 @pytest.fixture(scope="module")
 def locked(sandbox, roster):
-    taken = roslab(sandbox, "lock", str(roster))
+    taken = sandbox.roslab("lock", str(roster))
     assert taken.returncode == 0, taken.stdout + taken.stderr
     pinned = deploy(sandbox, roster)
     assert pinned.returncode == 0, pinned.stderr[-6000:]
@@ -151,11 +142,11 @@ def test_the_lock_is_taken_from_each_group_and_the_next_run_pins_every_host(sand
 def bumped(sandbox, roster, locked):
     """The upstream moves on: the moves `lock --update --dry` listed before it (the baseline),
     and the lines of each publish."""
-    before = roslab(sandbox, "lock", str(roster), "--update", "--dry")
+    before = sandbox.roslab("lock", str(roster), "--update", "--dry")
     assert before.returncode == 0, before.stdout + before.stderr
     published = []
     for package in (ROS_BUMPED, DEBIAN_BUMPED):
-        result = roslab(sandbox, "sandbox", "publish", package, "--bump")
+        result = sandbox.roslab("sandbox", "publish", package, "--bump")
         assert result.returncode == 0, result.stdout + result.stderr
         published += result.stdout.splitlines()
     return set(before.stdout.splitlines()), published
@@ -205,7 +196,7 @@ def test_lock_update_dry_lists_exactly_the_bumped_packages_and_writes_nothing(sa
     baseline, _ = bumped
     lock_file = roster.parent / "classroom.lock"
     before = lock_file.read_text()
-    dry = roslab(sandbox, "lock", str(roster), "--update", "--dry")
+    dry = sandbox.roslab("lock", str(roster), "--update", "--dry")
     assert dry.returncode == 0, dry.stdout + dry.stderr
     locked = lock_of(roster)["groups"]
     listed = set(dry.stdout.splitlines()) - baseline - {"--dry: classroom.lock was not changed"}
@@ -221,7 +212,7 @@ def test_lock_update_dry_lists_exactly_the_bumped_packages_and_writes_nothing(sa
 
 def test_lock_update_then_one_run_moves_every_host_and_the_next_changes_nothing(sandbox, roster, bumped):
     old = lock_of(roster)["groups"]
-    moved = roslab(sandbox, "lock", str(roster), "--update")
+    moved = sandbox.roslab("lock", str(roster), "--update")
     assert moved.returncode == 0, moved.stdout + moved.stderr
     new = lock_of(roster)["groups"]
     assert new["jazzy/amd64"]["packages"][ROS_BUMPED] == old["jazzy/amd64"]["packages"][ROS_BUMPED] + "+roslab1"

@@ -20,12 +20,8 @@ The publish is reverted when the module ends (`roslab sandbox publish --revert`)
 
 from __future__ import annotations
 
-import subprocess
-
 import pytest
 import yaml
-
-from tests.e2e.conftest import BIN, REPO
 
 pytestmark = pytest.mark.e2e
 
@@ -34,17 +30,10 @@ JAZZY_HOST = "team1-main"
 DISTROS = {"team1-main": "jazzy", "team1-robot": "jazzy", "team2-main": "humble", "team2-robot": "humble"}
 
 
-def roslab(sandbox, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([str(BIN / "roslab"), *args], cwd=REPO, env=sandbox.env, capture_output=True,
-                          text=True, timeout=600)
-
-
 @pytest.fixture(scope="module")
-def sandbox(default_class):
+def sandbox(default_class_publishing):
     """The converged default class; the archives as `up` served them again after the module."""
-    yield default_class
-    reverted = roslab(default_class, "sandbox", "publish", "--revert")
-    assert reverted.returncode == 0, reverted.stderr
+    return default_class_publishing
 
 
 @pytest.fixture(scope="module")
@@ -98,7 +87,7 @@ def test_one_run_moves_every_hosts_ros_source_to_its_distros_snapshot_and_the_ne
 
 def test_after_an_upstream_sync_apt_still_offers_only_the_snapshots_version(sandbox, snapshot, switched):
     before = policy(sandbox, JAZZY_HOST, BUMPED)
-    published = roslab(sandbox, "sandbox", "publish", BUMPED, "--bump")
+    published = sandbox.roslab("sandbox", "publish", BUMPED, "--bump")
     assert published.returncode == 0, published.stderr
     (line,) = [line for line in published.stdout.splitlines() if line.startswith(f"published {BUMPED} ")]
     old, new = line.split()[2], line.split()[4]  # "published PACKAGE OLD -> NEW (ROS noble)"
