@@ -103,26 +103,29 @@ def _package_mode(codename: str) -> list | None:
     return [mirror_leftovers, copied, installed]
 
 
+def _mode_lacks(mode: str, **needed) -> bool:
+    """Stop this host when a setting its ROS source mode needs is not set (True then)."""
+    for field, value in needed.items():
+        if not value:
+            stop_host(f"{where()}: ros_apt_source_mode is '{mode}' but {field} is not set; nothing was changed on it")
+            return True
+    return False
+
+
 def _mirror_mode(codename: str) -> list | None:
     typed = host_settings(host)
-    for field, value in (("ros_apt_mirror_url", typed.ros_apt_mirror_url),
-                         ("ros_apt_mirror_key_file", typed.ros_apt_mirror_key_file)):
-        if not value:
-            stop_host(f"{where()}: ros_apt_source_mode is 'mirror' but {field} is not set; "
-                      "nothing was changed on it")
-            return None
+    if _mode_lacks("mirror", ros_apt_mirror_url=typed.ros_apt_mirror_url,
+                   ros_apt_mirror_key_file=typed.ros_apt_mirror_key_file):
+        return None
     return _signed_source(str(typed.ros_apt_mirror_url), str(typed.ros_apt_mirror_key_file),
                           "ros_apt_mirror_key_file", codename, "the mirror")
 
 
 def _snapshot_mode(codename: str) -> list | None:
     typed = host_settings(host)
-    for field, value in (("ros_apt_snapshot", typed.ros_apt_snapshot),
-                         ("ros_apt_snapshot_key_file", typed.ros_apt_snapshot_key_file)):
-        if not value:
-            stop_host(f"{where()}: ros_apt_source_mode is 'snapshot' but {field} is not set; "
-                      "nothing was changed on it")
-            return None
+    if _mode_lacks("snapshot", ros_apt_snapshot=typed.ros_apt_snapshot,
+                   ros_apt_snapshot_key_file=typed.ros_apt_snapshot_key_file):
+        return None
     distro = host_distro()
     if not distros.record(distro).lts:
         stop_host(f"{where()}: ros_apt_source_mode is 'snapshot' but ROS {distro} is not an LTS distro: "
