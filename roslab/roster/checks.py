@@ -80,14 +80,14 @@ def check_host(host: Host, report: Report) -> None:
     if board_problem:
         report.error(board_problem, field="board",
                      line=host.lines.get("board") or host.lines.get("ubuntu_release"), **where)
-    if typed.ros_apt_source_enabled and typed.ros_apt_source_mode == "mirror":
-        for key, value in (("ros_apt_mirror_url", typed.ros_apt_mirror_url),
-                           ("ros_apt_mirror_key_file", typed.ros_apt_mirror_key_file)):
-            if not value:
-                report.error(f"ros_apt_source_mode is 'mirror', so {key} must be set",
+    mode = typed.ros_apt_source_mode
+    if typed.ros_apt_source_enabled and mode in SOURCE_MODE_SETTINGS:
+        for key in SOURCE_MODE_SETTINGS[mode]:
+            if not getattr(typed, key):
+                report.error(f"ros_apt_source_mode is '{mode}', so {key} must be set",
                              field=key, line=host.lines.get("ros_apt_source_mode"), **where)
-    elif typed.ros_apt_source_enabled and typed.ros_apt_source_mode == "snapshot":
-        check_snapshot(host, codename, report)
+        if mode == "snapshot":
+            check_snapshot(host, report)
     elif typed.ros_apt_source_enabled and codename:
         if codename not in (typed.ros_apt_source_sha256 or {}):
             version = typed.ros_apt_source_version
@@ -108,20 +108,20 @@ def check_host(host: Host, report: Report) -> None:
                      field="ssh_user", line=host.lines.get("ssh_user"), **where)
 
 
-def check_snapshot(host: Host, codename: str | None, report: Report) -> None:
-    """Snapshot mode: a snapshot and its key named, an LTS distro (snapshots.ros.org keeps no
-    other), and from snapshots.ros.org its own key (the fingerprint the ROS docs publish)."""
+# The settings a ROS source mode cannot do without (package mode has its defaults).
+SOURCE_MODE_SETTINGS = {"mirror": ("ros_apt_mirror_url", "ros_apt_mirror_key_file"),
+                        "snapshot": ("ros_apt_snapshot", "ros_apt_snapshot_key_file")}
+
+
+def check_snapshot(host: Host, report: Report) -> None:
+    """Snapshot mode: an LTS distro (snapshots.ros.org keeps no other), and from
+    snapshots.ros.org its own key (the fingerprint the ROS docs publish)."""
     where = {"team": host.team, "host": host.name}
     typed = host.settings
     line = host.lines.get("ros_apt_source_mode")
-    for key, value in (("ros_apt_snapshot", typed.ros_apt_snapshot),
-                       ("ros_apt_snapshot_key_file", typed.ros_apt_snapshot_key_file)):
-        if not value:
-            report.error(f"ros_apt_source_mode is 'snapshot', so {key} must be set", field=key, line=line, **where)
-    distro = typed.ros_distro or (distros.default_distro(codename) if codename else None)
-    if distro in distros.BY_NAME and not distros.record(distro).lts:
-        report.error(f"ros_apt_source_mode is 'snapshot', but ROS {distro} is not an LTS distro: snapshots.ros.org "
-                     "keeps LTS distros only (use package or mirror mode for this host)",
+    if host.distro in distros.BY_NAME and not distros.record(host.distro).lts:
+        report.error(f"ros_apt_source_mode is 'snapshot', but ROS {host.distro} is not an LTS distro: "
+                     "snapshots.ros.org keeps LTS distros only (use package or mirror mode for this host)",
                      field="ros_apt_source_mode", line=line or host.lines.get("ros_distro"), **where)
     if typed.ros_apt_snapshot_key_file:
         path = Path(typed.ros_apt_snapshot_key_file)

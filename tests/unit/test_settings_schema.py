@@ -66,7 +66,7 @@ BAD_VALUES: dict[str, list] = {
     "ros_apt_mirror_url": ["http://mirror/ros2\nTrusted: yes", "file:///etc", "mirror/ros2",
                            "http://mirror/ros2 http://evil/"],
     "ros_apt_mirror_key_file": ["no/such.asc"],
-    "ros_apt_snapshot": ["latest", "2026-02-30", "2026-08-07\nTrusted: yes", "2026-08-07/../x", "20260807"],
+    "ros_apt_snapshot": ["latest", "2026-02-30", "2026-W32-5", "2026-08-07\nTrusted: yes", "2026-08-07/../x", "20260807"],
     "ros_apt_snapshot_url": ["http://snapshots.ros.org\nTrusted: yes", "file:///etc", "snapshots.ros.org"],
     "ros_apt_snapshot_key_file": ["no/such.asc"],
     "ubuntu_release": ["20.04", "24.04\n"],
