@@ -31,7 +31,7 @@ from deploy.common import (
     stop_host,
     where,
 )
-from roslab import probe, settings
+from roslab import class_lock, class_lock_auto, probe, settings
 from roslab.sources import fetch as source_fetch
 from roslab.sources import groups as underlay_groups
 from roslab.sources import ship as underlay_ship
@@ -172,10 +172,14 @@ def fetched_sources(wanted: list[dict], typed: HostSettings, cache_dir: Path) ->
     timeout = typed.sources_fetch_timeout
     fetched: list[source_fetch.Fetched] = []
     pins = class_pins()
+    # the class lock's commits for the host's group: a tag that moved away from one stops the host
+    group = class_lock.host_group(typed.roslab_roster_path, host_distro(), host.get_fact(Arch))
+    locked = group.sources if group is not None else {}
     for repo in wanted:
         try:
             item = source_fetch.fetched(
-                repo, cache_dir, rewrites=typed.source_url_rewrites, offline=typed.offline, timeout=timeout, pins=pins)
+                repo, cache_dir, rewrites=typed.source_url_rewrites, offline=typed.offline, timeout=timeout, pins=pins,
+                locked=locked.get(class_lock.source_key(repo["url"], repo["version"])))
             # the packages the profile does not build never reach the host (a ROS 1 leftover)
             fetched.append(source_fetch.for_host(item, cache_dir, profile.skip_packages if profile else (), timeout))
         except source_fetch.SourceError as error:
@@ -183,6 +187,10 @@ def fetched_sources(wanted: list[dict], typed: HostSettings, cache_dir: Path) ->
             return None
         for note in fetched[-1].notes:
             say_once(note)
+    if typed.class_lock_auto and typed.roslab_roster_path and group is None:
+        # what the run's lock takes for the group, if this host converges (roslab.class_lock_auto)
+        class_lock_auto.note_sources(typed.roslab_roster_path, host.name, {
+            class_lock.source_key(item.url, item.version): item.commit for item in fetched})
     return fetched
 
 

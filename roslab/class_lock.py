@@ -12,12 +12,15 @@
         packages:
           ros-jazzy-ros-base: 0.11.0-1noble.20250101.000000
         sources:
-          turtlebot3: 0123456789abcdef0123456789abcdef01234567
+          https://github.com/nasa-jpl/osr-rover-code.git@4.1.0: 0123456789abcdef0123456789abcdef01234567
         wheels:
           rpi-gpio: {version: '0.7.1', sha256: '<64 hex digits>'}
 
 Every value is hostile until checked here: a package name must be one Debian allows
-(policy 5.6.1), a version one Debian allows (policy 5.6.12), a commit 40 hex digits; a wheel's
+(policy 5.6.1), a version one Debian allows (policy 5.6.12), a commit 40 hex digits; a source is
+`URL@VERSION` as a .repos file pins it (a URL the .repos files accept, a tag or commit), locked
+to the commit the controller fetched for it (roslab.sources.fetch: a tag upstream moved away from
+it stops the hosts that build it); a wheel's
 name is PEP 503-normalised, its version a PEP 440 public version, its sha256 64 hex digits.
 A group's versions are taken once, by `roslab lock` from a converged host of the group, or by
 a run itself when the roster sets `class_lock_auto: true` (roslab.class_lock_auto), and only
@@ -35,6 +38,7 @@ from pathlib import Path
 
 from roslab.checked.loading import load_yaml
 from roslab.checked.problems import Report
+from roslab.sources import repos
 
 LOCK_FILE = "classroom.lock"
 HEADER = ("# roslab class lock: the versions every host of a group installs. A group is taken by\n"
@@ -46,7 +50,6 @@ PACKAGE_NAME = re.compile(r"[a-z0-9][a-z0-9+.-]+")
 VERSION = re.compile(r"(?:[0-9]+:)?[0-9][A-Za-z0-9.+~]*(?:-[A-Za-z0-9.+~]+)*")
 COMMIT = re.compile(r"[0-9a-f]{40}")
 GROUP = re.compile(r"([a-z][a-z0-9]*)/([a-z0-9]+)")  # distro/architecture, e.g. jazzy/arm64
-REPOSITORY = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*(?:/[A-Za-z0-9][A-Za-z0-9._-]*)*")
 TIMESTAMP = re.compile(r"[0-9]{4}-[0-9]{2}-[0-9]{2}T[0-9]{2}:[0-9]{2}:[0-9]{2}Z")
 HOST_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,62}")
 GROUP_KEYS = ("taken", "taken_from", "packages", "sources", "wheels")
@@ -156,8 +159,7 @@ def _group(value, where: str, report: Report) -> LockedGroup | None:
     for name in NOT_LOCKED & set(packages):
         report.error(f"{name} is not locked: its version is the roster's (ros_apt_source_version)",
                      field=f"{where}.packages.{name}")
-    sources = _pairs(value.get("sources") or {}, f"{where}.sources", REPOSITORY, COMMIT,
-                     "a 40-hex-digit commit", report)
+    sources = _sources(value.get("sources") or {}, f"{where}.sources", report)
     wheels = _wheels(value.get("wheels") or {}, f"{where}.wheels", report)
     return LockedGroup(taken or "", taken_from or "", packages, sources, wheels)
 
@@ -199,6 +201,27 @@ def _pairs(value, where: str, key_pattern, value_pattern, wanted: str, report: R
         if not isinstance(key, str) or not key_pattern.fullmatch(key):
             report.error(f"{key!r} is not a name Debian or git allows here", field=f"{where}.{key}")
         elif (checked := _matching(item, value_pattern, f"{where}.{key}", wanted, report)) is not None:
+            out[key] = checked
+    return out
+
+
+def source_key(url: str, version: str) -> str:
+    """A source's name in the lock: `URL@VERSION`, as the .repos file pins it."""
+    return f"{url}@{version}"
+
+
+def _sources(value, where: str, report: Report) -> dict[str, str]:
+    if not isinstance(value, dict):
+        report.error("must map each source (URL@VERSION) to its commit", field=where)
+        return {}
+    out = {}
+    for key, item in value.items():
+        url, _, version = key.rpartition("@") if isinstance(key, str) else ("", "", "")
+        problem = (repos.url_problem(url) if url else f"{key!r} is not URL@VERSION"
+                   ) or (repos.version_problem(version) if version else f"{key!r} names no version after @")
+        if problem:
+            report.error(f"{problem} (a source is URL@VERSION as a .repos file pins it)", field=f"{where}.{key}")
+        elif (checked := _matching(item, COMMIT, f"{where}.{key}", "a 40-hex-digit commit", report)) is not None:
             out[key] = checked
     return out
 
@@ -274,13 +297,24 @@ def updates(lock: ClassLock, key: str, candidates: dict[str, str]) -> list[tuple
 
 
 def updated(lock: ClassLock, key: str, moves: list[tuple[str, str, str]], taken: str,
-            wheels: dict[str, LockedWheel] | None = None) -> ClassLock:
-    """`lock` with group `key` moved to the candidates of `moves` (from `updates`) and to the
-    wheels of `wheels` (from `wheel_updates`)."""
+            wheels: dict[str, LockedWheel] | None = None,
+            sources: dict[str, str] | None = None) -> ClassLock:
+    """`lock` with group `key` moved to the candidates of `moves` (from `updates`), to the
+    wheels of `wheels` (from `wheel_updates`) and to the commits of `sources` (from
+    `source_updates`)."""
     group = lock.groups[key]
     packages = {**group.packages, **{name: new for name, _old, new in moves}}
     return replace(lock, groups={**lock.groups, key: replace(
-        group, packages=packages, wheels={**group.wheels, **(wheels or {})}, taken=taken)})
+        group, packages=packages, wheels={**group.wheels, **(wheels or {})},
+        sources={**group.sources, **(sources or {})}, taken=taken)})
+
+
+def source_updates(group: LockedGroup, upstream: dict[str, str]) -> list[tuple[str, str, str]]:
+    """(source, locked commit, upstream's) for each locked source whose tag upstream now names
+    another commit, sorted (`lock --update` moves them). `upstream`: source -> the commit its
+    tag names upstream now (a source pinned to a commit never moves)."""
+    return sorted((name, commit, upstream[name]) for name, commit in group.sources.items()
+                  if upstream.get(name) not in (None, commit))
 
 
 # --- wheels ------------------------------------------------------------------------------

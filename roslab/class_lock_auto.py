@@ -3,10 +3,11 @@
 A host whose (distro, architecture) group the lock beside its roster lacks gets a last step
 (deploy/class_lock_taken.py) that reads, at run time and after every other step of the host,
 what `roslab lock` reads (`dpkg-query`: roslab.ops.class_lock.InstalledVersions) and notes it here;
-the python_env step notes the class wheelhouse's files the host was given. At the end of the run
+the python_env step notes the class wheelhouse's files the host was given, the sources step the
+commits of the repositories it builds. At the end of the run
 (roslab.reporting.summary, after the table) the controller writes classroom.lock once: each
 group the lock still lacks, from the first host of the group (roster order) that converged
-without failure, with the wheels of the group's converged hosts, and says so in one line.
+without failure, with the wheels and sources of the group's converged hosts, and says so in one line.
 A group already in the lock is never rewritten here (moving is `roslab lock --update`'s job);
 --dry executes no step, so it notes and writes nothing.
 """
@@ -28,6 +29,7 @@ class Noted:
 
     installed: dict[str, tuple[str, dict[str, str]]] = field(default_factory=dict)
     wheels: dict[str, dict[str, class_lock.LockedWheel]] = field(default_factory=dict)
+    sources: dict[str, dict[str, str]] = field(default_factory=dict)  # host -> source -> commit
 
 
 _guard = threading.Lock()
@@ -44,6 +46,12 @@ def note_wheels(roster_path: str, host_name: str, files) -> None:
     """Note the class wheelhouse's files (wheelhouse.File) host `host_name` is given in this run."""
     with _guard:
         _noted.setdefault(roster_path, Noted()).wheels[host_name] = class_lock.wheels_of(files)
+
+
+def note_sources(roster_path: str, host_name: str, sources: dict[str, str]) -> None:
+    """Note the commits (source -> commit, class_lock.source_key) host `host_name` builds in this run."""
+    with _guard:
+        _noted.setdefault(roster_path, Noted()).sources[host_name] = dict(sources)
 
 
 def forget() -> None:
@@ -64,11 +72,14 @@ def taken_groups(lock: class_lock.ClassLock, noted: Noted, converged: list[str],
         if key in lock.groups:  # locked already (before this run, or by an earlier host): never rewritten
             continue
         wheels: dict[str, class_lock.LockedWheel] = {}
-        for other in converged:  # the wheels of every converged host of the group (first of a name kept)
+        sources: dict[str, str] = {}
+        for other in converged:  # the wheels and sources of every converged host of the group (first kept)
             if noted.installed.get(other, ("",))[0] == key:
                 wheels = {**noted.wheels.get(other, {}), **wheels}
-        lock, _added = class_lock.merged(lock, key, packages, {}, taken, name, wheels)
-        said.append(f"{key} from {name} ({len(lock.groups[key].packages)} packages, {len(wheels)} wheels)")
+                sources = {**noted.sources.get(other, {}), **sources}
+        lock, _added = class_lock.merged(lock, key, packages, sources, taken, name, wheels)
+        said.append(f"{key} from {name} ({len(lock.groups[key].packages)} packages, {len(wheels)} wheels"
+                    + (f", {len(sources)} sources" if sources else "") + ")")
     return lock, sorted(said)
 
 

@@ -7,7 +7,9 @@
 
 Taking also records the class's wheels for each group (its profiles' python_packages, as the
 controller's wheelhouse holds them): name -> version and sha256; `--update` takes a wheel the
-wheelhouse now holds at another version or hash.
+wheelhouse now holds at another version or hash. And the commit of each source repository the
+group's hosts build (URL@VERSION -> commit, as the controller fetched it); `--update` takes the
+commit a locked tag names upstream now (a moved tag: a run refuses it until then).
 
 A group is (ROS distro, Debian architecture). A locked group is never rewritten by taking:
 only `--update` moves its versions, and never those of the lock's `hold:` list.
@@ -58,6 +60,51 @@ def kept_wheels(state, host) -> dict[str, class_lock.LockedWheel]:
     return class_lock.wheels_of(kept.files) if kept is not None else {}
 
 
+def kept_sources(host) -> dict[str, str]:
+    """source (class_lock.source_key) -> commit of each repository `host` builds, as the
+    controller's cache recorded it when a run fetched it (a tag), or as pinned (a commit); a
+    tag no run fetched yet is not read."""
+    from roslab.host_settings import host_settings
+    from roslab.sources import fetch as source_fetch
+
+    typed = host_settings(host)
+    if not typed.roslab_sources:
+        return {}
+    recorded = source_fetch.read_lock(Path(typed.sources_cache_dir).expanduser())
+    found = {}
+    for repo in typed.roslab_sources:
+        url, version = repo["url"], repo["version"]
+        commit = version if source_fetch.COMMIT.fullmatch(version) else \
+            ((recorded.get(url) or {}).get("tags") or {}).get(version)
+        if commit:
+            found[class_lock.source_key(url, version)] = commit
+    return found
+
+
+def upstream_sources(host, group: class_lock.LockedGroup) -> tuple[dict[str, str], list[str]]:
+    """The commit each locked source's tag names upstream now (`git ls-remote` through the roster's
+    source_url_rewrites), for the repositories `host` builds; one line per source not asked."""
+    from roslab.host_settings import host_settings
+    from roslab.sources import fetch as source_fetch
+    from roslab.sources.repos import rewritten
+
+    typed = host_settings(host)
+    found, lines = {}, []
+    for repo in typed.roslab_sources or []:
+        key = class_lock.source_key(repo["url"], repo["version"])
+        if key not in group.sources or source_fetch.COMMIT.fullmatch(repo["version"]):
+            continue
+        try:
+            commit, _branch = source_fetch.remote_refs(rewritten(repo["url"], typed.source_url_rewrites),
+                                                      repo["version"], typed.sources_fetch_timeout)
+        except source_fetch.SourceError as error:
+            lines.append(f"source {key}: upstream cannot be asked ({error}): kept at {group.sources[key]}")
+            continue
+        if commit:
+            found[key] = commit
+    return found, lines
+
+
 def read_hosts(args, classroom, groups, with_candidates: class_lock.ClassLock | None) -> dict:
     """Per lock group: {"hosts": [...], "installed": {...}, "from": host, "candidates": {...},
     "wheels": {...}} read from the hosts --limit selects that answer (the first one of each group
@@ -75,6 +122,12 @@ def read_hosts(args, classroom, groups, with_candidates: class_lock.ClassLock | 
         entry = found.setdefault(key, {"hosts": [], "installed": reading["packages"], "from": host.name})
         entry["hosts"].append(host.name)
         entry["wheels"] = {**kept_wheels(state, host), **entry.get("wheels", {})}
+        entry["sources"] = {**kept_sources(host), **entry.get("sources", {})}
+        if with_candidates is not None and key in with_candidates.groups:
+            upstream, lines = upstream_sources(host, with_candidates.groups[key])
+            entry["upstream_sources"] = {**upstream, **entry.get("upstream_sources", {})}
+            for line in lines:
+                print(line)
         if with_candidates is not None and "candidates" not in entry and key in with_candidates.groups:
             locked = sorted(with_candidates.groups[key].packages)
             # what the archives offer now: the host's lists may be days old (apt_cache_max_age)
@@ -88,18 +141,22 @@ def moved_lock(lock: class_lock.ClassLock, found: dict, taken: str) -> class_loc
     wheelhouse now holds at another version or hash) and return the lock moved to them."""
     moves: dict[str, list[tuple[str, str, str]]] = {}
     wheels: dict[str, dict[str, class_lock.LockedWheel]] = {}
+    sources: dict[str, dict[str, str]] = {}
     for key, entry in found.items():
         if key not in lock.groups:
             continue
         wheel_moves = class_lock.wheel_updates(lock.groups[key], entry.get("wheels", {}), lock.hold)
         wheels[key] = {name: entry["wheels"][name] for name, _old, _new in wheel_moves}
+        source_moves = class_lock.source_updates(lock.groups[key], entry.get("upstream_sources", {}))
+        sources[key] = {name: new for name, _old, new in source_moves}
         moves[key] = (class_lock.updates(lock, key, entry.get("candidates", {}))
-                      + [(f"wheel {name}", old, new) for name, old, new in wheel_moves])
+                      + [(f"wheel {name}", old, new) for name, old, new in wheel_moves]
+                      + [(f"source {name}", old, new) for name, old, new in source_moves])
     print("\n".join(update_lines(moves, {key: entry["hosts"] for key, entry in found.items()})))
     for key, changes in moves.items():
         if changes:
-            packages = [change for change in changes if not change[0].startswith("wheel ")]
-            lock = class_lock.updated(lock, key, packages, taken, wheels[key])
+            packages = [change for change in changes if not change[0].startswith(("wheel ", "source "))]
+            lock = class_lock.updated(lock, key, packages, taken, wheels[key], sources[key])
     return lock
 
 
@@ -119,11 +176,13 @@ def run_lock(args: argparse.Namespace) -> int:
     else:
         for key, entry in sorted(found.items()):
             before = lock.groups.get(key, class_lock.LockedGroup("", ""))
-            lock, added = class_lock.merged(lock, key, entry["installed"], {}, taken, entry["from"],
-                                            entry.get("wheels", {}))
+            lock, added = class_lock.merged(lock, key, entry["installed"], entry.get("sources", {}), taken,
+                                            entry["from"], entry.get("wheels", {}))
             wheels = len(lock.groups[key].wheels) - len(before.wheels)
+            sources = len(lock.groups[key].sources) - len(before.sources)
             print(f"{key}: {len(lock.groups[key].packages) - len(before.packages)} packages "
-                  + (f"and {wheels} wheels " if wheels else "") + f"locked from {entry['from']}" if added
+                  + (f"and {wheels} wheels " if wheels else "") + (f"and {sources} sources " if sources else "")
+                  + f"locked from {entry['from']}" if added
                   else f"{key}: already locked; nothing new (roslab lock --update moves it)")
     if args.dry:
         print(f"--dry: {path.name} was not changed")

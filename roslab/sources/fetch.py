@@ -16,6 +16,13 @@ each commit's sha256 (of its archive), the first time they are seen:
   mirror already hold its pin: then the run goes on with one warning line;
 - `offline`: no network; tags resolve through the lock file, commits come from the mirrors.
 
+The class lock (classroom.lock beside the roster, roslab.class_lock) may lock a tag's commit
+too (`locked`): then the class's commit wins over this controller's record. A controller that
+recorded another commit for the tag (another class's, or before `roslab lock --update` moved
+the class) checks upstream and takes the locked commit if upstream names it; a tag upstream
+moved away from the locked commit is a `SourceError` naming the repository, both commits and
+`roslab lock --update`. So a lock is met, and a moved tag named, on a new controller too.
+
 When upstream is asked. A converged class asks nothing: a commit pin the mirror holds, and a
 tag that the lock records, whose commit the mirror holds and that was checked against
 upstream with the class's current set of pins, are served from the cache. A tag is checked
@@ -281,22 +288,25 @@ def _write_json(path: Path, data: dict) -> None:
         raise
 
 
-def _record(cache_dir: Path, url: str, tag: str | None, commit: str, sha256: str) -> None:
-    """Add what was seen to the lock file (atomically; entries never change once written). Read,
-    added to and written under the cache's lock: repositories are fetched in parallel threads,
-    and another run may share the cache, so an entry another writer added is never lost."""
+def _record(cache_dir: Path, url: str, tag: str | None, commit: str, sha256: str,
+            class_locked: bool = False) -> None:
+    """Add what was seen to the lock file (atomically; entries never change once written, but for
+    a tag whose commit the class lock names: `class_locked`). Read, added to and written under
+    the cache's lock: repositories are fetched in parallel threads, and another run may share
+    the cache, so an entry another writer added is never lost."""
     with file_lock(_files_lock(cache_dir)):
-        _record_locked(cache_dir, url, tag, commit, sha256)
+        _record_locked(cache_dir, url, tag, commit, sha256, class_locked)
 
 
-def _record_locked(cache_dir: Path, url: str, tag: str | None, commit: str, sha256: str) -> None:
+def _record_locked(cache_dir: Path, url: str, tag: str | None, commit: str, sha256: str,
+                   class_locked: bool = False) -> None:
     path = Path(cache_dir) / LOCK_NAME
     data = read_lock(cache_dir)
     entry = data.setdefault(url, {})
     entry.setdefault("tags", {})
     entry.setdefault("commits", {})
     changed = False
-    if tag is not None and tag not in entry["tags"]:
+    if tag is not None and (tag not in entry["tags"] or (class_locked and entry["tags"][tag] != commit)):
         entry["tags"][tag], changed = commit, True
     if commit not in entry["commits"]:
         entry["commits"][commit], changed = sha256, True
@@ -306,18 +316,19 @@ def _record_locked(cache_dir: Path, url: str, tag: str | None, commit: str, sha2
 
 
 def fetched(repo: dict, cache_dir: Path, *, rewrites: dict | None = None, offline: bool = False,
-            timeout: float = 300, pins=None) -> Fetched:
+            timeout: float = 300, pins=None, locked: str | None = None) -> Fetched:
     """The repository's pinned commit and archive (SourceError naming it), once per run.
 
     `pins`: the class's set of (url, version) pairs (every host of the roster); a tag is
     checked against upstream when the set differs from the last check's (None: this
-    repository's pin alone).
+    repository's pin alone). `locked`: the commit the class lock has for this tag (None: the
+    class locks none).
     """
     cache_dir = Path(cache_dir).expanduser()
     pins = frozenset(pins) if pins is not None else frozenset({(repo["url"], repo["version"])})
-    key = (repo["url"], repo["version"], str(cache_dir), offline, tuple(sorted((rewrites or {}).items())))
+    key = (repo["url"], repo["version"], str(cache_dir), offline, tuple(sorted((rewrites or {}).items())), locked)
     known = _once(_results, key, repo["url"], _named(repo), lambda: _fetch_healing(
-        repo, cache_dir, rewritten(repo["url"], rewrites), offline, timeout, pins_digest(pins)))
+        repo, cache_dir, rewritten(repo["url"], rewrites), offline, timeout, pins_digest(pins), locked))
     # the same repository under another path in another host's .repos file
     return Fetched(repo["path"], known.url, known.version, known.commit, known.sha256, known.archive, known.notes)
 
@@ -346,17 +357,17 @@ def _once(results: dict, key: tuple, url: str, named: str, compute) -> "Fetched"
 
 
 def _fetch_healing(repo: dict, cache_dir: Path, fetch_url: str, offline: bool, timeout: float,
-                   digest: str) -> Fetched:
+                   digest: str, locked: str | None = None) -> Fetched:
     """_fetch, and once more from a fresh mirror when the controller's copy is damaged."""
     mirror = mirror_path(cache_dir, repo["url"])
     with file_lock(Path(cache_dir) / "locks" / f"{mirror.name}.lock"):  # another run may fetch the same mirror
-        return _fetch_healing_locked(repo, cache_dir, mirror, fetch_url, offline, timeout, digest)
+        return _fetch_healing_locked(repo, cache_dir, mirror, fetch_url, offline, timeout, digest, locked)
 
 
 def _fetch_healing_locked(repo: dict, cache_dir: Path, mirror: Path, fetch_url: str, offline: bool,
-                          timeout: float, digest: str) -> Fetched:
+                          timeout: float, digest: str, locked: str | None = None) -> Fetched:
     try:
-        return _fetch(repo, cache_dir, fetch_url, offline, timeout, digest)
+        return _fetch(repo, cache_dir, fetch_url, offline, timeout, digest, locked=locked)
     except SourceError as error:
         damage = error.damage if isinstance(error, _MirrorDamaged) else _damage(mirror, timeout)
         if damage is None:
@@ -373,7 +384,7 @@ def _fetch_healing_locked(repo: dict, cache_dir: Path, mirror: Path, fetch_url: 
     note = (f"the controller's mirror of {repo['url']} was damaged ({damage}): moved aside to {aside}, "
             "fetched afresh")
     try:
-        got = _fetch(repo, cache_dir, fetch_url, offline, timeout, digest, fresh_mirror=True)
+        got = _fetch(repo, cache_dir, fetch_url, offline, timeout, digest, fresh_mirror=True, locked=locked)
     except SourceError as again:
         raise SourceError(f"{again} (the controller's mirror {mirror} was damaged, moved aside to {aside} and "
                           "fetched afresh, and that failed too)") from None
@@ -405,10 +416,18 @@ def _damage(mirror: Path, timeout: float) -> str | None:
 
 
 def _fetch(repo: dict, cache_dir: Path, fetch_url: str, offline: bool, timeout: float, digest: str,
-           fresh_mirror: bool = False) -> Fetched:
+           fresh_mirror: bool = False, locked: str | None = None) -> Fetched:
     url, version = repo["url"], repo["version"]
     mirror = mirror_path(cache_dir, url)
     lock = read_lock(cache_dir).get(url, {})
+    class_locked = bool(locked and not COMMIT.fullmatch(version))
+    if class_locked and (lock.get("tags") or {}).get(version) != locked:
+        # The class lock wins over this controller's record (another class's, or the class's
+        # before `roslab lock --update`): upstream is asked below, and must name the locked commit.
+        lock = {**lock, "tags": {**(lock.get("tags") or {}), version: locked}}
+        ask_upstream = True
+    else:
+        ask_upstream = fresh_mirror
     tag: str | None = None
     notes: list[str] = []
     expected = version if COMMIT.fullmatch(version) else (lock.get("tags") or {}).get(version)
@@ -419,11 +438,11 @@ def _fetch(repo: dict, cache_dir: Path, fetch_url: str, offline: bool, timeout: 
         _fetch_commit(mirror, fetch_url, commit, offline, timeout)
     else:
         tag = version
-        commit = _tag_commit(mirror, cache_dir, fetch_url, url, tag, lock, offline, fresh_mirror, digest,
-                             timeout, notes)
+        commit = _tag_commit(mirror, cache_dir, fetch_url, url, tag, lock, offline, ask_upstream, digest,
+                             timeout, notes, locked if class_locked else None)
     archive, sha256 = _verified_archive(mirror, commit, lock, cache_dir, timeout)
     with _lock:
-        _record(cache_dir, url, tag, commit, sha256)
+        _record(cache_dir, url, tag, commit, sha256, class_locked)
         if tag is not None and not offline and not notes:
             _mark_checked(cache_dir, digest, url, tag)
     return Fetched(repo["path"], url, version, commit, sha256, archive, tuple(notes))
@@ -456,9 +475,11 @@ def _fetch_commit(mirror: Path, fetch_url: str, commit: str, offline: bool, time
 
 
 def _tag_commit(mirror: Path, cache_dir: Path, fetch_url: str, url: str, tag: str, lock: dict, offline: bool,
-                fresh_mirror: bool, digest: str, timeout: float, notes: list[str]) -> str:
+                ask_upstream: bool, digest: str, timeout: float, notes: list[str],
+                class_locked: str | None = None) -> str:
     """The commit a tag names, in the mirror: the lock's when offline or already checked with this
-    set of pins, else upstream's, refused if it moved from what the class recorded."""
+    set of pins, else upstream's, refused if it moved from what the class recorded (the class
+    lock's commit, `class_locked`, when it has one)."""
     recorded = (lock.get("tags") or {}).get(tag)
     held = bool(recorded and _has_commit(mirror, recorded, timeout))
     if offline:
@@ -466,9 +487,13 @@ def _tag_commit(mirror: Path, cache_dir: Path, fetch_url: str, url: str, tag: st
             raise SourceError(f"offline, and the controller's cache has no commit for tag {tag!r} "
                               f"({Path(cache_dir) / LOCK_NAME}): run once with the network")
         return recorded
-    if held and recorded and not fresh_mirror and _tag_checked(cache_dir, digest, url, tag):
+    if held and recorded and not ask_upstream and _tag_checked(cache_dir, digest, url, tag):
         return recorded  # checked with this set of pins: upstream is not asked again
     commit = _upstream_tag_commit(fetch_url, url, tag, recorded, held, timeout, notes)
+    if class_locked and class_locked != commit:
+        raise SourceError(f"tag {tag!r} now resolves to {commit}, but the class lock (classroom.lock) locks "
+                          f"{class_locked}: someone moved the tag; take the new commit with "
+                          "`roslab lock --update`, or pin the commit you want")
     if recorded and recorded != commit:
         raise SourceError(f"tag {tag!r} now resolves to {commit}, but the class recorded {recorded} "
                           f"in {Path(cache_dir) / LOCK_NAME}: someone moved the tag; pin the commit "

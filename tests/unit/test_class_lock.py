@@ -19,10 +19,12 @@ ROSTERS = Path(__file__).parent / "rosters"
 COMMIT = "0123456789abcdef0123456789abcdef01234567"
 SHA = "ab" * 32
 OTHER_SHA = "cd" * 32
+OTHER_COMMIT = "89abcdef0123456789abcdef0123456789abcdef"
+SOURCE = "https://github.com/ROBOTIS-GIT/turtlebot3.git@2.2.9"  # URL@VERSION, as a .repos file pins it
 
 
 def first_lock() -> class_lock.ClassLock:
-    lock, _ = class_lock.merged(class_lock.ClassLock(), KEY, INSTALLED, {"turtlebot3": COMMIT}, TAKEN, "robot1-1")
+    lock, _ = class_lock.merged(class_lock.ClassLock(), KEY, INSTALLED, {SOURCE: COMMIT}, TAKEN, "robot1-1")
     return lock
 
 
@@ -49,8 +51,18 @@ def test_a_missing_lock_is_an_empty_one(tmp_path):
      f"groups.{KEY}.packages.-oAPT::x", "not a name"),
     ({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1", "packages": {"libc6": "1.0; rm -rf /"}}}},
      f"groups.{KEY}.packages.libc6", "Debian version"),
-    ({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1", "sources": {"tb3": "main"}}}},
-     f"groups.{KEY}.sources.tb3", "40-hex-digit commit"),
+    ({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1", "sources": {SOURCE: "main"}}}},
+     f"groups.{KEY}.sources.{SOURCE}", "40-hex-digit commit"),
+    ({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1", "sources": {"tb3": COMMIT}}}},
+     f"groups.{KEY}.sources.tb3", "URL@VERSION"),
+    ({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1", "sources": {"https://github.com/x/tb3.git@main": COMMIT}}}},
+     f"groups.{KEY}.sources.https://github.com/x/tb3.git@main", "is a branch"),
+    ({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1", "sources": {"https://u:pw@github.com/x.git@v1": COMMIT}}}},
+     f"groups.{KEY}.sources.https://u:pw@github.com/x.git@v1", "user name or password"),
+    ({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1", "sources": {"ssh://github.com/x.git@v1": COMMIT}}}},
+     f"groups.{KEY}.sources.ssh://github.com/x.git@v1", "only http://"),
+    ({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1", "sources": {"https://github.com/x.git@": COMMIT}}}},
+     f"groups.{KEY}.sources.https://github.com/x.git@", "names no version"),
     ({"groups": {KEY: {"taken": "yesterday", "taken_from": "r1"}}}, f"groups.{KEY}.taken", "UTC time"),
     ({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1", "extra": 1}}}, f"groups.{KEY}.extra", "unknown key"),
     ({"groups": {KEY: {"taken": TAKEN, "taken_from": "r1", "wheels": {"RPi.GPIO": {"version": "0.7.1",
@@ -83,12 +95,12 @@ def test_broken_yaml_names_the_file(tmp_path):
 
 def test_merge_locks_a_new_package_at_first_install_and_never_moves_a_locked_one():
     newer = {**INSTALLED, "libc6": "2.39-0ubuntu8.5", "ros-jazzy-turtlesim": "1.8.3-1noble"}
-    lock, added = class_lock.merged(first_lock(), KEY, newer, {"turtlebot3": "f" * 40}, "2026-12-01T08:00:00Z", "r2")
+    lock, added = class_lock.merged(first_lock(), KEY, newer, {SOURCE: "f" * 40}, "2026-12-01T08:00:00Z", "r2")
     group = lock.groups[KEY]
     assert added == ["ros-jazzy-turtlesim"]
     assert group.packages["libc6"] == "2.39-0ubuntu8.4"  # locked: only `lock --update` moves it
     assert group.packages["ros-jazzy-turtlesim"] == "1.8.3-1noble"
-    assert (group.taken, group.taken_from, group.sources["turtlebot3"]) == (TAKEN, "robot1-1", COMMIT)
+    assert (group.taken, group.taken_from, group.sources[SOURCE]) == (TAKEN, "robot1-1", COMMIT)
     same, added = class_lock.merged(lock, KEY, newer, {}, TAKEN, "r2")
     assert same is lock and added == []  # nothing new: the file is not rewritten
 
@@ -282,3 +294,54 @@ def test_lock_update_lists_a_moved_wheel_apart_from_a_package_of_the_same_name(c
     group = moved.groups[KEY]
     assert group.packages["ina260"] == "1.1-1" and group.wheels["ina260"].sha256 == OTHER_SHA
     assert group.wheels["rpi-gpio"].sha256 == SHA
+
+
+# --- sources -------------------------------------------------------------------------------
+
+
+def test_a_moved_source_tag_is_listed_old_to_new_and_moved_only_by_update(capsys):
+    from roslab.cli import lock as lock_cli
+
+    lock = first_lock()
+    same, added = class_lock.merged(lock, KEY, INSTALLED, {SOURCE: OTHER_COMMIT}, TAKEN, "r1")
+    assert same is lock and added == []  # taking never moves a locked commit
+    assert class_lock.source_updates(lock.groups[KEY], {SOURCE: COMMIT}) == []
+    found = {KEY: {"hosts": ["robot1-1", "robot1-2"], "candidates": {}, "upstream_sources": {SOURCE: OTHER_COMMIT}}}
+    moved = lock_cli.moved_lock(lock, found, "2026-12-01T08:00:00Z")
+    assert capsys.readouterr().out.splitlines() == [
+        f"{KEY}: source {SOURCE} {COMMIT} -> {OTHER_COMMIT} (robot1-1, robot1-2)"]
+    assert moved.groups[KEY].sources == {SOURCE: OTHER_COMMIT}
+    assert moved.groups[KEY].packages == lock.groups[KEY].packages
+
+
+def test_lock_takes_each_built_repositorys_commit_and_update_asks_upstream_for_a_moved_tag(tmp_path):
+    """`roslab lock` records URL@VERSION -> commit for the repositories a host builds, as the
+    controller's cache fetched them; `--update` asks upstream (git ls-remote) for each locked tag
+    and lists a moved one old -> new."""
+    from types import SimpleNamespace
+
+    from roslab.cli import lock as lock_cli
+    from roslab.sandbox import git_standins
+    from roslab.sources import fetch as source_fetch
+
+    bare = tmp_path / "upstream" / "lidar.git"
+    made = git_standins.commit(bare, git_standins.package_files("lidar", ["lidar"]), "first", ["v1"])
+    url, cache = f"file://{bare}", tmp_path / "sources"
+    repos = [{"path": "lidar", "type": "git", "url": url, "version": "v1", "file": "robot.repos", "line": 3},
+             {"path": "pinned", "type": "git", "url": url, "version": made, "file": "robot.repos", "line": 7}]
+
+    class Pi:  # pyinfra's Host as the lock command reads it: a name and its roster data
+        name = "robot1-1"
+        data = SimpleNamespace(dict=lambda: {"roslab_sources": repos, "sources_cache_dir": str(cache)})
+
+    assert lock_cli.kept_sources(Pi()) == {f"{url}@{made}": made}  # no run fetched the tag yet: not read
+    source_fetch.reset()
+    source_fetch.fetched(repos[0], cache)
+    taken = lock_cli.kept_sources(Pi())
+    assert taken == {f"{url}@v1": made, f"{url}@{made}": made}
+    group = class_lock.LockedGroup(TAKEN, "robot1-1", sources=taken)
+    assert lock_cli.upstream_sources(Pi(), group) == ({f"{url}@v1": made}, [])
+    moved = git_standins.commit(bare, git_standins.package_files("lidar", ["lidar", "other"]), "second", ["v1"],
+                                move_tags=True)
+    assert class_lock.source_updates(group, lock_cli.upstream_sources(Pi(), group)[0]) == [
+        (f"{url}@v1", made, moved)]

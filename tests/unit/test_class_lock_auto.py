@@ -69,6 +69,7 @@ def test_the_reading_is_noted_under_the_hosts_group(tmp_path, monkeypatch):
 
 
 def test_the_run_end_takes_each_missing_group_from_its_first_converged_host_with_the_groups_wheels(tmp_path):
+    """... and the commits of the repositories the group's converged hosts build (not a failed host's)."""
     roster = tmp_path / "classroom.yaml"
     locked(roster, "humble/arm64")
     before = (tmp_path / class_lock.LOCK_FILE).read_text()
@@ -79,16 +80,21 @@ def test_the_run_end_takes_each_missing_group_from_its_first_converged_host_with
     class_lock_auto.note_wheels(path, "team1-robot", [File("RPi.GPIO-0.7.1.tar.gz", SHA, True),
                                                       File("ina260-0.0.3-py3-none-any.whl", SHA, False)])
     class_lock_auto.note_wheels(path, "team2-robot", [File("numpy-2.0.0-cp312-cp312-linux_aarch64.whl", SHA, False)])
+    agent, lidar = "https://github.com/micro-ROS/micro-ROS-Agent.git@5.0.2", "https://example.org/lidar.git@v1"
+    class_lock_auto.note_sources(path, "team1-robot", {agent: "a" * 40})
+    class_lock_auto.note_sources(path, "team1-main", {lidar: "b" * 40})
+    class_lock_auto.note_sources(path, "team3-robot", {"https://example.org/failed.git@v1": "c" * 40})
 
     lines = class_lock_auto.write_taken(["team1-robot", "team1-main", "team2-main"])  # roster order, converged
 
-    assert lines == ["classroom.lock now locks jazzy/arm64 from team1-robot (1 packages, 2 wheels): commit it; "
-                     "`roslab lock --update` moves it on purpose"]
+    assert lines == ["classroom.lock now locks jazzy/arm64 from team1-robot (1 packages, 2 wheels, 2 sources): "
+                     "commit it; `roslab lock --update` moves it on purpose"]
     lock, _ = class_lock.read_lock(tmp_path / class_lock.LOCK_FILE)
     jazzy = lock.groups["jazzy/arm64"]
     assert (jazzy.taken_from, jazzy.packages) == ("team1-robot", {"libc6": "9"})
     assert jazzy.wheels == {"rpi-gpio": class_lock.LockedWheel("0.7.1", SHA),
                             "ina260": class_lock.LockedWheel("0.0.3", SHA)}
+    assert jazzy.sources == {agent: "a" * 40, lidar: "b" * 40}
     assert lock.groups["humble/arm64"].packages == {"libc6": "2.39-0ubuntu8.3"}  # locked: never rewritten
     assert (tmp_path / class_lock.LOCK_FILE).read_text().startswith(before.split("groups:")[0])
 

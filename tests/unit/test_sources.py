@@ -6,10 +6,12 @@ from __future__ import annotations
 import json
 import re
 import shlex
+import shutil
 import textwrap
 from pathlib import Path
 
 import pytest
+from pyinfra.facts.server import Arch
 from fixtures.fake_host import plan
 
 from roslab.sources import fetch as source_fetch
@@ -302,6 +304,48 @@ def test_a_moved_tag_is_never_taken_and_is_named_when_the_class_changes_its_pins
     message = str(raised.value)
     assert "repository 'lidar'" in message and "robot.repos" in message
     assert f"now resolves to {moved}" in message and made in message and "sources.lock.json" in message
+
+
+def test_the_class_locks_commit_wins_on_a_new_controller_and_a_tag_moved_from_it_is_named(tmp_path):
+    """classroom.lock's commit for a tag (`locked`): a controller with an empty cache takes the tag
+    only if upstream still names that commit; once upstream moved it, the hosts that build it
+    stop there, naming the repository, both commits and `roslab lock --update`. The controller
+    that checked the tag with the class's pins asks upstream nothing (a converged class's run
+    never does) and goes on building the locked commit: never the moved one."""
+    bare, made = upstream_repo(tmp_path)
+    entry = repo_entry(tmp_path, bare, "v1")
+    assert source_fetch.fetched(entry, tmp_path / "the-class-controller", locked=made).commit == made
+    moved = git_standins.commit(bare, git_standins.package_files("lidar", ["lidar", "other"]), "second",
+                                ["v1"], move_tags=True)
+    source_fetch.reset()
+    with pytest.raises(source_fetch.SourceError) as raised:
+        source_fetch.fetched(entry, tmp_path / "a-new-controller", locked=made)
+    message = str(raised.value)
+    assert message.startswith("repository 'lidar' (") and "robot.repos" in message, message
+    assert f"now resolves to {moved}, but the class lock (classroom.lock) locks {made}" in message, message
+    assert "`roslab lock --update`" in message
+    source_fetch.reset()
+    assert source_fetch.fetched(entry, tmp_path / "the-class-controller", locked=made).commit == made
+
+
+def test_a_lock_update_moves_the_controllers_record_of_a_tag_to_the_class_locks_commit(tmp_path):
+    """After `roslab lock --update` took a moved tag's new commit, the controller that recorded the
+    old one follows the class lock (upstream names the locked commit), and records it; without
+    the class lock it still refuses the moved tag."""
+    bare, made = upstream_repo(tmp_path)
+    cache = tmp_path / "cache"
+    entry = repo_entry(tmp_path, bare, "v1")
+    source_fetch.fetched(entry, cache)
+    moved = git_standins.commit(bare, git_standins.package_files("lidar", ["lidar", "other"]), "second",
+                                ["v1"], move_tags=True)
+    source_fetch.reset()
+    assert source_fetch.fetched(entry, cache, locked=moved).commit == moved
+    assert json.loads((cache / source_fetch.LOCK_NAME).read_text())[f"file://{bare}"]["tags"] == {"v1": moved}
+    # the next run, the same pins: served from the cache, upstream not asked
+    source_fetch.reset()
+    (tmp_path / "upstream").rename(tmp_path / "gone")
+    assert source_fetch.fetched(entry, cache, locked=moved).commit == moved
+    assert made != moved
 
 
 def test_a_converged_class_asks_upstream_nothing_and_goes_on_with_one_note_when_it_is_down(tmp_path):
@@ -718,6 +762,36 @@ def test_the_deploy_goes_on_from_the_lock_when_upstream_is_down_saying_so_in_one
     assert not result.failed, result.errors
     said = [record.getMessage() for record in caplog.records if "cannot be reached" in record.getMessage()]
     assert len(said) == 1 and f"tag 'v1' is taken as the lock records it ({made})" in said[0], said
+
+
+def test_a_tag_moved_from_the_class_locks_commit_stops_the_host_naming_both_commits(tmp_path):
+    """A classroom.lock beside the roster locks the host's group's source: a controller that never
+    fetched it (a new one) takes the tag only at the locked commit; moved upstream, the host stops
+    before anything is changed on it."""
+    from fixtures.fake_ubuntu import FakeUbuntu
+
+    from roslab import class_lock
+
+    bare, made = upstream_repo(tmp_path)
+    roster = tmp_path / "classroom.yaml"
+    roster.write_text("classroom: {}\n")
+    data = deploy_data(tmp_path, bare, "v1", roslab_roster_path=str(roster))
+    facts = {**FakeUbuntu().facts(), **underlay_facts()}
+    machine = facts[Arch]
+    key = class_lock.group_key("jazzy", class_lock.DEBIAN_ARCHITECTURES[machine])
+    group = class_lock.LockedGroup("2026-11-28T22:00:00Z", "team1-robot",
+                                   sources={class_lock.source_key(f"file://{bare}", "v1"): made})
+    (tmp_path / class_lock.LOCK_FILE).write_text(class_lock.render_lock(class_lock.ClassLock(groups={key: group})))
+    assert not plan(run_sources_deploy, facts, data).failed
+    moved = git_standins.commit(bare, git_standins.package_files("lidar", ["lidar", "other"]), "second", ["v1"],
+                                move_tags=True)
+    shutil.rmtree(tmp_path / "sources-cache")  # a new controller: the class's lock is all it has
+    source_fetch.reset()
+    result = plan(run_sources_deploy, facts, data)
+    assert result.failed and result.operations == []
+    (error,) = [error for error in result.errors if "sources:" in error]
+    assert f"now resolves to {moved}, but the class lock (classroom.lock) locks {made}" in error, error
+    assert error.endswith("nothing was changed on it"), error
 
 
 def test_every_rosdep_key_the_stand_in_repositories_name_is_in_the_sandboxs_rosdep_data(tmp_path):
