@@ -1005,7 +1005,8 @@ _log_capture: _LogCapture | None = None
 # --- compact output ------------------------------------------------------------------------
 
 LONG_STEP = 5.0  # seconds after which a step that has changed nothing yet is shown anyway
-STILL_RUNNING_EVERY = 20.0  # seconds between "still running on ..." lines of a long step
+STILL_RUNNING_EVERY = 15.0  # seconds between "still running on ..." lines of a long step: a teacher never
+# waits over 20 s in silence, with room for a loaded controller's late tick (a tick at 20 s came 20.0 s apart)
 # The controller's environment may set another interval (whole seconds, 1 to 3600): a teacher
 # watching a long first build may want a line more often, a log kept for later one less often.
 STILL_RUNNING_VARIABLE = "ROSLAB_STILL_RUNNING_SECONDS"

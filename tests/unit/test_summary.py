@@ -871,13 +871,13 @@ def test_a_connect_error_before_any_host_connected_is_kept_for_the_summary(monke
 
 
 @pytest.mark.parametrize("value, every, warned", [
-    (None, 20.0, False), ("", 20.0, False), ("5", 5.0, False), ("3600", 3600.0, False),
-    ("0", 20.0, True), ("3601", 20.0, True), ("2.5", 20.0, True), ("-1", 20.0, True), ("\u0665", 20.0, True),
-    ("ten", 20.0, True),
+    (None, 15.0, False), ("", 15.0, False), ("5", 5.0, False), ("3600", 3600.0, False),
+    ("0", 15.0, True), ("3601", 15.0, True), ("2.5", 15.0, True), ("-1", 15.0, True), ("\u0665", 15.0, True),
+    ("ten", 15.0, True),
 ])
-def test_the_still_running_interval_is_the_environments_whole_seconds_or_twenty(value, every, warned):
+def test_the_still_running_interval_is_the_environments_whole_seconds_or_fifteen(value, every, warned):
     environ = {} if value is None else {summary.STILL_RUNNING_VARIABLE: value}
     got, problem = summary.still_running_every(environ)
     assert got == every and (problem is not None) is warned, problem
     if warned:
-        assert problem.startswith("ROSLAB_STILL_RUNNING_SECONDS=") and problem.endswith("every 20 s")
+        assert problem.startswith("ROSLAB_STILL_RUNNING_SECONDS=") and problem.endswith("every 15 s")
