@@ -49,6 +49,7 @@ from roslab.host_settings import HostSettings
 from roslab.roster import Classroom, RosterError, display_path, group_names, inventory_groups
 from roslab.ops.boot_config import RebootRecord, parse_reboot_record, reboot_pending
 from roslab.reporting.runs import RunRecord, now_utc, read_runs, runs_path
+from roslab.reporting import waiting
 from roslab.cli import launch_journal, status_lock
 from roslab.cli.host_services import host_services, profile_name, runs_nodes, services_not_started
 from roslab.cli.verify import (
@@ -621,7 +622,12 @@ def probe(groups: dict, statuses: list[HostStatus], listen: bool = False,
         jobs = {state.pool.spawn(_probe_host, state, by_name[status.name], status, listen, status.listen_timeout,
                                  bound): status for status in statuses}
         rounds = -(-len(statuses) // parallel)
-        gevent.joinall(list(jobs), timeout=rounds * bound + 5)
+        if listen:
+            print(f"roslab status: reading {len(statuses)} hosts, each main listening for its robot's topic "
+                  f"(all at once, up to {bound} s a host)", file=sys.stderr, flush=True)
+        # never silent: a line every few seconds names the hosts still being read
+        waiting.joined({job: status.name for job, status in jobs.items()}, "roslab status: still reading",
+                       timeout=rounds * bound + 5)
         for job, status in jobs.items():
             if not job.ready():
                 job.kill(block=False)

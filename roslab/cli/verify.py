@@ -48,6 +48,7 @@ from roslab.ros.distro import default_distro
 from roslab.cli.host_services import (host_services, profile_name, runs_a_launch, runs_nodes,  # noqa: F401
                                       services_not_started)
 from roslab.cli import launch_journal
+from roslab.reporting import waiting
 from roslab.ops.users import as_user
 from roslab.quoting import shell_home_path, shell_word
 from roslab.host_settings import HostSettings, host_settings
@@ -528,6 +529,8 @@ def verify(state: State) -> list[TeamResult]:
     """Check every active host in parallel and group the results by team."""
     hosts = [host for host in state.inventory.iter_activated_hosts() if host in state.active_hosts]
     greenlets = {host: state.pool.spawn(_check_host, state, host) for host in hosts}
+    # never silent: a line every few seconds names the hosts still being checked
+    waiting.joined({greenlet: host.name for host, greenlet in greenlets.items()}, "roslab verify: still checking")
     teams: dict[str, TeamResult] = {}
 
     def team_of(typed: HostSettings, name: str) -> TeamResult:
@@ -591,7 +594,8 @@ def listening_line(state: State) -> str:
     if not listening:
         return "roslab verify: reading the services' states (no main host has a topic to hear)"
     longest = max(int(typed.nodes_verify_timeout or 0) for _, typed in mains)
-    return f"roslab verify: listening on {', '.join(listening)} (all at once, up to {longest} s)"
+    return (f"roslab verify: listening on {', '.join(listening)} (all at once, each up to {longest} s "
+            "for a message, after the ROS tools start)")
 
 
 def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:

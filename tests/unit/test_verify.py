@@ -599,7 +599,8 @@ def test_verify_says_which_main_listens_for_what_before_it_waits():
     hosts = list(inventory)
     state = SimpleNamespace(inventory=SimpleNamespace(iter_activated_hosts=lambda: hosts), active_hosts=hosts)
     assert verify.listening_line(state) == ("roslab verify: listening on team1-main for /chatter, blue-main for "
-                                            "/scan (all at once, up to 30 s)")
+                                            "/scan (all at once, each up to 30 s for a message, after the ROS tools "
+                                            "start)")
     state.active_hosts = [hosts[3]]
     assert "no main host has a topic to hear" in verify.listening_line(state)
 
