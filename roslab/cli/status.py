@@ -499,6 +499,8 @@ def nodes_cell(host: HostStatus, probed: bool) -> Cell:
     """The nodes' service state on a host that runs them; what the roster gives it otherwise."""
     if host.runs_nodes:
         return Cell(host.service, service_level(host.service))
+    if host.not_started and probed:  # the rover before its calibration: runs nothing yet, and should
+        return Cell(f"none: {', '.join(service for service, _why in host.not_started)} not started", "warn")
     return Cell(host.nodes, "ok" if probed else "muted")
 
 
@@ -930,7 +932,8 @@ def page_context(classroom_name: str | None, roster: str, hosts: list[HostStatus
         teams.setdefault(host.team, []).append(host)
     topics = topics or {}
     reachable = sum(host.reachable for host in hosts)
-    running = sum(host.runs_what_it_should for host in hosts)
+    # a host whose profile's service waits for a setting (osr_calibrated) runs nothing yet: not counted
+    running = sum(host.runs_what_it_should and not host.not_started for host in hosts)
     failed = sum(last_run_failed(host) for host in hosts)
     return {
         "title": f"roslab status: {classroom_name}" if classroom_name else "roslab status",

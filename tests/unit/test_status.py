@@ -507,6 +507,12 @@ def test_an_uncalibrated_rovers_robot_is_amber_and_says_what_starts_it():
     assert box["level"] == "warn"
     assert box["lines"][3]["text"] == "not started: osr_calibrated"
     assert box["title"].endswith("; osr_startup not started: " + why)
+    # the table's NODES cell and the page's chip agree with the amber box (the trial saw both green)
+    assert status.nodes_cell(robot, True) == status.Cell("none: osr_startup not started", "warn")
+    main = reachable_host(name="rover-main", team="rover", profile="osr", runs_nodes=False)
+    main.probe = {**main.probe, "unit": dict(NOT_FOUND)}
+    chip = page_context("lab", "x", [main, robot], NOW)["counts"][2]
+    assert chip == {"text": "1 running their services", "level": "warn"}
 
 
 def test_a_stopped_discovery_server_is_named_in_the_row_and_the_team():
