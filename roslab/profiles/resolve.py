@@ -286,12 +286,19 @@ def udev_file(profile: Profile, devices: list, values: dict) -> tuple[str, str |
     return device_data.rules_file(profile.name, result), None
 
 
+def checklist_items(items: list[str], values: dict, host: str | None, middleware: str | None) -> list[str]:
+    """The checklist's items with the settings' values, the host's name and the class's middleware in."""
+    return [fill(item, {**values, "host": host or "HOST", "ros_middleware": middleware or "the class's middleware"})
+            for item in items]
+
+
 def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
-                 board: str | None = None, host: str | None = None
+                 board: str | None = None, host: str | None = None, middleware: str | None = None
                  ) -> tuple[dict | None, list[ResolveError]]:
     """What a host of this distro, role and board gets from `profile` with the roster's setting
     values `given` (host.data.roslab_profile), or None and the problems. `host`: the host's
-    name, for the checklist's ${host} (else the word HOST)."""
+    name, for the checklist's ${host} (else the word HOST); `middleware`: the class's
+    ros_middleware, for its ${ros_middleware} (else the words "the class's middleware")."""
     problems = placement_problems(profile, distro=distro, role=role, board=board)
     side = profile.sides.get(role)
     values, value_problems = setting_values(profile, given, side)
@@ -327,7 +334,7 @@ def resolve_host(profile: Profile, given: dict, *, distro: str, role: str,
         "variant": side.variant,
         **verify_fields(profile, values),
         "discovery": profile.discovery,
-        "checklist": [fill(item, {**values, "host": host or "HOST"}) for item in merged.checklist],
+        "checklist": checklist_items(merged.checklist, values, host, middleware),
         "os_tweaks": dict(side.os_tweaks),
         # the side's .repos files' repositories: filled by the roster loader (roslab/sources/repos.py),
         # which reads the files; here only for hand-made data

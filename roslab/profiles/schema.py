@@ -173,9 +173,10 @@ COMMAND_PLACEHOLDERS = ("distro",)
 # domain (its ROS_DOMAIN_ID), filled in when the unit is written (deploy/profile_services.py);
 # the micro-ROS agent's XRCE_DOMAIN_ID_OVERRIDE takes it.
 SERVICE_ENVIRONMENT_PLACEHOLDERS = ("ros_domain_id",)
-# What a checklist item may name besides the profile's settings: the host it is for (filled
-# in by the roster loader, so a command in it can be copied as it is).
-CHECKLIST_PLACEHOLDERS = ("host",)
+# What a checklist item may name besides the profile's settings: the host it is for and the
+# class's middleware (filled in by the roster loader, so a command in it can be copied as it is,
+# and a step that sets the middleware says which).
+CHECKLIST_PLACEHOLDERS = ("host", "ros_middleware")
 # Opt-in OS changes a robot's maker recommends (applied when the roster sets profile_os_tweaks).
 OS_TWEAK_KEYS = ("mask_units", "swap_mb", "swap_if_memory_mb_at_most")
 # Units a tweak may mask: an allow-list of what a robot's maker turns off (ROBOTIS's e-Manual:

@@ -594,7 +594,8 @@ class RosterReader:
             data["roslab_profile"] = None
             return
         result, problems = resolve_host(profile, given, distro=distro, role=data["roslab_role"],
-                                        board=data.get("board"), host=data.get("roslab_hostname"))
+                                        board=data.get("board"), host=data.get("roslab_hostname"),
+                                        middleware=data.get("ros_middleware"))
         for problem in problems:
             error(problem.message, problem.field)
         middleware = data.get("ros_middleware")

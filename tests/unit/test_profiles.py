@@ -737,3 +737,27 @@ def test_every_built_in_side_resolves_to_exactly_the_typed_keys():
             typed = ResolvedProfile.from_data(resolved)
             assert asdict(typed) == resolved, (profile.name, role)
             assert all(isinstance(service, ResolvedService) for service in typed.services)
+
+
+def test_a_checklist_step_that_sets_the_middleware_names_the_classs(tmp_path, rosdistro_url):
+    """The TurtleBot 4's Create 3 step says which RMW roslab sets on the base (the trial's teacher
+    could not tell): the roster's ros_middleware, filled in by the loader as ${host} is."""
+    roster = tmp_path / "lab.yaml"
+    roster.write_text(textwrap.dedent(f"""\
+        classroom:
+          ssh_user: ubuntu
+          ubuntu_release: "24.04"
+          rosdistro_index_url: {rosdistro_url}
+          ros_middleware: rmw_cyclonedds_cpp
+        teams:
+          t1:
+            ros_domain_id: 11
+            robot_profile: turtlebot4
+            turtlebot4_model: lite
+            hosts:
+              t1-main: {{role: main}}
+              t1-robot: {{role: robot, board: pi4}}
+        """))
+    robot = next(host for host in load_roster(roster).hosts if host.name == "t1-robot")
+    (step,) = [item for item in robot.data["roslab_profile"]["checklist"] if "Create 3 to the Pi" in item]
+    assert "sets its domain, namespace, middleware (rmw_cyclonedds_cpp) and NTP server" in step, step
