@@ -148,6 +148,8 @@ def print_status(report: dict) -> None:
     print(f"roster: {report['roster']}")
     print(f"deploy it: ROSLAB_SANDBOX={report['name']} pyinfra -y inventories/sandbox.py deploy.py   (in roslab's checkout)")
     print(f"       or: ROSLAB_ROSTER={report['roster']} pyinfra -y inventory.py deploy.py   (in a `roslab init` folder)")
+    # roslab verify/status in a classroom folder would read its classroom.yaml: its real addresses
+    print(f"check it: roslab verify {report['roster']}   (and roslab status, roslab check: the same roster)")
     for distro, what in sorted(report.get("ros", {}).items()):
         print(f"ROS 2 {distro}: {what}")
     for host in report["hosts"]:

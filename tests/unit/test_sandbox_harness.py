@@ -602,3 +602,16 @@ def test_a_host_runs_on_its_card_only_while_reflashes_name_it():
     # A plain reset lets the card go: the sandbox's image, with the card's seed.
     state = lifecycle.reflash_state(state)
     assert (state["seeded"], state["seed"], state["card"]) == (True, "/s", None)
+
+
+def test_up_prints_the_deploy_and_the_verify_command_for_its_own_roster(capsys):
+    """A teacher with a classroom folder needs the sandbox's roster for verify and status too: in
+    the folder, a bare `roslab verify` would read classroom.yaml, the real Pis' addresses."""
+    from roslab.sandbox.cli import print_status
+
+    roster = "/run/roslab/sandbox/trial/roster.yaml"
+    print_status({"name": "trial", "subnet": "10.213.178.0/24", "upstream": "http://10.213.178.1:8080",
+                  "roster": roster, "hosts": []})
+    out = capsys.readouterr().out.splitlines()
+    assert f"       or: ROSLAB_ROSTER={roster} pyinfra -y inventory.py deploy.py   (in a `roslab init` folder)" in out
+    assert f"check it: roslab verify {roster}   (and roslab status, roslab check: the same roster)" in out
