@@ -15,7 +15,7 @@ import json
 import posixpath
 from io import StringIO
 
-from pyinfra import host
+from pyinfra import host, logger
 from pyinfra.api import FactBase, deploy, operation
 from pyinfra.api.exceptions import OperationValueError
 from pyinfra.operations import apt, files, server, systemd
@@ -91,8 +91,7 @@ def base_settings_kept(base: dict, distro: str, wanted: dict, record: str = POST
     url = f"http://{link.base_address}"
     answer = host.get_fact(BaseAnswer, url=url, record=record)
     if answer["about"] is None:
-        host.noop(f"the {link.kind} at {link.base_address} does not answer on {link.interface} (unplugged, off, or "
-                  "usb0 not up before the first reboot after the boot config): its settings wait for the next run")
+        host.noop(silent_base_line(link))
         return
     problem = firmware_problem(firmware_generation(answer["about"]), distro, link)
     if problem:
@@ -156,13 +155,25 @@ def time_served(base: RobotBase) -> None:
                     _if=written.did_change)
 
 
+def silent_base_line(link: RobotBase) -> str:
+    return (f"the {link.kind} at {link.base_address} does not answer on {link.interface} (unplugged, off, or "
+            "usb0 not up before the first reboot after the boot config): its settings wait for the next run")
+
+
 def base_settings_posted(base: RobotBase, distro: str, environment: dict[str, str]) -> None:
-    """The base's settings from the team's environment (a middleware it has not: one line)."""
+    """The base's settings from the team's environment (a middleware it has not: one line). A base
+    that does not answer, or runs another distro's firmware, is a warning of the run (one line,
+    shown in the compact output; the step itself says it again as its no-op reason)."""
     try:
         wanted = create3_wanted(base, distro, environment)
     except ValueError as error:
         host.noop(f"the {base.kind} keeps its settings: {error}")
         return
+    answer = host.get_fact(BaseAnswer, url=f"http://{base.base_address}", record=POSTED_RECORD)
+    trouble = (silent_base_line(base) if answer["about"] is None
+               else firmware_problem(firmware_generation(answer["about"]), distro, base))
+    if trouble:
+        host.log(f"roslab: robot base: {trouble}", logger.warning)
     base_settings_kept(
         name=f"Ensure the {base.kind} has domain {wanted['ros_domain_id']}, namespace {wanted['ros_namespace'] or '/'}, "
              f"{wanted['rmw_implementation']} and NTP from {base.pi_ip} (posted, then it reboots)",

@@ -292,16 +292,21 @@ def test_a_converged_robot_posts_nothing_and_says_why():
     assert record_text(wanted) == record_text(dict(reversed(list(wanted.items()))))
 
 
-def test_a_silent_create3_is_one_line_and_the_rest_converges():
+def test_a_silent_create3_is_one_line_and_the_rest_converges(caplog):
     result = base_plan(base_facts(about=None, converged=True))
     assert result.changing() == {}
     assert any("192.168.186.2 does not answer on usb0" in noop for noop in result.noops), result.noops
+    # a warning of the run, which roslab's compact output shows (a no-op reason it does not)
+    warned = [record.getMessage() for record in caplog.records if record.levelname == "WARNING"]
+    assert len(warned) == 1 and "roslab: robot base: the create3 at 192.168.186.2 does not answer" in warned[0], warned
 
 
-def test_a_humble_firmware_on_a_jazzy_class_is_said():
+def test_a_humble_firmware_on_a_jazzy_class_is_said(caplog):
     wanted = create3_wanted(TB4_BASE, "jazzy", {"ROS_DOMAIN_ID": "7", "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"})
     result = base_plan(base_facts(about='{"version": "H.2.6.FastDDS"}', posted=wanted, converged=True))
     assert any("Create 3 firmware H.2.6.FastDDS on a Jazzy class: update it to I.*" in n for n in result.noops)
+    warned = [record.getMessage() for record in caplog.records if record.levelname == "WARNING"]
+    assert len(warned) == 1 and "firmware H.2.6.FastDDS on a Jazzy class" in warned[0], warned
 
 
 # --- the deploy's own commands against the Create 3 stand-in (roslab/sandbox/create3.py) ---------
