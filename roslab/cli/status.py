@@ -257,6 +257,9 @@ class HostStatus:
     runs_nodes: bool = True
     other_services: list = field(default_factory=list)  # HostService, beside roslab-nodes
     listens: bool = True  # a main whose profile names a topic to hear (not sim)
+    # What publishes the topic it hears, and the node that must (an ESP32 team's board), as verify names them
+    verify_source: str = ""
+    verify_publisher: str = ""
     # (service, why) of its profile's services the roster leaves off (an uncalibrated rover)
     not_started: list = field(default_factory=list)
     listen_timeout: int = LISTEN_TIMEOUT  # --listen: seconds its check waits for a message
@@ -584,6 +587,7 @@ def host_statuses(classroom: Classroom, groups: dict, limit: list[str] | None = 
             profile=profile_name(typed), runs_nodes=runs_nodes(typed),
             other_services=[service for service in host_services(typed) if service.kind != "nodes"],
             listens=bool(typed.nodes_verify_topic),
+            verify_source=typed.roslab_verify_source or "", verify_publisher=typed.roslab_verify_publisher or "",
             not_started=services_not_started(typed),
             listen_timeout=int(typed.nodes_verify_timeout or LISTEN_TIMEOUT),
             underlay=origin_file(typed),
@@ -837,6 +841,7 @@ def team_result(team: str, hosts: list[HostStatus], main: HostStatus | None, rob
     if main is not None:
         result.heard = main.heard
         result.listens, result.profile = main.listens, main.profile
+        result.source, result.publisher = main.verify_source, main.verify_publisher
         if not main.reachable:
             result.error = f"{main.name} is {UNREACHABLE}"
         elif main.listen_error:

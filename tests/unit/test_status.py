@@ -274,6 +274,29 @@ def test_the_page_draws_each_team_with_its_hosts_and_states():
     assert "no robot in this team" in page
 
 
+def test_listening_on_an_esp32_team_names_its_board_as_verify_does():
+    """The trial's page said '/esp32/potentiometer listed but no message' (the robot's own servo
+    node lists the topic anyway) where verify names the board; and a message is the board's only
+    when its node published it."""
+    board = "esp32_board_knob"
+    source = "the ESP32 board (through micro_ros_agent on the team's robot, udp)"
+    main = reachable_host(name="knob-main", team="knob", profile="esp32_microros", runs_nodes=False,
+                          verify_source=source, verify_publisher=board)
+    robot = reachable_host(name="knob-robot", role="robot", team="knob", profile="esp32_microros")
+    main.heard = {"ros": True, "topics": ["/esp32/potentiometer", "/esp32/servo_angle"], "message": None,
+                  "robot": None, "echo_status": 124, "daemon_stopped": False, "finished": True, "publishers": []}
+    topic_of = {"knob": "/esp32/potentiometer"}
+    types = {"knob": "std_msgs/msg/Int32"}
+    picture = page_context("lab", "x", [main, robot], NOW, listen=True, topics=topic_of, message_types=types,
+                           listen_timeout=20)["teams"][0]
+    assert picture["verdict"] == f"no message from {board} on /esp32/potentiometer within 20 s: {source} publishes nothing"
+    main.heard = {**main.heard, "message": "data: 3262", "echo_status": 0, "publishers": [board]}
+    picture = page_context("lab", "x", [main, robot], NOW, listen=True, topics=topic_of, message_types=types,
+                           listen_timeout=20)["teams"][0]
+    assert picture["verdict"] == f"heard a std_msgs/msg/Int32 on /esp32/potentiometer from {board}"
+    assert picture["verdict_level"] == "ok"
+
+
 def test_listening_shows_the_topics_heard_and_whether_the_robot_was_heard():
     main, robot = reachable_host(), reachable_host(name="team1-robot", role="robot")
     main.heard = {"ros": True, "topics": ["/chatter", "/robot_status", "/rosout"],
