@@ -94,6 +94,27 @@ def tb3_roster(tmp_path, url, team_extra="", host_extra="", release="24.04", cla
         """)
 
 
+def tb4_roster(tmp_path, url, profile="turtlebot4", classroom_extra="") -> Path:
+    """A one-team TurtleBot 4 (lite) class on 24.04, its robot a Pi 4."""
+    roster = tmp_path / "lab.yaml"
+    roster.write_text(textwrap.dedent(f"""\
+        classroom:
+          ssh_user: ubuntu
+          ubuntu_release: "24.04"
+          rosdistro_index_url: {url}
+          {classroom_extra}
+        teams:
+          t1:
+            ros_domain_id: 11
+            robot_profile: {profile}
+            turtlebot4_model: lite
+            hosts:
+              t1-main: {{role: main}}
+              t1-robot: {{role: robot, board: pi4}}
+        """))
+    return roster
+
+
 # --- the built-in profiles ----------------------------------------------------------------
 
 def test_the_built_in_profiles_load():
@@ -677,21 +698,7 @@ def test_a_new_robot_is_one_profile_file_and_nothing_else(tmp_path, rosdistro_ur
     after = _files_of(copy)
     assert {name for name in after if before.get(name) != after[name]} == {"roslab/profiles/data/mybot4.yaml"}
 
-    roster = tmp_path / "lab.yaml"
-    roster.write_text(textwrap.dedent(f"""\
-        classroom:
-          ssh_user: ubuntu
-          ubuntu_release: "24.04"
-          rosdistro_index_url: {rosdistro_url}
-        teams:
-          t1:
-            ros_domain_id: 11
-            robot_profile: mybot4
-            turtlebot4_model: lite
-            hosts:
-              t1-main: {{role: main}}
-              t1-robot: {{role: robot, board: pi4}}
-        """))
+    roster = tb4_roster(tmp_path, rosdistro_url, profile="mybot4")
 
     def check() -> dict:
         run = subprocess.run([sys.executable, "-c", NEW_ROBOT_CHECK, str(roster)], capture_output=True, text=True,
@@ -742,22 +749,7 @@ def test_every_built_in_side_resolves_to_exactly_the_typed_keys():
 def test_a_checklist_step_that_sets_the_middleware_names_the_classs(tmp_path, rosdistro_url):
     """The TurtleBot 4's Create 3 step says which RMW roslab sets on the base (the trial's teacher
     could not tell): the roster's ros_middleware, filled in by the loader as ${host} is."""
-    roster = tmp_path / "lab.yaml"
-    roster.write_text(textwrap.dedent(f"""\
-        classroom:
-          ssh_user: ubuntu
-          ubuntu_release: "24.04"
-          rosdistro_index_url: {rosdistro_url}
-          ros_middleware: rmw_cyclonedds_cpp
-        teams:
-          t1:
-            ros_domain_id: 11
-            robot_profile: turtlebot4
-            turtlebot4_model: lite
-            hosts:
-              t1-main: {{role: main}}
-              t1-robot: {{role: robot, board: pi4}}
-        """))
+    roster = tb4_roster(tmp_path, rosdistro_url, classroom_extra="ros_middleware: rmw_cyclonedds_cpp")
     robot = next(host for host in load_roster(roster).hosts if host.name == "t1-robot")
     (step,) = [item for item in robot.data["roslab_profile"]["checklist"] if "Create 3 to the Pi" in item]
     assert "sets its domain, namespace, middleware (rmw_cyclonedds_cpp) and NTP server" in step, step

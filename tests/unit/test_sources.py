@@ -287,15 +287,21 @@ def test_a_commit_pin_in_the_mirror_needs_no_upstream(tmp_path):
     assert source_fetch.fetched(repo_entry(tmp_path, bare, made), cache).commit == made
 
 
-def test_a_moved_tag_is_never_taken_and_is_named_when_the_class_changes_its_pins(tmp_path):
+def tag_moved_after_a_first_fetch(tmp_path):
+    """(bare, cache, entry, first commit, moved commit): tag v1 fetched into `cache`, then moved upstream."""
     bare, made = upstream_repo(tmp_path)
     cache = tmp_path / "cache"
     entry = repo_entry(tmp_path, bare, "v1")
     source_fetch.fetched(entry, cache)
     moved = git_standins.commit(bare, git_standins.package_files("lidar", ["lidar", "other"]), "second",
                                 ["v1"], move_tags=True)
-    # the same pins as the last check: the lock wins, upstream is not asked
     source_fetch.reset()
+    return bare, cache, entry, made, moved
+
+
+def test_a_moved_tag_is_never_taken_and_is_named_when_the_class_changes_its_pins(tmp_path):
+    bare, cache, entry, made, moved = tag_moved_after_a_first_fetch(tmp_path)
+    # the same pins as the last check: the lock wins, upstream is not asked
     assert source_fetch.fetched(entry, cache).commit == made
     # a teacher changes a pin (another repository here): every tag is checked, the moved one named
     source_fetch.reset()
@@ -330,15 +336,8 @@ def test_the_class_locks_commit_wins_on_a_new_controller_and_a_tag_moved_from_it
 
 def test_a_lock_update_moves_the_controllers_record_of_a_tag_to_the_class_locks_commit(tmp_path):
     """After `roslab lock --update` took a moved tag's new commit, the controller that recorded the
-    old one follows the class lock (upstream names the locked commit), and records it; without
-    the class lock it still refuses the moved tag."""
-    bare, made = upstream_repo(tmp_path)
-    cache = tmp_path / "cache"
-    entry = repo_entry(tmp_path, bare, "v1")
-    source_fetch.fetched(entry, cache)
-    moved = git_standins.commit(bare, git_standins.package_files("lidar", ["lidar", "other"]), "second",
-                                ["v1"], move_tags=True)
-    source_fetch.reset()
+    old one follows the class lock (upstream names the locked commit), and records it."""
+    bare, cache, entry, made, moved = tag_moved_after_a_first_fetch(tmp_path)
     assert source_fetch.fetched(entry, cache, locked=moved).commit == moved
     assert json.loads((cache / source_fetch.LOCK_NAME).read_text())[f"file://{bare}"]["tags"] == {"v1": moved}
     # the next run, the same pins: served from the cache, upstream not asked
