@@ -629,8 +629,10 @@ def probe(groups: dict, statuses: list[HostStatus], listen: bool = False,
                                  bound): status for status in statuses}
         rounds = -(-len(statuses) // parallel)
         if listen:
+            longest = max(status.listen_timeout for status in statuses)
             print(f"roslab status: reading {len(statuses)} hosts, each main listening for its robot's topic "
-                  f"(all at once, up to {bound} s a host)", file=sys.stderr, flush=True)
+                  f"(all at once, each up to {longest} s for a message, after the ROS tools start)",
+                  file=sys.stderr, flush=True)
         # never silent: a line every few seconds names the hosts still being read
         waiting.joined({job: status.name for job, status in jobs.items()}, "roslab status: still reading",
                        timeout=rounds * bound + 5)
@@ -872,18 +874,19 @@ def robot_arrow(index: int, robot_count: int, y: int, main_y: int, state: str, l
 
 
 def heard_lines(main: HostStatus | None, result: TeamResult, listen: bool, nothing_to_hear: bool) -> list[str]:
-    """The lines under the main host's box: the topics it hears, or why none are shown."""
+    """The lines under the main host's box: the topics it sees (listed by ROS, as verify's "topics
+    seen" column; a topic seen is not a message heard: the verdict says that), or why none are shown."""
     heard = (main.heard if main is not None else None) or parse_check_output([])
     if nothing_to_hear:
-        return [f"topics heard: not checked ({main.profile if main is not None else 'no main host'}: no topic)"]
+        return [f"topics seen: not checked ({main.profile if main is not None else 'no main host'}: no topic)"]
     if not listen:
-        return ["topics heard: not checked (roslab status --listen)"]
+        return ["topics seen: not checked (roslab status --listen)"]
     if main is None or main.heard is None:
-        return [f"topics heard: {result.verdict()}"]
+        return [f"topics seen: {result.verdict()}"]
     if not heard["ros"]:
-        return ["topics heard: no ROS 2 runtime on the main host"]
+        return ["topics seen: no ROS 2 runtime on the main host"]
     topics = [name for name in heard["topics"] if name not in BACKGROUND_TOPICS]
-    lines = ["topics heard:" if topics else "topics heard: none"]
+    lines = ["topics seen:" if topics else "topics seen: none"]
     lines += [f"  {name}" for name in topics[:MAX_TOPICS]]
     if len(topics) > MAX_TOPICS:
         lines.append(f"  and {len(topics) - MAX_TOPICS} more")

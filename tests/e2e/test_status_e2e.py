@@ -140,7 +140,7 @@ def test_listen_says_the_stand_in_ros_has_no_runtime_and_stays_bounded(class_con
     assert elapsed < 60, elapsed
     assert "team team2: no ROS runtime on team2-main: not verified" in result.stdout
     page = runs.runs_path(sandbox.roster_path).parent / "status.html"
-    assert "topics heard: no ROS 2 runtime on the main host" in page.read_text()
+    assert "topics seen: no ROS 2 runtime on the main host" in page.read_text()
 
 
 def test_a_stopped_discovery_server_is_named_by_status_and_verify(class_converged, tmp_path):

@@ -270,7 +270,7 @@ def test_the_page_draws_each_team_with_its_hosts_and_states():
     assert rows == ["team1-main", "team1-robot", "team2-main"]
     arrows = [attrs["class"] for tag, attrs in tags if tag == "line"]
     assert arrows == ["arrow unknown"]  # robot -> main, not listened
-    assert "topics heard: not checked (roslab status --listen)" in page
+    assert "topics seen: not checked (roslab status --listen)" in page
     assert "no robot in this team" in page
 
 
@@ -305,7 +305,7 @@ def test_listening_shows_the_topics_heard_and_whether_the_robot_was_heard():
     picture = page_context("lab", "x", [main, robot], NOW, listen=True)["teams"][0]
     assert picture["verdict"] == "heard team1-robot" and picture["verdict_level"] == "ok"
     assert [arrow["state"] for arrow in picture["arrows"]] == ["ok"]
-    assert [text["text"] for text in picture["texts"]] == ["topics heard:", "  /chatter", "  /robot_status"]
+    assert [text["text"] for text in picture["texts"]] == ["topics seen:", "  /chatter", "  /robot_status"]
 
     main.heard = {**main.heard, "message": None, "robot": None, "topics": ["/rosout"]}
     picture = page_context("lab", "x", [main, robot], NOW, listen=True)["teams"][0]
@@ -318,7 +318,7 @@ def test_listening_shows_the_topics_heard_and_whether_the_robot_was_heard():
     assert picture["verdict"] == "no ROS runtime on team1-main: not verified"
     assert picture["verdict_level"] == "warn"
     assert [arrow["state"] for arrow in picture["arrows"]] == ["unknown"]
-    assert [text["text"] for text in picture["texts"]] == ["topics heard: no ROS 2 runtime on the main host"]
+    assert [text["text"] for text in picture["texts"]] == ["topics seen: no ROS 2 runtime on the main host"]
 
 
 # the command (subprocesses: it connects with pyinfra's gevent, as the CLI does) -----------------
@@ -518,7 +518,7 @@ def test_a_sim_team_has_nothing_to_hear_and_is_amber_not_checked():
         assert picture["verdict_level"] == "warn", picture["verdict"]
         assert picture["verdict"].startswith(
             "not checked, nothing to hear: robot profile sim names no robot on sim1-main")
-        assert picture["texts"][0]["text"] == "topics heard: not checked (sim: no topic)"
+        assert picture["texts"][0]["text"] == "topics seen: not checked (sim: no topic)"
 
 
 def test_an_uncalibrated_rovers_robot_is_amber_and_says_what_starts_it():
