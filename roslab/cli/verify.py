@@ -620,6 +620,11 @@ def run(args: argparse.Namespace) -> int:
     if problem:
         print(problem, file=sys.stderr)
         return 2
+    from gevent import monkey
+
+    # As pyinfra's CLI and `roslab status` do: without it each host's SSH blocks the others, so the
+    # hosts were checked one after another and no "still checking" line could come in between.
+    monkey.patch_all()
     print("roslab verify: connecting to the hosts ...", file=sys.stderr, flush=True)
     state = connected_state(groups, args.limit)
     print(listening_line(state), file=sys.stderr, flush=True)
