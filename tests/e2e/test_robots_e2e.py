@@ -19,6 +19,8 @@ shared runtime lacks them: the sandbox's stand-in executables), its RoboClaws an
 (serial and I2C hardware: those nodes fail, each in its own line of the launch's journal) until
 `roslab sandbox board team1 start` runs STAND-IN RoboClaws in the rover
 (roslab/sandbox/roboclaw_board.py): then the real roboclaw_wrapper publishes /drive_state.
+Moved to `osr_calibrated: false` by a run, the rover team is NOT CHECKED by verify (exit 3, never
+PASS) and status says its service is not started; the calibrated rover is back after.
 Without bundles or a real runtime, every robot repository is a stand-in (git_standins.py): the
 same class converges and the real-only tests skip, saying so.
 
@@ -466,6 +468,34 @@ def test_the_board_on_its_teams_domain_is_heard_reconnects_after_the_agent_is_ki
     silent = verify(sandbox, roster, "--limit", "team2")
     assert silent.returncode == 1, silent.stdout + silent.stderr
     assert "ESP32 board" in silent.stdout and BOARD_HOST in silent.stdout, silent.stdout
+
+
+def test_verify_and_status_never_pass_an_uncalibrated_rover_and_say_what_starts_it(sandbox, roster, first_run):
+    """The rover before its calibration (issue 40): with osr_calibrated: false a run stops the
+    rover's service; verify then says NOT CHECKED and why, never PASS, and exits 3 (nothing failed,
+    not every team verified); status's row for the robot says its service is not started. The
+    roster's calibrated rover is back after (with stand-in rover code it is never calibrated)."""
+    uncalibrated = roster.parent / "uncalibrated.yaml"  # beside the roster: its class.repos
+    data = yaml.safe_load(roster.read_text())
+    data["teams"]["team1"]["osr_calibrated"] = False
+    uncalibrated.write_text(yaml.safe_dump(data, sort_keys=False))
+    try:
+        run = deploy(sandbox, uncalibrated, "--limit", "team1")
+        assert run.returncode == 0 and not run.failed_hosts, run.stderr[-4000:]
+        checked = verify(sandbox, uncalibrated, "--limit", "team1")
+        assert checked.returncode == 3, checked.stdout + checked.stderr
+        (row,) = [line for line in checked.stdout.splitlines() if line.split()[:1] == ["team1"]]
+        assert "NOT CHECKED not checked, nothing to hear: robot profile osr names no topic" in row, row
+        assert f"osr_startup on {ROVER} not started: osr_calibrated is false" in row and "PASS" not in row, row
+        status = subprocess.run([sys.executable, "-m", "roslab", "status", str(uncalibrated), "--limit", "team1"],
+                                env=sandbox.env, capture_output=True, text=True, timeout=300)
+        assert status.returncode == 0, status.stdout + status.stderr
+        (rover,) = [line for line in status.stdout.splitlines() if f" {ROVER} " in line]
+        assert "none: osr_startup not started" in rover, status.stdout
+    finally:
+        if is_real(sandbox):
+            again = deploy(sandbox, roster, "--limit", "team1")
+            assert again.returncode == 0 and not again.failed_hosts, again.stderr[-4000:]
 
 
 def test_the_stand_in_roboclaws_let_the_rovers_real_wrapper_publish_drive_state(sandbox, roster, first_run):
