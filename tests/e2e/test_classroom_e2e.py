@@ -228,21 +228,27 @@ def accepted_logins(sandbox, host: str) -> Logins:
     """sshd's "Accepted publickey" journal lines on `host`, this check's own apart.
 
     journald takes sshd's lines through a socket, so a login's line can show up after the
-    login's command ran: the check waits for its own line (found by its client port), and
-    every login before it is then in the journal too.
+    login's command ran: the check waits for its own line, and every login before it is then
+    in the journal too. Its own line is the one of its client port AND of its sshd monitor
+    process (the parent of the session's sshd, which logged it): a port alone was reused by
+    an earlier login of the session now and then, whose line then passed for the check's own
+    while the real one came later, as a login "since".
     """
     command = (
-        'port=$(echo "$SSH_CLIENT" | cut -d" " -f2); echo "$port"; '
+        'port=$(echo "$SSH_CLIENT" | cut -d" " -f2); '
+        "monitor=$(awk '/^PPid:/ {print $2}' /proc/$PPID/status); "
+        'echo "$monitor $port"; '
         "for _ in $(seq 100); do "
         "  lines=$(sudo -n journalctl -u ssh -o short-unix --no-pager | grep 'Accepted publickey'); "
-        '  echo "$lines" | grep -q " port $port " && break; sleep 0.1; '
+        '  echo "$lines" | grep "sshd\\[$monitor\\]: " | grep -q " port $port " && break; sleep 0.1; '
         'done; echo "$lines"'
     )
-    port, *lines = sandbox.ssh(host, command, check=True).stdout.splitlines()
-    # An earlier login may have had the same port: the check's own is the last one.
-    own = [line for line in lines if f" port {port} " in line]
-    assert own, f"sshd on {host} never logged this check's login (port {port})"
-    return Logins(own[-1], frozenset(lines) - {own[-1]})
+    ids, *lines = sandbox.ssh(host, command, check=True).stdout.splitlines()
+    monitor, port = ids.split()
+    own = [line for line in lines if f" sshd[{monitor}]: " in line and f" port {port} " in line]
+    assert len(own) == 1, (f"sshd on {host} logged this check's login (sshd[{monitor}], port {port}) "
+                           f"{len(own)} times")
+    return Logins(own[0], frozenset(lines) - {own[0]})
 
 
 @pytest.mark.parametrize("case", sorted(BAD_HOST_VALUES))
