@@ -238,8 +238,13 @@ def accepted_logins(sandbox, host: str) -> Logins:
         'port=$(echo "$SSH_CLIENT" | cut -d" " -f2); '
         "monitor=$(awk '/^PPid:/ {print $2}' /proc/$PPID/status); "
         'echo "$monitor $port"; '
-        "for _ in $(seq 100); do "
-        "  lines=$(sudo -n journalctl -u ssh -o short-unix --no-pager | grep 'Accepted publickey'); "
+        # --sync: journald stores what sshd wrote before it; the wait (up to 60 s, over as soon as
+        # the line is there) is for a machine so loaded that journald is late even so (CI saw 10 s
+        # pass). By sshd's syslog name, not its unit: journald cannot tell the unit of a line whose
+        # process (a pyinfra login's sshd) was gone when it got to it.
+        "for _ in $(seq 600); do "
+        "  sudo -n journalctl --sync; "
+        "  lines=$(sudo -n journalctl -t sshd -o short-unix --no-pager | grep 'Accepted publickey'); "
         '  echo "$lines" | grep "sshd\\[$monitor\\]: " | grep -q " port $port " && break; sleep 0.1; '
         'done; echo "$lines"'
     )
