@@ -490,7 +490,7 @@ def test_verify_and_status_never_pass_an_uncalibrated_rover_and_say_what_starts_
         status = subprocess.run([sys.executable, "-m", "roslab", "status", str(uncalibrated), "--limit", "team1"],
                                 env=sandbox.env, capture_output=True, text=True, timeout=300)
         assert status.returncode == 0, status.stdout + status.stderr
-        (rover,) = [line for line in status.stdout.splitlines() if f" {ROVER} " in line]
+        (rover,) = [line for line in status.stdout.splitlines() if line.split()[:2] == ["team1", ROVER]]  # its row
         assert "none: osr_startup not started" in rover, status.stdout
     finally:
         if is_real(sandbox):
