@@ -74,8 +74,7 @@ def kept_sources(host) -> dict[str, str]:
     found = {}
     for repo in typed.roslab_sources:
         url, version = repo["url"], repo["version"]
-        commit = version if source_fetch.COMMIT.fullmatch(version) else \
-            ((recorded.get(url) or {}).get("tags") or {}).get(version)
+        commit = source_fetch.recorded_commit(recorded.get(url) or {}, version)
         if commit:
             found[class_lock.source_key(url, version)] = commit
     return found

@@ -288,6 +288,12 @@ def _write_json(path: Path, data: dict) -> None:
         raise
 
 
+def recorded_commit(entry: dict, version: str) -> str | None:
+    """The commit pin `version` names in a repository's lock `entry` (read_lock()[url]): itself for a
+    commit, the commit recorded for a tag, None for a tag never fetched."""
+    return version if COMMIT.fullmatch(version) else (entry.get("tags") or {}).get(version)
+
+
 def _record(cache_dir: Path, url: str, tag: str | None, commit: str, sha256: str,
             class_locked: bool = False) -> None:
     """Add what was seen to the lock file (atomically; entries never change once written, but for
@@ -430,7 +436,7 @@ def _fetch(repo: dict, cache_dir: Path, fetch_url: str, offline: bool, timeout: 
         ask_upstream = fresh_mirror
     tag: str | None = None
     notes: list[str] = []
-    expected = version if COMMIT.fullmatch(version) else (lock.get("tags") or {}).get(version)
+    expected = recorded_commit(lock, version)
     if not fresh_mirror:
         _refuse_damaged_mirror(mirror, expected, lock, timeout)
     if COMMIT.fullmatch(version):
@@ -439,7 +445,7 @@ def _fetch(repo: dict, cache_dir: Path, fetch_url: str, offline: bool, timeout: 
     else:
         tag = version
         commit = _tag_commit(mirror, cache_dir, fetch_url, url, tag, lock, offline, ask_upstream, digest,
-                             timeout, notes, locked if class_locked else None)
+                             timeout, notes, class_locked)
     archive, sha256 = _verified_archive(mirror, commit, lock, cache_dir, timeout)
     with _lock:
         _record(cache_dir, url, tag, commit, sha256, class_locked)
@@ -476,10 +482,10 @@ def _fetch_commit(mirror: Path, fetch_url: str, commit: str, offline: bool, time
 
 def _tag_commit(mirror: Path, cache_dir: Path, fetch_url: str, url: str, tag: str, lock: dict, offline: bool,
                 ask_upstream: bool, digest: str, timeout: float, notes: list[str],
-                class_locked: str | None = None) -> str:
+                class_locked: bool = False) -> str:
     """The commit a tag names, in the mirror: the lock's when offline or already checked with this
     set of pins, else upstream's, refused if it moved from what the class recorded (the class
-    lock's commit, `class_locked`, when it has one)."""
+    lock's commit, in `lock` already, when `class_locked`)."""
     recorded = (lock.get("tags") or {}).get(tag)
     held = bool(recorded and _has_commit(mirror, recorded, timeout))
     if offline:
@@ -490,9 +496,9 @@ def _tag_commit(mirror: Path, cache_dir: Path, fetch_url: str, url: str, tag: st
     if held and recorded and not ask_upstream and _tag_checked(cache_dir, digest, url, tag):
         return recorded  # checked with this set of pins: upstream is not asked again
     commit = _upstream_tag_commit(fetch_url, url, tag, recorded, held, timeout, notes)
-    if class_locked and class_locked != commit:
+    if recorded and recorded != commit and class_locked:  # `recorded` is the class lock's commit
         raise SourceError(f"tag {tag!r} now resolves to {commit}, but the class lock (classroom.lock) locks "
-                          f"{class_locked}: someone moved the tag; take the new commit with "
+                          f"{recorded}: someone moved the tag; take the new commit with "
                           "`roslab lock --update`, or pin the commit you want")
     if recorded and recorded != commit:
         raise SourceError(f"tag {tag!r} now resolves to {commit}, but the class recorded {recorded} "
