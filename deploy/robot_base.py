@@ -90,12 +90,11 @@ def base_settings_kept(base: dict, distro: str, wanted: dict, record: str = POST
         raise OperationValueError("base_settings_kept needs the profile's checked base: mapping")
     url = f"http://{link.base_address}"
     answer = host.get_fact(BaseAnswer, url=url, record=record)
+    trouble = base_trouble(link, distro, answer["about"])
+    if trouble:
+        host.noop(trouble)
     if answer["about"] is None:
-        host.noop(silent_base_line(link))
         return
-    problem = firmware_problem(firmware_generation(answer["about"]), distro, link)
-    if problem:
-        host.noop(problem)
     posts = create3_posts(wanted, answer["posted"])
     if not posts:
         host.noop(f"the {link.kind} already has domain {wanted['ros_domain_id']}, namespace "
@@ -155,9 +154,13 @@ def time_served(base: RobotBase) -> None:
                     _if=written.did_change)
 
 
-def silent_base_line(link: RobotBase) -> str:
-    return (f"the {link.kind} at {link.base_address} does not answer on {link.interface} (unplugged, off, or "
-            "usb0 not up before the first reboot after the boot config): its settings wait for the next run")
+def base_trouble(link: RobotBase, distro: str, about: str | None) -> str | None:
+    """What keeps the base's settings from being taken, in one line, from its answer (`about`, None:
+    no answer): silent, or another generation's firmware than the distro's; None when neither."""
+    if about is None:
+        return (f"the {link.kind} at {link.base_address} does not answer on {link.interface} (unplugged, off, or "
+                "usb0 not up before the first reboot after the boot config): its settings wait for the next run")
+    return firmware_problem(firmware_generation(about), distro, link)
 
 
 def base_settings_posted(base: RobotBase, distro: str, environment: dict[str, str]) -> None:
@@ -169,9 +172,9 @@ def base_settings_posted(base: RobotBase, distro: str, environment: dict[str, st
     except ValueError as error:
         host.noop(f"the {base.kind} keeps its settings: {error}")
         return
+    # the step's own fact (same arguments: read once), said here too, where the compact output shows it
     answer = host.get_fact(BaseAnswer, url=f"http://{base.base_address}", record=POSTED_RECORD)
-    trouble = (silent_base_line(base) if answer["about"] is None
-               else firmware_problem(firmware_generation(answer["about"]), distro, base))
+    trouble = base_trouble(base, distro, answer["about"])
     if trouble:
         host.log(f"roslab: robot base: {trouble}", logger.warning)
     base_settings_kept(
