@@ -340,6 +340,12 @@ class HostStatus:
         return (not self.runs_nodes or self.service.startswith("active")) and not self.services_stopped()
 
     @property
+    def runs_all_it_should(self) -> bool:
+        """runs_what_it_should, and no service of its profile waits for a setting (an uncalibrated
+        rover runs nothing yet): what the page shows green and counts as running."""
+        return self.runs_what_it_should and not self.not_started
+
+    @property
     def domain(self) -> int | None:
         """The domain ID the nodes' service runs with, if the host has the service."""
         if self.unit.get("LoadState") != "loaded":
@@ -747,7 +753,7 @@ def box_level(host: HostStatus) -> str:
     levels = [service_level(state) for state in states]
     if "bad" in levels:
         return "bad"
-    return "ok" if host.runs_what_it_should and not host.not_started else "warn"
+    return "ok" if host.runs_all_it_should else "warn"
 
 
 def host_box(host: HostStatus, x: int, y: int) -> dict:
@@ -940,8 +946,7 @@ def page_context(classroom_name: str | None, roster: str, hosts: list[HostStatus
         teams.setdefault(host.team, []).append(host)
     topics = topics or {}
     reachable = sum(host.reachable for host in hosts)
-    # a host whose profile's service waits for a setting (osr_calibrated) runs nothing yet: not counted
-    running = sum(host.runs_what_it_should and not host.not_started for host in hosts)
+    running = sum(host.runs_all_it_should for host in hosts)
     failed = sum(last_run_failed(host) for host in hosts)
     return {
         "title": f"roslab status: {classroom_name}" if classroom_name else "roslab status",
