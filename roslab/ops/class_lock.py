@@ -85,10 +85,13 @@ def preferences_lines(group: LockedGroup) -> list[str]:
 
 def unmet(group: LockedGroup, wanted: list[str], available: dict[str, list[str]]) -> list[str]:
     """One line per package of `wanted` whose locked version no source of the host offers
-    (`available`: package -> the versions apt-cache policy lists), saying what to do."""
+    (`available`: package -> the versions apt-cache policy lists), saying what to do. An index
+    lists a version or not: a .deb kept in the class cache cannot bring back one it dropped, ROS's
+    snapshot archive can (for a ROS package)."""
     return [
-        f"{name}={group.packages[name]} is locked but neither the archive nor the class cache has it: "
-        f"put the .deb back in the class cache, or move the lock with `roslab lock --update`"
+        f"{name}={group.packages[name]} is locked but no apt source of the host lists it any more: "
+        + ("install ROS from a snapshot that has it (ros_apt_source_mode: snapshot), or " if name.startswith("ros-") else "")
+        + "move the lock with `roslab lock --update`"
         for name in wanted
         if name in group.packages and group.packages[name] not in available.get(name, [])
     ]
