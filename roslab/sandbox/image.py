@@ -212,21 +212,7 @@ def _customise(rootfs: Path) -> None:
     write_file(rootfs / seeding.CLOUD_INIT_DISABLED.lstrip("/"), seeding.CLOUD_INIT_DISABLED_TEXT)
     for name, content in seeding.cloud_init_image_files().items():
         write_file(rootfs / name.lstrip("/"), content)
-    # dpkg skips its fsync()s here, as Docker's Ubuntu and Debian images do (docker-apt-speedup):
-    # a sandbox host's disk is a folder on this machine, so a host's power cut (its container
-    # killed) loses nothing the machine's page cache holds, and installing ROS takes a third
-    # less time (bench: 38 s -> 23 s for two hosts). A Pi's dpkg keeps its fsync()s.
-    write_file(rootfs / "etc/dpkg/dpkg.cfg.d/roslab-sandbox-unsafe-io",
-               "# roslab sandbox (not on a Pi): no fsync per unpacked file; the host's disk is a folder\n"
-               "force-unsafe-io\n")
-    # Debian byte-compiles every Python package it installs (py3compile in each postinst): about
-    # a fifth of a sandbox host's first converge on this 2-core machine (4-host default class:
-    # 173-202 s with it, 138-159 s without). Here it is diverted to a no-op, so Python compiles a
-    # module when it is first imported instead (`roslab verify` of that class: 12 s, was 10 s). A Pi's
-    # dpkg compiles; roslab never diverts it on a real host.
-    _chroot(rootfs, "dpkg-divert", "--local", "--rename", "--divert", PY3COMPILE_DIVERTED,
-            "--add", "/usr/bin/py3compile")
-    write_file(rootfs / "usr/bin/py3compile", PY3COMPILE_STUB, mode=0o755)
+    _quicker_installs(rootfs)
     write_file(rootfs / "etc/ccache.conf", COMPILE_CACHE_CONF)
     for name in COMPILER_NAMES:
         (rootfs / "usr/local/bin" / name).symlink_to("/usr/bin/ccache")
@@ -253,6 +239,25 @@ def _customise(rootfs: Path) -> None:
     # machine provides a per-container one, bound over /proc early in boot.
     write_file(rootfs / "etc/systemd/system/roslab-sandbox-uptime.service", UPTIME_UNIT)
     _chroot(rootfs, "systemctl", "enable", "roslab-sandbox-uptime.service")
+
+
+def _quicker_installs(rootfs: Path) -> None:
+    """What a sandbox host's dpkg skips that a Pi's does: fsync()s and byte-compiling."""
+    # dpkg skips its fsync()s here, as Docker's Ubuntu and Debian images do (docker-apt-speedup):
+    # a sandbox host's disk is a folder on this machine, so a host's power cut (its container
+    # killed) loses nothing the machine's page cache holds, and installing ROS takes a third
+    # less time (bench: 38 s -> 23 s for two hosts). A Pi's dpkg keeps its fsync()s.
+    write_file(rootfs / "etc/dpkg/dpkg.cfg.d/roslab-sandbox-unsafe-io",
+               "# roslab sandbox (not on a Pi): no fsync per unpacked file; the host's disk is a folder\n"
+               "force-unsafe-io\n")
+    # Debian byte-compiles every Python package it installs (py3compile in each postinst): about
+    # a fifth of a sandbox host's first converge on this 2-core machine (4-host default class:
+    # 173-202 s with it, 134-159 s without). Here it is diverted to a no-op, so Python compiles a
+    # module when it is first imported instead (`roslab verify` of that class: 12 s, was 10 s). A Pi's
+    # dpkg compiles; roslab never diverts it on a real host.
+    _chroot(rootfs, "dpkg-divert", "--local", "--rename", "--divert", PY3COMPILE_DIVERTED,
+            "--add", "/usr/bin/py3compile")
+    write_file(rootfs / "usr/bin/py3compile", PY3COMPILE_STUB, mode=0o755)
 
 
 UPTIME_UNIT = """\
