@@ -189,7 +189,7 @@ def test_a_locked_version_nobody_serves_stops_the_host_before_anything_is_instal
     result = locked(tmp_path, FakeUbuntu(), {"ros-jazzy-desktop": ["0.11.1"], "ros-dev-tools": ["1.0.1"]})
     assert result.failed and result.changing() == {}  # nothing pinned, nothing installed
     (error,) = result.errors
-    assert "ros-jazzy-desktop=0.11.0-1noble.20250101.000000 is locked but neither the archive nor" in error
+    assert "ros-jazzy-desktop=0.11.0-1noble.20250101.000000 is locked but no apt source of the host lists it any more" in error
 
 
 def test_a_move_to_a_locked_version_nobody_serves_stops_the_host_too(tmp_path):
