@@ -21,7 +21,7 @@ from . import seeding
 from .system import SandboxError, announced, log, run, write_file
 
 # Bump when the way the image is built or customised changes: it is part of the cache key.
-BUILDER_VERSION = 8
+BUILDER_VERSION = 7
 
 # What a Pi's server image brings, minus the kernel: the deploys find these installed.
 # cloud-init (Debian's) stays disabled unless a host boots from a seed (seeding.py);
@@ -51,15 +51,6 @@ umask = 000
 max_size = 4G
 """
 COMPILER_NAMES = ("cc", "c++", "gcc", "g++")
-
-PY3COMPILE_DIVERTED = "/usr/bin/py3compile.roslab-sandbox"
-PY3COMPILE_STUB = (
-    "#!/bin/sh\n"
-    "# roslab sandbox (not on a Pi): Debian's py3compile is diverted to "
-    f"{PY3COMPILE_DIVERTED}; packages are\n"
-    "# not byte-compiled at install, Python compiles a module when it is imported (roslab/sandbox/image.py)\n"
-    "exit 0\n"
-)
 
 LOGIN_USER = "ubuntu"
 LOGIN_UID = 1000
@@ -212,7 +203,13 @@ def _customise(rootfs: Path) -> None:
     write_file(rootfs / seeding.CLOUD_INIT_DISABLED.lstrip("/"), seeding.CLOUD_INIT_DISABLED_TEXT)
     for name, content in seeding.cloud_init_image_files().items():
         write_file(rootfs / name.lstrip("/"), content)
-    _quicker_installs(rootfs)
+    # dpkg skips its fsync()s here, as Docker's Ubuntu and Debian images do (docker-apt-speedup):
+    # a sandbox host's disk is a folder on this machine, so a host's power cut (its container
+    # killed) loses nothing the machine's page cache holds, and installing ROS takes a third
+    # less time (bench: 38 s -> 23 s for two hosts). A Pi's dpkg keeps its fsync()s.
+    write_file(rootfs / "etc/dpkg/dpkg.cfg.d/roslab-sandbox-unsafe-io",
+               "# roslab sandbox (not on a Pi): no fsync per unpacked file; the host's disk is a folder\n"
+               "force-unsafe-io\n")
     write_file(rootfs / "etc/ccache.conf", COMPILE_CACHE_CONF)
     for name in COMPILER_NAMES:
         (rootfs / "usr/local/bin" / name).symlink_to("/usr/bin/ccache")
@@ -239,25 +236,6 @@ def _customise(rootfs: Path) -> None:
     # machine provides a per-container one, bound over /proc early in boot.
     write_file(rootfs / "etc/systemd/system/roslab-sandbox-uptime.service", UPTIME_UNIT)
     _chroot(rootfs, "systemctl", "enable", "roslab-sandbox-uptime.service")
-
-
-def _quicker_installs(rootfs: Path) -> None:
-    """What a sandbox host's dpkg skips that a Pi's does: fsync()s and byte-compiling."""
-    # dpkg skips its fsync()s here, as Docker's Ubuntu and Debian images do (docker-apt-speedup):
-    # a sandbox host's disk is a folder on this machine, so a host's power cut (its container
-    # killed) loses nothing the machine's page cache holds, and installing ROS takes a third
-    # less time (bench: 38 s -> 23 s for two hosts). A Pi's dpkg keeps its fsync()s.
-    write_file(rootfs / "etc/dpkg/dpkg.cfg.d/roslab-sandbox-unsafe-io",
-               "# roslab sandbox (not on a Pi): no fsync per unpacked file; the host's disk is a folder\n"
-               "force-unsafe-io\n")
-    # Debian byte-compiles every Python package it installs (py3compile in each postinst): about
-    # a fifth of a sandbox host's first converge on this 2-core machine (4-host default class:
-    # 173-202 s with it, 134-159 s without). Here it is diverted to a no-op, so Python compiles a
-    # module when it is first imported instead (`roslab verify` of that class: 12 s, was 10 s). A Pi's
-    # dpkg compiles; roslab never diverts it on a real host.
-    _chroot(rootfs, "dpkg-divert", "--local", "--rename", "--divert", PY3COMPILE_DIVERTED,
-            "--add", "/usr/bin/py3compile")
-    write_file(rootfs / "usr/bin/py3compile", PY3COMPILE_STUB, mode=0o755)
 
 
 UPTIME_UNIT = """\
