@@ -496,11 +496,11 @@ def _tag_commit(mirror: Path, cache_dir: Path, fetch_url: str, url: str, tag: st
     if held and recorded and not ask_upstream and _tag_checked(cache_dir, digest, url, tag):
         return recorded  # checked with this set of pins: upstream is not asked again
     commit = _upstream_tag_commit(fetch_url, url, tag, recorded, held, timeout, notes)
-    if recorded and recorded != commit and class_locked:  # `recorded` is the class lock's commit
-        raise SourceError(f"tag {tag!r} now resolves to {commit}, but the class lock (classroom.lock) locks "
-                          f"{recorded}: someone moved the tag; take the new commit with "
-                          "`roslab lock --update`, or pin the commit you want")
     if recorded and recorded != commit:
+        if class_locked:  # `recorded` is the class lock's commit
+            raise SourceError(f"tag {tag!r} now resolves to {commit}, but the class lock (classroom.lock) locks "
+                              f"{recorded}: someone moved the tag; take the new commit with "
+                              "`roslab lock --update`, or pin the commit you want")
         raise SourceError(f"tag {tag!r} now resolves to {commit}, but the class recorded {recorded} "
                           f"in {Path(cache_dir) / LOCK_NAME}: someone moved the tag; pin the commit "
                           "you want (or delete the repository's entry from the lock file to accept it)")
