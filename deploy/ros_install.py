@@ -8,7 +8,8 @@ from pyinfra.facts.deb import DebPackages
 from pyinfra.facts.server import Arch
 
 from deploy.common import host_codename, host_distro, should_run, stop_host, where
-from roslab import class_lock, probe, settings
+from roslab import class_debs, class_lock, probe, settings
+from roslab.ops import class_debs as debs_ops
 from roslab.ops import class_lock as lock_ops
 from roslab.ros.discovery import middleware_package
 from roslab.ros.distro import default_distro
@@ -60,7 +61,7 @@ def ros_install():
 
     Reads host_settings(host): ros_install_enabled, ros_distro, ros_variant, ros_variant_main,
     ros_variant_robot, ros_dev_tools, ros_extra_packages, ros_middleware, roslab_role, roslab_profile,
-    apt_lock_timeout.
+    apt_lock_timeout, class_lock_debs_dir.
     (ubuntu_release is checked by deploy.common.supported_host.)
     """
     typed = host_settings(host)
@@ -71,7 +72,7 @@ def ros_install():
     # The title names the first two packages and counts the rest: a robot's list (ten packages
     # for a TurtleBot3) would make a 290-character step name; the no-op line lists them all.
     shown = ", ".join(packages[:2]) + (f" and {len(packages) - 2} more" if len(packages) > 2 else "")
-    specs = locked_versions_met(typed.roslab_roster_path, distro, packages, typed.apt_lock_timeout)
+    specs = locked_versions_met(typed, distro, packages)
     if specs is None:
         return
     packages_installed(
@@ -81,18 +82,20 @@ def ros_install():
     )
 
 
-def locked_versions_met(roster_path: str | None, distro: str, packages: list[str],
-                        lock_timeout: int) -> list[str] | None:
+def locked_versions_met(typed: HostSettings, distro: str, packages: list[str]) -> list[str] | None:
     """Pin apt to the class lock's versions of this host's group (classroom.lock beside the
-    roster), and stop the host before anything is installed if a package it lacks is locked at
-    a version its apt sources list without it. The packages to install (a locked one as
-    `name=version`, so that apt itself refuses a version no source has), or None: stopped.
+    roster), serve it the group's kept .debs its sources dropped (class_lock_debs_dir), and stop
+    the host before anything is installed if a package it lacks is locked at a version its apt
+    sources list without it and the controller did not keep. The packages to install (a locked
+    one as `name=version`, so that apt itself refuses a version no source has), or None: stopped.
 
     Without a lock, or without this group in it, nothing is pinned (the group's first converge).
     """
+    roster_path, lock_timeout = typed.roslab_roster_path, typed.apt_lock_timeout
     if class_lock.lock_beside(roster_path) is None:  # no lock: no architecture read either
         return packages
-    group = class_lock.host_group(roster_path, distro, host.get_fact(Arch))
+    machine = host.get_fact(Arch)
+    group = class_lock.host_group(roster_path, distro, machine)
     if group is None:
         return packages
     installed = host.get_fact(DebPackages) or {}
@@ -104,12 +107,19 @@ def locked_versions_met(roster_path: str | None, distro: str, packages: list[str
     # A package the lists do not know (a fresh host: its ROS source comes with this run) is
     # judged by apt at install time, asked for at its locked version.
     available = (host.get_fact(lock_ops.AptVersionsNow, packages=needed) or {}) if needed else {}
-    problems = lock_ops.unmet(group, [name for name in needed if available.get(name)], available)
+    key = class_lock.host_group_key(distro, machine) or ""
+    kept = class_debs.read_kept(typed.class_lock_debs_dir, key) if needed and typed.class_lock_debs_dir else {}
+    problems = lock_ops.unmet(group, [name for name in needed if available.get(name)
+                                      and (name, group.packages[name]) not in kept], available)
     if problems:
         stop_host(f"{where()}: {problems[0]}" + (f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""))
         return None
     lock_ops.locked_versions_pinned(
         name=f"Ensure apt installs the class lock's versions ({len(group.packages)} packages)", group=group)
+    if kept:
+        debs_ops.dropped_versions_served(
+            name="Ensure apt can install the locked versions its sources dropped (the class's kept .debs)",
+            root=str(typed.class_lock_debs_dir), key=key, date=group.taken, lock_timeout=lock_timeout)
     lock_ops.packages_at_locked_versions(
         name="Ensure the installed packages are at the class lock's versions", group=group, lock_timeout=lock_timeout)
     return [f"{name}={group.packages[name]}" if name in group.packages else name for name in packages]

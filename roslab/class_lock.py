@@ -403,7 +403,14 @@ def _read_once(path: Path, _mtime_ns: int, _size: int) -> ClassLock | None:
 def host_group(roster_path: str | None, distro: str, machine: str | None) -> LockedGroup | None:
     """The locked group of a host of `distro` whose `uname -m` is `machine`, if the lock has it."""
     lock = lock_beside(roster_path)
-    architecture = DEBIAN_ARCHITECTURES.get(machine or "")
-    if lock is None or architecture is None:
+    key = host_group_key(distro, machine)
+    if lock is None or key is None:
         return None
-    return lock.groups.get(f"{distro}/{architecture}")
+    return lock.groups.get(key)
+
+
+def host_group_key(distro: str, machine: str | None) -> str | None:
+    """The lock's name of the group of a host of `distro` whose `uname -m` is `machine` (None: an
+    architecture the lock has no name for)."""
+    architecture = DEBIAN_ARCHITECTURES.get(machine or "")
+    return f"{distro}/{architecture}" if architecture else None

@@ -65,6 +65,7 @@ class HostSettings:
     ros_dev_tools: bool
     ros_extra_packages: list[str]
     class_lock_auto: bool
+    class_lock_debs_dir: str | None
     # --- robot_base ---
     robot_base_enabled: bool
     # --- robot_profile ---

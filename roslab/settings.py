@@ -272,6 +272,14 @@ SCHEMA: list[Setting] = [
          "converged without failure, as `roslab lock` would take it (never on --dry); a locked group is never "
          "rewritten by a run (`roslab lock --update` moves it). false: only `roslab lock` takes it.",
          None, {"levels": ("classroom",)}),
+        ("class_lock_debs_dir", "~/.cache/roslab/class-debs", str,
+         "Where the controller keeps the class lock's .debs, a folder per group: `roslab lock` keeps each "
+         "locked package apt downloaded onto the group's hosts (what the runs installed), `--update` the "
+         "versions it moves to, each checked against the SHA256 of the index apt verified. A host whose "
+         "sources no longer list a locked version (packages.ros.org after a sync) is served the kept .debs "
+         "as a local apt source. A folder of its own inside the home directory, the roster's folder or the "
+         "temporary directory; null: nothing kept (such a host stops, naming the version).", f.cache_dir,
+         {"levels": ("classroom",), "nullable": True}),
     ),
     *_concern(
         "robot_base",

@@ -11,6 +11,10 @@ wheelhouse now holds at another version or hash. And the commit of each source r
 group's hosts build (URL@VERSION -> commit, as the controller fetched it); `--update` takes the
 commit a locked tag names upstream now (a moved tag: a run refuses it until then).
 
+Both keep the group's .debs (class_lock_debs_dir, roslab.class_debs): each locked package apt
+downloaded onto a host read, and each kept package's version `--update` moves to, downloaded on
+that host and checked against its index; a run serves them to a host whose sources dropped them.
+
 A group is (ROS distro, Debian architecture). A locked group is never rewritten by taking:
 only `--update` moves its versions, and never those of the lock's `hold:` list.
 """
@@ -18,10 +22,12 @@ only `--update` moves its versions, and never those of the lock's `hold:` list.
 from __future__ import annotations
 
 import argparse
+import tempfile
 import time
 from pathlib import Path
 
-from roslab import class_lock
+from roslab import class_debs, class_lock
+from roslab.ops import class_debs as debs_ops
 from roslab.ops import class_lock as lock_ops
 from roslab.controller_files import replace_file
 from roslab.reach import RosterProblem, add_roster_argument, connected_state, fail, load_classroom_groups
@@ -120,6 +126,7 @@ def read_hosts(args, classroom, groups, with_candidates: class_lock.ClassLock | 
         key = class_lock.group_key(distro_of[host.name], reading["architecture"])
         entry = found.setdefault(key, {"hosts": [], "installed": reading["packages"], "from": host.name})
         entry["hosts"].append(host.name)
+        entry.setdefault("readers", []).append((state, host, reading["architecture"]))
         entry["wheels"] = {**kept_wheels(state, host), **entry.get("wheels", {})}
         entry["sources"] = {**kept_sources(host), **entry.get("sources", {})}
         if with_candidates is not None and key in with_candidates.groups:
@@ -187,7 +194,79 @@ def run_lock(args: argparse.Namespace) -> int:
         print(f"--dry: {path.name} was not changed")
         return 0
     replace_file(path, class_lock.render_lock(lock))  # never half a lock, whatever stops the command
+    keep_debs(found, lock)
     return 0
+
+
+def keep_debs(found: dict, lock: class_lock.ClassLock) -> None:
+    """Keep each read group's locked .debs that the controller lacks (class_lock_debs_dir: what
+    apt downloaded onto the group's hosts, and the versions `--update` moved kept ones to), the
+    versions no longer locked removed; one line per group, and one per .deb not kept."""
+    from roslab.host_settings import host_settings
+
+    for key, entry in sorted(found.items()):
+        group, readers = lock.groups.get(key), entry.get("readers", [])
+        root = host_settings(readers[0][1]).class_lock_debs_dir if readers else None
+        if group is None or not root:
+            continue
+        before = class_debs.read_kept(root, key)
+        kept = class_debs.pruned(root, key, group, dict(before))
+        problems = []
+        for state, host, architecture in readers:
+            problems += kept_from(state, host, (root, key), group, architecture, (kept, before))
+        class_debs.write_kept(root, key, kept)
+        size = sum(deb.size for deb in kept.values())
+        print(f"{key}: {len(kept)} .debs kept in {class_debs.folder(root, key)} ({size / 1e6:.1f} MB)"
+              + (f"; {len(problems)} not kept:" if problems else ""))
+        for line in problems:
+            print(f"  {line}")
+
+
+def _copied(host, remote: str, local: Path) -> bool:
+    try:
+        return bool(host.get_file(remote, str(local)))
+    except OSError:  # not downloaded there (SFTP's "no such file"), or the connection went
+        return False
+
+
+def kept_from(state, host, where: tuple[str, str], group: class_lock.LockedGroup, architecture: str,
+              folders: tuple[dict, dict]) -> list[str]:
+    """Keep (into `folders`' first, the kept .debs, and the folder of `where`: class_lock_debs_dir
+    and group) what `host` downloaded of the group's locked versions and the folder lacks, and the
+    versions of packages kept before (`folders`' second) the lock moved: downloaded again on the
+    host (`apt-get download`, as the login user), copied here, checked against the host's index."""
+    from pyinfra.api import QuoteString, StringCommand
+    from pyinfra.api.facts import get_fact
+
+    (root, key), (kept, before) = where, folders
+    wanted = class_debs.wanted(group, get_fact(state, host, debs_ops.DownloadedDebs), architecture, kept, before)
+    if not wanted:
+        return []
+    index = get_fact(state, host, debs_ops.IndexedDebs, kwargs={"packages": [f"{n}={v}" for n, v in wanted]})
+    ok, output = host.run_shell_command(StringCommand("sh", "-c", QuoteString(debs_ops.download_script(wanted))))
+    remote = output.stdout_lines[-1].strip() if ok and output.stdout_lines else ""
+    if not debs_ops.DOWNLOAD_DIR.fullmatch(remote):
+        return [f"{len(wanted)} .debs: {host.name} could not download them (apt-get download)"]
+    problems = []
+    folder = class_debs.folder(root, key)
+    folder.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=folder, prefix=".incoming-") as incoming:
+        for name, version in wanted:
+            deb = index.get((name, version))
+            if deb is None:
+                problems.append(f"{name}={version}: {host.name}'s sources do not list it any more: not kept")
+                continue
+            local = Path(incoming) / deb.file
+            if not _copied(host, f"{remote}/{class_debs.download_name(name, version, deb.architecture)}", local):
+                problems.append(f"{name}={version}: could not be copied from {host.name}: not kept")
+                continue
+            problem = class_debs.kept_file(root, key, deb, local)
+            if problem:
+                problems.append(problem)
+            else:
+                kept[(name, version)] = deb
+    host.run_shell_command(StringCommand("rm", "-rf", "--", remote))
+    return problems
 
 
 def register(commands) -> None:

@@ -86,10 +86,12 @@ def preferences_lines(group: LockedGroup) -> list[str]:
 def unmet(group: LockedGroup, wanted: list[str], available: dict[str, list[str]]) -> list[str]:
     """One line per package of `wanted` whose locked version no source of the host offers
     (`available`: package -> the versions apt-cache policy lists), saying what to do. An index
-    lists a version or not: a .deb kept in the class cache cannot bring back one it dropped, ROS's
-    snapshot archive can (for a ROS package)."""
+    lists a version or not: the class cache (apt-cacher-ng) cannot bring back one it dropped; the
+    controller's kept .debs (roslab.class_debs, `wanted` leaves those out) and ROS's snapshot
+    archive (for a ROS package) can."""
     return [
-        f"{name}={group.packages[name]} is locked but no apt source of the host lists it any more: "
+        f"{name}={group.packages[name]} is locked but no apt source of the host lists it any more "
+        "and the controller kept no .deb of it (class_lock_debs_dir): "
         + ("install ROS from a snapshot that has it (ros_apt_source_mode: snapshot), or " if name.startswith("ros-") else "")
         + "move the lock with `roslab lock --update`"
         for name in wanted

@@ -138,7 +138,8 @@ def check_snapshot(host: Host, report: Report) -> None:
 # own: a cache inside another (or two caches in one folder) would have one's healing (a damaged
 # mirror moved aside) touch the other's files; a cache inside the nodes folder would be copied
 # to every Pi with the students' packages.
-CACHE_SETTINGS = ("ros_apt_source_cache_dir", "rosdep_cache_dir", "sources_cache_dir", "python_wheelhouse_dir")
+CACHE_SETTINGS = ("ros_apt_source_cache_dir", "rosdep_cache_dir", "sources_cache_dir", "python_wheelhouse_dir",
+                  "class_lock_debs_dir")
 
 
 def check_controller_folders(host: Host, report: Report, seen: set, resolved: dict | None = None) -> None:

@@ -13,11 +13,13 @@ with a copy of its roster in a folder of the test's, as a teacher keeps one in g
   newer python3-colcon-core in every release's -updates suite (as an Ubuntu update);
 - the no-op stays a no-op; a re-imaged robot converges to the locked versions, not the newer
   ones (its dpkg-query agrees with its teammate's); a re-imaged main, whose locked desktop no
-  archive serves any more, fails in its ROS install step with apt's line naming the package and
-  the version, no ROS package installed;
+  archive serves any more: from a controller that kept no .debs, it fails in its ROS install step
+  with apt's line naming the package and the version, no ROS package installed; from the one that
+  kept them (`roslab lock` keeps the locked .debs, class_lock_debs_dir), it is served the dropped
+  version from a local source and ends on exactly the packages it had before it was re-imaged;
 - `roslab lock --update --dry` lists exactly the bumped packages, old -> new, with their hosts, and
-  writes nothing; `roslab lock --update` moves the lock; the next run moves every host, the main
-  that stopped included; the run after changes nothing.
+  writes nothing; `roslab lock --update` moves the lock and the kept .debs with it; the next run
+  moves every host and removes the main's local source; the run after changes nothing.
 
 The publishes are reverted when the module ends (`roslab sandbox publish --revert`): the session's
 instance serves its archives as `up` did for the next module.
@@ -49,10 +51,20 @@ def sandbox(default_class_publishing):
 
 @pytest.fixture(scope="module")
 def roster(sandbox, tmp_path_factory):
-    """The class's roster in a folder of its own, where classroom.lock is written beside it."""
+    """The class's roster in a folder of its own, where classroom.lock is written beside it, and
+    the controller's kept .debs in a folder of the test's (class_lock_debs_dir)."""
     path = tmp_path_factory.mktemp("class-lock") / "classroom.yaml"
-    path.write_text(sandbox.roster_path.read_text())
+    document = yaml.safe_load(sandbox.roster_path.read_text())
+    document["classroom"]["class_lock_debs_dir"] = str(path.parent / "class-debs")
+    path.write_text(yaml.safe_dump(document, sort_keys=False))
     return path
+
+
+def kept_versions(roster, key: str) -> dict[str, str]:
+    """package -> version of each .deb the controller keeps for group `key` (its Packages file)."""
+    from roslab import class_debs
+
+    return {name: version for name, version in class_debs.read_kept(roster.parent / "class-debs", key)}
 
 
 def deploy(sandbox, roster):
@@ -132,6 +144,14 @@ def test_the_lock_is_taken_from_each_group_and_the_next_run_pins_every_host(sand
         assert f"{key}: {len(group['packages'])} packages locked from {group['taken_from']}" in taken.stdout
         assert group["packages"][DEBIAN_BUMPED] == versions(sandbox, names[0])[DEBIAN_BUMPED]
     assert lock["groups"]["jazzy/amd64"]["packages"][ROS_BUMPED] == versions(sandbox, REIMAGED_MAIN)[ROS_BUMPED]
+    for key in GROUP_HOSTS:  # what the runs installed, kept at the locked versions, checked by sha256
+        kept = kept_versions(roster, key)
+        assert f"{key}: {len(kept)} .debs kept in {roster.parent / 'class-debs' / key.replace('/', '-')} (" \
+            in taken.stdout, taken.stdout
+        assert kept[DEBIAN_BUMPED] == lock["groups"][key]["packages"][DEBIAN_BUMPED]
+        assert all(lock["groups"][key]["packages"][name] == version for name, version in kept.items())
+    assert kept_versions(roster, "jazzy/amd64")[ROS_BUMPED] == lock["groups"]["jazzy/amd64"]["packages"][ROS_BUMPED]
+    assert "not kept" not in taken.stdout, taken.stdout
     pins = {host for name, hosts in pinned.changed.items() if "class lock's versions" in name for host in hosts}
     assert pins == set(HOSTS), pinned.changed
     again = deploy(sandbox, roster)
@@ -175,14 +195,26 @@ def test_a_reimaged_robot_converges_to_its_teammates_locked_versions_not_the_new
     assert {name: robot[name] for name in common} == {name: teammate[name] for name in common}
 
 
-def test_a_reimaged_main_whose_locked_version_no_archive_serves_fails_installing_nothing_of_ros(
-        sandbox, roster, bumped):
+@pytest.fixture(scope="module")
+def reimaged_main(sandbox, roster, bumped, tmp_path_factory):
+    """team1-main's packages before it is re-imaged, and a run of it from the same roster and
+    lock on a controller that kept no .debs (class_lock_debs_dir: null, a folder of its own)."""
+    before = versions(sandbox, REIMAGED_MAIN)
+    bare = tmp_path_factory.mktemp("no-kept-debs") / "classroom.yaml"
+    document = yaml.safe_load(roster.read_text())
+    document["classroom"]["class_lock_debs_dir"] = None
+    bare.write_text(yaml.safe_dump(document, sort_keys=False))
+    (bare.parent / "classroom.lock").write_text((roster.parent / "classroom.lock").read_text())
+    sandbox.reset(REIMAGED_MAIN)
+    return before, deploy(sandbox, bare)
+
+
+def test_without_kept_debs_a_reimaged_main_whose_locked_version_no_archive_serves_installs_nothing_of_ros(
+        sandbox, roster, reimaged_main):
     """A fresh host's ROS source comes with the run, so the run cannot know beforehand what it
     lists: the install asks apt for the locked versions, and apt refuses, naming them."""
     locked_jazzy = lock_of(roster)["groups"]["jazzy/amd64"]["packages"]
-    sandbox.reset(REIMAGED_MAIN)
-
-    run = deploy(sandbox, roster)
+    _, run = reimaged_main
 
     assert run.returncode == 1, run.stderr[-6000:]
     assert run.failed_hosts == [REIMAGED_MAIN], run.failed_hosts
@@ -190,6 +222,28 @@ def test_a_reimaged_main_whose_locked_version_no_archive_serves_fails_installing
     (line,) = [row for row in summary_lines(run.stderr) if row.startswith(f"{REIMAGED_MAIN} ")]
     assert line.startswith(f'{REIMAGED_MAIN} failed in "') and 'Ensure ROS 2 jazzy is installed' in line, line
     assert line.endswith(f"E: Version '{locked_jazzy[ROS_BUMPED]}' for '{ROS_BUMPED}' was not found"), line
+
+
+def test_with_the_kept_debs_the_reimaged_main_ends_on_exactly_its_packages_of_before(sandbox, roster, reimaged_main):
+    """The controller kept the locked desktop (roslab lock): the run serves the re-imaged main the
+    one version its sources dropped, from a local source, and the main ends on the very versions
+    it had before it was re-imaged (its whole dpkg-query); the next run changes nothing."""
+    before, _ = reimaged_main
+    locked_jazzy = lock_of(roster)["groups"]["jazzy/amd64"]["packages"]
+
+    run = deploy(sandbox, roster)
+
+    assert run.returncode == 0, run.stderr[-6000:]
+    served = [name for name, hosts in run.changed.items() if "its sources dropped" in name]
+    assert served and all(run.changed[name] == {REIMAGED_MAIN} for name in served), run.changed
+    after = versions(sandbox, REIMAGED_MAIN)
+    assert after[ROS_BUMPED] == locked_jazzy[ROS_BUMPED]
+    assert after == before, {name: (before.get(name), after.get(name)) for name in set(before) | set(after)
+                             if before.get(name) != after.get(name)}
+    policy = sandbox.ssh(REIMAGED_MAIN, f"apt-cache policy {ROS_BUMPED}", check=True).stdout
+    assert "file:/var/lib/roslab/class-debs ./ Packages" in policy, policy
+    again = deploy(sandbox, roster)
+    assert again.returncode == 0 and again.changed == {}, again.changed
 
 
 def test_lock_update_dry_lists_exactly_the_bumped_packages_and_writes_nothing(sandbox, roster, bumped):
@@ -216,6 +270,10 @@ def test_lock_update_then_one_run_moves_every_host_and_the_next_changes_nothing(
     assert moved.returncode == 0, moved.stdout + moved.stderr
     new = lock_of(roster)["groups"]
     assert new["jazzy/amd64"]["packages"][ROS_BUMPED] == old["jazzy/amd64"]["packages"][ROS_BUMPED] + "+roslab1"
+    # the kept .debs follow the lock: the versions moved to are kept, the ones moved from removed
+    kept = kept_versions(roster, "jazzy/amd64")
+    assert kept[ROS_BUMPED] == new["jazzy/amd64"]["packages"][ROS_BUMPED], moved.stdout
+    assert kept[DEBIAN_BUMPED] == new["jazzy/amd64"]["packages"][DEBIAN_BUMPED], moved.stdout
 
     run = deploy(sandbox, roster)
 
@@ -226,5 +284,8 @@ def test_lock_update_then_one_run_moves_every_host_and_the_next_changes_nothing(
             assert installed[DEBIAN_BUMPED] == new[key]["packages"][DEBIAN_BUMPED], name
             assert installed[DEBIAN_BUMPED].endswith("+roslab1"), name
     assert versions(sandbox, REIMAGED_MAIN)[ROS_BUMPED] == new["jazzy/amd64"]["packages"][ROS_BUMPED]
+    # every locked version is listed upstream again: the local source of kept .debs is gone
+    gone = sandbox.ssh(REIMAGED_MAIN, "ls /etc/apt/sources.list.d/ /var/lib/roslab/", check=True).stdout
+    assert "roslab-class-debs" not in gone and "class-debs" not in gone, gone
     again = deploy(sandbox, roster)
     assert again.returncode == 0 and again.changed == {}, again.changed

@@ -121,13 +121,13 @@ def test_a_version_nobody_serves_is_one_line_naming_package_version_and_what_to_
     lines = lock_ops.unmet(group, ["libc6", "ros-jazzy-ros-base"],
                              {"libc6": ["2.39-0ubuntu9"], "ros-jazzy-ros-base": [INSTALLED["ros-jazzy-ros-base"]]})
     assert lines == [
-        "libc6=2.39-0ubuntu8.4 is locked but no apt source of the host lists it any more: "
-        "move the lock with `roslab lock --update`"
+        "libc6=2.39-0ubuntu8.4 is locked but no apt source of the host lists it any more and the controller "
+        "kept no .deb of it (class_lock_debs_dir): move the lock with `roslab lock --update`"
     ]
     dropped_ros = lock_ops.unmet(group, ["ros-jazzy-ros-base"], {"ros-jazzy-ros-base": ["0.99.0-1noble"]})
     assert dropped_ros == [
         f"ros-jazzy-ros-base={INSTALLED['ros-jazzy-ros-base']} is locked but no apt source of the host lists "
-        "it any more: install ROS from a snapshot that has it (ros_apt_source_mode: snapshot), or move the "
+        "it any more and the controller kept no .deb of it (class_lock_debs_dir): install ROS from a snapshot that has it (ros_apt_source_mode: snapshot), or move the "
         "lock with `roslab lock --update`"
     ]
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import signal
 import subprocess
 
@@ -149,7 +150,8 @@ LOCK = """groups:
 
 def locked(tmp_path, host: FakeUbuntu, available: dict | None = None):
     (tmp_path / "classroom.lock").write_text(LOCK)
-    data = host_data(tmp_path, roslab_roster_path=str(tmp_path / "classroom.yaml"))
+    data = host_data(tmp_path, roslab_roster_path=str(tmp_path / "classroom.yaml"),
+                     class_lock_debs_dir=str(tmp_path / "class-debs"))
     facts = {**host.facts(), AptVersionsNow: lambda packages: {name: available.get(name, []) for name in packages}}
     return plan(ros_install, facts, data)
 
@@ -198,3 +200,28 @@ def test_a_move_to_a_locked_version_nobody_serves_stops_the_host_too(tmp_path):
     result = locked(tmp_path, host, {"ros-dev-tools": ["1.0.2"]})
     assert result.failed and result.changing() == {}
     assert "ros-dev-tools=1.0.1 is locked but" in result.errors[0]
+
+
+def test_a_locked_version_the_controller_kept_is_served_instead_of_stopping_the_host(tmp_path):
+    """After a sync the archive lists only a newer desktop; the controller kept the locked one
+    (roslab lock, class_lock_debs_dir): the host is not stopped, the kept .debs its sources
+    dropped are served before the install (which ones is read when it runs), then installed."""
+    from roslab import class_debs
+
+    body = b"the locked desktop"
+    desktop = ("ros-jazzy-desktop", "0.11.0-1noble.20250101.000000")
+    deb = class_debs.KeptDeb(*desktop, "arm64", "ros-jazzy-desktop_0.11.0-1noble.20250101.000000_arm64.deb",
+                             hashlib.sha256(body).hexdigest(), len(body), (("Package", desktop[0]),))
+    folder = class_debs.folder(tmp_path / "class-debs", "jazzy/arm64")
+    folder.mkdir(parents=True)
+    (folder / deb.file).write_bytes(body)
+    class_debs.write_kept(tmp_path / "class-debs", "jazzy/arm64", {desktop: deb})
+    result = locked(tmp_path, FakeUbuntu(), {"ros-jazzy-desktop": ["0.11.1"], "ros-dev-tools": ["1.0.1"]})
+    assert not result.failed
+    names = [op.name.split(" | ")[-1] for op in result.operations if op.commands]
+    assert names == ["Ensure apt installs the class lock's versions (2 packages)",
+                     "Ensure apt can install the locked versions its sources dropped (the class's kept .debs)",
+                     "Ensure ROS 2 jazzy is installed (ros-jazzy-desktop, ros-dev-tools)"]
+    assert result.operation("its sources dropped").text() == ["call serve_dropped"]
+    (command,) = result.operation("Ensure ROS 2 jazzy is installed").text()
+    assert " install -- ros-jazzy-desktop=0.11.0-1noble.20250101.000000 ros-dev-tools=1.0.1;" in command
