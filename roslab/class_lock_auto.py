@@ -102,6 +102,6 @@ def write_taken(converged: list[str]) -> list[str]:
         if not said:
             continue
         replace_file(path, class_lock.render_lock(new))  # a run killed here leaves the old lock whole
-        lines.append(f"{path.name} now locks {', '.join(said)}: commit it; "
-                     "`roslab lock --update` moves it on purpose")
+        lines.append(f"{path.name} now locks {', '.join(said)} (`roslab lock` keeps its .debs while the archives "
+                     "list them): commit it; `roslab lock --update` moves it on purpose")
     return lines

@@ -62,8 +62,8 @@ def test_the_reading_is_noted_under_the_hosts_group(tmp_path, monkeypatch):
     monkeypatch.setattr(step, "get_fact", lambda state, host, cls: reading)
     step.installed_noted(None, SimpleNamespace(name="robot1"), str(roster), "jazzy")
     assert class_lock_auto.write_taken(["robot1"]) == [
-        "classroom.lock now locks jazzy/arm64 from robot1 (1 packages, 0 wheels): commit it; "
-        "`roslab lock --update` moves it on purpose"]
+        "classroom.lock now locks jazzy/arm64 from robot1 (1 packages, 0 wheels) (`roslab lock` keeps its .debs "
+        "while the archives list them): commit it; `roslab lock --update` moves it on purpose"]
     lock, report = class_lock.read_lock(tmp_path / class_lock.LOCK_FILE)
     assert report.errors == [] and lock.groups["jazzy/arm64"].packages == {"libc6": "2.39-0ubuntu8.4"}
 
@@ -87,8 +87,9 @@ def test_the_run_end_takes_each_missing_group_from_its_first_converged_host_with
 
     lines = class_lock_auto.write_taken(["team1-robot", "team1-main", "team2-main"])  # roster order, converged
 
-    assert lines == ["classroom.lock now locks jazzy/arm64 from team1-robot (1 packages, 2 wheels, 2 sources): "
-                     "commit it; `roslab lock --update` moves it on purpose"]
+    assert lines == ["classroom.lock now locks jazzy/arm64 from team1-robot (1 packages, 2 wheels, 2 sources) "
+                     "(`roslab lock` keeps its .debs while the archives list them): commit it; "
+                     "`roslab lock --update` moves it on purpose"]
     lock, _ = class_lock.read_lock(tmp_path / class_lock.LOCK_FILE)
     jazzy = lock.groups["jazzy/arm64"]
     assert (jazzy.taken_from, jazzy.packages) == ("team1-robot", {"libc6": "9"})

@@ -479,6 +479,8 @@ def test_a_file_rewrite_into_the_rosters_folder_is_taken(tmp_path):
     ("sources_cache_dir: cache\nrosdep_cache_dir: cache", 3, "sources_cache_dir", "share a folder"),
     ("sources_cache_dir: cache\npython_wheelhouse_dir: cache/wheels", 4, "python_wheelhouse_dir", "share a folder"),
     ("sources_cache_dir: nodes/cache\nworkspace_nodes_dir: nodes", 3, "sources_cache_dir", "copied to every Pi"),
+    ("sources_cache_dir: cache\nclass_lock_debs_dir: cache/debs", 4, "class_lock_debs_dir", "share a folder"),
+    ("class_lock_debs_dir: nodes/debs\nworkspace_nodes_dir: nodes", 3, "class_lock_debs_dir", "copied to every Pi"),
 ])
 def test_caches_keep_to_folders_of_their_own(settings, line, field, words, tmp_path, capsys, no_connections):
     (tmp_path / "nodes" / "pkg").mkdir(parents=True)

@@ -195,6 +195,7 @@ def test_every_deploy_setting_is_accepted_with_its_default(tmp_path):
     settings["rosdep_cache_dir"] = str(Path(settings["rosdep_cache_dir"]).expanduser())  # set: a path here
     settings["sources_cache_dir"] = str(Path(settings["sources_cache_dir"]).expanduser())
     settings["python_wheelhouse_dir"] = str(Path(settings["python_wheelhouse_dir"]).expanduser())
+    settings["class_lock_debs_dir"] = str(Path(settings["class_lock_debs_dir"]).expanduser())
     # None means "the robot profile's": the demo profile's main launch, variant and topic.
     settings["nodes_launch"] = "roslab_bringup main.launch.py"
     settings["ros_variant"] = "desktop"

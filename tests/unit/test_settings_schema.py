@@ -133,6 +133,7 @@ BAD_VALUES: dict[str, list] = {
     "source_url_rewrites": [{"https://github.com/": "ssh://mirror/"}, {"git@github.com:": "http://m/"},
                             {"https://github.com/": "http://user:pw@m/"}, {"https://github.com/": "http://m/\nx"}],
     "sources_cache_dir": [NEWLINE, "/etc/roslab"],
+    "class_lock_debs_dir": [NEWLINE, "/etc/roslab", "~/.ssh/debs"],
     "sources_underlay_dir": ["/opt/underlay", "~/../../etc", "~/u$(id)", "~"],
     "sources_fetch_timeout": [0, 10**6],
     "robot_profile": ["TurtleBot3", "turtle bot", "tb3;id", "../demo", ""],
