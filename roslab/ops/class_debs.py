@@ -21,6 +21,7 @@ from pyinfra.api.arguments import CONNECTOR_ARGUMENT_KEYS
 
 from roslab import class_debs
 from roslab.class_lock import PACKAGE_NAME, VERSION
+from roslab.controller_files import file_sha256
 from roslab.ops.apt import apt_get
 
 LOCAL_DIR = "/var/lib/roslab/class-debs"
@@ -134,6 +135,12 @@ def serve_dropped(state, host, root: str, key: str, date: str, lock_timeout: int
     if not _run(host, f"install -d -m 755 {LOCAL_DIR}")[0]:
         return False
     folder = class_debs.folder(root, key)
+    damaged = sorted(deb.file for deb in dropped.values() if file_sha256(folder / deb.file) != deb.sha256)
+    if damaged:  # changed on the controller since `roslab lock` kept it: never served as the locked version
+        host.log_styled(f"roslab: class lock: {folder / damaged[0]} is not the file `roslab lock` kept (its sha256 "
+                        "differs): remove it and run `roslab lock` again while an archive lists it",
+                        fg="red", log_func=logger.error)
+        return False
     for deb in dropped.values():
         if served.get(deb.file) != deb.sha256 and not host.put_file(
                 str(folder / deb.file), f"{LOCAL_DIR}/{deb.file}", mode=0o644, user="root", group="root", **_as_root(host)):

@@ -152,6 +152,9 @@ class Host:
     def log(self, message, *_):
         self.logged.append(message)
 
+    def log_styled(self, message, **_):
+        self.logged.append(message)
+
 
 def test_a_host_is_served_exactly_the_kept_versions_its_sources_dropped(tmp_path):
     deb = keep(tmp_path)
@@ -171,3 +174,13 @@ def test_a_host_whose_sources_list_every_kept_version_gets_no_local_source(tmp_p
     assert debs_ops.serve_dropped(None, host, str(tmp_path), KEY, TAKEN, 60)
     assert host.put == {}
     assert f"rm -rf {debs_ops.SOURCE_FILE} {debs_ops.LOCAL_DIR}" in host.scripts[-1]
+
+
+def test_a_kept_file_changed_on_the_controller_is_never_served(tmp_path):
+    deb = keep(tmp_path)
+    (tmp_path / "jazzy-amd64" / deb.file).write_bytes(BODY + b"changed")
+    host = Host([" ros-jazzy-desktop | 0.12.0-1noble | http://packages.ros.org/ros2/ubuntu noble/main"])
+    assert not debs_ops.serve_dropped(None, host, str(tmp_path), KEY, TAKEN, 60)
+    assert host.put == {}
+    assert host.logged == [f"roslab: class lock: {tmp_path / 'jazzy-amd64' / deb.file} is not the file `roslab lock` "
+                           "kept (its sha256 differs): remove it and run `roslab lock` again while an archive lists it"]
