@@ -32,12 +32,11 @@ from datetime import datetime, timezone
 from email.utils import format_datetime
 from pathlib import Path
 
-from roslab.class_lock import PACKAGE_NAME, VERSION, LockedGroup
+from roslab.class_lock import PACKAGE_NAME, SHA256, VERSION, LockedGroup
 from roslab.controller_files import file_sha256, replace_file
 
 PACKAGES_FILE = "Packages"
 ARCHITECTURE = re.compile(r"[a-z0-9]+")
-SHA256 = re.compile(r"[0-9a-f]{64}")
 SIZE = re.compile(r"[0-9]{1,12}")
 DEB_FILE = re.compile(r"[A-Za-z0-9][A-Za-z0-9+.~%_-]*\.deb")
 ONE_LINE = re.compile(r"[^\x00-\x1f\x7f]*")
