@@ -108,7 +108,8 @@ def locked_versions_met(typed: HostSettings, distro: str, packages: list[str]) -
     # judged by apt at install time, asked for at its locked version.
     available = (host.get_fact(lock_ops.AptVersionsNow, packages=needed) or {}) if needed else {}
     key = class_lock.host_group_key(distro, machine) or ""
-    kept = class_debs.read_kept(typed.class_lock_debs_dir, key) if needed and typed.class_lock_debs_dir else {}
+    root = class_debs.class_root(typed.class_lock_debs_dir, str(roster_path)) if typed.class_lock_debs_dir else None
+    kept = class_debs.read_kept(root, key) if needed and root else {}
     problems = lock_ops.unmet(group, [name for name in needed if available.get(name)
                                       and (name, group.packages[name]) not in kept], available)
     if problems:
@@ -119,7 +120,7 @@ def locked_versions_met(typed: HostSettings, distro: str, packages: list[str]) -
     if kept:
         debs_ops.dropped_versions_served(
             name="Ensure apt can install the locked versions its sources dropped (the class's kept .debs)",
-            root=str(typed.class_lock_debs_dir), key=key, date=group.taken, lock_timeout=lock_timeout)
+            root=str(root), key=key, date=group.taken, lock_timeout=lock_timeout)
     lock_ops.packages_at_locked_versions(
         name="Ensure the installed packages are at the class lock's versions", group=group, lock_timeout=lock_timeout)
     return [f"{name}={group.packages[name]}" if name in group.packages else name for name in packages]

@@ -8,10 +8,10 @@ locked packages that apt downloaded onto the group's hosts (what roslab's runs i
 image's own packages come with the image, on every Pi), and `roslab lock --update` the versions
 it moves them to. Each file is downloaded on a host of the group (`apt-get download`, while its
 sources still list it) and checked on the controller against the SHA256 of the index that apt
-verified on that host (`apt-cache show`), under class_lock_debs_dir:
+verified on that host (`apt-cache show`), under class_lock_debs_dir, in a folder per class (its roster's folder: `class_root`):
 
-    <class_lock_debs_dir>/<distro>-<architecture>/Packages        a stanza per kept .deb
-    <class_lock_debs_dir>/<distro>-<architecture>/<file>.deb
+    <class_lock_debs_dir>/<class>/<distro>-<architecture>/Packages        a stanza per kept .deb
+    <class_lock_debs_dir>/<class>/<distro>-<architecture>/<file>.deb
 
 Only locked versions are kept: what a move replaced is removed (`pruned`). A run whose host has
 a locked package to install or move serves it the kept .debs its own sources no longer list, as
@@ -69,8 +69,17 @@ class KeptDeb:
         return "\n".join(lines) + "\n"
 
 
+def class_root(debs_dir: str | Path, roster_path: str | Path) -> Path:
+    """The class's own folder under class_lock_debs_dir: named by the roster's folder and a digest
+    of its real path, so that two classes on one controller (a Pi class and the sandbox both have
+    a jazzy/amd64 group) never prune each other's kept .debs."""
+    folder = os.path.realpath(os.path.dirname(os.path.abspath(os.path.expanduser(str(roster_path)))))
+    name = re.sub(r"[^A-Za-z0-9._-]+", "-", os.path.basename(folder)).strip(".-")[:40] or "class"
+    return Path(debs_dir).expanduser() / f"{name}-{hashlib.sha256(folder.encode()).hexdigest()[:12]}"
+
+
 def folder(root: str | Path, key: str) -> Path:
-    """The group's folder under class_lock_debs_dir (`jazzy/arm64` -> `jazzy-arm64`)."""
+    """The group's folder under the class's (class_root; `jazzy/arm64` -> `jazzy-arm64`)."""
     return Path(root).expanduser() / key.replace("/", "-")
 
 

@@ -273,7 +273,8 @@ SCHEMA: list[Setting] = [
          "rewritten by a run (`roslab lock --update` moves it). false: only `roslab lock` takes it.",
          None, {"levels": ("classroom",)}),
         ("class_lock_debs_dir", "~/.cache/roslab/class-debs", str,
-         "Where the controller keeps the class lock's .debs, a folder per group: `roslab lock` keeps each "
+         "Where the controller keeps the class lock's .debs, a folder per class (its roster's folder) and "
+         "group: `roslab lock` keeps each "
          "locked package apt downloaded onto the group's hosts (what the runs installed), `--update` the "
          "versions it moves to, each checked against the SHA256 of the index apt verified. A host whose "
          "sources no longer list a locked version (packages.ros.org after a sync) is served the kept .debs "

@@ -194,11 +194,11 @@ def run_lock(args: argparse.Namespace) -> int:
         print(f"--dry: {path.name} was not changed")
         return 0
     replace_file(path, class_lock.render_lock(lock))  # never half a lock, whatever stops the command
-    keep_debs(found, lock)
+    keep_debs(found, lock, classroom.path)
     return 0
 
 
-def keep_debs(found: dict, lock: class_lock.ClassLock) -> None:
+def keep_debs(found: dict, lock: class_lock.ClassLock, roster_path: str | Path) -> None:
     """Keep each read group's locked .debs that the controller lacks (class_lock_debs_dir: what
     apt downloaded onto the group's hosts, and the versions `--update` moved kept ones to), the
     versions no longer locked removed; one line per group, and one per .deb not kept."""
@@ -206,14 +206,15 @@ def keep_debs(found: dict, lock: class_lock.ClassLock) -> None:
 
     for key, entry in sorted(found.items()):
         group, readers = lock.groups.get(key), entry.get("readers", [])
-        root = host_settings(readers[0][1]).class_lock_debs_dir if readers else None
-        if group is None or not root:
+        debs_dir = host_settings(readers[0][1]).class_lock_debs_dir if readers else None
+        if group is None or not debs_dir:
             continue
+        root = class_debs.class_root(debs_dir, roster_path)
         before = class_debs.read_kept(root, key)
         kept = class_debs.pruned(root, key, group, dict(before))
         problems = []
         for state, host, architecture in readers:
-            problems += kept_from(state, host, (root, key), group, architecture, (kept, before))
+            problems += kept_from(state, host, (str(root), key), group, architecture, (kept, before))
         class_debs.write_kept(root, key, kept)
         size = sum(deb.size for deb in kept.values())
         print(f"{key}: {len(kept)} .debs kept in {class_debs.folder(root, key)} ({size / 1e6:.1f} MB)"

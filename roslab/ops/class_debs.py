@@ -168,7 +168,7 @@ def dropped_versions_served(root: str, key: str, date: str, lock_timeout: int):
     ROS archive after a sync): the controller's kept .debs of the group that no other source
     lists are served as a local source; none such, no local source.
 
-    + root: the controller's class_lock_debs_dir
+    + root: the class's folder of kept .debs on the controller (roslab.class_debs.class_root)
     + key: the host's lock group (distro/architecture)
     + date: when the group was taken (the local Release's date)
     + lock_timeout: seconds apt waits for its lock

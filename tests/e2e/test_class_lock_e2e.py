@@ -30,6 +30,7 @@ from __future__ import annotations
 import pytest
 import yaml
 
+from roslab import class_debs
 from roslab.ops import class_lock as lock_ops
 from tests.e2e.conftest import summary_lines
 
@@ -62,9 +63,8 @@ def roster(sandbox, tmp_path_factory):
 
 def kept_versions(roster, key: str) -> dict[str, str]:
     """package -> version of each .deb the controller keeps for group `key` (its Packages file)."""
-    from roslab import class_debs
-
-    return {name: version for name, version in class_debs.read_kept(roster.parent / "class-debs", key)}
+    root = class_debs.class_root(roster.parent / "class-debs", roster)
+    return {name: version for name, version in class_debs.read_kept(root, key)}
 
 
 def deploy(sandbox, roster):
@@ -146,8 +146,8 @@ def test_the_lock_is_taken_from_each_group_and_the_next_run_pins_every_host(sand
     assert lock["groups"]["jazzy/amd64"]["packages"][ROS_BUMPED] == versions(sandbox, REIMAGED_MAIN)[ROS_BUMPED]
     for key in GROUP_HOSTS:  # what the runs installed, kept at the locked versions, checked by sha256
         kept = kept_versions(roster, key)
-        assert f"{key}: {len(kept)} .debs kept in {roster.parent / 'class-debs' / key.replace('/', '-')} (" \
-            in taken.stdout, taken.stdout
+        folder = class_debs.folder(class_debs.class_root(roster.parent / "class-debs", roster), key)
+        assert f"{key}: {len(kept)} .debs kept in {folder} (" in taken.stdout, taken.stdout
         assert kept[DEBIAN_BUMPED] == lock["groups"][key]["packages"][DEBIAN_BUMPED]
         assert all(lock["groups"][key]["packages"][name] == version for name, version in kept.items())
     assert kept_versions(roster, "jazzy/amd64")[ROS_BUMPED] == lock["groups"]["jazzy/amd64"]["packages"][ROS_BUMPED]

@@ -51,6 +51,18 @@ def test_a_kept_deb_is_read_back_with_its_stanza_pointing_at_the_file_beside_it(
     assert class_debs.read_kept(tmp_path, KEY) == {}
 
 
+def test_each_class_keeps_its_debs_in_a_folder_of_its_own_named_by_its_rosters_folder(tmp_path):
+    """Two classes on one controller (a Pi class with a desktop main and the sandbox: both have a
+    jazzy/amd64 group) never prune each other's .debs; one class reached by another path is one."""
+    (tmp_path / "lab a").mkdir()
+    (tmp_path / "sandbox").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "lab a")
+    lab = class_debs.class_root("~/debs", tmp_path / "lab a" / "classroom.yaml")
+    assert lab.parent == class_debs.Path("~/debs").expanduser() and lab.name.startswith("lab-a-")
+    assert lab != class_debs.class_root("~/debs", tmp_path / "sandbox" / "classroom.yaml")
+    assert lab == class_debs.class_root("~/debs", tmp_path / "link" / "other.yaml")
+
+
 def test_a_file_whose_sha256_is_not_the_index_one_is_not_kept(tmp_path):
     deb = class_debs.indexed(stanza())[DESKTOP]
     incoming = tmp_path / "incoming.deb"

@@ -212,10 +212,11 @@ def test_a_locked_version_the_controller_kept_is_served_instead_of_stopping_the_
     desktop = ("ros-jazzy-desktop", "0.11.0-1noble.20250101.000000")
     deb = class_debs.KeptDeb(*desktop, "arm64", "ros-jazzy-desktop_0.11.0-1noble.20250101.000000_arm64.deb",
                              hashlib.sha256(body).hexdigest(), len(body), (("Package", desktop[0]),))
-    folder = class_debs.folder(tmp_path / "class-debs", "jazzy/arm64")
+    root = class_debs.class_root(tmp_path / "class-debs", tmp_path / "classroom.yaml")
+    folder = class_debs.folder(root, "jazzy/arm64")
     folder.mkdir(parents=True)
     (folder / deb.file).write_bytes(body)
-    class_debs.write_kept(tmp_path / "class-debs", "jazzy/arm64", {desktop: deb})
+    class_debs.write_kept(root, "jazzy/arm64", {desktop: deb})
     result = locked(tmp_path, FakeUbuntu(), {"ros-jazzy-desktop": ["0.11.1"], "ros-dev-tools": ["1.0.1"]})
     assert not result.failed
     names = [op.name.split(" | ")[-1] for op in result.operations if op.commands]
