@@ -194,33 +194,47 @@ def run_lock(args: argparse.Namespace) -> int:
         print(f"--dry: {path.name} was not changed")
         return 0
     replace_file(path, class_lock.render_lock(lock))  # never half a lock, whatever stops the command
-    keep_debs(found, lock, classroom.path)
-    return 0
+    return keep_debs(found, lock, classroom.path)
 
 
-def keep_debs(found: dict, lock: class_lock.ClassLock, roster_path: str | Path) -> None:
+def keep_debs(found: dict, lock: class_lock.ClassLock, roster_path: str | Path) -> int:
     """Keep each read group's locked .debs that the controller lacks (class_lock_debs_dir: what
     apt downloaded onto the group's hosts, and the versions `--update` moved kept ones to), the
-    versions no longer locked removed; one line per group, and one per .deb not kept."""
+    versions no longer locked removed; one line per group, and one per .deb not kept. 1 if a
+    group's folder could not be written (said in its line), else 0."""
     from roslab.host_settings import host_settings
 
+    status = 0
     for key, entry in sorted(found.items()):
         group, readers = lock.groups.get(key), entry.get("readers", [])
         debs_dir = host_settings(readers[0][1]).class_lock_debs_dir if readers else None
         if group is None or not debs_dir:
             continue
         root = class_debs.class_root(debs_dir, roster_path)
-        before = class_debs.read_kept(root, key)
-        kept = class_debs.pruned(root, key, group, dict(before))
-        problems = []
-        for state, host, architecture in readers:
-            problems += kept_from(state, host, (str(root), key), group, architecture, (kept, before))
-        class_debs.write_kept(root, key, kept)
+        try:
+            kept, problems = kept_group(root, key, group, readers)
+        except OSError as error:  # the controller's folder: full disk, no permission
+            print(f"{key}: its .debs were not kept in {class_debs.folder(root, key)}: {error}")
+            status = 1
+            continue
         size = sum(deb.size for deb in kept.values())
         print(f"{key}: {len(kept)} .debs kept in {class_debs.folder(root, key)} ({size / 1e6:.1f} MB)"
               + (f"; {len(problems)} not kept:" if problems else ""))
         for line in problems:
             print(f"  {line}")
+    return status
+
+
+def kept_group(root: Path, key: str, group: class_lock.LockedGroup, readers: list) -> tuple[dict, list[str]]:
+    """The group's kept .debs after keeping what its `readers` (state, host, architecture) have
+    and the folder lacks, and a line per .deb not kept."""
+    before = class_debs.read_kept(root, key)
+    kept = class_debs.pruned(root, key, group, dict(before))
+    problems = []
+    for state, host, architecture in readers:
+        problems += kept_from(state, host, (str(root), key), group, architecture, (kept, before))
+    class_debs.write_kept(root, key, kept)
+    return kept, problems
 
 
 def _copied(host, remote: str, local: Path) -> bool:

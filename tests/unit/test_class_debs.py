@@ -196,3 +196,20 @@ def test_a_kept_file_changed_on_the_controller_is_never_served(tmp_path):
     assert host.put == {}
     assert host.logged == [f"roslab: class lock: {tmp_path / 'jazzy-amd64' / deb.file} is not the file `roslab lock` "
                            "kept (its sha256 differs): remove it and run `roslab lock` again while an archive lists it"]
+
+
+def test_a_class_debs_folder_that_cannot_be_written_is_one_line_and_exit_status_1(tmp_path, capsys, monkeypatch):
+    from roslab.class_lock import ClassLock
+    from roslab.cli import lock as lock_cli
+
+    def full(*_):
+        raise OSError(28, "No space left on device")
+
+    reader = SimpleNamespace(name="team1-main")
+    monkeypatch.setattr("roslab.host_settings.host_settings",
+                        lambda host: SimpleNamespace(class_lock_debs_dir=str(tmp_path / "debs")))
+    monkeypatch.setattr(lock_cli, "kept_group", full)
+    found = {KEY: {"readers": [(None, reader, "amd64")]}}
+    assert lock_cli.keep_debs(found, ClassLock(groups={KEY: group()}), tmp_path / "classroom.yaml") == 1
+    folder = class_debs.folder(class_debs.class_root(tmp_path / "debs", tmp_path / "classroom.yaml"), KEY)
+    assert capsys.readouterr().out == f"{KEY}: its .debs were not kept in {folder}: [Errno 28] No space left on device\n"
