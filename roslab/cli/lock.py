@@ -22,6 +22,7 @@ only `--update` moves its versions, and never those of the lock's `hold:` list.
 from __future__ import annotations
 
 import argparse
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -31,6 +32,8 @@ from roslab.ops import class_debs as debs_ops
 from roslab.ops import class_lock as lock_ops
 from roslab.controller_files import replace_file
 from roslab.reach import RosterProblem, add_roster_argument, connected_state, fail, load_classroom_groups
+
+INCOMING = ".incoming-"  # the folder a group's copies arrive in, inside its folder, until checked
 
 
 def update_lines(moves: dict[str, list[tuple[str, str, str]]], hosts: dict[str, list[str]]) -> list[str]:
@@ -228,6 +231,8 @@ def keep_debs(found: dict, lock: class_lock.ClassLock, roster_path: str | Path) 
 def kept_group(root: Path, key: str, group: class_lock.LockedGroup, readers: list) -> tuple[dict, list[str]]:
     """The group's kept .debs after keeping what its `readers` (state, host, architecture) have
     and the folder lacks, and a line per .deb not kept."""
+    for left in class_debs.folder(root, key).glob(f"{INCOMING}*"):  # a `roslab lock` killed mid-copy
+        shutil.rmtree(left, ignore_errors=True)
     before = class_debs.read_kept(root, key)
     kept = class_debs.pruned(root, key, group, dict(before))
     problems = []
@@ -265,7 +270,7 @@ def kept_from(state, host, where: tuple[str, str], group: class_lock.LockedGroup
     problems = []
     folder = class_debs.folder(root, key)
     folder.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=folder, prefix=".incoming-") as incoming:
+    with tempfile.TemporaryDirectory(dir=folder, prefix=INCOMING) as incoming:
         for name, version in wanted:
             deb = index.get((name, version))
             if deb is None:

@@ -213,3 +213,14 @@ def test_a_class_debs_folder_that_cannot_be_written_is_one_line_and_exit_status_
     assert lock_cli.keep_debs(found, ClassLock(groups={KEY: group()}), tmp_path / "classroom.yaml") == 1
     folder = class_debs.folder(class_debs.class_root(tmp_path / "debs", tmp_path / "classroom.yaml"), KEY)
     assert capsys.readouterr().out == f"{KEY}: its .debs were not kept in {folder}: [Errno 28] No space left on device\n"
+
+
+def test_copies_a_killed_roslab_lock_left_behind_are_removed_by_the_next(tmp_path):
+    from roslab.cli import lock as lock_cli
+
+    deb = keep(tmp_path)
+    left = tmp_path / "jazzy-amd64" / f"{lock_cli.INCOMING}abc123"
+    left.mkdir()
+    (left / deb.file).write_bytes(b"half a file")
+    kept, problems = lock_cli.kept_group(tmp_path, KEY, group(), readers=[])
+    assert (kept, problems) == ({DESKTOP: deb}, []) and not left.exists()
