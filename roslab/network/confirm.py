@@ -17,9 +17,9 @@ import gevent
 from paramiko import SSHException
 from pyinfra import logger
 from pyinfra.api import StringCommand
-from pyinfra.api.arguments import CONNECTOR_ARGUMENT_KEYS
 from pyinfra.api.exceptions import ConnectError
 
+from roslab.connections import op_connector_arguments
 from roslab.network import state as network_state
 from roslab.network.apply import (
     APPLY_UNIT,
@@ -38,13 +38,6 @@ ROLLBACK_GRACE = 45
 OLD_ADDRESS_PROBE_INTERVAL = 5
 # Longest wait for one command in the confirmation (s).
 COMMAND_TIMEOUT = 10
-
-def _connector_arguments(state, host) -> dict:
-    """The op's sudo/su settings, for commands the callback runs itself."""
-    op_data = state.get_op_data_for_host(host, host.executing_op_hash)
-    arguments = op_data.global_arguments
-    return {key: arguments[key] for key in CONNECTOR_ARGUMENT_KEYS if key in arguments}
-
 
 def _connect_at(host, address: str) -> bool:
     """Point pyinfra's SSH connection for `host` at `address`; True once connected."""
@@ -150,7 +143,7 @@ def confirm_pending_change(state, host, token: str, new_address: str, roster_pat
     host keeps the change instead of rolling it back, and remember the address. False (the
     step fails, the host rolls back by itself; the next run makes the change again) when the
     host does not say it kept it."""
-    arguments = _connector_arguments(state, host)
+    arguments = op_connector_arguments(state, host)
     _run(host, arguments, "printf", "%s", token, ">", f"{RUN_DIR}/{CONFIRMATION_FILE}")
     status = _wait_for_final_status(host, arguments, token, wait=15)
     if status is None or status.state != STATE_CONFIRMED:
@@ -189,7 +182,7 @@ def confirm_network_change(
     Runs on the controller. On success pyinfra's connection to the host stays at
     the new address, so the rest of the deploy runs there.
     """
-    arguments = _connector_arguments(state, host)
+    arguments = op_connector_arguments(state, host)
     old_client = host.connector.client
     deadline = time.monotonic() + confirm_timeout
     status = _confirm_at_new_address(host, arguments, token, new_address, old_address, deadline)

@@ -17,10 +17,10 @@ import shlex
 
 from pyinfra import logger
 from pyinfra.api import FactBase, FunctionCommand, QuoteString, StringCommand, operation
-from pyinfra.api.arguments import CONNECTOR_ARGUMENT_KEYS
 
 from roslab import class_debs
 from roslab.class_lock import PACKAGE_NAME, VERSION
+from roslab.connections import op_connector_arguments
 from roslab.controller_files import file_sha256
 from roslab.ops.apt import apt_get
 
@@ -105,14 +105,17 @@ def parse_listed(lines: list[str]) -> tuple[dict[str, set[str]], dict[str, str]]
     return listed, served
 
 
-def _as_root(host) -> dict:
-    """The running operation's connector arguments (its sudo password, if the roster gives one), as root."""
-    arguments = host.current_op_global_arguments or {}
-    return {**{key: arguments[key] for key in CONNECTOR_ARGUMENT_KEYS if key in arguments}, "_sudo": True}
+def _as_root(state, host) -> dict:
+    return {**op_connector_arguments(state, host), "_sudo": True}
 
 
-def _run(host, script: str) -> tuple[bool, list[str]]:
-    ok, output = host.run_shell_command(StringCommand("sh", "-c", QuoteString(script)), **_as_root(host))
+def _put(state, host, source, remote: str) -> bool:
+    """A file of root's, 0644, on the host (from a controller path or a file object)."""
+    return host.put_file(source, remote, mode=0o644, user="root", group="root", **_as_root(state, host))
+
+
+def _run(state, host, script: str) -> tuple[bool, list[str]]:
+    ok, output = host.run_shell_command(StringCommand("sh", "-c", QuoteString(script)), **_as_root(state, host))
     if not ok:
         said = [line for line in output.stderr_lines if line.strip()]
         host.log_styled(f"roslab: class lock: {said[-1].strip() if said else 'a command failed without a message'}",
@@ -124,16 +127,15 @@ def serve_dropped(state, host, root: str, key: str, date: str, lock_timeout: int
     """The kept .debs of group `key` whose version no other source of the host lists, served
     as the local source (only the files missing or changed are copied); none: the source removed."""
     debs = class_debs.read_kept(root, key)
-    ok, lines = _run(host, listed_script(sorted({name for name, _version in debs}), lock_timeout))
+    update = f"{apt_get('-q update', lock_timeout)} >/dev/null"
+    ok, lines = _run(state, host, listed_script(sorted({name for name, _version in debs}), lock_timeout))
     if not ok:
         return False
     listed, served = parse_listed(lines)
     dropped = {pair: deb for pair, deb in debs.items() if deb.version not in listed.get(deb.name, set())}
     if not dropped:
-        return _run(host, f"if [ -e {SOURCE_FILE} ] || [ -e {LOCAL_DIR} ]; then rm -rf {SOURCE_FILE} {LOCAL_DIR} "
-                          f"&& {apt_get('-q update', lock_timeout)} >/dev/null; fi")[0]
-    if not _run(host, f"install -d -m 755 {LOCAL_DIR}")[0]:
-        return False
+        return _run(state, host, f"if [ -e {SOURCE_FILE} ] || [ -e {LOCAL_DIR} ]; then "
+                                 f"rm -rf {SOURCE_FILE} {LOCAL_DIR} && {update}; fi")[0]
     folder = class_debs.folder(root, key)
     damaged = sorted(deb.file for deb in dropped.values() if file_sha256(folder / deb.file) != deb.sha256)
     if damaged:  # changed on the controller since `roslab lock` kept it: never served as the locked version
@@ -141,20 +143,20 @@ def serve_dropped(state, host, root: str, key: str, date: str, lock_timeout: int
                         "differs): remove it and run `roslab lock` again while an archive lists it",
                         fg="red", log_func=logger.error)
         return False
-    for deb in dropped.values():
-        if served.get(deb.file) != deb.sha256 and not host.put_file(
-                str(folder / deb.file), f"{LOCAL_DIR}/{deb.file}", mode=0o644, user="root", group="root", **_as_root(host)):
-            return False
+    if not _run(state, host, f"install -d -m 755 {LOCAL_DIR}")[0]:
+        return False
     packages = "\n".join(dropped[pair].stanza() for pair in sorted(dropped))
-    for name, text in (("Packages", packages), ("Release", class_debs.release_file(packages, date))):
-        if not host.put_file(io.BytesIO(text.encode()), f"{LOCAL_DIR}/{name}", mode=0o644, user="root",
-                             group="root", **_as_root(host)):
-            return False
-    if not host.put_file(io.BytesIO(SOURCE.encode()), SOURCE_FILE, mode=0o644, user="root", group="root", **_as_root(host)):
+    files: list[tuple[str | io.BytesIO, str]] = [(str(folder / deb.file), f"{LOCAL_DIR}/{deb.file}")
+                                                 for deb in dropped.values()
+             if served.get(deb.file) != deb.sha256]
+    files += [(io.BytesIO(packages.encode()), f"{LOCAL_DIR}/Packages"),
+              (io.BytesIO(class_debs.release_file(packages, date).encode()), f"{LOCAL_DIR}/Release"),
+              (io.BytesIO(SOURCE.encode()), SOURCE_FILE)]
+    if not all(_put(state, host, source, remote) for source, remote in files):
         return False
     stale = [name for name in served if name not in {deb.file for deb in dropped.values()}]
     remove = f"rm -f -- {' '.join(shlex.quote(f'{LOCAL_DIR}/{name}') for name in stale)}; " if stale else ""
-    if not _run(host, f"{remove}{apt_get('-q update', lock_timeout)} >/dev/null")[0]:
+    if not _run(state, host, f"{remove}{update}")[0]:
         return False
     host.log(f"roslab: class lock: {len(dropped)} locked version(s) no source lists any more, served from the "
              f"class's kept .debs: {', '.join(f'{deb.name}={deb.version}' for deb in dropped.values())}")

@@ -143,12 +143,18 @@ def test_versions_listed_by_the_served_folder_itself_do_not_count_as_listed():
     assert served == {"ros-jazzy-desktop_0.11.0_amd64.deb": "a" * 64}
 
 
+# pyinfra's State as serve_dropped reads it: the executing operation's arguments (a sudo password
+# the roster gives goes with every command; a non-connector argument does not)
+STATE = SimpleNamespace(get_op_data_for_host=lambda host, op_hash: SimpleNamespace(
+    global_arguments={"_sudo_password": "secret", "_serial": False}))
+
+
 class Host:
     """pyinfra's Host as serve_dropped uses it: commands answered by `madison`, files put recorded."""
 
     def __init__(self, madison: list[str]):
         self.madison, self.scripts, self.put, self.logged = madison, [], {}, []
-        self.current_op_global_arguments = {"_sudo_password": "secret", "_serial": False}
+        self.executing_op_hash = "op"
 
     def run_shell_command(self, command, **arguments):
         assert arguments == {"_sudo": True, "_sudo_password": "secret"}
@@ -158,6 +164,7 @@ class Host:
         return True, SimpleNamespace(stdout_lines=lines, stderr_lines=[])
 
     def put_file(self, source, remote, **arguments):
+        assert arguments == {"mode": 0o644, "user": "root", "group": "root", "_sudo": True, "_sudo_password": "secret"}
         self.put[remote] = source.read().decode() if hasattr(source, "read") else open(source, "rb").read()
         return True
 
@@ -171,7 +178,7 @@ class Host:
 def test_a_host_is_served_exactly_the_kept_versions_its_sources_dropped(tmp_path):
     deb = keep(tmp_path)
     host = Host([" ros-jazzy-desktop | 0.12.0-1noble | http://packages.ros.org/ros2/ubuntu noble/main"])
-    assert debs_ops.serve_dropped(None, host, str(tmp_path), KEY, TAKEN, 60)
+    assert debs_ops.serve_dropped(STATE, host, str(tmp_path), KEY, TAKEN, 60)
     assert host.put[f"{debs_ops.LOCAL_DIR}/{deb.file}"] == BODY
     assert host.put[f"{debs_ops.LOCAL_DIR}/Packages"] == deb.stanza()
     assert "Trusted: yes" in host.put[debs_ops.SOURCE_FILE] and f"file:{debs_ops.LOCAL_DIR}" in host.put[debs_ops.SOURCE_FILE]
@@ -183,7 +190,7 @@ def test_a_host_is_served_exactly_the_kept_versions_its_sources_dropped(tmp_path
 def test_a_host_whose_sources_list_every_kept_version_gets_no_local_source(tmp_path):
     keep(tmp_path)
     host = Host([f" ros-jazzy-desktop | {DESKTOP[1]} | http://packages.ros.org/ros2/ubuntu noble/main"])
-    assert debs_ops.serve_dropped(None, host, str(tmp_path), KEY, TAKEN, 60)
+    assert debs_ops.serve_dropped(STATE, host, str(tmp_path), KEY, TAKEN, 60)
     assert host.put == {}
     assert f"rm -rf {debs_ops.SOURCE_FILE} {debs_ops.LOCAL_DIR}" in host.scripts[-1]
 
@@ -192,7 +199,7 @@ def test_a_kept_file_changed_on_the_controller_is_never_served(tmp_path):
     deb = keep(tmp_path)
     (tmp_path / "jazzy-amd64" / deb.file).write_bytes(BODY + b"changed")
     host = Host([" ros-jazzy-desktop | 0.12.0-1noble | http://packages.ros.org/ros2/ubuntu noble/main"])
-    assert not debs_ops.serve_dropped(None, host, str(tmp_path), KEY, TAKEN, 60)
+    assert not debs_ops.serve_dropped(STATE, host, str(tmp_path), KEY, TAKEN, 60)
     assert host.put == {}
     assert host.logged == [f"roslab: class lock: {tmp_path / 'jazzy-amd64' / deb.file} is not the file `roslab lock` "
                            "kept (its sha256 differs): remove it and run `roslab lock` again while an archive lists it"]

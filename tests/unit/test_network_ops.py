@@ -315,7 +315,7 @@ def quick(monkeypatch):
     monkeypatch.setattr(network_confirm, "ROLLBACK_GRACE", 2)
     monkeypatch.setattr(network_confirm, "OLD_ADDRESS_PROBE_INTERVAL", 0)
     monkeypatch.setattr(network_confirm.time, "sleep", lambda seconds: None)
-    monkeypatch.setattr(network_confirm, "_connector_arguments", lambda state, host: {"_sudo": True})
+    monkeypatch.setattr(network_confirm, "op_connector_arguments", lambda state, host: {"_sudo": True})
 
 
 def confirm(host, tmp_path, timeout=1):
