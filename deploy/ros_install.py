@@ -107,9 +107,11 @@ def locked_versions_met(typed: HostSettings, distro: str, packages: list[str]) -
     # A package the lists do not know (a fresh host: its ROS source comes with this run) is
     # judged by apt at install time, asked for at its locked version.
     available = (host.get_fact(lock_ops.AptVersionsNow, packages=needed) or {}) if needed else {}
-    key = class_lock.host_group_key(distro, machine) or ""
-    root = class_debs.class_root(typed.class_lock_debs_dir, str(roster_path)) if typed.class_lock_debs_dir else None
-    kept = class_debs.read_kept(root, key) if needed and root else {}
+    # the controller's kept .debs of the group: read only when there is something to install or move
+    key, root, kept = class_lock.host_group_key(distro, machine) or "", None, {}
+    if needed and typed.class_lock_debs_dir:
+        root = class_debs.class_root(typed.class_lock_debs_dir, str(roster_path))
+        kept = class_debs.read_kept(root, key)
     problems = lock_ops.unmet(group, [name for name in needed if available.get(name)
                                       and (name, group.packages[name]) not in kept], available)
     if problems:
