@@ -8,7 +8,8 @@ locked packages that apt downloaded onto the group's hosts (what roslab's runs i
 image's own packages come with the image, on every Pi), and `roslab lock --update` the versions
 it moves them to. Each file is downloaded on a host of the group (`apt-get download`, while its
 sources still list it) and checked on the controller against the SHA256 of the index that apt
-verified on that host (`apt-cache show`), under class_lock_debs_dir, in a folder per class (its roster's folder: `class_root`):
+verified on that host (`apt-cache show`), under class_lock_debs_dir, in a folder per class (its
+roster's folder: `class_root`):
 
     <class_lock_debs_dir>/<class>/<distro>-<architecture>/Packages        a stanza per kept .deb
     <class_lock_debs_dir>/<class>/<distro>-<architecture>/<file>.deb
@@ -166,8 +167,7 @@ def wanted(group: LockedGroup, downloaded: list[str], architecture: str, kept: d
 def kept_file(root: str | Path, key: str, deb: KeptDeb, downloaded: Path) -> str | None:
     """Move a downloaded file into the group's folder if its sha256 is the index's; else remove
     it and say why (one line)."""
-    actual = hashlib.sha256(downloaded.read_bytes()).hexdigest()
-    if actual != deb.sha256:
+    if file_sha256(downloaded) != deb.sha256:  # read in blocks: a .deb may be hundreds of MB
         downloaded.unlink(missing_ok=True)
         return f"{deb.name}={deb.version}: the downloaded file's sha256 is not its index's: not kept"
     target = folder(root, key) / deb.file
@@ -185,8 +185,9 @@ def pruned(root: str | Path, key: str, group: LockedGroup,
     for pair, deb in debs.items():
         if group.packages.get(deb.name) == deb.version and file_sha256(path / deb.file) == deb.sha256:
             out[pair] = deb
+    files = {deb.file for deb in out.values()}
     for entry in path.glob("*.deb") if path.is_dir() else ():
-        if entry.name not in {deb.file for deb in out.values()}:
+        if entry.name not in files:
             entry.unlink(missing_ok=True)
     return out
 

@@ -146,15 +146,16 @@ def serve_dropped(state, host, root: str, key: str, date: str, lock_timeout: int
     if not _run(state, host, f"install -d -m 755 {LOCAL_DIR}")[0]:
         return False
     packages = "\n".join(dropped[pair].stanza() for pair in sorted(dropped))
-    files: list[tuple[str | io.BytesIO, str]] = [(str(folder / deb.file), f"{LOCAL_DIR}/{deb.file}")
-                                                 for deb in dropped.values()
-             if served.get(deb.file) != deb.sha256]
+    files: list[tuple[str | io.BytesIO, str]] = [
+        (str(folder / deb.file), f"{LOCAL_DIR}/{deb.file}") for deb in dropped.values()
+        if served.get(deb.file) != deb.sha256]  # a file the host serves already is not copied again
     files += [(io.BytesIO(packages.encode()), f"{LOCAL_DIR}/Packages"),
               (io.BytesIO(class_debs.release_file(packages, date).encode()), f"{LOCAL_DIR}/Release"),
               (io.BytesIO(SOURCE.encode()), SOURCE_FILE)]
     if not all(_put(state, host, source, remote) for source, remote in files):
         return False
-    stale = [name for name in served if name not in {deb.file for deb in dropped.values()}]
+    serving = {deb.file for deb in dropped.values()}
+    stale = [name for name in served if name not in serving]
     remove = f"rm -f -- {' '.join(shlex.quote(f'{LOCAL_DIR}/{name}') for name in stale)}; " if stale else ""
     if not _run(state, host, f"{remove}{update}")[0]:
         return False
